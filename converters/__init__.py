@@ -1,0 +1,1 @@
+"""Converters: recorded traffic and synthetic traffic into MCAP scenes (the only MCAP writers)."""

@@ -1,0 +1,1 @@
+"""Recordings: results streamed into Rerun .rrd files (the only package that imports rerun)."""

@@ -1,0 +1,90 @@
+"""The ``replay`` command line.
+
+Subcommands live in ``replay/commands/<name>.py`` and are imported only when used, so that
+``replay --help`` stays fast. User errors raised by any package become one line
+``Error: ...`` and exit code 1, without a traceback.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+
+import click
+
+from replay import __version__
+
+# name -> "module:attribute"; the order is the order of ``replay --help``.
+COMMANDS: dict[str, str] = {
+    "demo": "replay.commands.demo:demo",
+    "run": "replay.commands.run:run",
+    "convert": "replay.commands.convert:convert",
+    "inspect": "replay.commands.inspect:inspect_cmd",
+    "calibrate": "replay.commands.calibrate:calibrate",
+    "stats": "replay.commands.stats:stats",
+    "experiment": "replay.commands.experiment:experiment",
+    "batch": "replay.commands.batch:batch",
+    "models": "replay.commands.models:models",
+}
+
+
+def user_errors() -> tuple[type[BaseException], ...]:
+    """Exception types whose message is meant for the user (no traceback)."""
+    from converters.errors import ConversionError
+    from recordings.errors import RecordingError
+    from replay.errors import ReplayError
+    from risk.errors import RiskError
+
+    return (RiskError, ConversionError, ReplayError, RecordingError, OSError)
+
+
+class LazyGroup(click.Group):
+    """A click group that imports each subcommand's module on first use."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return [name for name, target in COMMANDS.items() if _module_exists(target)]
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        target = COMMANDS.get(cmd_name)
+        if target is None or not _module_exists(target):
+            return None
+        module_name, attr = target.split(":")
+        return getattr(importlib.import_module(module_name), attr)
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except user_errors() as exc:
+            message = str(exc) or type(exc).__name__
+            if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in message:
+                message = f"{message}: {exc.filename}"
+            raise click.ClickException(message) from None
+
+
+def _module_exists(target: str) -> bool:
+    return importlib.util.find_spec(target.split(":")[0]) is not None
+
+
+@click.group(
+    cls=LazyGroup,
+    context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100},
+)
+@click.version_option(__version__, "--version", "-V", prog_name="replay")
+def main() -> None:
+    """Importance filtering with driving risk models, on recorded and synthetic traffic.
+
+    Convert traffic logs to MCAP scenes, replay them through the nine risk models of
+    Puphal et al. (ICRAE 2022) and their filter cascade, and review the results in the
+    Rerun viewer or as tables.
+
+    \b
+    Start here:
+      replay demo                      a synthetic intersection, end to end
+      replay run scene.mcap            the cascade over every frame -> scene.rrd
+      replay models                    the nine risk models and their parameters
+    """
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
