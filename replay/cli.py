@@ -40,13 +40,21 @@ def user_errors() -> tuple[type[BaseException], ...]:
 
 
 class LazyGroup(click.Group):
-    """A click group that imports each subcommand's module on first use."""
+    """A click group that imports each subcommand's module on first use.
+
+    ``lazy_commands`` maps a subcommand name to ``"module:attribute"``; entries whose
+    module does not exist are not listed.
+    """
+
+    def __init__(self, *args, lazy_commands: dict[str, str] | None = None, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.lazy_commands = COMMANDS if lazy_commands is None else lazy_commands
 
     def list_commands(self, ctx: click.Context) -> list[str]:
-        return [name for name, target in COMMANDS.items() if _module_exists(target)]
+        return [name for name, target in self.lazy_commands.items() if _module_exists(target)]
 
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
-        target = COMMANDS.get(cmd_name)
+        target = self.lazy_commands.get(cmd_name)
         if target is None or not _module_exists(target):
             return None
         module_name, attr = target.split(":")
