@@ -1,0 +1,236 @@
+"""The filter cascade of Puphal et al. (ICRAE 2022), Sec. VI, Fig. 6.
+
+Filter stages run in order (default: path distance, trajectory distance, 2D Gaussians);
+each evaluates *its own* model only on the agents that survived the previous stages (a
+sub-frame built with :meth:`risk.Frame.select`, so the compute saving is real) and keeps
+an agent when its risk reaches the stage's threshold. The survivors are then sorted by
+survival risk into nested planner tiers (behavior ⊇ interactive ⊇ cooperative).
+
+Every frame's report compares the cascade with the survival-analysis baseline computed on
+*all* agents: which baseline-important agents each stage dropped (false negatives) and
+what each stage cost beside what survival analysis on all agents costs.
+
+Choices the spec leaves open (documented here, see also ``docs/cascade.md``):
+
+- Each stage is one ``risk.evaluate`` call on its sub-frame, so its time includes that
+  model's own prediction on the sub-frame; the survival-on-all reference likewise
+  includes its own prediction on all agents. Times are wall-clock ``time.perf_counter``.
+- A stage with no agent left to judge is not run; its time is 0.
+- Tiers are nested: an agent reaches tier ``k`` when it reached tier ``k - 1``, its
+  survival risk is ``>= tiers[k].min_survival_risk`` and it is among the ``max_agents``
+  riskiest of tier ``k - 1`` (ties broken by agent order). A survivor below the first
+  tier's minimum gets tier -1 although it was kept.
+"""
+
+from __future__ import annotations
+
+import math
+import pathlib
+import tomllib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from risk.errors import RiskError
+
+DEFAULT_CASCADE_PATH = pathlib.Path(__file__).with_name("default_cascade.toml")
+SURVIVAL_MODEL = "survival"
+
+#: Signature of ``risk.evaluate``: frame, model names, parameters -> name -> (N,) risks.
+Evaluator = Callable[..., dict[str, np.ndarray]]
+
+
+class CascadeConfigError(RiskError):
+    """An invalid cascade configuration; the message names the file and the key."""
+
+    def __init__(self, key: str, problem: str, *, source: str = ""):
+        self.key = key
+        self.source = source
+        where = f"{source}: " if source else ""
+        super().__init__(f"{where}{key}: {problem}")
+
+
+# ---------------------------------------------------------------------- configuration
+@dataclass(frozen=True)
+class Stage:
+    """One filter stage: keep an agent when ``risk >= threshold`` under ``model``."""
+
+    model: str  # a name in risk.MODELS, e.g. "path_distance"
+    threshold: float  # in the model's own units (distance risks in (0, 1], R_G in 1/m^2)
+
+
+@dataclass(frozen=True)
+class Tier:
+    """A planner tier; tiers are nested, each one a subset of the one before."""
+
+    name: str  # "behavior", "interactive", "cooperative"
+    min_survival_risk: float  # survivors with survival risk >= this reach the tier
+    max_agents: int | None = None  # optional cap: only the top-k by survival risk
+
+
+@dataclass(frozen=True)
+class CascadeConfig:
+    """Stages, tiers and the survival baseline threshold of one cascade."""
+
+    stages: tuple[Stage, ...]
+    tiers: tuple[Tier, ...]
+    baseline_threshold: float = 1e-25  # an agent is important when R_S >= this (paper)
+    provenance: str = ""  # how the thresholds were made (calibration record)
+
+    @property
+    def stage_names(self) -> tuple[str, ...]:
+        return tuple(s.model for s in self.stages)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], *, source: str = "") -> CascadeConfig:
+        """Build from a parsed TOML document; raises CascadeConfigError naming the key."""
+        return _parse_config(data, source)
+
+    @classmethod
+    def from_toml(cls, path: str | pathlib.Path) -> CascadeConfig:
+        """Read and validate a cascade TOML file."""
+        path = pathlib.Path(path)
+        try:
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
+        except tomllib.TOMLDecodeError as exc:
+            raise CascadeConfigError("toml", f"not valid TOML ({exc})", source=str(path)) from None
+        except UnicodeDecodeError:
+            raise CascadeConfigError("toml", "not a UTF-8 text file", source=str(path)) from None
+        return _parse_config(data, str(path))
+
+    @classmethod
+    def default(cls) -> CascadeConfig:
+        """The calibrated default cascade shipped with the package."""
+        return cls.from_toml(DEFAULT_CASCADE_PATH)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The TOML document of this configuration (``max_agents`` omitted when None)."""
+        tiers = []
+        for t in self.tiers:
+            entry: dict[str, Any] = {"name": t.name, "min_survival_risk": t.min_survival_risk}
+            if t.max_agents is not None:
+                entry["max_agents"] = t.max_agents
+            tiers.append(entry)
+        return {
+            "provenance": self.provenance,
+            "baseline_threshold": self.baseline_threshold,
+            "stages": [{"model": s.model, "threshold": s.threshold} for s in self.stages],
+            "tiers": tiers,
+        }
+
+    def to_toml(self, path: str | pathlib.Path) -> pathlib.Path:
+        """Write the configuration atomically (temp file in the same folder, then replace)."""
+        import os
+        import tempfile
+
+        import tomli_w
+
+        path = pathlib.Path(path)
+        text = tomli_w.dumps(self.to_dict(), multiline_strings=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as fh:
+                fh.write(text)
+            os.replace(tmp, path)
+        except BaseException:
+            pathlib.Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+
+_TOP_KEYS = {"provenance", "baseline_threshold", "stages", "tiers"}
+_STAGE_KEYS = {"model", "threshold"}
+_TIER_KEYS = {"name", "min_survival_risk", "max_agents"}
+
+
+def _parse_config(data: Mapping[str, Any], source: str) -> CascadeConfig:
+    from risk import MODELS  # the registry; imported late so this module loads alone
+
+    def fail(key: str, problem: str) -> CascadeConfigError:
+        return CascadeConfigError(key, problem, source=source)
+
+    def check_keys(table: Any, allowed: set[str], required: set[str], prefix: str) -> None:
+        if not isinstance(table, Mapping):
+            raise fail(prefix.rstrip("."), "expected a table")
+        for key in table:
+            if key not in allowed:
+                raise fail(f"{prefix}{key}", f"unknown key; expected one of {sorted(allowed)}")
+        for key in sorted(required - set(table)):
+            raise fail(f"{prefix}{key}", "missing key")
+
+    def number(value: Any, key: str) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise fail(key, f"expected a number, got {value!r}")
+        value = float(value)
+        if math.isnan(value) or value < 0:
+            raise fail(key, f"must be a number >= 0, got {value!r}")
+        return value
+
+    check_keys(data, _TOP_KEYS, {"stages", "tiers"}, "")
+    provenance = data.get("provenance", "")
+    if not isinstance(provenance, str):
+        raise fail("provenance", "expected a string")
+    baseline = number(data.get("baseline_threshold", 1e-25), "baseline_threshold")
+
+    raw_stages = data["stages"]
+    if not isinstance(raw_stages, list) or not raw_stages:
+        raise fail("stages", "expected a non-empty array of tables ([[stages]])")
+    stages = []
+    for i, raw in enumerate(raw_stages):
+        prefix = f"stages[{i}]."
+        check_keys(raw, _STAGE_KEYS, _STAGE_KEYS, prefix)
+        model = raw["model"]
+        if model not in MODELS:
+            raise fail(f"{prefix}model", f"unknown model {model!r}; valid: {', '.join(MODELS)}")
+        stages.append(Stage(model=model, threshold=number(raw["threshold"], f"{prefix}threshold")))
+
+    raw_tiers = data["tiers"]
+    if not isinstance(raw_tiers, list) or not raw_tiers:
+        raise fail("tiers", "expected a non-empty array of tables ([[tiers]])")
+    tiers = []
+    for i, raw in enumerate(raw_tiers):
+        prefix = f"tiers[{i}]."
+        check_keys(raw, _TIER_KEYS, {"name", "min_survival_risk"}, prefix)
+        name = raw["name"]
+        if not isinstance(name, str) or not name:
+            raise fail(f"{prefix}name", "expected a non-empty string")
+        cap = raw.get("max_agents")
+        if cap is not None and (isinstance(cap, bool) or not isinstance(cap, int) or cap < 1):
+            raise fail(f"{prefix}max_agents", f"expected an integer >= 1, got {cap!r}")
+        risk_min = number(raw["min_survival_risk"], f"{prefix}min_survival_risk")
+        tiers.append(Tier(name=name, min_survival_risk=risk_min, max_agents=cap))
+    if len({t.name for t in tiers}) != len(tiers):
+        raise fail("tiers", "tier names must be unique")
+    return CascadeConfig(
+        stages=tuple(stages), tiers=tuple(tiers), baseline_threshold=baseline, provenance=provenance
+    )
+
+
+# ---------------------------------------------------------------------- results
+@dataclass(frozen=True, eq=False)
+class CascadeResult:
+    """The cascade on one frame. ``N = frame.n_agents``; ``S = len(stages)``."""
+
+    stage_names: tuple[str, ...]
+    kept: np.ndarray  # (S, N) bool, kept after stage s (False for ego/invalid)
+    dropped_at: np.ndarray  # (N,) int8, stage that dropped the agent; -1 survived or not judged
+    tier: np.ndarray  # (N,) int8, deepest tier reached (0 = first), -1 if none
+    survival: np.ndarray  # (N,) float64, survival risk of the survivors, NaN otherwise
+    baseline: np.ndarray  # (N,) bool, survival baseline on all agents (R_S >= threshold)
+    false_negatives: np.ndarray  # (S,) int64, baseline agents dropped up to and incl. stage s
+    stage_time_s: np.ndarray  # (S,) float64, s, each stage's compute time on its input set
+    sort_time_s: float  # s, survival on the survivors + tier sorting
+    survival_all_time_s: float  # s, survival on all agents (what the cascade saves)
+    others: np.ndarray  # (N,) bool, valid and not the ego
+    survival_all: np.ndarray = field(repr=False)  # (N,) float64 R_S on all agents (NaN: ego)
+
+    @property
+    def n_kept(self) -> np.ndarray:
+        """(S,) number of agents kept after each stage."""
+        return self.kept.sum(axis=1)
+
+    def tier_counts(self, n_tiers: int) -> np.ndarray:
+        """(n_tiers,) number of agents that reached each tier (nested counts)."""
+        return np.array([(self.tier >= k).sum() for k in range(n_tiers)], dtype=np.int64)
