@@ -26,14 +26,16 @@ from __future__ import annotations
 
 import math
 import pathlib
+import time
 import tomllib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from risk.errors import RiskError
+from risk.frame import Frame
 
 DEFAULT_CASCADE_PATH = pathlib.Path(__file__).with_name("default_cascade.toml")
 SURVIVAL_MODEL = "survival"
@@ -234,3 +236,110 @@ class CascadeResult:
     def tier_counts(self, n_tiers: int) -> np.ndarray:
         """(n_tiers,) number of agents that reached each tier (nested counts)."""
         return np.array([(self.tier >= k).sum() for k in range(n_tiers)], dtype=np.int64)
+
+
+# ---------------------------------------------------------------------- running
+def run_cascade(
+    frame: Frame,
+    config: CascadeConfig,
+    *,
+    params: Mapping[str, Any] | None = None,
+    evaluate: Evaluator | None = None,
+) -> CascadeResult:
+    """Run the cascade on one frame.
+
+    Stage ``s`` evaluates ``config.stages[s].model`` on a sub-frame of the ego and the
+    agents kept by stage ``s - 1`` (all valid others for the first stage). ``params`` is
+    passed to ``evaluate`` (``risk.evaluate`` by default) unchanged.
+    """
+    if evaluate is None:
+        from risk import evaluate as default_evaluate
+
+        evaluate = default_evaluate
+    n, n_stages = frame.n_agents, len(config.stages)
+    others = frame.others
+
+    start = time.perf_counter()
+    survival_all = np.asarray(
+        evaluate(frame, models=[SURVIVAL_MODEL], params=params)[SURVIVAL_MODEL], dtype=np.float64
+    )
+    survival_all_time_s = time.perf_counter() - start
+    # NaN (ego, invalid) compares False, so they are never baseline-important.
+    baseline = others & (np.nan_to_num(survival_all, nan=-np.inf) >= config.baseline_threshold)
+
+    kept = np.zeros((n_stages, n), dtype=bool)
+    dropped_at = np.full(n, -1, dtype=np.int8)
+    stage_time_s = np.zeros(n_stages)
+    current = others
+    for s, stage in enumerate(config.stages):
+        candidates = np.flatnonzero(current)
+        if candidates.size:
+            risk_s, stage_time_s[s] = _timed_on_subset(
+                frame, candidates, stage.model, params, evaluate
+            )
+            keep = np.nan_to_num(risk_s, nan=-np.inf) >= stage.threshold
+            kept[s, candidates[keep]] = True
+            dropped_at[candidates[~keep]] = s
+        current = kept[s]
+    false_negatives = (baseline[None, :] & ~kept).sum(axis=1).astype(np.int64)
+
+    survivors = np.flatnonzero(current)
+    survival = np.full(n, np.nan)
+    tier = np.full(n, -1, dtype=np.int8)
+    sort_time_s = 0.0
+    if survivors.size:
+        start = time.perf_counter()
+        risk_surv, _ = _timed_on_subset(frame, survivors, SURVIVAL_MODEL, params, evaluate)
+        survival[survivors] = risk_surv
+        tier[survivors] = assign_tiers(risk_surv, config.tiers)
+        sort_time_s = time.perf_counter() - start
+
+    return CascadeResult(
+        stage_names=config.stage_names,
+        kept=kept,
+        dropped_at=dropped_at,
+        tier=tier,
+        survival=survival,
+        baseline=baseline,
+        false_negatives=false_negatives,
+        stage_time_s=stage_time_s,
+        sort_time_s=sort_time_s,
+        survival_all_time_s=survival_all_time_s,
+        others=others,
+        survival_all=survival_all,
+    )
+
+
+def _timed_on_subset(
+    frame: Frame,
+    agents: np.ndarray,
+    model: str,
+    params: Mapping[str, Any] | None,
+    evaluate: Evaluator,
+) -> tuple[np.ndarray, float]:
+    """``model``'s risk ``(len(agents),)`` on a sub-frame of the ego plus ``agents``, and
+    the wall time (s) of building the sub-frame and evaluating it."""
+    start = time.perf_counter()
+    sub = frame.select(np.concatenate(([frame.ego], agents)))
+    risk_sub = np.asarray(evaluate(sub, models=[model], params=params)[model], dtype=np.float64)
+    elapsed = time.perf_counter() - start
+    # The ego is row 0 of the sub-frame; the others follow in the order of ``agents``.
+    return risk_sub[1:], elapsed
+
+
+def assign_tiers(survival: np.ndarray, tiers: Sequence[Tier]) -> np.ndarray:
+    """Deepest tier of each agent, ``(K,)`` int8 from survival risks ``(K,)``; -1: none.
+
+    Tier ``k`` holds the agents of tier ``k - 1`` whose risk is ``>= min_survival_risk``,
+    capped to the ``max_agents`` riskiest (ties: the lower index first).
+    """
+    risk = np.nan_to_num(np.asarray(survival, dtype=np.float64), nan=-np.inf)
+    order = np.argsort(-risk, kind="stable")  # riskiest first
+    result = np.full(risk.shape, -1, dtype=np.int8)
+    members = order
+    for k, t in enumerate(tiers):
+        members = members[risk[members] >= t.min_survival_risk]  # stays sorted by risk
+        if t.max_agents is not None:
+            members = members[: t.max_agents]
+        result[members] = k
+    return result
