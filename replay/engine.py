@@ -9,14 +9,23 @@ half-written output is ever left behind.
 
 from __future__ import annotations
 
+import contextlib
+import itertools
+import os
 import pathlib
+import sys
+import time
+import warnings
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
+from tqdm import tqdm
 
-from risk.cascade import CascadeConfig, CascadeResult
-from risk.frame import Frame, LaneMap
+from replay.errors import ReplayError
+from risk.cascade import SURVIVAL_MODEL, CascadeConfig, CascadeResult, Evaluator, run_cascade
+from risk.frame import Frame, LaneMap, Scene
 
 
 @dataclass(frozen=True, eq=False)
@@ -77,6 +86,343 @@ class RunSummary:
     sort_time_s: float  # total survival-on-survivors + sorting time
     survival_all_time_s: float  # total survival-on-all-agents time
     models_time_s: float  # total time of the all-model evaluation (timelines)
+    cascade_time_s: float  # total time of run_cascade (stages, sort, survival on all)
     read_time_s: float  # total time spent reading frames
     sink_time_s: dict[str, float] = field(default_factory=dict)  # per sink class
     outputs: tuple[pathlib.Path, ...] = ()
+
+
+class ReplayWarning(UserWarning):
+    """Something the user should know about a replay that did not stop it."""
+
+
+class SceneSource(Protocol):
+    """What the engine reads: ``replay.reader.SceneReader`` or an in-memory scene."""
+
+    map: LaneMap
+    metadata: dict[str, str]
+    labels: dict[str, tuple[int, ...]]
+    frame_period_s: float
+    n_frames: int
+
+    def frames(self) -> Iterator[Frame]: ...
+
+
+@dataclass(frozen=True, eq=False)
+class InMemoryScene:
+    """A :class:`risk.Scene` seen as a :class:`SceneSource` (tests, the demo)."""
+
+    scene: Scene
+
+    @property
+    def map(self) -> LaneMap:
+        return self.scene.map
+
+    @property
+    def metadata(self) -> dict[str, str]:
+        return dict(self.scene.metadata)
+
+    @property
+    def labels(self) -> dict[str, tuple[int, ...]]:
+        return dict(self.scene.labels)
+
+    @property
+    def frame_period_s(self) -> float:
+        return self.scene.frame_period_s
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.scene.frames)
+
+    def frames(self) -> Iterator[Frame]:
+        return iter(self.scene.frames)
+
+
+class _Totals:
+    """Running sums over the processed frames (for RunSummary)."""
+
+    def __init__(self, n_stages: int, n_tiers: int):
+        self.frames = 0
+        self.skipped: list[int] = []
+        self.ids: set[int] = set()  # valid agents of the processed frames
+        self.ids_skipped: set[int] = set()  # valid agents of the skipped frames
+        self.others = 0
+        self.kept = np.zeros(n_stages, dtype=np.int64)
+        self.tiers = np.zeros(n_tiers, dtype=np.int64)
+        self.baseline = 0
+        self.fn = np.zeros(n_stages, dtype=np.int64)
+        self.stage_time_s = np.zeros(n_stages)
+        self.sort_time_s = 0.0
+        self.survival_all_time_s = 0.0
+        self.models_time_s = 0.0
+        self.cascade_time_s = 0.0
+        self.read_time_s = 0.0
+        self.sink_time_s: dict[str, float] = {}
+
+    def add(self, frame: Frame, res: CascadeResult) -> None:
+        self.frames += 1
+        self.ids.update(frame.ids[frame.valid].tolist())
+        self.others += int(res.others.sum())
+        self.kept += res.n_kept
+        self.tiers += res.tier_counts(self.tiers.size)
+        self.baseline += int(res.baseline.sum())
+        self.fn += res.false_negatives
+        self.stage_time_s += res.stage_time_s
+        self.sort_time_s += res.sort_time_s
+        self.survival_all_time_s += res.survival_all_time_s
+
+
+def run_scene(
+    source: str | os.PathLike[str] | SceneSource | Scene,
+    *,
+    sinks: Sequence[Sink] = (),
+    cascade: CascadeConfig | None = None,
+    ego: int | None = None,
+    models: Sequence[str] | None = None,
+    params: Mapping[str, Any] | None = None,
+    progress: bool = True,
+    evaluate: Evaluator | None = None,
+) -> RunSummary:
+    """Replay a scene through every model and the cascade, feeding ``sinks``.
+
+    ``source``: a scene file (opened with ``replay.reader.open_scene``), a reader, or an
+    in-memory :class:`risk.Scene`. ``ego``: the agent id to see the scene from (default:
+    the recording's ego). ``models``: the models evaluated on all agents for the
+    timelines (default: every registered model). Frames where the ego is absent or
+    invalid are skipped and counted (one :class:`ReplayWarning` at the end). On any error
+    every sink is aborted, so no partial output stays behind.
+    """
+    reader, path = _open(source)
+    cascade = CascadeConfig.default() if cascade is None else cascade
+    if evaluate is None:
+        from risk import evaluate as default_evaluate
+
+        evaluate = default_evaluate
+    model_names = _model_names(models)
+    try:
+        return _run(reader, path, sinks, cascade, ego, model_names, params, progress, evaluate)
+    finally:
+        close = getattr(reader, "close", None)
+        if reader is not source and callable(close):
+            close()  # a reader we opened ourselves
+
+
+def _run(
+    reader: Any,
+    path: pathlib.Path | None,
+    sinks: Sequence[Sink],
+    cascade: CascadeConfig,
+    ego: int | None,
+    model_names: tuple[str, ...],
+    params: Mapping[str, Any] | None,
+    progress: bool,
+    evaluate: Evaluator,
+) -> RunSummary:
+    entries = _entries(reader)
+    start = time.perf_counter()
+    first = next(entries, None)
+    read_first_s = time.perf_counter() - start
+    if first is None:
+        raise ReplayError(f"{path or 'scene'}: the scene has no frames")
+    ego_id = _scene_ego_id(reader, first[1]) if ego is None else int(ego)
+    info = SceneInfo(
+        map=reader.map,
+        metadata=dict(reader.metadata),
+        labels=dict(reader.labels),
+        frame_period_s=float(reader.frame_period_s),
+        ego_id=ego_id,
+        cascade=cascade,
+        model_names=model_names,
+        source=path,
+        n_frames=int(reader.n_frames),
+    )
+    totals = _Totals(len(cascade.stages), len(cascade.tiers))
+    totals.read_time_s = read_first_s
+    begun: list[Sink] = []
+    try:
+        for sink in sinks:
+            _timed_sink(totals, sink, "begin", info)
+            begun.append(sink)
+        bar = tqdm(
+            total=info.n_frames, disable=not progress, file=sys.stderr, unit="frame",
+            desc=f"replay {path.name if path else 'scene'}", leave=False,
+        )  # fmt: skip
+        with bar:
+            for index, frame in _timed(totals, itertools.chain([first], entries)):
+                bar.update()
+                seen = None if frame is None else _seen_from(frame, ego_id)
+                if seen is None:
+                    totals.skipped.append(index)
+                    if frame is not None:
+                        totals.ids_skipped.update(frame.ids[frame.valid].tolist())
+                    continue
+                result = _process(index, seen, cascade, model_names, params, evaluate, totals)
+                for sink in begun:
+                    _timed_sink(totals, sink, "add", result)
+        if totals.frames == 0:
+            raise ReplayError(_no_ego_message(ego_id, totals.ids_skipped))
+        for sink in begun:
+            _timed_sink(totals, sink, "close")
+    except BaseException:
+        for sink in begun:
+            with contextlib.suppress(Exception):
+                sink.abort()
+        raise
+    if totals.skipped:
+        warnings.warn(_skipped_message(ego_id, totals.skipped), ReplayWarning, stacklevel=3)
+    return _summary(totals, info, sinks)
+
+
+# ---------------------------------------------------------------------- helpers
+def _open(source: str | os.PathLike[str] | SceneSource | Scene) -> tuple[Any, pathlib.Path | None]:
+    if isinstance(source, Scene):
+        return InMemoryScene(source), None
+    if isinstance(source, (str, os.PathLike)):
+        from replay.reader import open_scene
+
+        path = pathlib.Path(source)
+        return open_scene(path), path
+    path = getattr(source, "path", None)
+    return source, None if path is None else pathlib.Path(path)
+
+
+def _model_names(models: Sequence[str] | None) -> tuple[str, ...]:
+    from risk import MODELS
+    from risk.errors import UnknownModelError
+
+    if models is None:
+        return tuple(MODELS)
+    for name in models:
+        if name not in MODELS:
+            raise UnknownModelError(name, list(MODELS))
+    return tuple(dict.fromkeys(models))  # unique, in the order given
+
+
+def _entries(reader: Any) -> Iterator[tuple[int, int, Frame | None]]:
+    """(index, ego id named by the recording, frame or None) of every stored frame.
+
+    The reader gives None for a frame whose recorded ego is missing (a Frame cannot exist
+    without a valid ego); such frames are skipped whatever ``--ego`` says.
+    """
+    if hasattr(reader, "entries"):
+        for entry in reader.entries():
+            yield int(entry.index), int(entry.ego_id), entry.frame
+    else:
+        for index, frame in enumerate(reader.frames()):
+            yield index, frame.ego_id, frame
+
+
+def _scene_ego_id(reader: Any, first_ego_id: int) -> int:
+    """The recording's ego: the scene's ``ego_id`` when every frame shares one, else the
+    first frame's ego."""
+    value = getattr(reader, "ego_id", None)
+    if value is None:
+        value = dict(reader.metadata).get("ego_id")
+    try:
+        return int(value) if value is not None else first_ego_id
+    except ValueError:
+        return first_ego_id
+
+
+def _seen_from(frame: Frame, ego_id: int) -> Frame | None:
+    """The frame with ``ego_id`` as its ego; None when that agent is absent or invalid."""
+    if frame.ego_id == ego_id:
+        return frame
+    hits = np.flatnonzero(frame.ids == ego_id)
+    if hits.size == 0 or not frame.valid[hits[0]]:
+        return None
+    return frame.with_ego(int(hits[0]))
+
+
+def _timed(
+    totals: _Totals, entries: Iterator[tuple[int, int, Frame | None]]
+) -> Iterator[tuple[int, Frame | None]]:
+    """(index, frame) of ``entries``, adding the time spent reading to ``read_time_s``."""
+    while True:
+        start = time.perf_counter()
+        entry = next(entries, None)
+        totals.read_time_s += time.perf_counter() - start
+        if entry is None:
+            return
+        yield entry[0], entry[2]
+
+
+def _timed_sink(totals: _Totals, sink: Sink, method: str, *args: Any) -> None:
+    start = time.perf_counter()
+    getattr(sink, method)(*args)
+    name = type(sink).__name__
+    totals.sink_time_s[name] = totals.sink_time_s.get(name, 0.0) + time.perf_counter() - start
+
+
+def _process(
+    index: int,
+    frame: Frame,
+    cascade: CascadeConfig,
+    model_names: tuple[str, ...],
+    params: Mapping[str, Any] | None,
+    evaluate: Evaluator,
+    totals: _Totals,
+) -> FrameResult:
+    # Survival on all agents is the cascade's baseline; it is computed (and timed) there
+    # once and reused for the timeline instead of evaluating it twice.
+    timeline_models = [m for m in model_names if m != SURVIVAL_MODEL]
+    start = time.perf_counter()
+    risks = evaluate(frame, models=timeline_models, params=params) if timeline_models else {}
+    totals.models_time_s += time.perf_counter() - start
+    start = time.perf_counter()
+    result = run_cascade(frame, cascade, params=params, evaluate=evaluate)
+    totals.cascade_time_s += time.perf_counter() - start
+    risks = {**risks, SURVIVAL_MODEL: result.survival_all}
+    totals.add(frame, result)
+    return FrameResult(
+        index=index,
+        frame=frame,
+        risks={m: np.asarray(risks[m], dtype=np.float64) for m in model_names},
+        cascade=result,
+    )
+
+
+def _no_ego_message(ego_id: int, ids_seen: set[int]) -> str:
+    some = ", ".join(str(i) for i in sorted(ids_seen)[:8])
+    more = ", ..." if len(ids_seen) > 8 else ""
+    return (
+        f"agent id {ego_id} is not a valid agent in any frame of the scene; "
+        f"valid ids include {some}{more}"
+    )
+
+
+def _skipped_message(ego_id: int, skipped: list[int]) -> str:
+    shown = ", ".join(str(i) for i in skipped[:5]) + (", ..." if len(skipped) > 5 else "")
+    return (
+        f"{len(skipped)} frame(s) skipped because the ego (id {ego_id}) is missing or "
+        f"invalid there (frames {shown})"
+    )
+
+
+def _summary(totals: _Totals, info: SceneInfo, sinks: Sequence[Sink]) -> RunSummary:
+    n = max(totals.frames, 1)
+    outputs = tuple(
+        pathlib.Path(p) for p in (getattr(s, "path", None) for s in sinks) if p is not None
+    )
+    return RunSummary(
+        source=info.source,
+        ego_id=info.ego_id,
+        frames=totals.frames,
+        skipped_frames=len(totals.skipped),
+        agents=len(totals.ids),
+        mean_others=totals.others / n,
+        stage_names=info.cascade.stage_names,
+        mean_kept=tuple(float(k) / n for k in totals.kept),
+        tier_names=tuple(t.name for t in info.cascade.tiers),
+        mean_tier=tuple(float(k) / n for k in totals.tiers),
+        baseline_agents=totals.baseline,
+        false_negatives=tuple(int(f) for f in totals.fn),
+        stage_time_s=tuple(float(t) for t in totals.stage_time_s),
+        sort_time_s=totals.sort_time_s,
+        survival_all_time_s=totals.survival_all_time_s,
+        models_time_s=totals.models_time_s,
+        cascade_time_s=totals.cascade_time_s,
+        read_time_s=totals.read_time_s,
+        sink_time_s=dict(totals.sink_time_s),
+        outputs=outputs,
+    )

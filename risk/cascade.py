@@ -186,6 +186,8 @@ def _parse_config(data: Mapping[str, Any], source: str) -> CascadeConfig:
         model = raw["model"]
         if model not in MODELS:
             raise fail(f"{prefix}model", f"unknown model {model!r}; valid: {', '.join(MODELS)}")
+        if any(s.model == model for s in stages):
+            raise fail(f"{prefix}model", f"model {model!r} is already used by an earlier stage")
         stages.append(Stage(model=model, threshold=number(raw["threshold"], f"{prefix}threshold")))
 
     raw_tiers = data["tiers"]
