@@ -401,9 +401,9 @@ def _skipped_message(ego_id: int, skipped: list[int]) -> str:
 
 def _summary(totals: _Totals, info: SceneInfo, sinks: Sequence[Sink]) -> RunSummary:
     n = max(totals.frames, 1)
-    outputs = tuple(
-        pathlib.Path(p) for p in (getattr(s, "path", None) for s in sinks) if p is not None
-    )
+    # A sink names its file as ``path`` (TableSink) or ``output`` (SceneRecorder).
+    files = (getattr(s, "path", None) or getattr(s, "output", None) for s in sinks)
+    outputs = tuple(pathlib.Path(p) for p in files if p is not None)
     return RunSummary(
         source=info.source,
         ego_id=info.ego_id,
