@@ -3,19 +3,47 @@
 Pure numpy, no I/O. The notebook entry point::
 
     from risk import Frame, evaluate, MODELS
+
+    frame = Frame.from_arrays(xy, heading, speed, length, width, paths, ego=0)
+    risks = evaluate(frame)            # {"current_distance": (N,), ..., "survival": (N,)}
+    important = baseline_mask(risks[BASELINE_MODEL])
 """
 
 from risk.errors import FrameError, RiskError, UnknownModelError
 from risk.frame import KIND_NAMES, Frame, Kind, Lane, LaneMap, Scene
+from risk.prediction import (
+    FrameContext,
+    KindUncertainty,
+    PredictionSettings,
+    UncertaintyTable,
+)
+from risk.registry import (
+    BASELINE_MODEL,
+    BASELINE_THRESHOLD,
+    MODELS,
+    ModelSpec,
+    baseline_mask,
+    evaluate,
+)
 
 __all__ = [
+    "BASELINE_MODEL",
+    "BASELINE_THRESHOLD",
     "KIND_NAMES",
+    "MODELS",
     "Frame",
+    "FrameContext",
     "FrameError",
     "Kind",
+    "KindUncertainty",
     "Lane",
     "LaneMap",
+    "ModelSpec",
+    "PredictionSettings",
     "RiskError",
     "Scene",
+    "UncertaintyTable",
     "UnknownModelError",
+    "baseline_mask",
+    "evaluate",
 ]
