@@ -1,1 +1,10 @@
-"""Recordings: results streamed into Rerun .rrd files (the only package that imports rerun)."""
+"""Recordings: results streamed into Rerun .rrd files (the only package that imports rerun).
+
+``SceneRecorder`` is the replay sink that writes one ``.rrd`` per scene; ``layout`` holds
+its entity paths, colours and blueprint (see ``docs/recording.md``).
+"""
+
+from recordings.errors import RecordingError
+from recordings.recorder import LABEL_MODES, SceneRecorder
+
+__all__ = ["LABEL_MODES", "RecordingError", "SceneRecorder"]

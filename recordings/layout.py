@@ -1,0 +1,268 @@
+"""Where everything lives in a replay recording: entity paths, colours, shapes, blueprint.
+
+The recorder (:mod:`recordings.recorder`) decides *what* to log; this module decides
+*where* and *how it looks*, so that the layout can be read (and changed) in one place.
+``docs/recording.md`` describes what a reviewer sees.
+
+Coordinates: the scene is logged in map metres (x east, y north) under :data:`SCENE`; a
+static ``Transform3D(scale=[1, -1, 1])`` on :data:`SCENE` flips it for display, because
+Rerun's 2D view draws y downwards. The data keep their true map coordinates.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import rerun.blueprint as rrb
+
+# ---------------------------------------------------------------------- entity paths
+TIMELINE = "time"  # duration timeline, seconds of the log (Frame.t)
+FRAME_TIMELINE = "frame"  # sequence timeline, frame index in the scene
+
+SCENE = "/scene"
+MAP_LANES = "/scene/map/lanes"
+EGO_BODY = "/scene/ego/body"
+EGO_PATH = "/scene/ego/path"
+AGENTS = "/scene/agents"
+KEPT_BODIES = "/scene/agents/kept"  # survivors of every stage, red by survival risk
+DROPPED_BODIES = "/scene/agents/dropped"  # dropped by a stage, grey
+TIER_OUTLINES = "/scene/agents/tier"  # outline of each survivor in its tier's colour
+MISSED_OUTLINES = "/scene/agents/missed"  # dropped although baseline-important (FN)
+HEADINGS = "/scene/agents/heading"  # a short nose line from the centre to the front
+PREDICTED_PATHS = "/scene/agents/paths"  # forward path candidates of the survivors
+LINKS = "/scene/links"  # one child per stage: ego -> every agent kept after it
+
+RISK = "/risk"  # /risk/<model>/<agent id>: raw risk in the model's units
+RISK_LOG10 = "/risk_log10"  # same, log10, for models whose values span many decades
+FUNNEL = "/funnel"  # agents left after each step of the cascade
+FALSE_NEGATIVES = "/false_negatives"  # cumulative baseline agents dropped up to a stage
+TIMING = "/timing_ms"  # compute time per stage, milliseconds
+SUMMARY = "/summary"  # markdown: scene, cascade settings, legend
+
+THRESHOLD_SERIES = "threshold"  # child of a risk view: the stage threshold, if any
+
+
+def stage_key(index: int, model: str) -> str:
+    """Entity name of stage ``index`` (0-based): ``"1_path_distance"`` (1-based, ordered)."""
+    return f"{index + 1}_{model}"
+
+
+def link_path(index: int, model: str) -> str:
+    return f"{LINKS}/{stage_key(index, model)}"
+
+
+def risk_path(model: str, agent_id: int, *, log10: bool = False) -> str:
+    return f"{RISK_LOG10 if log10 else RISK}/{model}/{agent_id}"
+
+
+def risk_root(model: str, *, log10: bool = False) -> str:
+    return f"{RISK_LOG10 if log10 else RISK}/{model}"
+
+
+# ---------------------------------------------------------------------- colours (RGB)
+BACKGROUND = (18, 18, 20)
+LANE = (105, 105, 110)
+LANE_OTHER = (70, 90, 110)  # lanes whose kind is not "vehicle" (crosswalks, bike lanes)
+EGO = (40, 200, 90)
+DROPPED = (95, 95, 100)
+RISK_LOW = (255, 200, 200)  # survivor with the lowest survival risk on the scale
+RISK_HIGH = (215, 25, 25)  # survivor with survival risk >= 1
+MISSED = (255, 225, 0)  # false negative: dropped but baseline-important
+OTHERS_SERIES = (230, 230, 230)
+QUIET_SERIES = (75, 75, 80)  # risk lines of agents the cascade never kept
+
+# Stage colours (links, funnel, timing); cycled when a cascade has more stages.
+STAGE_COLORS = ((70, 140, 255), (255, 150, 40), (190, 110, 255), (40, 200, 200), (230, 90, 160))
+STAGE_COLOR_NAMES = ("blue", "orange", "violet", "teal", "pink")
+# Tier outlines: behavior, interactive, cooperative, ...; deeper tiers stand out more.
+TIER_COLORS = ((235, 235, 235), (0, 220, 255), (255, 60, 255), (120, 255, 120))
+TIER_COLOR_NAMES = ("white", "cyan", "magenta", "green")
+# Stage links get thinner with each stage so that nested sets read as nested bands.
+LINK_WIDTHS_UI = (4.5, 2.6, 1.2, 0.8, 0.5)
+
+LANE_WIDTH_UI = 1.0
+PATH_WIDTH_UI = 1.2
+OUTLINE_WIDTH_UI = 1.5
+
+# Draw order in the 2D view (higher on top).
+ORDER_MAP = 1.0
+ORDER_LINKS = 5.0
+ORDER_PATHS = 6.0
+ORDER_DROPPED = 10.0
+ORDER_KEPT = 11.0
+ORDER_OUTLINES = 12.0
+ORDER_HEADINGS = 13.0
+ORDER_EGO = 14.0
+
+
+def stage_color(index: int) -> tuple[int, int, int]:
+    return STAGE_COLORS[index % len(STAGE_COLORS)]
+
+
+def stage_color_name(index: int) -> str:
+    return STAGE_COLOR_NAMES[index % len(STAGE_COLOR_NAMES)]
+
+
+def tier_color(index: int) -> tuple[int, int, int]:
+    return TIER_COLORS[min(index, len(TIER_COLORS) - 1)]
+
+
+def tier_color_name(index: int) -> str:
+    return TIER_COLOR_NAMES[min(index, len(TIER_COLOR_NAMES) - 1)]
+
+
+def link_width_ui(index: int) -> float:
+    return LINK_WIDTHS_UI[min(index, len(LINK_WIDTHS_UI) - 1)]
+
+
+def risk_colors(survival: np.ndarray, floor: float) -> np.ndarray:
+    """Red of each survivor, saturated by survival risk on a log scale (the paper's Fig. 3).
+
+    ``survival``: ``(K,)`` survival risk R_S (unitless); ``floor``: the R_S drawn palest
+    (the baseline threshold, 1e-25 by default). R_S spans some 25 decades between the
+    baseline threshold and a near-certain collision, so only a log scale tells survivors
+    apart; R_S >= 1 is fully saturated. NaN (no value) is drawn palest.
+    Returns ``(K, 3)`` uint8 RGB.
+    """
+    lo = math.log10(floor) if floor > 0 else -25.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        level = (np.log10(survival) - lo) / (0.0 - lo)
+    level = np.clip(np.nan_to_num(level, nan=0.0, neginf=0.0, posinf=1.0), 0.0, 1.0)
+    low = np.array(RISK_LOW, dtype=np.float64)
+    high = np.array(RISK_HIGH, dtype=np.float64)
+    return np.rint(low + level[:, None] * (high - low)).astype(np.uint8)
+
+
+def agent_series_colors(ids: np.ndarray) -> np.ndarray:
+    """A stable, distinct colour per agent id for the risk timelines: ``(K,)`` -> ``(K, 3)``.
+
+    Hues step by the golden angle so that neighbouring ids differ; the same agent has the
+    same colour in every model's view.
+    """
+    hue = (np.asarray(ids, dtype=np.float64) * 0.618033988749895) % 1.0
+    return _hsv_to_rgb(hue, 0.65, 0.95)
+
+
+def _hsv_to_rgb(hue: np.ndarray, sat: float, val: float) -> np.ndarray:
+    k = (np.array([5.0, 3.0, 1.0])[None, :] + hue[:, None] * 6.0) % 6.0
+    rgb = val - val * sat * np.clip(np.minimum(k, 4.0 - k), 0.0, 1.0)
+    return np.rint(rgb * 255.0).astype(np.uint8)
+
+
+# ---------------------------------------------------------------------- shapes
+def capsules(
+    xy: np.ndarray, heading: np.ndarray, length: np.ndarray, width: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Agent bodies as filled capsules: one 2-point line strip per agent, radius = half width.
+
+    A thick line with round caps covers an oriented ``length x width`` stadium when its
+    segment is ``length - width`` long; a filled shape reads far better from above than a
+    thin box outline, and it needs no per-agent rotation. Agents wider than long (or
+    points) become discs. Shapes: ``(K, 2)``, ``(K,)`` x3 -> strips ``(K, 2, 2)`` m,
+    radii ``(K,)`` m.
+    """
+    radius = np.maximum(width, 0.2) / 2.0  # a point-sized agent still shows
+    half = np.maximum((length - 2.0 * radius) / 2.0, 1e-3)  # zero-length strips vanish
+    forward = np.stack([np.cos(heading), np.sin(heading)], axis=-1) * half[:, None]
+    return np.stack([xy - forward, xy + forward], axis=1), radius
+
+
+def outlines(
+    xy: np.ndarray, heading: np.ndarray, length: np.ndarray, width: np.ndarray, margin_m: float
+) -> np.ndarray:
+    """Closed oriented rectangles around agents, ``margin_m`` outside the body.
+
+    Shapes: ``(K, 2)``, ``(K,)`` x3 -> ``(K, 5, 2)`` m (first corner repeated to close).
+    """
+    half_l = np.maximum(length, 0.2) / 2.0 + margin_m
+    half_w = np.maximum(width, 0.2) / 2.0 + margin_m
+    corners = np.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0], [1.0, 1.0]])
+    local = corners[None, :, :] * np.stack([half_l, half_w], axis=-1)[:, None, :]
+    c, s = np.cos(heading)[:, None], np.sin(heading)[:, None]
+    x = c * local[..., 0] - s * local[..., 1]
+    y = s * local[..., 0] + c * local[..., 1]
+    return np.stack([x, y], axis=-1) + xy[:, None, :]
+
+
+def noses(xy: np.ndarray, heading: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """Heading marks: a strip from the body centre to its front, ``(K, 2, 2)`` m."""
+    front = np.stack([np.cos(heading), np.sin(heading)], axis=-1) * (length / 2.0)[:, None]
+    return np.stack([xy, xy + front], axis=1)
+
+
+# ---------------------------------------------------------------------- view bounds
+def scene_bounds(points: np.ndarray, *, margin_m: float = 12.0, min_size_m: float = 60.0):
+    """Visual bounds of the 2D view around ``points`` (``(K, 2)`` map metres).
+
+    Returns ``(x_range, y_range)`` in *view* coordinates (y flipped, see the module
+    docstring), square-ish and at least ``min_size_m`` wide.
+    """
+    pts = points[np.isfinite(points).all(axis=1)]
+    if pts.size == 0:
+        pts = np.zeros((1, 2))
+    lo, hi = pts.min(axis=0) - margin_m, pts.max(axis=0) + margin_m
+    centre, half = (lo + hi) / 2.0, np.maximum((hi - lo) / 2.0, min_size_m / 2.0)
+    x_range = (float(centre[0] - half[0]), float(centre[0] + half[0]))
+    y_range = (float(-centre[1] - half[1]), float(-centre[1] + half[1]))
+    return x_range, y_range
+
+
+# ---------------------------------------------------------------------- blueprint
+def blueprint(
+    *,
+    model_names: Sequence[str],
+    log10_models: set[str],
+    stage_models: Sequence[str],
+    active_model: str | None,
+    bounds: tuple[tuple[float, float], tuple[float, float]],
+) -> rrb.Blueprint:
+    """The layout that opens with the recording.
+
+    Left (large): the scene from above; below it the funnel, false negatives and compute
+    time. Right: one tab per model with every agent's risk over time, and the summary.
+    """
+    x_range, y_range = bounds
+    scene = rrb.Spatial2DView(
+        name="Scene (top-down, y north)",
+        origin="/",
+        contents=f"{SCENE}/**",
+        background=BACKGROUND,
+        visual_bounds=rrb.VisualBounds2D(x_range=x_range, y_range=y_range),
+    )
+    legend = rrb.PlotLegend(corner=rrb.Corner2D.LeftTop, visible=True)
+    funnel = rrb.TimeSeriesView(name="Funnel: agents left", origin=FUNNEL, plot_legend=legend)
+    missed = rrb.TimeSeriesView(
+        name="False negatives (cumulative)", origin=FALSE_NEGATIVES, plot_legend=legend
+    )
+    timing = rrb.TimeSeriesView(name="Compute time (ms)", origin=TIMING, plot_legend=legend)
+    risk_tabs = []
+    for model in model_names:
+        is_log = model in log10_models
+        title = f"{model} (log10)" if is_log else model
+        if model in stage_models:
+            title += " · stage"
+        risk_tabs.append(
+            rrb.TimeSeriesView(
+                name=title,
+                origin=risk_root(model, log10=is_log),
+                plot_legend=rrb.PlotLegend(visible=False),  # 100 agents: a legend is noise
+            )
+        )
+    active = list(model_names).index(active_model) if active_model in model_names else 0
+    left = rrb.Vertical(
+        scene, rrb.Horizontal(funnel, missed, timing), row_shares=[3.0, 1.2], name="Scene"
+    )
+    right = rrb.Vertical(
+        rrb.Tabs(*risk_tabs, active_tab=active, name="Risk per agent"),
+        rrb.TextDocumentView(name="Summary", origin=SUMMARY),
+        row_shares=[1.4, 1.0],
+    )
+    return rrb.Blueprint(
+        rrb.Horizontal(left, right, column_shares=[3.0, 2.0]),
+        rrb.TimePanel(timeline=TIMELINE, state="collapsed"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        collapse_panels=False,
+    )
