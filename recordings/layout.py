@@ -80,8 +80,11 @@ STAGE_COLOR_NAMES = ("blue", "orange", "violet", "teal", "pink")
 TIER_COLORS = ((235, 235, 235), (0, 220, 255), (255, 60, 255), (120, 255, 120))
 TIER_COLOR_NAMES = ("white", "cyan", "magenta", "green")
 # Stage links get thinner with each stage so that nested sets read as nested bands.
-LINK_WIDTHS_UI = (4.5, 2.6, 1.2, 0.8, 0.5)
+LINK_WIDTHS_UI = (2.6, 1.7, 0.9, 0.7, 0.5)
 
+OUTLINE_WIDTHS_UI = (1.0, 2.0, 2.6, 3.0)  # per tier: deeper tiers stand out more
+LINK_ALPHA = 110
+PATH_ALPHA = 140
 LANE_WIDTH_UI = 1.0
 PATH_WIDTH_UI = 1.2
 OUTLINE_WIDTH_UI = 1.5
@@ -111,6 +114,12 @@ def tier_color(index: int) -> tuple[int, int, int]:
 
 def tier_color_name(index: int) -> str:
     return TIER_COLOR_NAMES[min(index, len(TIER_COLOR_NAMES) - 1)]
+
+
+def outline_width_ui(tier: np.ndarray) -> np.ndarray:
+    """UI-point width of each survivor's tier outline, ``(K,)`` tier index -> ``(K,)``."""
+    widths = np.array(OUTLINE_WIDTHS_UI)
+    return widths[np.clip(tier, 0, widths.size - 1)]
 
 
 def link_width_ui(index: int) -> float:
@@ -193,35 +202,67 @@ def noses(xy: np.ndarray, heading: np.ndarray, length: np.ndarray) -> np.ndarray
 
 
 # ---------------------------------------------------------------------- view bounds
-def scene_bounds(points: np.ndarray, *, margin_m: float = 12.0, min_size_m: float = 60.0):
+# Width / height of the scene view in the blueprint (3/5 of the width, 2.4/3.7 of the
+# height of the viewport); on a 1920 x 1080 screen that is about 1150 x 640 pixels.
+SCENE_ASPECT = 1.8
+
+
+def scene_bounds(
+    points: np.ndarray,
+    anchor: np.ndarray | None = None,
+    *,
+    margin_m: float = 10.0,
+    min_size_m: float = 60.0,
+    max_size_m: float = 130.0,
+    aspect: float = SCENE_ASPECT,
+):
     """Visual bounds of the 2D view around ``points`` (``(K, 2)`` map metres).
 
-    Returns ``(x_range, y_range)`` in *view* coordinates (y flipped, see the module
-    docstring), square-ish and at least ``min_size_m`` wide.
+    When the points spread wider than ``max_size_m``, the view keeps ``max_size_m``
+    (or the ``anchor`` points' own extent, if larger) centred on the ``anchor`` (the ego's
+    positions): a survivor 150 m down the road must not shrink the intersection to a dot.
+    The box is widened to ``aspect`` (width / height of the scene view in the
+    blueprint's layout) so that the viewer, which fits the x range to the view's width,
+    crops nothing. Returns ``(x_range, y_range)`` in *view* coordinates (y flipped, see
+    the module docstring), each at least ``min_size_m`` wide.
     """
-    pts = points[np.isfinite(points).all(axis=1)]
-    if pts.size == 0:
-        pts = np.zeros((1, 2))
+    pts = _finite(points)
     lo, hi = pts.min(axis=0) - margin_m, pts.max(axis=0) + margin_m
     centre, half = (lo + hi) / 2.0, np.maximum((hi - lo) / 2.0, min_size_m / 2.0)
+    if anchor is not None and np.any(half > max_size_m / 2.0):
+        a = _finite(anchor)
+        a_lo, a_hi = a.min(axis=0) - margin_m, a.max(axis=0) + margin_m
+        a_centre, a_half = (a_lo + a_hi) / 2.0, (a_hi - a_lo) / 2.0
+        wide = half > max_size_m / 2.0
+        centre = np.where(wide, a_centre, centre)
+        half = np.where(wide, np.maximum(max_size_m / 2.0, a_half), half)
+    half = np.array([max(half[0], aspect * half[1]), max(half[1], half[0] / aspect)])
     x_range = (float(centre[0] - half[0]), float(centre[0] + half[0]))
     y_range = (float(-centre[1] - half[1]), float(-centre[1] + half[1]))
     return x_range, y_range
+
+
+def _finite(points: np.ndarray) -> np.ndarray:
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    return pts if pts.size else np.zeros((1, 2))
 
 
 # ---------------------------------------------------------------------- blueprint
 def blueprint(
     *,
     model_names: Sequence[str],
-    log10_models: set[str],
+    log10_ranges: dict[str, tuple[float, float]],
     stage_models: Sequence[str],
     active_model: str | None,
     bounds: tuple[tuple[float, float], tuple[float, float]],
+    units: dict[str, str] | None = None,
 ) -> rrb.Blueprint:
     """The layout that opens with the recording.
 
     Left (large): the scene from above; below it the funnel, false negatives and compute
-    time. Right: one tab per model with every agent's risk over time, and the summary.
+    time. Right: one tab per model with every agent's risk over time (``log10_ranges``:
+    the models plotted as log10, with their y range), and the summary.
     """
     x_range, y_range = bounds
     scene = rrb.Spatial2DView(
@@ -237,22 +278,13 @@ def blueprint(
         name="False negatives (cumulative)", origin=FALSE_NEGATIVES, plot_legend=legend
     )
     timing = rrb.TimeSeriesView(name="Compute time (ms)", origin=TIMING, plot_legend=legend)
-    risk_tabs = []
-    for model in model_names:
-        is_log = model in log10_models
-        title = f"{model} (log10)" if is_log else model
-        if model in stage_models:
-            title += " · stage"
-        risk_tabs.append(
-            rrb.TimeSeriesView(
-                name=title,
-                origin=risk_root(model, log10=is_log),
-                plot_legend=rrb.PlotLegend(visible=False),  # 100 agents: a legend is noise
-            )
-        )
+    risk_tabs = [
+        _risk_view(m, log10_ranges.get(m), m in stage_models, (units or {}).get(m, ""))
+        for m in model_names
+    ]
     active = list(model_names).index(active_model) if active_model in model_names else 0
     left = rrb.Vertical(
-        scene, rrb.Horizontal(funnel, missed, timing), row_shares=[3.0, 1.2], name="Scene"
+        scene, rrb.Horizontal(funnel, missed, timing), row_shares=[2.4, 1.3], name="Scene"
     )
     right = rrb.Vertical(
         rrb.Tabs(*risk_tabs, active_tab=active, name="Risk per agent"),
@@ -265,4 +297,21 @@ def blueprint(
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
         collapse_panels=False,
+    )
+
+
+def _risk_view(
+    model: str, log10_range: tuple[float, float] | None, is_stage: bool, unit: str
+) -> rrb.TimeSeriesView:
+    """One model's tab: every agent's risk over time (log10 when a range is given)."""
+    title = model + (f" [{unit}]" if unit else "")
+    if log10_range is not None:
+        title = f"log10 {title}"
+    if is_stage:
+        title += " · stage"
+    return rrb.TimeSeriesView(
+        name=title,
+        origin=risk_root(model, log10=log10_range is not None),
+        plot_legend=rrb.PlotLegend(visible=False),  # a hundred agents: a legend is noise
+        axis_y=None if log10_range is None else rrb.ScalarAxis(range=log10_range),
     )

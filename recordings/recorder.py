@@ -167,13 +167,18 @@ class SceneRecorder:
         info, frames = self._info, self._frames
         scene = _concatenate(frames, info)
         models = tuple(info.model_names)
-        log10_models = {m for m in models if _decades(scene.rows[f"risk:{m}"]) > self.log10_decades}
+        log10_ranges = {
+            m: _log10_range(scene.rows[f"risk:{m}"])
+            for m in models
+            if _decades(scene.rows[f"risk:{m}"]) > self.log10_decades
+        }
         bp = L.blueprint(
             model_names=models,
-            log10_models=log10_models,
+            log10_ranges=log10_ranges,
             stage_models=info.cascade.stage_names,
+            units=_units(models),
             active_model=_baseline_model(models),
-            bounds=L.scene_bounds(_focus_points(scene, info)),
+            bounds=L.scene_bounds(*_focus_points(scene, info)),
         )
         rec = rr.RecordingStream(application_id=self.application_id)
         try:
@@ -182,7 +187,7 @@ class SceneRecorder:
             _log_static(rec, info, scene)
             if frames:
                 _log_scene_layers(rec, info, scene, frames, labels=self.labels)
-                _log_timelines(rec, info, scene, log10_models)
+                _log_timelines(rec, info, scene, set(log10_ranges))
                 _log_cascade_series(rec, info, scene)
             rec.flush()
         except (OSError, RuntimeError) as exc:  # I/O and rerun's native errors; bugs propagate
@@ -389,16 +394,17 @@ def _log_scene_layers(rec, info: SceneInfo, scene: _Scene, frames, *, labels: st
     # Tier outlines around survivors that reached a tier; yellow outlines for false negatives.
     tiered = survivors & (r["tier"] >= 0)
     tier_rgb = np.array([L.tier_color(k) for k in range(max(len(info.cascade.tiers), 1))], np.uint8)
-    for path, mask, rgb, margin in (
-        (L.TIER_OUTLINES, tiered, tier_rgb[np.maximum(r["tier"][tiered], 0)], 0.35),
-        (L.MISSED_OUTLINES, missed, np.tile(np.array(L.MISSED, np.uint8), (missed.sum(), 1)), 0.5),
-    ):
+    n_missed = int(missed.sum())
+    for path, mask, rgb, width, margin in (
+        (L.TIER_OUTLINES, tiered, tier_rgb[r["tier"][tiered]], L.outline_width_ui(r["tier"][tiered]), 0.35),
+        (L.MISSED_OUTLINES, missed, np.tile(np.array(L.MISSED, np.uint8), (n_missed, 1)), np.full(n_missed, 2.0), 0.5),
+    ):  # fmt: skip
         boxes = L.outlines(
             r["xy"][mask], r["heading"][mask], r["length"][mask], r["width"][mask], margin
         )
         _send_layer(
             rec, path, scene, _counts(scene, mask), L.ORDER_OUTLINES,
-            strips=boxes, colors=rgb, radii=np.full(mask.sum(), -L.OUTLINE_WIDTH_UI),
+            strips=boxes, colors=rgb, radii=-width,
         )  # fmt: skip
 
     everyone = np.ones(r["ids"].size, dtype=bool)
@@ -425,7 +431,7 @@ def _log_links(rec, info: SceneInfo, scene: _Scene, n_stages: int) -> None:
         _send_layer(
             rec, L.link_path(s, stage.model), scene, _counts(scene, mask), L.ORDER_LINKS + 0.1 * s,
             strips=strips, radii=np.full(k, -L.link_width_ui(s)),
-            colors=np.tile(np.array((*L.stage_color(s), 150), np.uint8), (k, 1)),
+            colors=np.tile(np.array((*L.stage_color(s), L.LINK_ALPHA), np.uint8), (k, 1)),
         )  # fmt: skip
 
 
@@ -446,7 +452,7 @@ def _log_paths(rec, info: SceneInfo, scene: _Scene, frames: Sequence[_FrameRows]
     rgb = L.risk_colors(
         np.concatenate([f.survivor_path_risk for f in frames]), info.cascade.baseline_threshold
     )
-    rgba = np.concatenate([rgb, np.full((rgb.shape[0], 1), 150, np.uint8)], axis=1)
+    rgba = np.concatenate([rgb, np.full((rgb.shape[0], 1), L.PATH_ALPHA, np.uint8)], axis=1)
     _send_layer(
         rec, L.PREDICTED_PATHS, scene, lengths, L.ORDER_PATHS,
         strips=strips, radii=np.full(len(strips), -L.PATH_WIDTH_UI), colors=rgba,
@@ -491,6 +497,17 @@ def _decades(values: np.ndarray) -> float:
     if pos.size < 2:
         return 0.0
     return float(np.log10(pos.max()) - np.log10(pos.min()))
+
+
+def _log10_range(values: np.ndarray, window_decades: float = 30.0) -> tuple[float, float]:
+    """The y range of a log10 risk view: from the top value down ``window_decades`` at most.
+
+    Survival risk reaches 1e-300 for agents that never come near; a full-range axis would
+    squash the risks that matter (around the 1e-25 baseline and above) into a line.
+    """
+    pos = values[np.isfinite(values) & (values > 0)]
+    top, bottom = float(np.log10(pos.max())), float(np.log10(pos.min()))
+    return max(bottom, top - window_decades) - 0.5, top + 0.5
 
 
 def _agent_grid(scene: _Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -587,43 +604,30 @@ def _log_threshold(rec, scene: _Scene, model: str, threshold: float, is_log: boo
 def _log_cascade_series(rec, info: SceneInfo, scene: _Scene) -> None:
     """Funnel counts, cumulative false negatives and compute times, one value per frame."""
     r, n_frames = scene.rows, scene.times_s.size
-    others = ~r["is_ego"]
     per_frame = lambda mask: np.bincount(scene.frame_of[mask], minlength=n_frames)  # noqa: E731
     series: list[tuple[str, str, tuple[int, int, int], np.ndarray]] = [
-        (f"{L.FUNNEL}/0_others", "all other agents", L.OTHERS_SERIES, per_frame(others)),
-        (f"{L.FUNNEL}/baseline", "baseline-important", L.MISSED, per_frame(r["baseline"])),
+        (f"{L.FUNNEL}/0_others", "others", L.OTHERS_SERIES, per_frame(~r["is_ego"])),
+        (f"{L.FUNNEL}/baseline", "baseline", L.MISSED, per_frame(r["baseline"])),
     ]
-    frames_time, sort_ms = scene.stage_time_ms, scene.sort_time_ms
     for s, stage in enumerate(info.cascade.stages):
-        key, color = L.stage_key(s, stage.model), L.stage_color(s)
-        label = f"after {s + 1}: {stage.model}"
-        series.append((f"{L.FUNNEL}/{key}", label, color, per_frame(r["kept"][s])))
-        series.append((f"{L.FALSE_NEGATIVES}/{key}", label, color, scene.false_negatives[:, s]))
-        series.append((f"{L.TIMING}/{key}", f"{s + 1}: {stage.model}", color, frames_time[:, s]))
+        key, color, label = L.stage_key(s, stage.model), L.stage_color(s), f"{s + 1}: {stage.model}"
+        series += [
+            (f"{L.FUNNEL}/{key}", label, color, per_frame(r["kept"][s])),
+            (f"{L.FALSE_NEGATIVES}/{key}", label, color, scene.false_negatives[:, s]),
+            (f"{L.TIMING}/{key}", label, color, scene.stage_time_ms[:, s]),
+        ]
     for k, tier in enumerate(info.cascade.tiers):
-        counts = per_frame(r["tier"] >= k)
-        series.append(
-            (f"{L.FUNNEL}/tier_{k + 1}_{tier.name}", f"tier {tier.name}", L.tier_color(k), counts)
-        )
+        path = f"{L.FUNNEL}/tier_{k + 1}_{tier.name}"
+        series.append((path, tier.name, L.tier_color(k), per_frame(r["tier"] >= k)))
+    total_ms = scene.stage_time_ms.sum(axis=1) + scene.sort_time_ms
     series += [
-        (f"{L.TIMING}/sort", "survival on survivors + tiers", L.tier_color(1), sort_ms),
-        (
-            f"{L.TIMING}/cascade_total",
-            "cascade total",
-            L.OTHERS_SERIES,
-            frames_time.sum(axis=1) + sort_ms,
-        ),
-        (
-            f"{L.TIMING}/survival_all",
-            "survival on all agents",
-            L.MISSED,
-            scene.survival_all_time_ms,
-        ),
+        (f"{L.TIMING}/sort", "sort into tiers", L.tier_color(1), scene.sort_time_ms),
+        (f"{L.TIMING}/cascade_total", "cascade total", L.OTHERS_SERIES, total_ms),
+        (f"{L.TIMING}/survival_all", "survival (all)", L.MISSED, scene.survival_all_time_ms),
     ]
     for path, name, color, values in series:
-        rec.log(
-            path, rr.SeriesLines(colors=color, names=name, widths=2.0), static=True, strict=True
-        )
+        style = rr.SeriesLines(colors=color, names=name, widths=2.0)
+        rec.log(path, style, static=True, strict=True)
         rec.send_columns(
             path,
             indexes=_time_columns(scene),
@@ -640,20 +644,27 @@ def _baseline_model(models: Sequence[str]) -> str | None:
     return SURVIVAL_MODEL if SURVIVAL_MODEL in models else (models[0] if models else None)
 
 
-def _focus_points(scene: _Scene, info: SceneInfo) -> np.ndarray:
-    """Points the scene view must show: the ego and every agent the first stage kept.
+def _units(models: Sequence[str]) -> dict[str, str]:
+    """Each model's unit from the registry ("" when dimensionless or not registered)."""
+    from risk import MODELS
 
-    Agents dropped at once are usually far away; framing them would shrink the action.
+    return {m: MODELS[m].unit for m in models if m in MODELS}
+
+
+def _focus_points(scene: _Scene, info: SceneInfo) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points the scene view frames, and its anchor: the ego and the final survivors.
+
+    Agents a stage dropped are usually far away; framing them would shrink the action.
     Without frames, the whole map.
     """
     r = scene.rows
     if r["ids"].size:
-        near = r["is_ego"] | (r["kept"][0] if r["kept"].shape[0] else False)
-        return r["xy"][near]
+        near = r["is_ego"] | (r["dropped_at"] < 0)
+        return r["xy"][near], r["xy"][r["is_ego"]]
     lanes = [
         np.asarray(lane.centerline, dtype=np.float64).reshape(-1, 2) for lane in info.map.lanes
     ]
-    return np.concatenate(lanes) if lanes else np.zeros((1, 2))
+    return (np.concatenate(lanes) if lanes else np.zeros((1, 2))), None
 
 
 def _recording_name(info: SceneInfo) -> str:

@@ -492,9 +492,24 @@ def test_outline_corners_by_hand():
 
 
 def test_scene_bounds_flip_y_and_have_a_minimum_size():
-    x, y = L.scene_bounds(np.array([[0.0, 100.0], [10.0, 110.0]]), margin_m=0.0, min_size_m=60.0)
+    x, y = L.scene_bounds(
+        np.array([[0.0, 100.0], [10.0, 110.0]]), margin_m=0.0, min_size_m=60.0, aspect=1.0
+    )
     assert x == pytest.approx((-25.0, 35.0))
     assert y == pytest.approx((-135.0, -75.0))  # view space: y = -north
+    x, y = L.scene_bounds(
+        np.array([[0.0, 100.0], [10.0, 110.0]]), margin_m=0.0, min_size_m=60.0, aspect=2.0
+    )
+    assert x == pytest.approx((-55.0, 65.0))  # widened to the view's aspect
+    assert y == pytest.approx((-135.0, -75.0))
+
+
+def test_scene_bounds_stay_near_the_ego_when_survivors_spread():
+    pts = np.array([[-200.0, 0.0], [200.0, 0.0], [0.0, 5.0]])
+    ego = np.array([[0.0, -10.0], [0.0, 10.0]])
+    x, y = L.scene_bounds(pts, ego, margin_m=0.0, min_size_m=10.0, max_size_m=100.0, aspect=1.0)
+    assert x == pytest.approx((-50.0, 50.0))
+    assert y == pytest.approx((-52.5, 47.5))  # y was narrow: its own centre, widened
 
 
 @settings(max_examples=60, deadline=None)
