@@ -415,59 +415,71 @@ def _chain(
 
 
 # ---------------------------------------------------------------------- conflicts
-def conflicts(world: Intersection, s: SyntheticSettings, traffic: Traffic) -> np.ndarray:
-    """Symmetric ``(N, N)`` bool: pairs closer than the minimum gap on a shared route, or
-    whose bodies (oriented rectangles, plus ``OVERLAP_MARGIN_M``) overlap."""
-    routes = world.routes
-    lane, into = lane_at(routes, traffic.route, traffic.s_m)
-    pos = routes.lane_offset_m[traffic.route[:, None], lane[None, :]] + into[None, :]
-    half = 0.5 * traffic.length_m
-    with np.errstate(invalid="ignore"):
-        clearance = np.abs(pos - traffic.s_m[:, None]) - half[:, None] - half[None, :]
-        close = np.isfinite(pos) & (clearance < s.gap_range_m[0])
-    xy, heading = pose(routes, traffic.route, traffic.s_m)
-    c = (
-        close
-        | close.T
-        | boxes_overlap(xy, heading, traffic.length_m, traffic.width_m, OVERLAP_MARGIN_M)
-    )
-    np.fill_diagonal(c, False)
-    return c
-
-
 OVERLAP_MARGIN_M = 0.5
 """Clearance required between bodies on different lanes at spawn; below the 1.5 m that
 3.5 m lanes leave between 2 m wide vehicles, so neighbours on parallel lanes are fine."""
 
 
+def conflicts(
+    world: Intersection, s: SyntheticSettings, traffic: Traffic, rows: np.ndarray | None = None
+) -> np.ndarray:
+    """``(A, N)`` bool for the agents ``rows`` (default all, then symmetric ``(N, N)``)
+    against every agent: closer than the minimum gap on a shared route (either agent's),
+    or bodies (oriented rectangles plus ``OVERLAP_MARGIN_M``) overlapping. An agent never
+    conflicts with itself."""
+    n = traffic.route.size
+    rows = np.arange(n) if rows is None else np.asarray(rows)
+    routes = world.routes
+    lane, into = lane_at(routes, traffic.route, traffic.s_m)
+    half = 0.5 * traffic.length_m
+    # b's position along a's route, and a's along b's (NaN: not on that route).
+    b_on_a = routes.lane_offset_m[traffic.route[rows][:, None], lane[None, :]] + into[None, :]
+    a_on_b = routes.lane_offset_m[traffic.route[None, :], lane[rows][:, None]] + into[rows][:, None]
+    with np.errstate(invalid="ignore"):
+        limit = half[rows][:, None] + half[None, :] + s.gap_range_m[0]
+        close = (np.abs(b_on_a - traffic.s_m[rows][:, None]) < limit) | (
+            np.abs(a_on_b - traffic.s_m[None, :]) < limit
+        )
+    xy, heading = pose(routes, traffic.route, traffic.s_m)
+    over = boxes_overlap(
+        xy[rows], heading[rows], traffic.length_m[rows], traffic.width_m[rows],
+        xy, heading, traffic.length_m, traffic.width_m, OVERLAP_MARGIN_M,
+    )  # fmt: skip
+    c = close | over
+    c[np.arange(rows.size), rows] = False
+    return c
+
+
 def boxes_overlap(
-    xy: np.ndarray, heading: np.ndarray, length: np.ndarray, width: np.ndarray, margin_m: float
+    xy_a: np.ndarray,
+    heading_a: np.ndarray,
+    length_a: np.ndarray,
+    width_a: np.ndarray,
+    xy_b: np.ndarray,
+    heading_b: np.ndarray,
+    length_b: np.ndarray,
+    width_b: np.ndarray,
+    margin_m: float = 0.0,
 ) -> np.ndarray:
-    """``(N, N)`` bool: oriented rectangles closer than ``margin_m`` (separating axis test)."""
-    d = np.stack((np.cos(heading), np.sin(heading)), axis=1)  # (N, 2) body axis
-    n = np.stack((-d[:, 1], d[:, 0]), axis=1)
-    axes = np.stack((d, n), axis=1)  # (N, 2 axes, 2)
-    delta = xy[None, :, :] - xy[:, None, :]  # (i, j, 2)
-    separated = np.zeros((xy.shape[0],) * 2, dtype=bool)
-    for owner in (0, 1):  # the axes of box i, then of box j
-        ax = axes[:, None] if owner == 0 else axes[None, :]  # broadcast to (i, j, 2, 2)
-        ax = np.broadcast_to(ax, (xy.shape[0], xy.shape[0], 2, 2))
-        dist = np.abs(np.einsum("ijak,ijk->ija", ax, delta))
-        ext_i = _extent(
-            ax, d[:, None, None], n[:, None, None], length[:, None, None], width[:, None, None]
-        )
-        ext_j = _extent(
-            ax, d[None, :, None], n[None, :, None], length[None, :, None], width[None, :, None]
-        )
-        separated |= (dist > ext_i + ext_j + margin_m).any(axis=2)
-    return ~separated
+    """``(A, B)`` bool: rectangles ``a`` and ``b`` are closer than ``margin_m`` (or overlap).
 
-
-def _extent(
-    ax: np.ndarray, d: np.ndarray, n: np.ndarray, length: np.ndarray, width: np.ndarray
-) -> np.ndarray:
-    """Half extent of a rectangle projected on each axis: ``(i, j, 2)``."""
-    return 0.5 * length * np.abs((ax * d).sum(-1)) + 0.5 * width * np.abs((ax * n).sum(-1))
+    Separating axis test on the four body axes; metres and radians, centres ``(.., 2)``.
+    """
+    da = np.stack((np.cos(heading_a), np.sin(heading_a)), axis=1)[:, None]  # (A, 1, 2)
+    db = np.stack((np.cos(heading_b), np.sin(heading_b)), axis=1)[None]  # (1, B, 2)
+    na, nb = da[..., ::-1] * [-1, 1], db[..., ::-1] * [-1, 1]
+    delta = xy_b[None] - xy_a[:, None]  # (A, B, 2)
+    cos = np.abs((da * db).sum(-1))  # |cos| of the angle between the bodies
+    sin = np.abs((da * nb).sum(-1))
+    la, wa = 0.5 * length_a[:, None], 0.5 * width_a[:, None]
+    lb, wb = 0.5 * length_b[None], 0.5 * width_b[None]
+    gaps = (
+        np.abs((delta * da).sum(-1)) - la - lb * cos - wb * sin,  # along a's length
+        np.abs((delta * na).sum(-1)) - wa - lb * sin - wb * cos,  # along a's width
+        np.abs((delta * db).sum(-1)) - lb - la * cos - wa * sin,
+        np.abs((delta * nb).sum(-1)) - wb - la * sin - wa * cos,
+    )
+    return ~np.logical_or.reduce([g > margin_m for g in gaps])
 
 
 def _resolve_conflicts(
@@ -481,8 +493,7 @@ def _resolve_conflicts(
     n = traffic.route.size
     c = conflicts(world, s, traffic)
     kept = np.zeros(n, dtype=bool)
-    order = np.concatenate(([0], 1 + rng.permutation(n - 1)))
-    for i in order:
+    for i in np.concatenate(([0], 1 + rng.permutation(n - 1))):
         kept[i] = not (c[i] & kept).any()
     route, s_m = traffic.route.copy(), traffic.s_m.copy()
     weights = world.lane_length_m / world.lane_length_m.sum()
@@ -493,12 +504,10 @@ def _resolve_conflicts(
             half = 0.5 * traffic.length_m[i]
             into = rng.uniform(half, max(half, world.lane_length_m[lane] - half))
             s_m[i] = world.routes.lane_offset_m[route[i], lane] + into
-            kept[i] = True
-            trial = dataclasses.replace(traffic, route=route, s_m=s_m, active=kept.copy())
-            sub = np.flatnonzero(kept)
-            if not conflicts(world, s, _subset(trial, sub))[np.searchsorted(sub, i)].any():
+            trial = dataclasses.replace(traffic, route=route, s_m=s_m)
+            if not (conflicts(world, s, trial, rows=np.array([i]))[0] & kept).any():
+                kept[i] = True
                 break
-            kept[i] = False
         else:
             raise ConversionError(
                 f"could not place {n} agents without overlaps after {_MAX_TRIES} tries per agent;"
@@ -508,7 +517,3 @@ def _resolve_conflicts(
 
 
 _MAX_TRIES = 200
-
-
-def _subset(traffic: Traffic, idx: np.ndarray) -> Traffic:
-    return Traffic(*(getattr(traffic, f.name)[idx] for f in dataclasses.fields(Traffic)))

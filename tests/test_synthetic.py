@@ -125,23 +125,27 @@ def test_forward_path_starts_at_the_agent_and_ends_at_the_route_end(route, frac)
 # ---------------------------------------------------------------------- overlap test
 
 
+def overlap_all(xy, heading, length, width, margin):
+    return boxes_overlap(xy, heading, length, width, xy, heading, length, width, margin)
+
+
 def test_boxes_overlap_hand_cases():
     xy = np.array([[0.0, 0.0], [4.0, 0.0], [0.0, 2.5], [3.0, 2.5]])
     heading = np.array([0.0, 0.0, 0.0, np.pi / 4])
     length = np.full(4, 4.5)
     width = np.full(4, 2.0)
-    over = boxes_overlap(xy, heading, length, width, 0.0)
+    over = overlap_all(xy, heading, length, width, 0.0)
     assert over[0, 1] and over[1, 0]  # 4 m apart along x with 4.5 m bodies
     assert not over[0, 2]  # 2.5 m apart sideways with 2 m widths: 0.5 m clear
-    assert boxes_overlap(xy, heading, length, width, 0.6)[0, 2]  # ... less than 0.6 m
+    assert overlap_all(xy, heading, length, width, 0.6)[0, 2]  # ... less than 0.6 m
     # The 45-degree box at (3, 2.5): its lowest corner (3 - 3.25/sqrt2 + ..., ) is
     # (3 - 2.25 c + c, 2.5 - 2.25 c - c) with c = 1/sqrt2 = (2.12, 0.20): inside box 0.
     assert over[0, 3]
     # Moved by (0.5, 0.5), its own long axis separates them: |(3.5, 3) . d| = 4.60 >
     # 2.25 + (2.25 + 1) c = 4.55.
     moved = xy + np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0], [0.5, 0.5]])
-    assert not boxes_overlap(moved, heading, length, width, 0.0)[0, 3]
-    assert boxes_overlap(moved, heading, length, width, 0.1)[0, 3]
+    assert not overlap_all(moved, heading, length, width, 0.0)[0, 3]
+    assert overlap_all(moved, heading, length, width, 0.1)[0, 3]
 
 
 def points_inside(xy, heading, length, width, pts):
@@ -149,6 +153,31 @@ def points_inside(xy, heading, length, width, pts):
     d = np.array([np.cos(heading), np.sin(heading)])
     rel = pts - xy
     return (np.abs(rel @ d) < length / 2) & (np.abs(rel @ np.array([-d[1], d[0]])) < width / 2)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    dx=st.floats(-8, 8),
+    dy=st.floats(-8, 8),
+    h1=st.floats(-np.pi, np.pi),
+    h2=st.floats(-np.pi, np.pi),
+    dims=st.tuples(st.floats(1, 6), st.floats(0.5, 2.5), st.floats(1, 6), st.floats(0.5, 2.5)),
+)
+def test_boxes_overlap_agrees_with_point_sampling(dx, dy, h1, h2, dims):
+    """A sampled point of one body inside the other implies overlap (independent check),
+    and the test is symmetric."""
+    l1, w1, l2, w2 = dims
+    xy = np.array([[0.0, 0.0], [dx, dy]])
+    heading, length, width = np.array([h1, h2]), np.array([l1, l2]), np.array([w1, w2])
+    over = overlap_all(xy, heading, length, width, 0.0)
+    assert over[0, 1] == over[1, 0]
+    u = np.linspace(-0.49, 0.49, 15)
+    d = np.array([np.cos(h1), np.sin(h1)])
+    grid = (u[:, None, None] * l1 * d + u[None, :, None] * w1 * np.array([-d[1], d[0]])).reshape(
+        -1, 2
+    )
+    if points_inside(xy[1], h2, l2, w2, grid).any():
+        assert over[0, 1]
 
 
 # ---------------------------------------------------------------------- situations
