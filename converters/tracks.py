@@ -1,0 +1,247 @@
+"""From per-track arrays to a :class:`risk.Scene`: shared by every recorded-data converter.
+
+A source reader fills a :class:`TrackTable` (time steps x tracks); :func:`build_scene`
+adds the agent paths (``map`` or ``hindsight``) and cuts the frames.
+
+Frame layout (documented in docs/recorded-data.md): every frame holds **every track of
+the scene** in the same order, with ``valid`` saying whether the track was observed at
+that step, so that agent indices are stable over the scene and every agent that is valid
+in a frame gets a risk value there. Only the steps at which the ego is valid become
+frames (a :class:`risk.Frame` needs a valid ego); the number of steps dropped for that is
+recorded in the metadata as ``steps_without_ego``.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from tqdm import tqdm
+
+from converters.errors import ConversionError
+from converters.hindsight import Hindsight
+from converters.lanegraph import LaneGraph, PathRows, PathSettings, straight_rows
+from risk.frame import Frame, Kind, LaneMap, Scene
+
+PATH_MODES: tuple[str, ...] = ("map", "hindsight")
+
+_INTEGER = re.compile(r"[+-]?\d{1,18}")
+
+
+@dataclass
+class Skipped:
+    """What a ``skip_bad`` conversion left out, one line per record, and why."""
+
+    what: list[str] = field(default_factory=list)
+
+    def add(self, message: str) -> None:
+        self.what.append(message)
+
+    def __len__(self) -> int:
+        return len(self.what)
+
+
+def integer_ids(names: Sequence[str]) -> tuple[np.ndarray, dict[str, int]]:
+    """Integer agent ids for a source's track names, ``(N,)`` int64, in input order.
+
+    Names that are integers keep their value; the others (Argoverse's ``AV``, INTERACTION's
+    ``P1``) get the integers after the largest numeric id (or from 0), in sorted name
+    order, so the choice is stable. Returns the ids and the mapping of the renamed ones.
+    """
+    numeric = {n: int(n) for n in names if _INTEGER.fullmatch(n.strip())}
+    others = sorted(n for n in set(names) if n not in numeric)
+    start = max(numeric.values(), default=-1) + 1
+    renamed = {n: start + i for i, n in enumerate(others)}
+    ids = np.array([numeric.get(n, renamed.get(n, 0)) for n in names], dtype=np.int64)
+    return ids, renamed
+
+
+@dataclass(frozen=True, eq=False)
+class TrackTable:
+    """All tracks of one scenario on a common time grid.
+
+    Shapes: ``T`` time steps, ``N`` tracks. Units: metres, radians, m/s, seconds.
+    ``speed`` is the magnitude of the velocity vector. Entries where ``valid`` is False
+    are ignored (they may hold anything, NaN included).
+    """
+
+    ids: np.ndarray  # (N,) int64, unique
+    kinds: np.ndarray  # (N,) int8, risk.Kind codes
+    t_s: np.ndarray  # (T,) float64, increasing
+    xy: np.ndarray  # (T, N, 2) float64
+    heading: np.ndarray  # (T, N) float64
+    speed: np.ndarray  # (T, N) float64, >= 0
+    length: np.ndarray  # (T, N) float64, >= 0
+    width: np.ndarray  # (T, N) float64, >= 0
+    valid: np.ndarray  # (T, N) bool
+
+    @property
+    def n_steps(self) -> int:
+        return int(self.valid.shape[0])
+
+    @property
+    def n_tracks(self) -> int:
+        return int(self.valid.shape[1])
+
+    def usable(self) -> np.ndarray:
+        """``(T, N)``: valid entries whose values are all finite and physical."""
+        ok = self.valid & np.isfinite(self.xy).all(axis=2) & np.isfinite(self.heading)
+        ok &= np.isfinite(self.speed) & (self.speed >= 0)
+        ok &= np.isfinite(self.length) & (self.length >= 0)
+        ok &= np.isfinite(self.width) & (self.width >= 0)
+        return ok
+
+
+def build_scene(
+    table: TrackTable,
+    ego: int,
+    lane_map: LaneMap,
+    *,
+    paths: str,
+    settings: PathSettings,
+    frame_period_s: float,
+    metadata: Mapping[str, str],
+    labels: Mapping[str, tuple[int, ...]] | None = None,
+    source: str = "input",
+    progress: bool = False,
+) -> Scene:
+    """Frames with paths for every step at which track index ``ego`` is valid.
+
+    ``paths`` is ``map`` (lane graph of ``lane_map``) or ``hindsight`` (recorded future).
+    ``source`` names the input in error messages. Raises ConversionError when the ego is
+    never valid or a track id repeats.
+    """
+    if paths not in PATH_MODES:
+        raise ConversionError(f"unknown path mode {paths!r}; expected one of {PATH_MODES}")
+    if len(np.unique(table.ids)) != table.n_tracks:
+        raise ConversionError(f"{source}: a track id appears more than once")
+    valid = table.usable()
+    dropped = int((table.valid & ~valid).sum())
+    steps = np.flatnonzero(valid[:, ego])
+    if steps.size == 0:
+        raise ConversionError(
+            f"{source}: the ego (track {int(table.ids[ego])}) is valid at no time step"
+        )
+    frame_of_step = np.full(table.n_steps, -1, dtype=np.int64)
+    frame_of_step[steps] = np.arange(steps.size)
+    rows = _path_rows(table, valid, steps, frame_of_step, lane_map, paths, settings)
+    frames = _frames(table, valid, steps, ego, rows, progress, source)
+    facts = {
+        **metadata,
+        "paths": paths,
+        "horizon_s": f"{settings.horizon_s:g}",
+        "margin_m": f"{settings.margin_m:g}",
+        "frame_period_s": f"{frame_period_s:g}",
+        "steps_without_ego": str(table.n_steps - steps.size),
+        "invalid_states_dropped": str(dropped),
+    }
+    if paths == "map":
+        facts.update(
+            max_lateral_m=f"{settings.max_lateral_m:g}",
+            max_heading_rad=f"{settings.max_heading_rad:g}",
+            max_candidates=str(settings.max_candidates),
+        )
+    return Scene(
+        map=lane_map,
+        frames=frames,
+        frame_period_s=float(frame_period_s),
+        metadata=facts,
+        labels=dict(labels or {}),
+    )
+
+
+def _path_rows(
+    table: TrackTable,
+    valid: np.ndarray,
+    steps: np.ndarray,
+    frame_of_step: np.ndarray,
+    lane_map: LaneMap,
+    paths: str,
+    settings: PathSettings,
+) -> PathRows:
+    """Path candidates of every valid (frame, agent), plus a one-point row per invalid one."""
+    in_scene = np.zeros(table.n_steps, dtype=bool)
+    in_scene[steps] = True
+    q_step, q_agent = np.nonzero(valid & in_scene[:, None])
+    q_frame = frame_of_step[q_step]
+    q_xy = table.xy[q_step, q_agent]
+    q_heading = table.heading[q_step, q_agent]
+    q_speed = table.speed[q_step, q_agent]
+    q_kind = table.kinds[q_agent]
+    parts: list[PathRows] = []
+    if paths == "hindsight":
+        hindsight = Hindsight(table.xy, table.heading, valid, settings)
+        parts.append(hindsight.rows(q_step, q_frame, q_agent, q_xy, q_speed))
+    else:
+        follows_lanes = (q_kind == Kind.VEHICLE) | (q_kind == Kind.CYCLIST)
+        straight = ~follows_lanes
+        graph = LaneGraph(lane_map, settings)
+        if graph.n_lanes and follows_lanes.any():
+            sel = np.flatnonzero(follows_lanes)
+            lane_rows, unmatched = graph.map_rows(
+                q_frame[sel], q_agent[sel], q_xy[sel], q_heading[sel], q_speed[sel], q_kind[sel]
+            )
+            parts.append(lane_rows)
+            straight[sel[unmatched]] = True
+        else:
+            straight[:] = True
+        parts.append(
+            straight_rows(
+                q_frame[straight],
+                q_agent[straight],
+                q_xy[straight],
+                q_heading[straight],
+                settings.required_length_m(q_speed[straight]),
+            )
+        )
+    i_step, i_agent = np.nonzero(~valid & in_scene[:, None])
+    parts.append(
+        PathRows(
+            frame_of_step[i_step],
+            i_agent.astype(np.int64),
+            np.zeros((i_step.size, 1, 2)),
+            np.ones(i_step.size, dtype=np.int64),
+        )
+    )
+    rows = PathRows.concat(parts)
+    order = np.lexsort((rows.agent, rows.frame))  # stable: keeps candidate order
+    return PathRows(rows.frame[order], rows.agent[order], rows.points[order], rows.count[order])
+
+
+def _frames(
+    table: TrackTable,
+    valid: np.ndarray,
+    steps: np.ndarray,
+    ego: int,
+    rows: PathRows,
+    progress: bool,
+    source: str,
+) -> list[Frame]:
+    bounds = np.searchsorted(rows.frame, np.arange(steps.size + 1))
+    frames: list[Frame] = []
+    for f, step in enumerate(
+        tqdm(steps, desc="frames", unit="frame", disable=not progress, leave=False)
+    ):
+        lo, hi = bounds[f], bounds[f + 1]
+        count = rows.count[lo:hi]
+        ok = valid[step]
+        frames.append(
+            Frame.from_padded(
+                ids=table.ids,
+                kinds=table.kinds,
+                xy=np.where(ok[:, None], table.xy[step], 0.0),
+                heading=np.where(ok, table.heading[step], 0.0),
+                speed=np.where(ok, table.speed[step], 0.0),
+                length=np.where(ok, table.length[step], 0.0),
+                width=np.where(ok, table.width[step], 0.0),
+                valid=ok,
+                paths=rows.points[lo:hi, : int(count.max())],
+                path_points=count,
+                path_agent=rows.agent[lo:hi],
+                ego=ego,
+                t=float(table.t_s[step]),
+            )
+        )
+    return frames
