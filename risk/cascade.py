@@ -36,9 +36,11 @@ import numpy as np
 
 from risk.errors import RiskError
 from risk.frame import Frame
+from risk.registry import BASELINE_MODEL, BASELINE_THRESHOLD
 
 DEFAULT_CASCADE_PATH = pathlib.Path(__file__).with_name("default_cascade.toml")
-SURVIVAL_MODEL = "survival"
+#: The model of the sorting step and of the baseline (survival analysis).
+SURVIVAL_MODEL = BASELINE_MODEL
 
 #: Signature of ``risk.evaluate``: frame, model names, parameters -> name -> (N,) risks.
 Evaluator = Callable[..., dict[str, np.ndarray]]
@@ -78,7 +80,7 @@ class CascadeConfig:
 
     stages: tuple[Stage, ...]
     tiers: tuple[Tier, ...]
-    baseline_threshold: float = 1e-25  # an agent is important when R_S >= this (paper)
+    baseline_threshold: float = BASELINE_THRESHOLD  # important when R_S >= this (paper)
     provenance: str = ""  # how the thresholds were made (calibration record)
 
     @property
@@ -174,7 +176,7 @@ def _parse_config(data: Mapping[str, Any], source: str) -> CascadeConfig:
     provenance = data.get("provenance", "")
     if not isinstance(provenance, str):
         raise fail("provenance", "expected a string")
-    baseline = number(data.get("baseline_threshold", 1e-25), "baseline_threshold")
+    baseline = number(data.get("baseline_threshold", BASELINE_THRESHOLD), "baseline_threshold")
 
     raw_stages = data["stages"]
     if not isinstance(raw_stages, list) or not raw_stages:

@@ -1,0 +1,304 @@
+"""The filter cascade: stage logic on sub-frames, false negatives, tiers, the TOML config."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from risk.cascade import (
+    CascadeConfig,
+    CascadeConfigError,
+    Stage,
+    Tier,
+    assign_tiers,
+    run_cascade,
+)
+from risk.frame import Frame
+
+
+def line_frame(n: int, *, valid: list[bool] | None = None, ego: int = 0) -> Frame:
+    """``n`` agents on the x axis, ids 10, 11, ..., each with a short straight path."""
+    xy = np.c_[np.arange(n) * 10.0, np.zeros(n)]
+    paths = [np.array([p, p + np.array([5.0, 0.0])]) for p in xy]
+    return Frame.from_arrays(
+        xy, np.zeros(n), np.ones(n), np.full(n, 4.0), np.full(n, 2.0), paths, ego,
+        ids=np.arange(10, 10 + n), valid=valid,
+    )  # fmt: skip
+
+
+class TableEvaluator:
+    """A stand-in for ``risk.evaluate``: fixed risks per model and agent id, NaN for the
+    ego and invalid agents; records which agent ids each call saw."""
+
+    def __init__(self, table: dict[str, dict[int, float]]):
+        self.table = table
+        self.calls: list[tuple[tuple[str, ...], tuple[int, ...]]] = []
+
+    def __call__(self, frame, models=None, params=None, *, prediction=None):
+        self.calls.append((tuple(models), tuple(int(i) for i in frame.ids)))
+        out = {}
+        for m in models:
+            r = np.array([self.table[m].get(int(i), np.nan) for i in frame.ids])
+            r[frame.ego] = np.nan
+            r[~frame.valid] = np.nan
+            out[m] = r
+        return out
+
+
+TIERS = (
+    Tier("behavior", 1e-25),
+    Tier("interactive", 0.1, max_agents=2),
+    Tier("cooperative", 0.5, max_agents=1),
+)
+CONFIG = CascadeConfig(
+    stages=(Stage("path_distance", 0.2), Stage("trajectory_distance", 0.3), Stage("gaussian", 1.0)),
+    tiers=TIERS,
+)
+
+
+def hand_case() -> tuple[Frame, TableEvaluator]:
+    # ego 10; others 11..16; agent 16 invalid.
+    frame = line_frame(7, valid=[True] * 6 + [False])
+    table = {
+        #                 11    12    13    14    15
+        "path_distance": {11: 0.9, 12: 0.1, 13: 0.5, 14: 0.2, 15: 0.8},
+        "trajectory_distance": {11: 0.9, 12: 0.9, 13: 0.2, 14: 0.3, 15: 0.7},
+        "gaussian": {11: 3.0, 12: 9.0, 13: 9.0, 14: 0.5, 15: 1.0},
+        # 12 is baseline-important but dropped by stage 0, 14 is dropped by stage 2.
+        "survival": {11: 0.6, 12: 0.01, 13: 0.0, 14: 1e-3, 15: 0.2},
+    }
+    return frame, TableEvaluator(table)
+
+
+def test_hand_computed_cascade():
+    frame, ev = hand_case()
+    res = run_cascade(frame, CONFIG, evaluate=ev)
+    # Stage 0 keeps risk >= 0.2: 11, 13, 14, 15 (12 has 0.1).
+    # Stage 1 keeps >= 0.3 of those: 11, 14, 15 (13 has 0.2).
+    # Stage 2 keeps >= 1.0 of those: 11, 15 (14 has 0.5).
+    np.testing.assert_array_equal(
+        res.kept,
+        [
+            [0, 1, 0, 1, 1, 1, 0],
+            [0, 1, 0, 0, 1, 1, 0],
+            [0, 1, 0, 0, 0, 1, 0],
+        ],
+    )
+    np.testing.assert_array_equal(res.dropped_at, [-1, -1, 0, 1, 2, -1, -1])
+    np.testing.assert_array_equal(res.others, [0, 1, 1, 1, 1, 1, 0])
+    # Baseline: survival >= 1e-25 -> 11, 12, 14, 15 (13 has exactly 0).
+    np.testing.assert_array_equal(res.baseline, [0, 1, 1, 0, 1, 1, 0])
+    # FN up to stage s: {12}, {12}, {12, 14}.
+    np.testing.assert_array_equal(res.false_negatives, [1, 1, 2])
+    # Survivors 11 (0.6) and 15 (0.2): both behavior, both interactive (>= 0.1, cap 2),
+    # only 11 cooperative (>= 0.5).
+    np.testing.assert_array_equal(res.tier, [-1, 2, -1, -1, -1, 1, -1])
+    np.testing.assert_array_equal(np.isnan(res.survival), [1, 0, 1, 1, 1, 0, 1])
+    assert res.survival[1] == 0.6 and res.survival[5] == 0.2
+    np.testing.assert_array_equal(res.survival_all[1:6], [0.6, 0.01, 0.0, 1e-3, 0.2])
+    assert res.stage_names == ("path_distance", "trajectory_distance", "gaussian")
+    np.testing.assert_array_equal(res.n_kept, [4, 3, 2])
+    np.testing.assert_array_equal(res.tier_counts(3), [2, 2, 1])
+
+
+def test_each_stage_sees_only_the_survivors_of_the_previous_one():
+    frame, ev = hand_case()
+    run_cascade(frame, CONFIG, evaluate=ev)
+    # The ego comes first in every sub-frame; the invalid agent 16 is never evaluated
+    # by a stage.
+    assert ev.calls == [
+        (("survival",), (10, 11, 12, 13, 14, 15, 16)),  # the baseline, on all agents
+        (("path_distance",), (10, 11, 12, 13, 14, 15)),
+        (("trajectory_distance",), (10, 11, 13, 14, 15)),
+        (("gaussian",), (10, 11, 14, 15)),
+        (("survival",), (10, 11, 15)),  # sorting the survivors
+    ]
+
+
+def test_times_are_measured_and_non_negative():
+    frame, ev = hand_case()
+    res = run_cascade(frame, CONFIG, evaluate=ev)
+    assert res.stage_time_s.shape == (3,)
+    assert np.all(res.stage_time_s > 0)
+    assert res.sort_time_s > 0 and res.survival_all_time_s > 0
+
+
+def test_a_stage_with_nobody_left_is_not_run():
+    frame, ev = hand_case()
+    config = CascadeConfig(
+        stages=(Stage("path_distance", 5.0), Stage("gaussian", 0.0)), tiers=TIERS
+    )
+    res = run_cascade(frame, config, evaluate=ev)
+    assert not res.kept.any()
+    assert res.stage_time_s[1] == 0.0 and res.sort_time_s == 0.0
+    assert [c[0] for c in ev.calls] == [("survival",), ("path_distance",)]
+    np.testing.assert_array_equal(res.false_negatives, [4, 4])
+    assert (res.tier == -1).all() and np.isnan(res.survival).all()
+
+
+def test_ego_alone():
+    frame = line_frame(1)
+    ev = TableEvaluator({m: {} for m in ("survival", "path_distance", "gaussian")})
+    config = CascadeConfig(stages=(Stage("path_distance", 0.0),), tiers=TIERS)
+    res = run_cascade(frame, config, evaluate=ev)
+    assert res.kept.shape == (1, 1) and not res.kept.any()
+    np.testing.assert_array_equal(res.false_negatives, [0])
+
+
+def test_ego_in_the_middle_keeps_indices_of_the_full_frame():
+    frame = line_frame(4, ego=2)  # ids 10, 11, 12 (ego), 13
+    ev = TableEvaluator(
+        {"path_distance": {10: 0.5, 11: 0.0, 13: 0.7}, "survival": {10: 0.3, 11: 0.0, 13: 0.9}}
+    )
+    config = CascadeConfig(stages=(Stage("path_distance", 0.1),), tiers=TIERS)
+    res = run_cascade(frame, config, evaluate=ev)
+    np.testing.assert_array_equal(res.kept[0], [1, 0, 0, 1])
+    np.testing.assert_array_equal(res.survival[[0, 3]], [0.3, 0.9])
+    np.testing.assert_array_equal(res.tier, [1, -1, -1, 2])
+
+
+# ---------------------------------------------------------------------- tiers
+def test_assign_tiers_hand_computed():
+    r = np.array([0.05, 0.9, 0.3, 0.0, 0.6, 0.3])
+    # behavior: >= 1e-25 -> all but index 3; interactive (>= 0.1, top 2): 1 and 4;
+    # cooperative (>= 0.5, top 1): 1.
+    np.testing.assert_array_equal(assign_tiers(r, TIERS), [0, 2, 0, -1, 1, 0])
+
+
+def test_assign_tiers_ties_prefer_the_lower_index():
+    tiers = (Tier("a", 0.0, max_agents=2),)
+    np.testing.assert_array_equal(
+        assign_tiers(np.array([0.5, 0.7, 0.5, 0.5]), tiers), [0, 0, -1, -1]
+    )
+
+
+tier_strategy = st.lists(
+    st.tuples(st.floats(0, 1, allow_nan=False), st.one_of(st.none(), st.integers(1, 6))),
+    min_size=1,
+    max_size=4,
+).map(lambda ts: tuple(Tier(f"t{k}", m, c) for k, (m, c) in enumerate(ts)))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    r=hnp.arrays(np.float64, st.integers(0, 12), elements=st.floats(0, 1, allow_nan=False)),
+    tiers=tier_strategy,
+)
+def test_tiers_are_nested_capped_and_ranked(r, tiers):
+    tier = assign_tiers(r, tiers)
+    for k, t in enumerate(tiers):
+        members = tier >= k
+        assert np.all(r[members] >= t.min_survival_risk)
+        if t.max_agents is not None:
+            assert members.sum() <= t.max_agents
+        if k > 0:
+            assert np.all(members <= (tier >= k - 1))  # nested
+        # Ranked: nobody outside tier k is riskier than a member while in tier k - 1.
+        if members.any():
+            prev = tier >= k - 1 if k > 0 else np.ones_like(members)
+            outside = prev & ~members
+            if outside.any():
+                assert r[outside].max() <= r[members].min()
+
+
+# ---------------------------------------------------------------------- configuration
+def test_from_dict_rejects_nonsense_naming_the_key():
+    good = CONFIG.to_dict()
+    with pytest.raises(CascadeConfigError, match=r"^x\.toml: stages\[1\]\.threshold: must be"):
+        CascadeConfig.from_dict(
+            {**good, "stages": [good["stages"][0], {"model": "gaussian", "threshold": -1}]},
+            source="x.toml",
+        )
+    with pytest.raises(CascadeConfigError, match=r"^tiers\[0\]\.colour: unknown key"):
+        CascadeConfig.from_dict({**good, "tiers": [{**good["tiers"][0], "colour": "red"}]})
+    with pytest.raises(CascadeConfigError, match=r"^stages\[0\]\.threshold: missing key"):
+        CascadeConfig.from_dict({**good, "stages": [{"model": "gaussian"}]})
+    with pytest.raises(CascadeConfigError, match=r"^stages\[0\]\.model: unknown model 'gauss'"):
+        CascadeConfig.from_dict({**good, "stages": [{"model": "gauss", "threshold": 1.0}]})
+    with pytest.raises(CascadeConfigError, match=r"^stagez: unknown key"):
+        CascadeConfig.from_dict({**good, "stagez": []})
+    with pytest.raises(CascadeConfigError, match=r"^tiers: missing key"):
+        CascadeConfig.from_dict({k: v for k, v in good.items() if k != "tiers"})
+    with pytest.raises(CascadeConfigError, match=r"^tiers\[2\]\.max_agents: expected an integer"):
+        tiers = [*good["tiers"][:2], {**good["tiers"][2], "max_agents": 0}]
+        CascadeConfig.from_dict({**good, "tiers": tiers})
+    with pytest.raises(CascadeConfigError, match=r"^baseline_threshold: expected a number"):
+        CascadeConfig.from_dict({**good, "baseline_threshold": "small"})
+
+
+def test_toml_round_trip(tmp_path):
+    path = CONFIG.to_toml(tmp_path / "c.toml")
+    back = CascadeConfig.from_toml(path)
+    assert back == CONFIG
+    assert list(tmp_path.iterdir()) == [path]  # no temp file left behind
+
+
+def test_from_toml_reports_bad_toml_with_the_file(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("stages = [\n")
+    with pytest.raises(CascadeConfigError, match=r"bad\.toml: toml: not valid TOML"):
+        CascadeConfig.from_toml(bad)
+
+
+def test_default_config_loads_and_is_the_paper_cascade():
+    config = CascadeConfig.default()
+    assert config.stage_names == ("path_distance", "trajectory_distance", "gaussian")
+    assert [t.name for t in config.tiers] == ["behavior", "interactive", "cooperative"]
+    assert config.baseline_threshold == 1e-25
+    assert "replay calibrate" in config.provenance
+    assert all(s.threshold > 0 for s in config.stages)
+
+
+# ---------------------------------------------------------------------- with the real models
+def random_frame(seed: int, n: int = 40) -> Frame:
+    """Agents scattered over a 120 m square, straight paths of 40 m to 120 m."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-60, 60, (n, 2))
+    heading = rng.uniform(-np.pi, np.pi, n)
+    reach = rng.uniform(40, 120, n)
+    steps = np.linspace(0, 1, 12)[None, :, None]
+    direction = np.c_[np.cos(heading), np.sin(heading)][:, None, :]
+    paths = xy[:, None, :] + steps * reach[:, None, None] * direction
+    kinds = rng.choice(["vehicle", "pedestrian", "cyclist"], n, p=[0.7, 0.2, 0.1])
+    valid = rng.random(n) > 0.1
+    valid[0] = True
+    return Frame.from_arrays(
+        xy, heading, rng.uniform(0, 12, n), np.full(n, 4.5), np.full(n, 1.8), list(paths), 0,
+        kinds=kinds, valid=valid,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sub_frame_risks_equal_whole_frame_risks(seed):
+    """Every model is a function of the ego and one agent, so a stage on a sub-frame must
+    decide exactly as the same threshold on the whole frame (what calibration assumes)."""
+    import risk
+
+    frame = random_frame(seed)
+    whole = risk.evaluate(
+        frame, models=["path_distance", "trajectory_distance", "gaussian", "survival"]
+    )
+    others = frame.others
+    # Thresholds at the median of each model's risk, so that every stage drops agents.
+    stages = tuple(
+        Stage(m, float(np.median(whole[m][others])))
+        for m in ("path_distance", "trajectory_distance", "gaussian")
+    )
+    config = CascadeConfig(stages=stages, tiers=TIERS)
+    res = run_cascade(frame, config)
+    reaching = others.copy()
+    for s, stage in enumerate(stages):
+        expected = reaching & (np.nan_to_num(whole[stage.model], nan=-1) >= stage.threshold)
+        np.testing.assert_array_equal(res.kept[s], expected)
+        reaching = expected
+    assert res.kept[0].sum() < others.sum()  # the thresholds did bite
+    np.testing.assert_allclose(res.survival_all, whole["survival"], rtol=1e-12)
+    survivors = res.kept[-1]
+    np.testing.assert_allclose(res.survival[survivors], whole["survival"][survivors], rtol=1e-12)
+    assert np.isnan(res.survival[~survivors]).all()
+    np.testing.assert_array_equal(
+        res.baseline, others & (np.nan_to_num(whole["survival"], nan=-1) >= 1e-25)
+    )
