@@ -222,6 +222,24 @@ def test_rerun_mcap_check_passes(tmp_path):
     assert done.returncode == 0, done.stdout + done.stderr
 
 
+def test_synthetic_scene_round_trip_and_size(tmp_path):
+    """The issue's reference scene: 100 agents, 10 s at 10 Hz, some leaving on the way."""
+    from converters.synthetic import SyntheticSettings, generate_scene
+
+    scene = generate_scene(SyntheticSettings(n_agents=100), 4)
+    path = write_scene(tmp_path / "syn.mcap", scene)
+    assert path.stat().st_size < 1_000_000
+    back = read_scene(path)
+    assert len(back.frames) == len(scene.frames) == 100
+    assert not back.frames[-1].valid.all()  # agents that left stay, invalid
+    for got, want in zip(back.frames, scene.frames, strict=True):
+        assert_frame_quantised(got, want)
+    assert len(back.map.lanes) == len(scene.map.lanes)
+    for a, b in zip(back.map.lanes, scene.map.lanes, strict=True):
+        np.testing.assert_array_equal(a.centerline, q(b.centerline))
+        assert a.successors == b.successors
+
+
 # ---------------------------------------------------------------------- property test
 
 coord = st.floats(-5e4, 5e4, allow_nan=False, allow_infinity=False)
@@ -506,3 +524,17 @@ def test_parsed_schema_has_the_documented_fields():
 def test_proto_parser_rejects_what_it_does_not_support(text, match):
     with pytest.raises(sf.ProtoSyntaxError, match=match):
         sf.parse_proto(text)
+
+
+def test_parser_matches_protoc():
+    """The import-time parser gives exactly protoc's descriptor of scene.proto.
+
+    The fixture came from ``python -m grpc_tools.protoc -Iconverters
+    --descriptor_set_out=tests/fixtures/scene_proto_protoc.pb converters/scene.proto``
+    (grpcio-tools 1.85.1); regenerate it after changing scene.proto.
+    """
+    from google.protobuf import descriptor_pb2
+
+    fixture = pathlib.Path(__file__).parent / "fixtures" / "scene_proto_protoc.pb"
+    (reference,) = descriptor_pb2.FileDescriptorSet.FromString(fixture.read_bytes()).file
+    assert reference == sf.FILE_DESCRIPTOR
