@@ -15,6 +15,7 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
+import rerun as rr
 import rerun.blueprint as rrb
 
 # ---------------------------------------------------------------------- entity paths
@@ -313,5 +314,7 @@ def _risk_view(
         name=title,
         origin=risk_root(model, log10=log10_range is not None),
         plot_legend=rrb.PlotLegend(visible=False),  # a hundred agents: a legend is noise
+        # Series without their own style (agents the cascade never kept) are quiet grey.
+        defaults=[rr.SeriesLines(colors=QUIET_SERIES, widths=1.0)],
         axis_y=None if log10_range is None else rrb.ScalarAxis(range=log10_range),
     )

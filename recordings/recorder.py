@@ -23,8 +23,10 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
+import pyarrow as pa
 import rerun as rr
 
+from recordings import columns as C
 from recordings import layout as L
 from recordings.errors import RecordingError
 
@@ -329,25 +331,40 @@ def _time_columns(scene: _Scene) -> list[rr.TimeColumn]:
     ]
 
 
+def _timed_batch(scene: _Scene) -> C.Batch:
+    """An empty batch over the scene's two timelines (one row per recorded frame)."""
+    ns = np.rint(scene.times_s * 1e9).astype(np.int64)
+    return C.Batch(
+        indexes={
+            L.TIMELINE: (ns, pa.duration("ns")),
+            L.FRAME_TIMELINE: (scene.frame_index, pa.int64()),
+        }
+    )
+
+
 def _counts(scene: _Scene, mask: np.ndarray) -> np.ndarray:
     """Rows of ``mask`` per frame: the partition lengths of a layer, ``(F,)``."""
     return np.bincount(scene.frame_of[mask], minlength=scene.times_s.size)
 
 
-def _send_layer(
+def _add_layer(
     rec,
+    batch: C.Batch,
     path: str,
-    scene: _Scene,
     lengths: np.ndarray,
     order: float,
     *,
+    strips: pa.Array,
+    colors: np.ndarray,
+    radii: np.ndarray,
+    labels: np.ndarray | None = None,
     show_labels: bool | None = None,
-    **components,
 ) -> None:
-    """One layer for the whole scene: each frame's instances as one row of ``path``.
+    """One line-strip layer for the whole scene: frame ``f``'s instances in row ``f``.
 
-    ``lengths``: ``(F,)`` instances per frame (0 clears the layer in that frame);
-    ``components``: per-instance arrays of all frames, concatenated. The draw order and
+    ``lengths``: ``(F,)`` instances per frame (0 clears the layer in that frame); the
+    other arguments hold the instances of all frames, concatenated: ``colors (K, 3|4)``
+    uint8, ``radii (K,)`` (m; negative: UI points), ``labels (K,)``. The draw order and
     the label switch hold for the whole layer, so they are logged once, static.
     """
     rec.log(
@@ -356,70 +373,84 @@ def _send_layer(
         static=True,
         strict=True,
     )
-    columns = rr.LineStrips2D.columns(**components).partition(lengths)
-    rec.send_columns(path, indexes=_time_columns(scene), columns=columns, strict=True)
+    batch.add(path, C.STRIPS, C.rows(strips, lengths, C.STRIPS.item))
+    batch.add(path, C.STRIP_COLORS, C.rows(C.pack_colors(colors), lengths, pa.uint32()))
+    batch.add(path, C.STRIP_RADII, C.rows(np.asarray(radii, np.float32), lengths, pa.float32()))
+    if labels is not None:
+        batch.add(path, C.STRIP_LABELS, C.rows(pa.array(labels, pa.utf8()), lengths, pa.utf8()))
+
+
+def _tile(color: tuple[int, ...], k: int) -> np.ndarray:
+    return np.tile(np.array(color, dtype=np.uint8), (k, 1))
 
 
 def _log_scene_layers(rec, info: SceneInfo, scene: _Scene, frames, *, labels: str) -> None:
+    """Every layer of the scene view, all frames, in one record batch."""
+    batch = _timed_batch(scene)
+    _add_bodies(rec, batch, info, scene, labels)
+    _add_outlines(rec, batch, info, scene)
+    _add_links(rec, batch, info, scene)
+    _add_paths(rec, batch, info, scene, frames)
+    batch.send(rec)
+
+
+def _add_bodies(rec, batch: C.Batch, info: SceneInfo, scene: _Scene, labels: str) -> None:
+    """Capsules: the ego (green), survivors (red by survival risk), dropped (grey)."""
     r = scene.rows
-    n_stages = len(info.cascade.stages)
     survivors = ~r["is_ego"] & (r["dropped_at"] < 0)
     dropped = r["dropped_at"] >= 0
     missed = dropped & r["baseline"]
-    tag = _tier_tags(tuple(t.name for t in info.cascade.tiers))
     ids = r["ids"].astype(str)
-
-    # Bodies: ego, survivors (red by survival risk), dropped (grey).
-    for path, mask, colors, order, text in (
-        (L.EGO_BODY, r["is_ego"], None, L.ORDER_EGO, np.char.add("ego ", ids)),
-        (L.KEPT_BODIES, survivors, "risk", L.ORDER_KEPT, _survivor_labels(ids, r["tier"], tag)),
-        (L.DROPPED_BODIES, dropped, None, L.ORDER_DROPPED, _dropped_labels(ids, r, missed)),
+    tags = _tier_tags(tuple(t.name for t in info.cascade.tiers))
+    for path, mask, order, text in (
+        (L.EGO_BODY, r["is_ego"], L.ORDER_EGO, np.char.add("ego ", ids)),
+        (L.KEPT_BODIES, survivors, L.ORDER_KEPT, _survivor_labels(ids, r["tier"], tags)),
+        (L.DROPPED_BODIES, dropped, L.ORDER_DROPPED, _dropped_labels(ids, r, missed)),
     ):
-        strips, radii = L.capsules(
+        k = int(mask.sum())
+        caps, radii = L.capsules(
             r["xy"][mask], r["heading"][mask], r["length"][mask], r["width"][mask]
         )
-        if colors == "risk":
+        if path == L.KEPT_BODIES:
             rgb = L.risk_colors(r["survival"][mask], info.cascade.baseline_threshold)
         else:
-            rgb = np.tile(
-                np.array(L.EGO if path == L.EGO_BODY else L.DROPPED, np.uint8), (mask.sum(), 1)
-            )
+            rgb = _tile(L.EGO if path == L.EGO_BODY else L.DROPPED, k)
         show = _label_mask(labels, path, missed[mask])
-        _send_layer(
-            rec, path, scene, _counts(scene, mask), order,
-            strips=strips, radii=radii, colors=rgb,
+        _add_layer(
+            rec, batch, path, _counts(scene, mask), order,
+            strips=C.uniform_strips(caps), colors=rgb, radii=radii,
             labels=np.where(show, text[mask], ""), show_labels=labels != "none",
         )  # fmt: skip
+    everyone = np.ones(r["ids"].size, dtype=bool)
+    _add_layer(
+        rec, batch, L.HEADINGS, _counts(scene, everyone), L.ORDER_HEADINGS,
+        strips=C.uniform_strips(L.noses(r["xy"], r["heading"], r["length"])),
+        colors=_tile((20, 20, 20), everyone.size), radii=np.full(everyone.size, -1.5),
+    )  # fmt: skip
 
-    # Tier outlines around survivors that reached a tier; yellow outlines for false negatives.
-    tiered = survivors & (r["tier"] >= 0)
-    tier_rgb = np.array([L.tier_color(k) for k in range(max(len(info.cascade.tiers), 1))], np.uint8)
-    n_missed = int(missed.sum())
+
+def _add_outlines(rec, batch: C.Batch, info: SceneInfo, scene: _Scene) -> None:
+    """Tier outlines around survivors that reached a tier; yellow ones around FNs."""
+    r = scene.rows
+    tiered = ~r["is_ego"] & (r["dropped_at"] < 0) & (r["tier"] >= 0)
+    missed = (r["dropped_at"] >= 0) & r["baseline"]
+    n_tiers = max(len(info.cascade.tiers), 1)
+    tier_rgb = np.array([L.tier_color(k) for k in range(n_tiers)], np.uint8)
+    tiers = r["tier"][tiered]
     for path, mask, rgb, width, margin in (
-        (L.TIER_OUTLINES, tiered, tier_rgb[r["tier"][tiered]], L.outline_width_ui(r["tier"][tiered]), 0.35),
-        (L.MISSED_OUTLINES, missed, np.tile(np.array(L.MISSED, np.uint8), (n_missed, 1)), np.full(n_missed, 2.0), 0.5),
+        (L.TIER_OUTLINES, tiered, tier_rgb[tiers], L.outline_width_ui(tiers), 0.35),
+        (L.MISSED_OUTLINES, missed, _tile(L.MISSED, int(missed.sum())), np.full(int(missed.sum()), 2.0), 0.5),
     ):  # fmt: skip
         boxes = L.outlines(
             r["xy"][mask], r["heading"][mask], r["length"][mask], r["width"][mask], margin
         )
-        _send_layer(
-            rec, path, scene, _counts(scene, mask), L.ORDER_OUTLINES,
-            strips=boxes, colors=rgb, radii=-width,
+        _add_layer(
+            rec, batch, path, _counts(scene, mask), L.ORDER_OUTLINES,
+            strips=C.uniform_strips(boxes), colors=rgb, radii=-width,
         )  # fmt: skip
 
-    everyone = np.ones(r["ids"].size, dtype=bool)
-    _send_layer(
-        rec, L.HEADINGS, scene, _counts(scene, everyone), L.ORDER_HEADINGS,
-        strips=L.noses(r["xy"], r["heading"], r["length"]),
-        colors=np.tile(np.array((20, 20, 20), np.uint8), (everyone.size, 1)),
-        radii=np.full(everyone.size, -1.5),
-    )  # fmt: skip
 
-    _log_links(rec, info, scene, n_stages)
-    _log_paths(rec, info, scene, frames)
-
-
-def _log_links(rec, info: SceneInfo, scene: _Scene, n_stages: int) -> None:
+def _add_links(rec, batch: C.Batch, info: SceneInfo, scene: _Scene) -> None:
     """Fig. 2 overlay: per stage, a line from the ego to every agent kept after it."""
     r = scene.rows
     ego_xy = np.zeros((scene.times_s.size, 2))
@@ -427,35 +458,35 @@ def _log_links(rec, info: SceneInfo, scene: _Scene, n_stages: int) -> None:
     for s, stage in enumerate(info.cascade.stages):
         mask = r["kept"][s]
         k = int(mask.sum())
-        strips = np.stack([ego_xy[scene.frame_of[mask]], r["xy"][mask]], axis=1)
-        _send_layer(
-            rec, L.link_path(s, stage.model), scene, _counts(scene, mask), L.ORDER_LINKS + 0.1 * s,
-            strips=strips, radii=np.full(k, -L.link_width_ui(s)),
-            colors=np.tile(np.array((*L.stage_color(s), L.LINK_ALPHA), np.uint8), (k, 1)),
+        lines = np.stack([ego_xy[scene.frame_of[mask]], r["xy"][mask]], axis=1)
+        _add_layer(
+            rec, batch, L.link_path(s, stage.model), _counts(scene, mask), L.ORDER_LINKS + 0.1 * s,
+            strips=C.uniform_strips(lines), radii=np.full(k, -L.link_width_ui(s)),
+            colors=_tile((*L.stage_color(s), L.LINK_ALPHA), k),
         )  # fmt: skip
 
 
-def _log_paths(rec, info: SceneInfo, scene: _Scene, frames: Sequence[_FrameRows]) -> None:
-    """The ego's path and the survivors' forward paths (one row per frame each)."""
+def _add_paths(rec, batch: C.Batch, info: SceneInfo, scene: _Scene, frames) -> None:
+    """The ego's path candidates and the deeper-tier survivors' forward paths."""
     ego = [p for f in frames for p in f.ego_paths]
     if ego:
         n = len(ego)
-        _send_layer(
-            rec, L.EGO_PATH, scene, np.array([len(f.ego_paths) for f in frames]), L.ORDER_PATHS,
-            strips=ego, radii=np.full(n, -L.PATH_WIDTH_UI * 1.5),
-            colors=np.tile(np.array((*L.EGO, 200), np.uint8), (n, 1)),
+        _add_layer(
+            rec, batch, L.EGO_PATH, np.array([len(f.ego_paths) for f in frames]), L.ORDER_PATHS,
+            strips=C.strips(np.concatenate(ego), np.array([len(p) for p in ego])),
+            radii=np.full(n, -L.PATH_WIDTH_UI * 1.5), colors=_tile((*L.EGO, 200), n),
         )  # fmt: skip
     lengths = np.array([f.survivor_paths.shape[0] for f in frames])
     if lengths.sum() == 0:
         return
-    strips = [p for f in frames for p in f.survivor_paths]
-    rgb = L.risk_colors(
-        np.concatenate([f.survivor_path_risk for f in frames]), info.cascade.baseline_threshold
-    )
+    points = np.concatenate([f.survivor_paths.reshape(-1, 2) for f in frames])
+    per_strip = np.repeat([f.survivor_paths.shape[1] for f in frames], lengths)
+    risk = np.concatenate([f.survivor_path_risk for f in frames])
+    rgb = L.risk_colors(risk, info.cascade.baseline_threshold)
     rgba = np.concatenate([rgb, np.full((rgb.shape[0], 1), L.PATH_ALPHA, np.uint8)], axis=1)
-    _send_layer(
-        rec, L.PREDICTED_PATHS, scene, lengths, L.ORDER_PATHS,
-        strips=strips, radii=np.full(len(strips), -L.PATH_WIDTH_UI), colors=rgba,
+    _add_layer(
+        rec, batch, L.PREDICTED_PATHS, lengths, L.ORDER_PATHS,
+        strips=C.strips(points, per_strip), radii=np.full(risk.size, -L.PATH_WIDTH_UI), colors=rgba,
     )  # fmt: skip
 
 
@@ -532,52 +563,40 @@ def _log_timelines(rec, info: SceneInfo, scene: _Scene, log10_models: set[str]) 
     """``/risk/<model>/<id>``: each agent's risk from its first to its last frame.
 
     Frames in between where the agent is absent (or invalid) hold NaN, which the viewer
-    draws as a gap. Agents the cascade kept to the end in some frame get their own colour,
-    the others a quiet grey, so that the agents that matter stand out among a hundred.
+    draws as a gap. Agents the cascade kept to the end in some frame carry their own
+    colour; the others take the view's default, a quiet grey, so that the agents that
+    matter stand out among a hundred. Each model is one record batch with a column per
+    agent (null outside the agent's span), not one ``send_columns`` call per agent.
     """
     r = scene.rows
     agent_ids, column, first, last = _agent_grid(scene)
     n_frames, others = scene.times_s.size, column >= 0
     ever_kept = np.zeros(agent_ids.size, dtype=bool)
     ever_kept[column[others & (r["dropped_at"] < 0)]] = True
-    colors = np.where(ever_kept[:, None], L.agent_series_colors(agent_ids), L.QUIET_SERIES)
-    widths = np.where(ever_kept, 1.6, 1.0)
-    names = np.char.add("agent ", agent_ids.astype(str))
-    times = _time_columns(scene)
+    frame_pos = np.arange(n_frames)
+    outside = (frame_pos[None, :] < first[:, None]) | (frame_pos[None, :] > last[:, None])
+    colors = C.pack_colors(L.agent_series_colors(agent_ids))
     thresholds = {s.model: s.threshold for s in info.cascade.stages}
     for model in info.model_names:
-        grid = np.full((n_frames, agent_ids.size), np.nan)
-        grid[scene.frame_of[others], column[others]] = r[f"risk:{model}"][others]
+        grid = np.full((agent_ids.size, n_frames), np.nan)  # (A, F): one row per agent
+        grid[column[others], scene.frame_of[others]] = r[f"risk:{model}"][others]
         variants = [(False, grid)]
         if model in log10_models:
             with np.errstate(divide="ignore", invalid="ignore"):
                 variants.append((True, np.where(grid > 0, np.log10(grid), np.nan)))
         for is_log, values in variants:
+            batch = _timed_batch(scene)
+            # All agents' cells in one array; each agent's column is a zero-copy slice.
+            cells = C.one_per_row(values.reshape(-1), pa.float64(), outside.reshape(-1))
+            own = C.one_per_row(np.repeat(colors, n_frames), pa.uint32(), outside.reshape(-1))
             for a, agent in enumerate(agent_ids):
-                span = slice(int(first[a]), int(last[a]) + 1)
                 path = L.risk_path(model, int(agent), log10=is_log)
-                rec.log(
-                    path,
-                    rr.SeriesLines(colors=colors[a], widths=widths[a], names=names[a]),
-                    static=True,
-                    strict=True,
-                )
-                rec.send_columns(
-                    path,
-                    indexes=[t_col_slice(t, span) for t in times],
-                    columns=rr.Scalars.columns(scalars=values[span, a]),
-                    strict=True,
-                )
+                batch.add(path, C.SCALARS, cells.slice(a * n_frames, n_frames))
+                if ever_kept[a]:
+                    batch.add(path, C.SERIES_COLORS, own.slice(a * n_frames, n_frames))
+            batch.send(rec)
             if model in thresholds:
                 _log_threshold(rec, scene, model, thresholds[model], is_log)
-
-
-def t_col_slice(column: rr.TimeColumn, span: slice) -> rr.TimeColumn:
-    """A time column restricted to ``span`` (zero-copy slice of its arrow array)."""
-    out = rr.TimeColumn.__new__(rr.TimeColumn)
-    out.timeline = column.timeline
-    out.times = column.times[span]
-    return out
 
 
 def _log_threshold(rec, scene: _Scene, model: str, threshold: float, is_log: bool) -> None:

@@ -167,7 +167,9 @@ def read_rrd(path: pathlib.Path) -> dict[str, Entity]:
             continue
         times = batch.column(L.TIMELINE).cast("int64").to_pylist()
         for i, t in enumerate(times):
-            ent.rows.append((t, {n.split(":", 1)[1]: data[n][i] for n in comps}))
+            row = {n.split(":", 1)[1]: data[n][i] for n in comps if data[n][i] is not None}
+            if row:  # a null cell means "nothing logged at this time"
+                ent.rows.append((t, row))
     return out
 
 
@@ -219,7 +221,12 @@ def test_risk_timeline_equals_input_with_gap(recording):
     np.testing.assert_array_equal(scalars(ent), [1e-8])
     # Agent 1 in every frame, raw values in the model's units.
     np.testing.assert_array_equal(scalars(ents[L.risk_path("survival", 1)]), SURV[:, 0])
-    assert ents[L.risk_path("survival", 1)].static["names"] == ["agent 1"]
+    # Agents kept to the end in some frame have their own colour; the others (agent 3 is
+    # dropped whenever present) use the view's quiet default.
+    own = tuple(int(c) for c in L.agent_series_colors(np.array([1]))[0])
+    assert [rgba(c[0])[:3] for c in ents[L.risk_path("survival", 1)].column("colors")] == [own] * 3
+    assert ents[L.risk_path("survival", 3)].column("colors") == [None, None, None]
+    assert ents[L.risk_path("wide", 2, log10=True)].column("colors")[0] is not None
 
 
 def test_frame_timeline_is_logged(recording):
