@@ -191,12 +191,12 @@ def test_calibrate_then_run_drops_no_baseline_agent(tmp_path):
 
     scenes = [write_scene(tmp_path / f"s{k}.mcap", small_scene(seed=k)) for k in (11, 12)]
     toml = tmp_path / "c.toml"
-    result = invoke("calibrate", *scenes, "-o", toml, "--no-progress")
+    result = invoke("calibrate", *scenes, "-o", toml, "--no-progress", "--note", "two seeds")
     assert result.exit_code == 0, result.output
     config = CascadeConfig.from_toml(toml)
     assert config.stage_names == ("path_distance", "trajectory_distance", "gaussian")
     assert "Made by: replay calibrate s11.mcap s12.mcap -o c.toml" in config.provenance
-    assert "Seeds: 11-12" in config.provenance
+    assert "Seeds: 11-12" in config.provenance and "Note: two seeds" in config.provenance
     assert "path_distance" in result.output and f"Wrote {toml}" in result.output
     for path in scenes:
         out = invoke("run", path, "--cascade", toml, "--no-rrd", "--no-progress").output

@@ -163,6 +163,8 @@ def provenance(
     tier_mean: Sequence[float],
     command: str,
     tier_counts: Sequence[int],
+    *,
+    note: str = "",
 ) -> str:
     """The human-readable record of how the thresholds were made (kept in the TOML)."""
     try:
@@ -173,6 +175,7 @@ def provenance(
     lines = [
         f"Made by: {command}",
         f"Date: {today}, riskreplay {version}",
+        *([f"Note: {note.strip()}"] if note.strip() else []),
         f"Data: {data.scenes} scenes ({', '.join(data.sources)}), {data.frames} frames"
         f" ({data.skipped_frames} skipped: ego missing), {cal.agent_frames} agent-frames,"
         f" {cal.baseline_agents} baseline-important (survival R_S >= {config.baseline_threshold:g})",
@@ -253,6 +256,10 @@ def _parse_list(value: str, what: str) -> list[str]:
     help="Take tier names and caps (max_agents) from this cascade TOML. Default: the "
     "paper's tiers: behavior, interactive (cap 8), cooperative (cap 2).",
 )  # fmt: skip
+@click.option(
+    "--note", default="",
+    help="A line to keep in the file's provenance, e.g. how the scenes were made.",
+)  # fmt: skip
 @click.option("--progress/--no-progress", default=True, help="Progress bar on stderr.")
 def calibrate(
     scenes: tuple[pathlib.Path, ...],
@@ -261,6 +268,7 @@ def calibrate(
     stages: str,
     tier_counts: str,
     base: pathlib.Path | None,
+    note: str,
     progress: bool,
 ) -> None:
     """Choose the cascade's thresholds on SCENES so that no stage drops (more than
@@ -304,7 +312,7 @@ def calibrate(
     command = _command_line(scenes, output, max_fn_rate, models, counts, base)
     config = CascadeConfig(
         stages=config.stages, tiers=config.tiers, baseline_threshold=config.baseline_threshold,
-        provenance=provenance(config, cal, data, means, command, counts),
+        provenance=provenance(config, cal, data, means, command, counts, note=note),
     )  # fmt: skip
     config.to_toml(output)
     click.echo(_report(config, cal, data, means))
