@@ -148,7 +148,8 @@ def time_ns(t_s: float) -> int:
     """MCAP log time of a frame: its time in integer nanoseconds, clamped at 0.
 
     MCAP times are unsigned; a source with negative frame times keeps its exact times in
-    the messages (``t_s``), and readers order frames by ``frame_index``.
+    the messages (``t_s``). Messages with equal log times keep their file order, which is
+    frame order, so readers still see the frames in time order.
     """
     return max(0, round(t_s * 1e9))
 

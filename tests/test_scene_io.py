@@ -142,6 +142,12 @@ def test_write_read_write_is_a_byte_identical_fixed_point(tmp_path):
     assert first.read_bytes() == second.read_bytes()
 
 
+def test_negative_frame_times_keep_their_order(tmp_path):
+    frames = [Frame(**{**frame_b()._fields(), "t": t}) for t in (-0.3, -0.2, -0.1, 0.0, 0.1)]
+    back = read_scene(write_scene(tmp_path / "n.mcap", Scene(small_map(), frames, 0.1)))
+    assert [f.t for f in back.frames] == [-0.3, -0.2, -0.1, 0.0, 0.1]
+
+
 def test_reader_metadata_channels_and_counts(tmp_path):
     path = write_scene(tmp_path / "s.mcap", small_scene())
     reader = open_scene(path)
