@@ -10,6 +10,7 @@ half-written output is ever left behind.
 from __future__ import annotations
 
 import contextlib
+import functools
 import itertools
 import os
 import pathlib
@@ -180,6 +181,7 @@ def run_scene(
     ego: int | None = None,
     models: Sequence[str] | None = None,
     params: Mapping[str, Any] | None = None,
+    prediction: Any = None,
     progress: bool = True,
     evaluate: Evaluator | None = None,
 ) -> RunSummary:
@@ -188,7 +190,9 @@ def run_scene(
     ``source``: a scene file (opened with ``replay.reader.open_scene``), a reader, or an
     in-memory :class:`risk.Scene`. ``ego``: the agent id to see the scene from (default:
     the recording's ego). ``models``: the models evaluated on all agents for the
-    timelines (default: every registered model). Frames where the ego is absent or
+    timelines (default: every registered model). ``params`` (model name -> parameters)
+    and ``prediction`` (``risk.PredictionSettings``) go to every model evaluation, the
+    cascade's included. Frames where the ego is absent or
     invalid are skipped and counted (one :class:`ReplayWarning` at the end). On any error
     every sink is aborted, so no partial output stays behind.
     """
@@ -198,6 +202,8 @@ def run_scene(
         from risk import evaluate as default_evaluate
 
         evaluate = default_evaluate
+    if prediction is not None:
+        evaluate = functools.partial(evaluate, prediction=prediction)
     model_names = _model_names(models)
     try:
         return _run(reader, path, sinks, cascade, ego, model_names, params, progress, evaluate)

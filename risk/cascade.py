@@ -24,6 +24,7 @@ Choices the spec leaves open (documented here, see also ``docs/cascade.md``):
 
 from __future__ import annotations
 
+import functools
 import math
 import pathlib
 import time
@@ -248,18 +249,22 @@ def run_cascade(
     config: CascadeConfig,
     *,
     params: Mapping[str, Any] | None = None,
+    prediction: Any = None,
     evaluate: Evaluator | None = None,
 ) -> CascadeResult:
     """Run the cascade on one frame.
 
     Stage ``s`` evaluates ``config.stages[s].model`` on a sub-frame of the ego and the
-    agents kept by stage ``s - 1`` (all valid others for the first stage). ``params`` is
+    agents kept by stage ``s - 1`` (all valid others for the first stage). ``params``
+    (model name -> parameters) and ``prediction`` (a ``risk.PredictionSettings``) are
     passed to ``evaluate`` (``risk.evaluate`` by default) unchanged.
     """
     if evaluate is None:
         from risk import evaluate as default_evaluate
 
         evaluate = default_evaluate
+    if prediction is not None:
+        evaluate = functools.partial(evaluate, prediction=prediction)
     n, n_stages = frame.n_agents, len(config.stages)
     others = frame.others
 

@@ -302,3 +302,18 @@ def test_sub_frame_risks_equal_whole_frame_risks(seed):
     np.testing.assert_array_equal(
         res.baseline, others & (np.nan_to_num(whole["survival"], nan=-1) >= 1e-25)
     )
+
+
+def test_prediction_settings_reach_every_evaluation():
+    import risk
+
+    frame = random_frame(4)
+    short = risk.PredictionSettings(horizon_s=3.0)
+    config = CascadeConfig(stages=(Stage("gaussian", 0.0),), tiers=TIERS)
+    res = run_cascade(frame, config, prediction=short)
+    expected = risk.evaluate(frame, models=["survival"], prediction=short)["survival"]
+    default = risk.evaluate(frame, models=["survival"])["survival"]
+    np.testing.assert_allclose(res.survival_all, expected, rtol=1e-12)
+    assert not np.allclose(res.survival_all[frame.others], default[frame.others])
+    kept = res.kept[0]
+    np.testing.assert_allclose(res.survival[kept], expected[kept], rtol=1e-12)
