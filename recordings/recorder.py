@@ -703,12 +703,30 @@ def _mean(values: np.ndarray) -> float:
 
 
 def summary_markdown(info: SceneInfo, scene: _Scene) -> str:
-    """The summary document: scene facts, cascade settings and outcome, how to read it."""
-    lines = [f"# {_cell(_recording_name(info))}", ""]
-    lines += _scene_section(info, scene)
-    lines += _cascade_section(info, scene)
+    """The summary document: the outcome in one line, how to read the views, the cascade
+    settings and results, then the scene's facts (most important first: the view is
+    small and a reviewer reads from the top)."""
+    lines = [f"# {_cell(_recording_name(info))}", "", _headline(info, scene), ""]
     lines += _legend_section(info)
+    lines += _cascade_section(info, scene)
+    lines += _scene_section(info, scene)
     return "\n".join(lines) + "\n"
+
+
+def _headline(info: SceneInfo, scene: _Scene) -> str:
+    n, r = scene.times_s.size, scene.rows
+    if n == 0:
+        return f"No frame recorded (the scene has {info.n_frames}; the ego was never present)."
+    per_frame = np.bincount(scene.frame_of[~r["is_ego"]], minlength=n)
+    kept = (
+        np.bincount(scene.frame_of[r["kept"][-1]], minlength=n) if r["kept"].shape[0] else per_frame
+    )
+    missed = int(scene.false_negatives[:, -1].sum()) if scene.false_negatives.shape[1] else 0
+    return (
+        f"Ego {info.ego_id}, {n} frames every {info.frame_period_s:g} s: the cascade keeps "
+        f"**{_mean(kept):.1f}** of {_mean(per_frame):.1f} other agents per frame, with "
+        f"**{missed}** false negatives (baseline-important agent-frames dropped)."
+    )
 
 
 def _scene_section(info: SceneInfo, scene: _Scene) -> list[str]:
@@ -789,38 +807,32 @@ def _cascade_section(info: SceneInfo, scene: _Scene) -> list[str]:
 def _legend_section(info: SceneInfo) -> list[str]:
     casc = info.cascade
     stages = ", ".join(
-        f"{L.stage_color_name(s)} = after stage {s + 1} ({st.model})"
+        f"{L.stage_color_name(s)} = kept by stage {s + 1} ({st.model})"
         for s, st in enumerate(casc.stages)
     )
     tiers = ", ".join(f"{L.tier_color_name(k)} = {t.name}" for k, t in enumerate(casc.tiers))
-    floor = casc.baseline_threshold
     return [
-        "## How to read the scene view",
+        "## Reading the views",
         "",
-        "Top-down, x east, y north, metres. Scrub the time line to replay.",
+        "Scene: top-down, x east, y north, metres; scrub the time line to replay.",
         "",
-        "- **Green** capsule: the ego (its forward path in green).",
-        f"- **Red** capsules: agents kept by every stage. The deeper the red, the higher "
-        f"the survival risk R_S, on a log scale from {floor:g} (palest) to 1 (full red); "
-        "the thin line ahead of each is its forward path.",
-        f"- **Outline** of a red capsule: the deepest planner tier it reached ({tiers}); "
-        "the label shows the tier's initial after the id.",
-        "- **Grey** capsules: dropped by a stage; with `labels=all` the label reads "
-        "`id ✗k` (dropped by stage k).",
-        "- **Yellow** outline, label `id FN ✗k`: dropped by stage k although the survival "
-        "baseline rates it important (a false negative).",
-        f"- **Lines from the ego** (the filtered sets of the paper's Fig. 2): {stages}. "
-        "The bands are nested and narrow with each stage, so an agent whose band stops "
-        "early was dropped at the next stage.",
-        "- Dark nose line: the agent's heading.",
+        "- **Green**: the ego and its path.",
+        "- **Red**: agents kept by every stage; deeper red = higher survival risk R_S (log "
+        f"scale, palest at {casc.baseline_threshold:g}, full red at 1). Thin red lines: the "
+        "forward paths of the agents in the second tier and deeper.",
+        f"- **Outline**: the deepest planner tier reached ({tiers}); the label is the id "
+        "and the tier's initial.",
+        "- **Grey**: dropped by a stage (label `id ✗k` with labels=all: dropped by stage k).",
+        "- **Yellow outline**, `id FN ✗k`: dropped by stage k although the survival baseline "
+        "rates it important (a false negative).",
+        f"- **Lines from the ego** (the paper's Fig. 2): {stages}; nested bands, each "
+        "narrower, so a band that stops early marks the stage that dropped the agent.",
+        "- Dark nose: heading.",
         "",
-        "## Timelines",
+        "Risk per agent: one tab per model, a line per agent (`log10` tabs: the values span "
+        "many decades; zero risk is a gap). Coloured: agents kept to the end in some "
+        "frame; grey: never kept. White: the stage threshold. Gaps: the agent is absent.",
+        "Funnel: agents left after each stage and per tier. False negatives: cumulative "
+        "per stage. Compute time: per stage, against survival analysis on all agents.",
         "",
-        "- *Risk per agent*: one tab per model, one line per agent in the model's units "
-        "(`(log10)`: log10 of the risk, because its values span many decades; zero "
-        "risk is a gap). Coloured lines: agents kept by every stage in some frame; grey: "
-        "never kept. The white line is the stage threshold where the model is a stage. "
-        "Gaps: the agent is absent.",
-        "- *Funnel*: agents left after each stage and in each tier; *False negatives*: "
-        "cumulative per stage; *Compute time*: per stage, against survival on all agents.",
     ]

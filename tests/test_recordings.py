@@ -368,7 +368,8 @@ def test_summary_text(recording):
     assert doc["media_type"] == ["text/markdown"]
     text = doc["text"][0]
     for needle in ("rec-test", "hand-made for the recorder tests", "| 1 (blue) | near | 0.2", "cooperative",
-                   "1e-25", "ego id | 100", "frames recorded | 3 of 3"):  # fmt: skip
+                   "1e-25", "ego id | 100", "frames recorded | 3 of 3",
+                   "keeps **1.7** of 3.0 other agents per frame", "**2** false negatives"):  # fmt: skip
         assert needle in text, needle
 
 
