@@ -60,7 +60,7 @@ def read_records(path: str | os.PathLike, *, verify: bool = True) -> Iterator[Re
 
     A corrupt record is yielded as a :class:`RecordError` (not raised), so that the caller
     decides whether to stop or skip it; after a non-resumable error nothing more is
-    yielded. The file is memory-mapped only through ``read``: records are read one by one.
+    yielded. Records are read one at a time, so a large file is never in memory whole.
     """
     path = pathlib.Path(path)
     with path.open("rb") as fh:

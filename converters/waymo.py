@@ -7,7 +7,7 @@ its message classes are built at import time by :func:`converters.scene_format.p
 Mapping (docs/recorded-data.md has the full table):
 
 - one scene per ``Scenario``; every track is an agent (id: Waymo's track id), valid where
-  its state is ``valid``; time: ``timestamps_seconds``; frame period: their median step;
+  its state is ``valid``; time: ``timestamps_seconds``; frame period: their median step (to the ms);
 - ego: the track ``sdc_track_index`` (the self-driving car);
 - kinds: vehicle 1 -> vehicle, pedestrian 2 -> pedestrian, cyclist 3 -> cyclist,
   other 4 and unset 0 -> other;
@@ -222,7 +222,9 @@ def scenario_to_scene(
     steps = np.diff(table.t_s)
     if steps.size and not (np.all(steps > 0) and np.isfinite(steps).all()):
         raise ConversionError(f"{where}: timestamps_seconds are not increasing")
-    period = float(np.median(steps)) if steps.size else 0.1
+    # Waymo's timestamps jitter around 10 Hz (0.09999, 0.10002 s): the nominal period is
+    # their median rounded to the millisecond; frame times stay the recorded ones.
+    period = (round(float(np.median(steps)), 3) or float(np.median(steps))) if steps.size else 0.1
     metadata = {
         "dataset": "waymo_open_motion",
         "source_file": os.path.basename(os.fspath(source)),
