@@ -212,7 +212,7 @@ def scene_bounds(
     points: np.ndarray,
     anchor: np.ndarray | None = None,
     *,
-    margin_m: float = 10.0,
+    margin_m: float = 15.0,
     min_size_m: float = 60.0,
     max_size_m: float = 130.0,
     aspect: float = SCENE_ASPECT,

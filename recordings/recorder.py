@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import os
 import pathlib
-import tempfile
+import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
@@ -136,11 +136,10 @@ class SceneRecorder:
         if self._state != "open":
             raise RecordingError(f"close() on a recorder that is {self._state}")
         assert self._info is not None
-        fd, tmp = tempfile.mkstemp(
-            prefix=f".{self.output.name}.", suffix=".tmp", dir=self.output.parent
-        )
-        os.close(fd)
-        self._tmp = pathlib.Path(tmp)
+        # A fresh name in the output's folder (os.replace is atomic only there), created
+        # like any new file (mode from the umask, unlike mkstemp's 0600).
+        self._tmp = self.output.with_name(f".{self.output.name}.{uuid.uuid4().hex[:12]}.tmp")
+        os.close(os.open(self._tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
         try:
             self._write(self._tmp)
             os.replace(self._tmp, self.output)
@@ -821,7 +820,7 @@ def _legend_section(info: SceneInfo) -> list[str]:
         f"scale, palest at {casc.baseline_threshold:g}, full red at 1). Thin red lines: the "
         "forward paths of the agents in the second tier and deeper.",
         f"- **Outline**: the deepest planner tier reached ({tiers}); the label is the id "
-        "and the tier's initial.",
+        "and the tier's initial (none: kept, but below the first tier).",
         "- **Grey**: dropped by a stage (label `id ✗k` with labels=all: dropped by stage k).",
         "- **Yellow outline**, `id FN ✗k`: dropped by stage k although the survival baseline "
         "rates it important (a false negative).",

@@ -405,6 +405,16 @@ def test_rerun_verify_passes(recording):
 
 
 # ---------------------------------------------------------------------- lifecycle and errors
+def test_output_mode_follows_umask(recording):
+    import os
+    import stat
+
+    out, _, _ = recording
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(out.stat().st_mode) == 0o666 & ~umask  # not mkstemp's 0600
+
+
 def test_abort_leaves_nothing(tmp_path):
     info, results = make_results()
     rec = SceneRecorder(tmp_path / "a.rrd")
