@@ -179,3 +179,23 @@ def test_real_sample(shared_data, tmp_path):
     assert f.ego_id == json.loads(scene.metadata["renamed_tracks"])["AV"]
     # validity is row presence: 1130 + 1304 rows in the file
     assert sum(int(fr.valid.sum()) for fr in scene.frames) == 2434
+
+
+@pytest.mark.realdata
+def test_real_sample_replays_with_every_valid_agent_scored(shared_data, tmp_path):
+    out, table = tmp_path / "av2.mcap", tmp_path / "risks.parquet"
+    runner = CliRunner()
+    assert (
+        runner.invoke(main, ["convert", "av2", str(shared_data / "av2"), "-o", str(out)]).exit_code
+        == 0
+    )
+    result = runner.invoke(
+        main, ["run", str(out), "--no-rrd", "--table", str(table), "--no-progress"]
+    )
+    assert result.exit_code == 0, result.output
+    rows = pl.read_parquet(table)
+    scene = read_scene(out)
+    expected = {(i, int(a)) for i, f in enumerate(scene.frames) for a in f.ids[f.others]}
+    assert set(zip(rows["frame"].to_list(), rows["agent_id"].to_list(), strict=True)) == expected
+    risks = [c for c in rows.columns if c.startswith("risk_")]
+    assert rows.select(pl.all_horizontal([pl.col(c).is_finite() for c in risks])).to_series().all()

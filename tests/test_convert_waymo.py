@@ -323,3 +323,29 @@ def test_real_sample_passes_rerun_mcap_check(shared_data, sample_mcap):
     out = subprocess.run([rerun, "mcap", "check", str(sample_mcap)], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert "/agents" in out.stdout and "/labels" in out.stdout
+
+
+def assert_run_covers_every_valid_agent(scene_path: pathlib.Path, tmp_path: pathlib.Path) -> None:
+    """``replay run`` on a converted scene: one finite risk per model for every valid
+    non-ego agent of every frame (shared with the other converters' tests)."""
+    import polars as pl
+
+    table = tmp_path / "risks.parquet"
+    result = CliRunner().invoke(
+        main, ["run", str(scene_path), "--no-rrd", "--table", str(table), "--no-progress"]
+    )
+    assert result.exit_code == 0, result.output
+    rows = pl.read_parquet(table)
+    scene = read_scene(scene_path)
+    expected = {
+        (i, int(agent_id)) for i, f in enumerate(scene.frames) for agent_id in f.ids[f.others]
+    }
+    assert set(zip(rows["frame"].to_list(), rows["agent_id"].to_list(), strict=True)) == expected
+    risks = [c for c in rows.columns if c.startswith("risk_")]
+    assert len(risks) == 9
+    assert rows.select(pl.all_horizontal([pl.col(c).is_finite() for c in risks])).to_series().all()
+
+
+@pytest.mark.realdata
+def test_real_sample_replays_with_every_valid_agent_scored(shared_data, sample_mcap, tmp_path):
+    assert_run_covers_every_valid_agent(sample_mcap, tmp_path)
