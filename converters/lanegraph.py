@@ -50,6 +50,7 @@ CYCLIST_LANE_KINDS = frozenset({"vehicle", "bus", "bike"})
 """Lane kinds a cyclist can be matched to."""
 
 _EPS_M = 1e-9
+_CUT_CHUNK = 4096  # path rows cut at once
 
 
 @dataclass(frozen=True)
@@ -510,10 +511,16 @@ class LaneGraph:
                 row_route.append(rid)
                 row_s.append(float(ms[lo + i]))
         rq = np.array(row_q, dtype=np.int64)
-        points, count = self._cut(
-            np.array(row_route, dtype=np.int64), np.array(row_s), need[rq], xy[rq]
+        routes, starts = np.array(row_route, dtype=np.int64), np.array(row_s)
+        parts = []
+        for lo in range(0, rq.size, _CUT_CHUNK):  # bounds the (rows x route points) arrays
+            sl = slice(lo, lo + _CUT_CHUNK)
+            points, count = self._cut(routes[sl], starts[sl], need[rq[sl]], xy[rq[sl]])
+            parts.append(PathRows(frame[rq[sl]], agent[rq[sl]], points, count))
+        rows = PathRows.concat(parts)
+        rows = PathRows(
+            rows.frame.astype(np.int64), rows.agent.astype(np.int64), rows.points, rows.count
         )
-        rows = PathRows(frame[rq].astype(np.int64), agent[rq].astype(np.int64), points, count)
         return rows.without_repeats(), ~matched
 
     def _cut(

@@ -358,3 +358,17 @@ def test_integer_ids_keep_numbers_and_number_the_rest_after_them():
     assert ids.tolist() == [12, 13, 3, 14]
     assert renamed == {"AV": 13, "P1": 14}
     assert integer_ids(["a", "b"])[0].tolist() == [0, 1]
+
+
+def test_cutting_in_chunks_changes_nothing(monkeypatch):
+    import converters.lanegraph as lg
+
+    xy = [(5 + 7 * i, 0.3 * (i % 3)) for i in range(7)]
+    args = (xy, [0.0] * 7, [float(i) for i in range(7)], [V] * 7)
+    whole, _ = rows_for(LaneGraph(FORK), *args)
+    monkeypatch.setattr(lg, "_CUT_CHUNK", 2)
+    chunked, _ = rows_for(LaneGraph(FORK), *args)
+    assert chunked.agent.tolist() == whole.agent.tolist()
+    for a in range(7):
+        for p, q in zip(paths_of(chunked, a), paths_of(whole, a), strict=True):
+            np.testing.assert_array_equal(p, q)
