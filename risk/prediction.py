@@ -150,16 +150,16 @@ def uncertainty_sigmas(
 
 
 def covariances(
-    sig_lon: np.ndarray, sig_lat: np.ndarray, direction: np.ndarray
+    sig_lon: np.ndarray, sig_lat: np.ndarray, cos: np.ndarray, sin: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Covariance entries ``(xx, xy, yy)``, each shaped like ``sig_lon``, in m^2.
 
-    ``R diag(lon^2, lat^2) R^T`` with ``R`` the rotation to the unit ``direction``
-    ``(..., 2)`` (the path heading).
+    ``R diag(lon^2, lat^2) R^T`` with ``R`` the rotation by the path heading, given as
+    its unit vector components ``cos``, ``sin``.
     """
-    c, s = direction[..., 0], direction[..., 1]
     a, b = sig_lon**2, sig_lat**2
-    return a * c * c + b * s * s, (a - b) * c * s, a * s * s + b * c * c
+    cc, ss = cos * cos, sin * sin
+    return a * cc + b * ss, (a - b) * cos * sin, a * ss + b * cc
 
 
 # ---------------------------------------------------------------------- shared context
@@ -239,40 +239,71 @@ class FrameContext:
         return geometry.cumulative_lengths(self.ext_paths)
 
     @cached_property
-    def ext_dirs(self) -> np.ndarray:
-        """Unit segment directions ``(M, P-1, 2)`` of the extended paths (degenerate filled)."""
-        return geometry.segment_directions(self.ext_paths, self.frame.heading[self.row_agent])
+    def ext_xy(self) -> tuple[np.ndarray, np.ndarray]:
+        """Components ``(M, P)`` x and y of the extended paths, contiguous."""
+        p = self.ext_paths
+        return np.ascontiguousarray(p[..., 0]), np.ascontiguousarray(p[..., 1])
+
+    @cached_property
+    def ext_unit(self) -> tuple[np.ndarray, np.ndarray]:
+        """Unit segment direction components ``(M, P-1)`` of the extended paths."""
+        return geometry.segment_unit_vectors(self.ext_paths, self.frame.heading[self.row_agent])
 
     @cached_property
     def ext_chunks(self) -> geometry.ChunkedPolylines:
-        return geometry.chunk_polylines(self.ext_paths, self.ext_cum)
+        return geometry.chunk_polylines(self.ext_paths, self.ext_cum, self.ext_points)
 
     @cached_property
+    def _cut(self) -> tuple[np.ndarray, np.ndarray]:
+        return geometry.cut_paths(self.ext_paths, self.ext_cum, self.horizon_length_m)
+
+    @property
     def cut_paths(self) -> np.ndarray:
         """Extended paths cut at ``v * T`` (the dynamic horizon): ``(M, P, 2)`` in m."""
-        return geometry.cut_paths(self.ext_paths, self.ext_cum, self.horizon_length_m)
+        return self._cut[0]
 
     @cached_property
     def cut_chunks(self) -> geometry.ChunkedPolylines:
-        return geometry.chunk_polylines(self.cut_paths)
+        return geometry.chunk_polylines(self.cut_paths, None, self._cut[1])
 
     # ------------------------------------------------------------------ prediction
     @cached_property
-    def _trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+    def _trajectory(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         arc = self.row_speed[:, None] * self.steps_s[None, :]  # (M, n), m
-        xy, seg = geometry.interpolate(self.ext_paths, self.ext_cum, arc)
-        rows = np.arange(xy.shape[0])[:, None]
-        return xy, self.ext_dirs[rows, seg]
+        x, y, seg = geometry.interpolate_components(*self.ext_xy, self.ext_cum, arc)
+        ux, uy = self.ext_unit
+        flat = seg + (np.arange(ux.shape[0]) * ux.shape[1])[:, None]
+        return x, y, np.take(ux.ravel(), flat), np.take(uy.ravel(), flat)
 
     @property
-    def traj_xy(self) -> np.ndarray:
-        """Predicted positions ``(M, n, 2)`` in m, constant speed along the extended path."""
+    def traj_x(self) -> np.ndarray:
+        """Predicted x ``(M, n)`` in m, constant speed along the extended path."""
         return self._trajectory[0]
 
     @property
-    def traj_dir(self) -> np.ndarray:
-        """Unit path heading ``(M, n, 2)`` at each predicted position."""
+    def traj_y(self) -> np.ndarray:
+        """Predicted y ``(M, n)`` in m."""
         return self._trajectory[1]
+
+    @property
+    def dir_x(self) -> np.ndarray:
+        """x component ``(M, n)`` of the unit path heading at each predicted position."""
+        return self._trajectory[2]
+
+    @property
+    def dir_y(self) -> np.ndarray:
+        """y component ``(M, n)`` of the unit path heading at each predicted position."""
+        return self._trajectory[3]
+
+    @property
+    def traj_xy(self) -> np.ndarray:
+        """Predicted positions ``(M, n, 2)`` in m (stacked copy, for inspection)."""
+        return np.stack([self.traj_x, self.traj_y], axis=-1)
+
+    @property
+    def traj_dir(self) -> np.ndarray:
+        """Unit path headings ``(M, n, 2)`` (stacked copy, for inspection)."""
+        return np.stack([self.dir_x, self.dir_y], axis=-1)
 
     @cached_property
     def _sigmas(self) -> tuple[np.ndarray, np.ndarray]:
@@ -293,4 +324,4 @@ class FrameContext:
     @cached_property
     def cov(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Position covariance ``(xx, xy, yy)``, each ``(M, n)`` in m^2."""
-        return covariances(self.sigma_lon, self.sigma_lat, self.traj_dir)
+        return covariances(self.sigma_lon, self.sigma_lat, self.dir_x, self.dir_y)

@@ -78,8 +78,8 @@ def overlap_rows(ctx: FrameContext, ego_row: int) -> np.ndarray:
         xx, xy, yy = ctx.cov
         sxx, sxy, syy = xx + xx[ego_row], xy + xy[ego_row], yy + yy[ego_row]
         det = sxx * syy - sxy * sxy
-        diff = ctx.traj_xy - ctx.traj_xy[ego_row][None]
-        dx, dy = diff[..., 0], diff[..., 1]
+        dx = ctx.traj_x - ctx.traj_x[ego_row]
+        dy = ctx.traj_y - ctx.traj_y[ego_row]
         mahalanobis2 = (syy * dx * dx - 2.0 * sxy * dx * dy + sxx * dy * dy) / det
         return np.exp(-0.5 * mahalanobis2) / (2.0 * np.pi * np.sqrt(det))
 
@@ -103,12 +103,17 @@ def circle_distances_rows(ctx: FrameContext, ego_row: int, params: CirclesParams
     agent = ctx.row_agent
     r_other = 0.5 * f.width[agent][:, None] + c * ctx.sigma_lon  # (M, n)
     slices = (np.arange(k) + 0.5) / k - 0.5  # (k,)
-    offsets = f.length[agent][:, None] * slices[None, :]  # (M, k), m
-    rel = ctx.traj_xy - ctx.traj_xy[ego_row][None]  # (M, n, 2)
-    cx = rel[..., 0:1] + ctx.traj_dir[..., 0:1] * offsets[:, None, :]  # (M, n, k)
-    cy = rel[..., 1:2] + ctx.traj_dir[..., 1:2] * offsets[:, None, :]
-    gap = np.hypot(cx, cy) - (r_ego[None, :, None] + r_other[..., None])
-    return np.maximum(gap.min(axis=(1, 2)), 0.0)
+    length = f.length[agent][:, None]  # (M, 1)
+    rel_x = ctx.traj_x - ctx.traj_x[ego_row]  # (M, n)
+    rel_y = ctx.traj_y - ctx.traj_y[ego_row]
+    reach = r_ego[None, :] + r_other  # (M, n)
+    best = np.full(rel_x.shape[0], np.inf)
+    for frac in slices:  # a loop over the k circles (not agents) keeps arrays (M, n)
+        cx = rel_x + ctx.dir_x * (length * frac)
+        cy = rel_y + ctx.dir_y * (length * frac)
+        gap = np.sqrt(cx * cx + cy * cy) - reach
+        np.minimum(best, gap.min(axis=1), out=best)
+    return np.maximum(best, 0.0)
 
 
 def circles(ctx: FrameContext, params: CirclesParams) -> np.ndarray:

@@ -111,11 +111,13 @@ def encounter_rows(ctx: FrameContext, ego_row: int) -> tuple[np.ndarray, np.ndar
     """
 
     def compute() -> tuple[np.ndarray, np.ndarray]:
-        xy = ctx.traj_xy
-        diff = xy - xy[ego_row][None]
-        d = np.hypot(diff[..., 0], diff[..., 1])  # (M, n)
-        k = np.argmin(d, axis=1)
-        return d[np.arange(d.shape[0]), k], k
+        dx = ctx.traj_x - ctx.traj_x[ego_row]
+        dy = ctx.traj_y - ctx.traj_y[ego_row]
+        dx *= dx
+        dy *= dy
+        dx += dy  # squared distance (M, n); sqrt only at the minimum
+        k = np.argmin(dx, axis=1)
+        return np.sqrt(dx[np.arange(dx.shape[0]), k]), k
 
     return ctx.memo(("encounter", int(ego_row)), compute)
 
@@ -192,25 +194,31 @@ def headway_times(ctx: FrameContext, ego_row: int, on_path_tolerance_m: float) -
     return np.where(lateral <= on_path_tolerance_m, th, np.inf)
 
 
-def crossing_headway_rows(ctx: FrameContext, ego_row: int) -> np.ndarray:
+def crossing_headway_rows(
+    ctx: FrameContext, ego_row: int, on_path_tolerance_m: float
+) -> np.ndarray:
     """2D headway ``TH`` ``(M,)`` in s of every path row through its first ego crossing.
 
     The agent is projected to ego arc length ``l_cross_ego - l_cross_agent`` (the
     crossing's ego arc length minus the agent's remaining path length to it). inf for
-    rows whose path never meets the ego path, and when that point is behind the ego.
+    rows whose path never meets the ego path, when that point is behind the ego, and for
+    agents on the ego path (they use plain headway; skipping them saves the costly
+    collinear-overlap search).
 
     Choice: the crossing is the first point along the agent's extended path that lies on
     the extended ego path (exact segment intersection, touching included).
     """
 
     def compute() -> np.ndarray:
-        meets = polyline_distance_rows(ctx, ego_row, "path") == 0.0
+        lateral, _ = _projection(ctx, ego_row)
+        off_path = (lateral > on_path_tolerance_m)[ctx.row_agent]
+        meets = (polyline_distance_rows(ctx, ego_row, "path") == 0.0) & off_path
         arc_agent, arc_ego = geometry.first_intersections(
             ctx.ext_chunks.row(int(ego_row)), ctx.ext_chunks, rows=meets
         )
         return _time_gap(ctx, ego_row, arc_ego - arc_agent)
 
-    return ctx.memo(("crossing_headway", int(ego_row)), compute)
+    return ctx.memo(("crossing_headway", int(ego_row), on_path_tolerance_m), compute)
 
 
 def headway_risk(time_s: np.ndarray, tau_s: float) -> np.ndarray:
@@ -236,7 +244,7 @@ def headway_2d_times(ctx: FrameContext, ego_row: int, on_path_tolerance_m: float
     lateral, _ = _projection(ctx, ego_row)
     on_path = (lateral <= on_path_tolerance_m)[ctx.row_agent]
     plain = headway_times(ctx, ego_row, on_path_tolerance_m)[ctx.row_agent]
-    return np.where(on_path, plain, crossing_headway_rows(ctx, ego_row))
+    return np.where(on_path, plain, crossing_headway_rows(ctx, ego_row, on_path_tolerance_m))
 
 
 def headway_2d(ctx: FrameContext, params: Headway2DParams) -> np.ndarray:
