@@ -106,7 +106,7 @@ def read_table(parquet: pathlib.Path) -> pl.DataFrame:
     """The scenario rows; raises ConversionError for an unreadable or incomplete file."""
     try:
         df = pl.read_parquet(parquet)
-    except Exception as exc:  # polars raises several types for damaged files
+    except pl.exceptions.PolarsError as exc:  # ComputeError for truncated or damaged files
         first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise ConversionError(f"{parquet}: not a readable parquet file ({first_line})") from None
     missing = [c for c in REQUIRED_COLUMNS if c not in df.columns]

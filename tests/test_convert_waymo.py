@@ -349,3 +349,14 @@ def assert_run_covers_every_valid_agent(scene_path: pathlib.Path, tmp_path: path
 @pytest.mark.realdata
 def test_real_sample_replays_with_every_valid_agent_scored(shared_data, sample_mcap, tmp_path):
     assert_run_covers_every_valid_agent(sample_mcap, tmp_path)
+
+
+@pytest.mark.parametrize("source", ["waymo", "av2", "commonroad", "interaction"])
+def test_every_recorded_source_has_a_command_with_help(source):
+    runner = CliRunner()
+    listing = runner.invoke(main, ["convert", "--help"])
+    assert listing.exit_code == 0 and source in listing.output
+    result = runner.invoke(main, ["convert", source, "--help"])
+    assert result.exit_code == 0
+    for option in ("--output", "--paths [map|hindsight]", "--horizon-s", "--skip-bad"):
+        assert option in result.output
