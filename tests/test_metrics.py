@@ -1,0 +1,129 @@
+"""ROC metrics: confusion counts, the threshold sweep, undefined cases, AUC."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from risk import RiskError
+from risk.metrics import (
+    confusion_counts,
+    default_thresholds,
+    roc_curve,
+    threshold_for_tpr,
+)
+
+NAN = math.nan
+
+
+def test_confusion_counts_by_hand():
+    scores = np.array([NAN, 0.9, 0.5, 0.5, 0.1, 0.7])
+    base = np.array([True, True, False, True, False, False])  # the NaN entry is ignored
+    c = confusion_counts(scores, base, np.array([0.0, 0.5, 0.6, 1.0]))
+    # positives 0.9, 0.5; negatives 0.5, 0.1, 0.7; keep score >= t
+    assert list(c.tp) == [2, 2, 1, 0]
+    assert list(c.fn) == [0, 0, 1, 2]
+    assert list(c.fp) == [3, 2, 1, 0]
+    assert list(c.tn) == [0, 1, 2, 3]
+    assert c.tp.dtype == np.int64
+
+
+def test_roc_curve_by_hand():
+    scores = [np.array([NAN, 0.9, 0.5, 0.1]), np.array([0.3, NAN, 0.8, 0.6])]
+    base = [np.array([False, True, False, False]), np.array([False, False, True, False])]
+    r = roc_curve(scores, base)
+    np.testing.assert_array_equal(r.thresholds, [0.1, 0.3, 0.5, 0.6, 0.8, 0.9])  # observed values
+    # situation 0: one positive (0.9); negatives 0.5, 0.1
+    np.testing.assert_allclose(r.tpr[0], [1, 1, 1, 1, 1, 1])
+    np.testing.assert_allclose(r.fpr[0], [1, 0.5, 0.5, 0, 0, 0])
+    # situation 1: positive 0.8; negatives 0.3, 0.6
+    np.testing.assert_allclose(r.tpr[1], [1, 1, 1, 1, 1, 0])
+    np.testing.assert_allclose(r.fpr[1], [1, 1, 0.5, 0.5, 0, 0])
+    np.testing.assert_allclose(r.mean_tpr, [1, 1, 1, 1, 1, 0.5])
+    np.testing.assert_allclose(r.std_tpr, [0, 0, 0, 0, 0, 0.5])
+    np.testing.assert_array_equal(r.kept[0], [3, 2, 2, 1, 1, 1])
+    assert r.auc == pytest.approx(1.0)  # every positive outranks every negative
+    assert (r.n_situations, r.n_no_positive, r.n_no_negative) == (2, 0, 0)
+    assert threshold_for_tpr(r, 1.0) == 0.8
+    assert threshold_for_tpr(r, 0.5) == 0.9
+
+
+def test_undefined_situations_are_counted_not_averaged_as_zero():
+    scores = [np.array([0.9, 0.2]), np.array([0.4, 0.3]), np.array([0.6, 0.5])]
+    base = [np.array([True, False]), np.array([False, False]), np.array([True, True])]
+    r = roc_curve(scores, base, thresholds=np.array([0.45]))
+    assert (r.n_no_positive, r.n_no_negative) == (1, 1)
+    assert np.isnan(r.tpr[1, 0]) and np.isnan(r.fpr[2, 0])
+    assert r.mean_tpr[0] == pytest.approx(1.0)  # (1 + 1) / 2, not (1 + 0 + 1) / 3
+    assert r.mean_fpr[0] == pytest.approx(0.0)  # situation 1 keeps no negative at 0.45
+
+
+def test_auc_of_reversed_and_random_rankings():
+    base = [np.array([True, True, False, False])]
+    assert roc_curve([np.array([0.1, 0.2, 0.8, 0.9])], base).auc == pytest.approx(0.0)
+    assert roc_curve([np.array([0.5, 0.5, 0.5, 0.5])], base).auc == pytest.approx(0.5)
+    rng = np.random.default_rng(0)
+    s = [rng.random(200) for _ in range(20)]
+    b = [rng.random(200) < 0.3 for _ in range(20)]
+    assert roc_curve(s, b).auc == pytest.approx(0.5, abs=0.03)
+
+
+def test_auc_is_nan_when_no_situation_has_positives():
+    r = roc_curve([np.array([0.2, 0.4])], [np.array([False, False])])
+    assert math.isnan(r.auc) and np.isnan(r.mean_tpr).all() and np.isnan(r.std_tpr).all()
+    with pytest.raises(RiskError, match="undefined"):
+        threshold_for_tpr(r, 1.0)
+
+
+def test_threshold_for_tpr_errors():
+    r = roc_curve([np.array([0.9, 0.2])], [np.array([True, False])], thresholds=np.array([0.95]))
+    with pytest.raises(RiskError, match="no threshold reaches"):
+        threshold_for_tpr(r, 1.0)
+    with pytest.raises(RiskError, match=r"\[0, 1\]"):
+        threshold_for_tpr(r, 1.5)
+
+
+def test_default_thresholds_grid_when_there_are_too_many_values():
+    rng = np.random.default_rng(1)
+    values = [10.0 ** rng.uniform(-300, 0, 5000), np.array([0.0, NAN])]
+    t = default_thresholds(values, max_count=100)
+    assert t.size == 100 and t[0] == 0.0
+    assert t[1] == values[0].min() and t[-1] == values[0].max()
+    assert np.all(np.diff(t) > 0)
+    ratios = t[2:] / t[1:-1]
+    np.testing.assert_allclose(ratios, ratios[0], rtol=1e-9)  # log-spaced
+    neg = default_thresholds([np.linspace(-1, 1, 50)], max_count=10)
+    np.testing.assert_allclose(neg, np.linspace(-1, 1, 10))
+
+
+def test_bad_inputs():
+    with pytest.raises(RiskError, match="one of each"):
+        roc_curve([np.array([0.1])], [])
+    with pytest.raises(RiskError, match="no situations"):
+        roc_curve([], [])
+    with pytest.raises(RiskError, match="shape"):
+        roc_curve([np.array([0.1, 0.2])], [np.array([True])])
+    with pytest.raises(RiskError, match="boolean"):
+        roc_curve([np.array([0.1])], [np.array([1])])
+    with pytest.raises(RiskError, match="no scores"):
+        roc_curve([np.array([NAN])], [np.array([False])])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(0, 1), st.booleans()), min_size=1, max_size=40))
+def test_exact_sweep_matches_a_direct_count(rows):
+    s = np.array([r[0] for r in rows])
+    b = np.array([r[1] for r in rows])
+    r = roc_curve([s], [b])
+    for k, t in enumerate(r.thresholds):
+        keep = s >= t
+        if b.any():
+            assert r.tpr[0, k] == pytest.approx((keep & b).sum() / b.sum())
+        if (~b).any():
+            assert r.fpr[0, k] == pytest.approx((keep & ~b).sum() / (~b).sum())
+    # the lowest threshold keeps everything
+    assert r.kept[0, 0] == s.size

@@ -1,0 +1,156 @@
+"""The vectorised models agree with the plain-loop reference (risk/reference.py) to 1e-9.
+
+Relative agreement is checked on every finite value; values below 1e-300 (the Gaussian
+overlap and survival risk of far agents, which are subnormal floats with few significant
+bits) are compared with an absolute tolerance of 1e-300 instead.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from risk import MODELS, Frame, PredictionSettings, evaluate
+from risk.reference import reference_evaluate
+from risk.stochastic import CirclesParams, SurvivalParams
+from risk.temporal import ClosestEncounterParams, Headway2DParams, HeadwayParams
+
+KINDS = ("vehicle", "pedestrian", "cyclist", "other")
+
+
+def assert_agree(frame: Frame, params=None, prediction=None) -> dict[str, np.ndarray]:
+    fast = evaluate(frame, None, params, prediction=prediction)
+    slow = reference_evaluate(frame, None, params, prediction=prediction)
+    for name in MODELS:
+        np.testing.assert_array_equal(np.isnan(fast[name]), np.isnan(slow[name]), err_msg=name)
+        np.testing.assert_allclose(fast[name], slow[name], rtol=1e-9, atol=1e-300, err_msg=name)
+    return fast
+
+
+def wander(rng, start, heading, n_max=7):
+    pts = [np.asarray(start, float)]
+    h = heading
+    for _ in range(int(rng.integers(0, n_max))):
+        h += rng.normal(0, 0.6)
+        pts.append(pts[-1] + rng.uniform(0.3, 12) * np.array([math.cos(h), math.sin(h)]))
+    return np.array(pts)
+
+
+def random_frame(rng) -> Frame:
+    """Mixed situations: wandering paths, leaders on the ego path, crossing agents,
+    standing agents, forks, invalid tracks, all kinds."""
+    n = int(rng.integers(2, 7))
+    ego_path = wander(rng, [0.0, 0.0], 0.0, 6)
+    if len(ego_path) < 2:
+        ego_path = np.array([[0.0, 0.0], [40.0, 5.0]])
+    xy, heading, paths = [np.zeros(2)], [0.0], [ego_path]
+    for _ in range(n - 1):
+        kind = rng.integers(0, 3)
+        if kind == 0:  # anywhere
+            start = rng.uniform(-30, 30, 2)
+            h = rng.uniform(-math.pi, math.pi)
+        elif kind == 1:  # on (or near) the ego path
+            j = int(rng.integers(0, len(ego_path) - 1))
+            f = rng.random()
+            start = ego_path[j] + f * (ego_path[j + 1] - ego_path[j]) + rng.normal(0, 0.8, 2)
+            d = ego_path[j + 1] - ego_path[j]
+            h = math.atan2(d[1], d[0]) + rng.choice([0.0, math.pi])
+        else:  # heading across the ego path
+            j = int(rng.integers(0, len(ego_path)))
+            h = rng.uniform(-math.pi, math.pi)
+            start = ego_path[j] - rng.uniform(3, 25) * np.array([math.cos(h), math.sin(h)])
+        cands = [wander(rng, start, h)]
+        if rng.random() < 0.2:
+            cands.append(wander(rng, start, h + rng.normal(0, 1)))
+        xy.append(start)
+        heading.append(h)
+        paths.append(cands[0] if len(cands) == 1 else cands)
+    speed = rng.uniform(0, 14, n)
+    speed[rng.random(n) < 0.25] = 0.0
+    valid = rng.random(n) > 0.1
+    valid[0] = True
+    return Frame.from_arrays(
+        np.array(xy),
+        np.array(heading),
+        speed,
+        rng.uniform(0, 6, n),
+        rng.uniform(0, 2.5, n),
+        paths,
+        ego=0,
+        kinds=[KINDS[k] for k in rng.integers(0, 4, n)],
+        valid=valid,
+    )
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_random_frames_agree(seed):
+    assert_agree(
+        random_frame(np.random.default_rng(seed)), prediction=PredictionSettings(3.0, 0.25)
+    )
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_random_frames_with_other_parameters_agree(seed):
+    params = {
+        "closest_encounter": ClosestEncounterParams(epsilon_m=0.5, encounter_time_max_s=1.3),
+        "headway": HeadwayParams(tau_s=2.5, on_path_tolerance_m=3.0),
+        "headway_2d": Headway2DParams(tau_s=0.7, on_path_tolerance_m=0.5, encounter_time_max_s=2.0),
+        "circles": CirclesParams(n_circles=5, sigma_scale=1.0, epsilon_m=2.0),
+        "survival": SurvivalParams(escape_time_s=1.1),
+    }
+    assert_agree(random_frame(np.random.default_rng(seed)), params, PredictionSettings(4.0, 0.5))
+
+
+def test_default_prediction_settings_agree():
+    """T = 12 s, dt = 0.1 s on a few frames (the reference is slow at 121 steps)."""
+    rng = np.random.default_rng(2024)
+    for _ in range(3):
+        assert_agree(random_frame(rng))
+
+
+def test_lane_like_frame_with_merges_and_shared_vertices():
+    """Dense lane points (1.5 m), a merge that joins the ego lane on its exact vertices,
+    a leader, an oncoming car and a crossing street: the touching and collinear cases."""
+    x = np.arange(0.0, 61.0, 1.5)
+    ego_lane = np.column_stack([x, np.zeros_like(x)])
+    merge = np.vstack([[[12.0, -9.0], [13.5, -6.0], [15.0, -3.0]], ego_lane[10:]])
+    leader = ego_lane[8:]
+    oncoming = np.column_stack([x[::-1] + 2.0, np.full_like(x, 3.5)])
+    cross = np.column_stack([np.full_like(x, 30.0), x - 20.0])
+    f = Frame.from_arrays(
+        np.array([ego_lane[0], merge[0], leader[0], oncoming[0], cross[0]]),
+        np.array([0.0, math.atan2(3, 1.5), 0.0, math.pi, math.pi / 2]),
+        np.array([8.0, 6.0, 5.0, 9.0, 4.0]),
+        np.full(5, 4.5),
+        np.full(5, 1.9),
+        [ego_lane, merge, leader, oncoming, cross],
+        ego=0,
+    )
+    r = assert_agree(f, prediction=PredictionSettings(6.0, 0.2))
+    assert r["path_distance"][1] == 1.0  # the merge shares ego vertices
+    assert r["headway_2d"][4] > r["headway"][4]  # the crossing street gets a 2D headway
+
+
+@pytest.mark.parametrize("seed", [11, 12])
+def test_reference_is_independent_of_frame_padding(seed):
+    """Paths of very different lengths (heavy padding) agree too."""
+    rng = np.random.default_rng(seed)
+    long = np.column_stack([np.linspace(0, 90, 61), rng.normal(0, 0.3, 61)])
+    f = Frame.from_arrays(
+        np.array([[0.0, 0.0], [20.0, -10.0], [50.0, 1.0]]),
+        np.array([0.0, 1.2, math.pi]),
+        np.array([7.0, 3.0, 0.0]),
+        np.array([4.0, 0.5, 4.0]),
+        np.array([1.8, 0.5, 1.8]),
+        [long, np.array([[20.0, -10.0]]), np.array([[50.0, 1.0], [10.0, 1.0]])],
+        ego=0,
+        kinds=["vehicle", "pedestrian", "vehicle"],
+    )
+    long[0] = (0.0, 0.0)
+    assert_agree(f, prediction=PredictionSettings(5.0, 0.25))
