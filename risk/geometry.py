@@ -586,16 +586,16 @@ def first_intersections(
     m = b.n_rows
     arc_b = np.full(m, np.nan)
     arc_a = np.full(m, np.nan)
+    c = b.n_chunks
+    row_ids = np.arange(m) if rows is None else np.flatnonzero(rows)
     found_b, found_a = [], []
-    for cols in _row_blocks(a, b):
-        touching = _box_gaps2(a, b, cols) == 0.0  # (Ca, n_cols)
-        if rows is not None:
-            touching &= np.repeat(
-                rows[cols.start // b.n_chunks : cols.stop // b.n_chunks], b.n_chunks
-            )[None, :]
-        fb, fa = np.nonzero(touching.T)
-        found_b.append(fb + cols.start)
+    for blk in _blocks(row_ids.size, a.n_chunks * c):
+        cols = (row_ids[blk, None] * c + np.arange(c)[None, :]).ravel()
+        fb, fa = np.nonzero((_box_gaps2(a, b, cols) == 0.0).T)  # boxes touch
+        found_b.append(cols[fb])
         found_a.append(fa)
+    if not found_b:
+        return arc_b, arc_a
     fb, fa = np.concatenate(found_b), np.concatenate(found_a)
     if fb.size == 0:
         return arc_b, arc_a

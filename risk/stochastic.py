@@ -80,8 +80,19 @@ def overlap_rows(ctx: FrameContext, ego_row: int) -> np.ndarray:
         det = sxx * syy - sxy * sxy
         dx = ctx.traj_x - ctx.traj_x[ego_row]
         dy = ctx.traj_y - ctx.traj_y[ego_row]
-        mahalanobis2 = (syy * dx * dx - 2.0 * sxy * dx * dy + sxx * dy * dy) / det
-        return np.exp(-0.5 * mahalanobis2) / (2.0 * np.pi * np.sqrt(det))
+        # -1/2 dmu^T S^-1 dmu with the closed-form inverse, in place to spare temporaries
+        syy *= dx * dx
+        sxx *= dy * dy
+        sxy *= dx * dy
+        syy -= 2.0 * sxy
+        syy += sxx
+        syy /= det
+        syy *= -0.5
+        np.exp(syy, out=syy)
+        np.sqrt(det, out=det)
+        det *= 2.0 * np.pi
+        syy /= det
+        return syy
 
     return ctx.memo(("overlap", int(ego_row)), compute)
 
@@ -107,11 +118,16 @@ def circle_distances_rows(ctx: FrameContext, ego_row: int, params: CirclesParams
     rel_x = ctx.traj_x - ctx.traj_x[ego_row]  # (M, n)
     rel_y = ctx.traj_y - ctx.traj_y[ego_row]
     reach = r_ego[None, :] + r_other  # (M, n)
+    # |rel + o u|^2 = |rel|^2 + 2 o (rel . u) + o^2 for the unit heading u: two shared
+    # terms, then a few operations per circle. No cancellation: o is at most half a body
+    # length, so the centre distance is never much smaller than |rel|.
+    rel2 = rel_x * rel_x + rel_y * rel_y
+    along = rel_x * ctx.dir_x + rel_y * ctx.dir_y
     best = np.full(rel_x.shape[0], np.inf)
     for frac in slices:  # a loop over the k circles (not agents) keeps arrays (M, n)
-        cx = rel_x + ctx.dir_x * (length * frac)
-        cy = rel_y + ctx.dir_y * (length * frac)
-        gap = np.sqrt(cx * cx + cy * cy) - reach
+        o = length * frac  # (M, 1), m
+        centre2 = rel2 + (2.0 * o) * along + o * o
+        gap = np.sqrt(np.maximum(centre2, 0.0)) - reach
         np.minimum(best, gap.min(axis=1), out=best)
     return np.maximum(best, 0.0)
 
