@@ -38,7 +38,6 @@ import importlib.metadata
 import math
 import os
 import pathlib
-import tempfile
 from collections.abc import Iterable, Mapping
 from types import TracebackType
 
@@ -49,6 +48,7 @@ from mcap.writer import Writer as McapWriter
 
 from converters import scene_format as sf
 from converters.errors import ConversionError
+from replay.atomic import temp_path_beside
 from risk.frame import Frame, LaneMap, Scene
 
 CHUNK_SIZE_BYTES = 1024 * 1024
@@ -188,11 +188,8 @@ class SceneWriter:
         self._last_t: float | None = None
         self._ego_ids: set[int] = set()
         self._closed = False
-        fd, tmp = tempfile.mkstemp(
-            prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent or "."
-        )
-        self._tmp = pathlib.Path(tmp)
-        self._file = os.fdopen(fd, "wb")
+        self._tmp = temp_path_beside(self.path)
+        self._file = self._tmp.open("wb")
         try:
             self._writer = McapWriter(
                 self._file, chunk_size=CHUNK_SIZE_BYTES, compression=CompressionType.ZSTD

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import google_crc32c
 
 from converters.errors import ConversionError
+from replay.atomic import atomic_output
 
 _MASK_DELTA = 0xA282EAD8
 _HEADER = struct.Struct("<QI")
@@ -118,12 +119,7 @@ def encode_record(payload: bytes) -> bytes:
 def write_records(path: str | os.PathLike, payloads: Iterable[bytes]) -> pathlib.Path:
     """Write a TFRecord file atomically (temporary file in the same folder, then rename)."""
     path = pathlib.Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with tmp.open("wb") as fh:
-            for payload in payloads:
-                fh.write(encode_record(payload))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_output(path) as tmp, tmp.open("wb") as fh:
+        for payload in payloads:
+            fh.write(encode_record(payload))
     return path

@@ -18,7 +18,6 @@ from __future__ import annotations
 import math
 import os
 import pathlib
-import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
@@ -31,6 +30,7 @@ from recordings import columns as C
 from recordings import layout as L
 from recordings.errors import RecordingError
 from recordings.summary import recording_name, summary_markdown
+from replay.atomic import temp_path_beside
 
 if TYPE_CHECKING:
     from replay.engine import FrameResult, SceneInfo
@@ -138,10 +138,7 @@ class SceneRecorder:
         if self._state != "open":
             raise RecordingError(f"close() on a recorder that is {self._state}")
         assert self._info is not None
-        # A fresh name in the output's folder (os.replace is atomic only there), created
-        # like any new file (mode from the umask, unlike mkstemp's 0600).
-        self._tmp = self.output.with_name(f".{self.output.name}.{uuid.uuid4().hex[:12]}.tmp")
-        os.close(os.open(self._tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
+        self._tmp = temp_path_beside(self.output)
         try:
             self._write(self._tmp)
             os.replace(self._tmp, self.output)

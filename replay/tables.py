@@ -20,11 +20,11 @@ from __future__ import annotations
 
 import os
 import pathlib
-import tempfile
 
 import numpy as np
 import polars as pl
 
+from replay.atomic import atomic_output
 from replay.engine import FrameResult, SceneInfo
 from replay.errors import ReplayError
 from risk.frame import KIND_NAMES
@@ -96,19 +96,11 @@ class TableSink:
 
     def close(self) -> None:
         df = self.dataframe()
-        fd, tmp = tempfile.mkstemp(
-            prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent
-        )
-        os.close(fd)
-        try:
+        with atomic_output(self.path) as tmp:
             if self.path.suffix.lower() == ".csv":
                 df.write_csv(tmp)
             else:
                 df.write_parquet(tmp, compression="zstd")
-            os.replace(tmp, self.path)
-        except BaseException:
-            pathlib.Path(tmp).unlink(missing_ok=True)
-            raise
         self._chunks = []
 
     def abort(self) -> None:

@@ -125,24 +125,11 @@ class CascadeConfig:
             "tiers": tiers,
         }
 
-    def to_toml(self, path: str | pathlib.Path) -> pathlib.Path:
-        """Write the configuration atomically (temp file in the same folder, then replace)."""
-        import os
-        import tempfile
-
+    def to_toml_string(self) -> str:
+        """The configuration as TOML text (what :meth:`from_toml` reads back)."""
         import tomli_w
 
-        path = pathlib.Path(path)
-        text = tomli_w.dumps(self.to_dict(), multiline_strings=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8") as fh:
-                fh.write(text)
-            os.replace(tmp, path)
-        except BaseException:
-            pathlib.Path(tmp).unlink(missing_ok=True)
-            raise
-        return path
+        return tomli_w.dumps(self.to_dict(), multiline_strings=True)
 
 
 _TOP_KEYS = {"provenance", "baseline_threshold", "stages", "tiers"}

@@ -230,7 +230,8 @@ def test_from_dict_rejects_nonsense_naming_the_key():
 
 
 def test_toml_round_trip(tmp_path):
-    path = CONFIG.to_toml(tmp_path / "c.toml")
+    path = tmp_path / "c.toml"
+    path.write_text(CONFIG.to_toml_string())
     back = CascadeConfig.from_toml(path)
     assert back == CONFIG
     assert list(tmp_path.iterdir()) == [path]  # no temp file left behind

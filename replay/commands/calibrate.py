@@ -19,6 +19,7 @@ import click
 import numpy as np
 from tqdm import tqdm
 
+from replay.atomic import write_text
 from replay.errors import ReplayError
 from risk.calibration import (
     Calibration,
@@ -314,7 +315,7 @@ def calibrate(
         stages=config.stages, tiers=config.tiers, baseline_threshold=config.baseline_threshold,
         provenance=provenance(config, cal, data, means, command, counts, note=note),
     )  # fmt: skip
-    config.to_toml(output)
+    write_text(output, config.to_toml_string())
     click.echo(_report(config, cal, data, means))
     click.echo(f"Wrote {output}")
 

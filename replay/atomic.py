@@ -1,0 +1,57 @@
+"""Atomic file output: write beside the target, rename into place only on success.
+
+Every writer of the project (MCAP scenes, tables, recordings, cascade files, statistics,
+plots) goes through here, so that an interrupted run never leaves a half-written file
+and every output gets the permissions of an ordinary new file (``mkstemp`` would make it
+0600). Standard library only, so converters and recordings can use it too.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import pathlib
+import uuid
+from collections.abc import Iterator
+
+
+def temp_path_beside(path: str | os.PathLike[str]) -> pathlib.Path:
+    """Create and return an empty, uniquely named temporary file in ``path``'s folder.
+
+    The file is hidden (``.NAME.<random>.tmp``), created exclusively, with mode 0666 less
+    the umask, like any new file. ``os.replace`` from it to ``path`` is atomic because both
+    are on the same file system.
+    """
+    target = pathlib.Path(path)
+    tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex[:12]}.tmp")
+    os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
+    return tmp
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike[str]) -> Iterator[pathlib.Path]:
+    """Yield a temporary path to write to; on success it replaces ``path`` atomically.
+
+    On any exception (including KeyboardInterrupt) the temporary file is removed and an
+    existing ``path`` is left untouched.
+    """
+    target = pathlib.Path(path)
+    tmp = temp_path_beside(target)
+    try:
+        yield tmp
+        os.replace(tmp, target)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_bytes(path: str | os.PathLike[str], data: bytes) -> pathlib.Path:
+    """Write ``data`` to ``path`` atomically; returns the path."""
+    with atomic_output(path) as tmp:
+        tmp.write_bytes(data)
+    return pathlib.Path(path)
+
+
+def write_text(path: str | os.PathLike[str], text: str) -> pathlib.Path:
+    """Write UTF-8 ``text`` to ``path`` atomically; returns the path."""
+    return write_bytes(path, text.encode("utf-8"))
