@@ -179,7 +179,8 @@ def _time_gap(ctx: FrameContext, ego_row: int, arc_m: np.ndarray) -> np.ndarray:
         ahead = gap >= 0  # NaN compares False
     if v1 <= 0:
         return np.full(arc_m.shape, np.inf)
-    return np.where(ahead, gap / v1, np.inf)
+    with np.errstate(over="ignore"):  # a crawling ego: TH overflows to inf, risk 0
+        return np.where(ahead, gap / v1, np.inf)
 
 
 def headway_times(ctx: FrameContext, ego_row: int, on_path_tolerance_m: float) -> np.ndarray:
