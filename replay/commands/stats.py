@@ -1,0 +1,338 @@
+"""``replay stats``: dataset statistics of scenes or of tables from ``replay run --table``."""
+
+from __future__ import annotations
+
+import pathlib
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import click
+import polars as pl
+
+from replay.errors import ReplayError
+from replay.stats import DEFAULT_ERRORS_MODEL, DatasetStats
+
+SCENE_SUFFIXES = (".mcap",)
+TABLE_SUFFIXES = (".parquet", ".csv")
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """The files named on the command line, split by kind (each list sorted)."""
+
+    scenes: tuple[pathlib.Path, ...]
+    tables: tuple[pathlib.Path, ...]
+
+
+def resolve_inputs(paths: Sequence[pathlib.Path]) -> Inputs:
+    """Scenes (``.mcap``) and tables (``.parquet``, ``.csv``) among ``paths``; a directory
+    contributes the files of those kinds directly inside it (not in subfolders)."""
+    scenes: list[pathlib.Path] = []
+    tables: list[pathlib.Path] = []
+    for p in paths:
+        if p.is_dir():
+            found = sorted(f for f in p.iterdir() if f.is_file() and _kind(f))
+            if not found:
+                raise ReplayError(f"{p}: no .mcap scene or .parquet/.csv table in this folder")
+        else:
+            if not _kind(p):
+                raise ReplayError(
+                    f"{p}: expected an MCAP scene (.mcap) or a table (.parquet, .csv), "
+                    f"got {p.suffix or 'no suffix'!r}"
+                )
+            found = [p]
+        for f in found:
+            (scenes if _kind(f) == "scene" else tables).append(f)
+    return Inputs(tuple(dict.fromkeys(scenes)), tuple(dict.fromkeys(tables)))
+
+
+def _kind(path: pathlib.Path) -> str:
+    suffix = path.suffix.lower()
+    if suffix in SCENE_SUFFIXES:
+        return "scene"
+    return "table" if suffix in TABLE_SUFFIXES else ""
+
+
+def scene_names(paths: Sequence[pathlib.Path]) -> list[str]:
+    """A short unique name per file: its stem, or its path when stems repeat."""
+    stems = [p.stem for p in paths]
+    return [s if stems.count(s) == 1 else str(p) for s, p in zip(stems, paths, strict=True)]
+
+
+@dataclass(frozen=True)
+class SceneTask:
+    path: pathlib.Path
+    name: str
+    cascade: object  # CascadeConfig
+    models: tuple[str, ...] | None
+
+
+def replay_scene(task: SceneTask) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """The agents and frames tables of one scene (runs in a worker process)."""
+    import warnings
+
+    from replay.engine import run_scene
+    from replay.stats import StatsSink
+
+    sink = StatsSink(task.name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # skipped frames (no ego) are simply absent
+        run_scene(task.path, sinks=[sink], cascade=task.cascade, models=task.models, progress=False)
+    return sink.agents(), sink.frames()
+
+
+def collect(
+    inputs: Inputs,
+    cascade,
+    *,
+    models: Sequence[str] | None,
+    workers: int,
+    progress: bool,
+) -> tuple[pl.DataFrame, pl.DataFrame, list[str], list[str]]:
+    """Agents and frames tables of every input, with the stage and tier names."""
+    from replay.experiment import parallel_map
+    from replay.stats import (
+        concat_agents,
+        frames_from_agents,
+        read_agents_table,
+        stage_names_of,
+        tier_names_of,
+    )
+
+    stage_names = list(cascade.stage_names)
+    cascade_tiers = [t.name for t in cascade.tiers]
+    tier_names = cascade_tiers
+    agents: list[pl.DataFrame] = []
+    frames: list[pl.DataFrame] = []
+    names = scene_names([*inputs.scenes, *inputs.tables])
+    if inputs.scenes:
+        tasks = [
+            SceneTask(p, n, cascade, None if models is None else tuple(models))
+            for p, n in zip(inputs.scenes, names, strict=False)
+        ]
+        for a, f in parallel_map(
+            replay_scene,
+            tasks,
+            workers=min(workers, len(tasks)),
+            progress=progress,
+            desc="stats: scenes",
+        ):
+            agents.append(a)
+            frames.append(f)
+    for path, name in zip(inputs.tables, names[len(inputs.scenes) :], strict=True):
+        table = read_agents_table(path, scene=name)
+        stages = stage_names_of(table)
+        if inputs.scenes and stages != stage_names:
+            raise ReplayError(
+                f"{path}: its cascade stages ({', '.join(stages)}) differ from the cascade "
+                f"the scenes run with ({', '.join(stage_names)}); give --cascade"
+            )
+        stage_names = stages
+        tier_names = tier_names_of(table, fallback=cascade_tiers)
+        agents.append(table)
+        frames.append(frames_from_agents(table, stages, tier_names))
+    if not agents:
+        raise ReplayError("no input")
+    return concat_agents(agents), pl.concat(frames, how="diagonal_relaxed"), stage_names, tier_names
+
+
+@click.command("stats")
+@click.argument(
+    "inputs", nargs=-1, required=True, type=click.Path(exists=True, path_type=pathlib.Path)
+)
+@click.option(
+    "-o",
+    "--output",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=pathlib.Path),
+    help="Folder for the tables, summary.json and plots (created if needed).",
+)
+@click.option(
+    "--models",
+    default=None,
+    help="Models to compare, comma-separated (see 'replay models'). Default: all nine.",
+)
+@click.option(
+    "--errors-model",
+    default=DEFAULT_ERRORS_MODEL,
+    show_default=True,
+    help="The model whose false negatives and false positives over the threshold are "
+    "exported (the paper's Fig. 5 uses closest encounter + 2D headway).",
+)
+@click.option(
+    "--cascade",
+    "cascade_file",
+    type=click.Path(exists=True, dir_okay=False, path_type=pathlib.Path),
+    help="Cascade TOML for the scenes (and the tier order of CSV tables). "
+    "Default: the calibrated cascade shipped with riskreplay.",
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Processes replaying scenes in parallel. Default: the number of CPUs.",
+)
+@click.option("--plots/--no-plots", default=True, show_default=True, help="Write the PNG plots.")
+@click.option(
+    "--progress/--no-progress", default=True, show_default=True, help="Progress bar on stderr."
+)
+def stats(
+    inputs: tuple[pathlib.Path, ...],
+    out_dir: pathlib.Path,
+    models: str | None,
+    errors_model: str,
+    cascade_file: pathlib.Path | None,
+    workers: int | None,
+    plots: bool,
+    progress: bool,
+) -> None:
+    """How well each risk model filters against the survival baseline, over a dataset.
+
+    INPUTS are MCAP scenes, tables written by 'replay run --table' (.parquet or .csv),
+    or folders of them. Scenes are replayed (every model on every agent, and the
+    cascade; no .rrd); tables are read as they are. A situation is one frame of one
+    scene.
+
+    \b
+    Writes into OUTPUT:
+      roc.parquet/.csv        mean ROC curve of every model (exact threshold sweep)
+      errors.parquet/.csv     FN and FP over the threshold of --errors-model
+      funnel.parquet/.csv     the cascade: agents after each stage, tiers, FN, time
+      per_frame, per_scene    one row per situation / scene (.parquet and .csv)
+      summary.json            AUC, std of TPR at TPR 0.95 and 1, kept agents, counts
+      roc.png, errors.png, cascade_funnel.png
+    """
+    from replay.experiment import default_workers
+    from risk.cascade import CascadeConfig
+    from risk.registry import resolve_models
+
+    chosen = resolve_models([m.strip() for m in models.split(",") if m.strip()]) if models else None
+    resolve_models([errors_model])
+    cascade = CascadeConfig.from_toml(cascade_file) if cascade_file else CascadeConfig.default()
+    found = resolve_inputs(inputs)
+    engine_models = None
+    if chosen is not None:
+        engine_models = list(dict.fromkeys([*chosen, errors_model, "survival"]))
+    times: dict[str, float] = {}
+    start = time.perf_counter()
+    agents, frames, stage_names, tier_names = collect(
+        found,
+        cascade,
+        models=engine_models,
+        workers=workers or default_workers(),
+        progress=progress,
+    )
+    times["replay / read"] = time.perf_counter() - start
+    result = run_stats(
+        agents,
+        frames,
+        out_dir,
+        models=chosen,
+        errors_model=errors_model,
+        stage_names=stage_names,
+        tier_names=tier_names,
+        cascade=cascade,
+        inputs=[str(p) for p in (*found.scenes, *found.tables)],
+        plots=plots,
+        times=times,
+    )
+    click.echo(format_stats(result.stats, times))
+    click.echo("Wrote:")
+    for path in result.files.values():
+        click.echo(f"  {path}")
+
+
+@dataclass(frozen=True, eq=False)
+class StatsRun:
+    stats: DatasetStats
+    files: dict[str, pathlib.Path]
+
+
+def run_stats(
+    agents: pl.DataFrame,
+    frames: pl.DataFrame,
+    out_dir: pathlib.Path,
+    *,
+    models: Sequence[str] | None,
+    errors_model: str,
+    stage_names: Sequence[str],
+    tier_names: Sequence[str],
+    cascade,
+    inputs: Sequence[str],
+    plots: bool,
+    times: dict[str, float],
+) -> StatsRun:
+    """Compute, write and plot (the shared tail of ``stats`` and ``batch``)."""
+    from replay.stats import compute_stats, write_stats
+
+    start = time.perf_counter()
+    stats = compute_stats(
+        agents,
+        frames,
+        models=models,
+        errors_model=errors_model,
+        stage_names=stage_names,
+        tier_names=tier_names,
+        baseline_threshold=cascade.baseline_threshold,
+        inputs=inputs,
+    )
+    times["statistics"] = time.perf_counter() - start
+    start = time.perf_counter()
+    files = write_stats(stats, out_dir)
+    times["write tables"] = time.perf_counter() - start
+    if plots:
+        from replay.plots import plot_all
+
+        start = time.perf_counter()
+        files.update(plot_all(stats, out_dir))
+        times["plots"] = time.perf_counter() - start
+    return StatsRun(stats, files)
+
+
+def format_stats(stats: DatasetStats, times: dict[str, float] | None = None) -> str:
+    """The end-of-run summary: situations, each model's AUC and operating points, the
+    cascade."""
+    s = stats.summary
+    sit = s["situations"]
+    lines = [
+        f"{sit['total']} situations ({sit['with_agents']} with agents): baseline empty in "
+        f"{sit['empty_baseline']} (TPR undefined), full in {sit['full_baseline']} (FPR "
+        f"undefined), no agents in {sit['without_agents']}; "
+        f"{s['baseline']['mean_important_per_situation']:.1f} important agents per situation",
+        f"  {'model':<22}{'AUC':>7}{'σTPR@.95':>10}{'FPR@.95':>9}{'kept@.95':>10}{'kept@1':>8}",
+    ]
+    for name, m in s["models"].items():
+        p95, p1 = m["points"]["tpr_0.95"], m["points"]["tpr_1"]
+        lines.append(
+            f"  {name:<22}{m['auc']:>7.3f}{_f(p95['std_tpr'], '.3f'):>10}"
+            f"{_f(p95['mean_fpr'], '.3f'):>9}{p95['mean_kept']:>10.1f}{p1['mean_kept']:>8.1f}"
+        )
+    c = s["cascade"]
+    funnel = " -> ".join(f"{x['mean_kept']:.1f}" for x in c["stages"])
+    fns = ", ".join(str(x["false_negatives"]) for x in c["stages"])
+    lines.append(
+        f"Cascade: {c['mean_others']:.1f} -> {funnel} agents per situation; FN per stage "
+        f"(cumulative) {fns} of {c['baseline_agent_frames']} important agent-frames"
+    )
+    if c.get("compute"):
+        comp = c["compute"]
+        timed = c["timed_situations"]
+        where = "" if timed == c["situations"] else f" (the {timed} replayed situations)"
+        lines.append(
+            f"  compute{where}: cascade {comp['cascade_time_s']:.3f} s vs survival on all "
+            f"agents {comp['survival_all_time_s']:.3f} s ({comp['cascade_over_survival_all']:.2f}x)"
+        )
+    if times:
+        lines.append("Time: " + ", ".join(f"{k} {v:.1f} s" for k, v in times.items()))
+    return "\n".join(lines)
+
+
+def _f(value, fmt: str) -> str:
+    return "n/a" if value is None or value != value else format(value, fmt)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(stats())
