@@ -12,14 +12,17 @@ crosswalks. Prediction T = 12 s, dt = 0.1 s (121 steps).
 
 Each model is timed alone through ``evaluate(frame, [name])`` (so it pays for the shared
 work it needs), and all nine together through ``evaluate(frame)`` (shared work once).
-Times are medians over repeats and over several frames. The reference
-(risk/reference.py) is timed at small N on the same frames; the speed-up is the ratio of
-the reference's time to ``evaluate``'s on the same frame.
+Times are medians over repeats and over several frames, as wall time and as CPU time
+(the machine is shared; CPU time leaves out waiting for a core). The reference
+(risk/reference.py) is timed at small N on the same frames (it grows like N, with a
+150 x 150 segment loop per agent, so N = 10 and 30 take seconds); the speed-up is the
+ratio of the reference's wall time to ``evaluate``'s on the same frame.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import time
@@ -112,14 +115,32 @@ def random_frame(n_agents: int, rng: np.random.Generator) -> Frame:
     )
 
 
-def _time(fn, repeats: int) -> float:
-    """Median wall time of ``fn()`` in seconds."""
-    times = []
+def _time(fn, repeats: int) -> tuple[float, float]:
+    """Median wall time and median CPU time of ``fn()``, in seconds.
+
+    CPU time (``time.process_time``) leaves out the time the process waits for a core,
+    so it stays meaningful when other work shares the machine; wall time is what a user
+    waits. The report gives both.
+    """
+    wall, cpu = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        w0, c0 = time.perf_counter(), time.process_time()
         fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+        cpu.append(time.process_time() - c0)
+        wall.append(time.perf_counter() - w0)
+    return statistics.median(wall), statistics.median(cpu)
+
+
+def _table(title: str, sizes: list[int], names: list[str], table: dict, which: int) -> None:
+    print(title)
+    print()
+    print("| model | " + " | ".join(f"N={n}" for n in sizes) + " |")
+    print("|---|" + "---:|" * len(sizes))
+    for name in names:
+        cells = " | ".join(f"{1e3 * table[n][name][which]:.2f}" for n in sizes)
+        label = f"**{name}**" if name == "all nine" else name
+        print(f"| {label} | {cells} |")
+    print()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -137,49 +158,53 @@ def main(argv: list[str] | None = None) -> int:
     for fr in frames.values():  # warm-up (imports, first allocations)
         evaluate(fr[0], prediction=settings)
 
-    names = list(MODELS)
-    table: dict[int, dict[str, float]] = {}
+    names = [*MODELS, "all nine"]
+    load_before = os.getloadavg()[0]
+    table: dict[int, dict[str, tuple[float, float]]] = {}
     for n in sizes:
         row = {}
-        for name in [*names, "all nine"]:
+        for name in names:
             models = None if name == "all nine" else [name]
             per_frame = [
                 _time(lambda f=f, m=models: evaluate(f, m, prediction=settings), repeats)
                 for f in frames[n]
             ]
-            row[name] = statistics.median(per_frame)
+            row[name] = (
+                statistics.median(w for w, _ in per_frame),
+                statistics.median(c for _, c in per_frame),
+            )
         table[n] = row
         print(f"  measured N={n}", file=sys.stderr)
+    load_after = os.getloadavg()[0]
 
+    setup = (
+        f"median of {repeats} runs x {args.frames} frames; T = 12 s, dt = 0.1 s, 150 m paths, "
+        f"{SPACING_M} m point spacing"
+    )
     print(
-        f"Per-frame time in ms (median of {repeats} runs x {args.frames} frames; "
-        "T = 12 s, dt = 0.1 s, 150 m paths, 1.5 m spacing)"
+        f"Load average (1 min) on this {os.cpu_count()}-core machine: {load_before:.1f} before, "
+        f"{load_after:.1f} after."
     )
     print()
-    head = "| model | " + " | ".join(f"N={n}" for n in sizes) + " |"
-    print(head)
-    print("|---|" + "---:|" * len(sizes))
-    for name in [*names, "all nine"]:
-        cells = " | ".join(f"{1e3 * table[n][name]:.2f}" for n in sizes)
-        label = f"**{name}**" if name == "all nine" else name
-        print(f"| {label} | {cells} |")
-    print()
-    big, small = sizes[-1], sizes[2]
-    growth = table[big]["all nine"] / table[small]["all nine"]
-    print(
-        f"All nine, growth from N={small} to N={big} ({big / small:.0f}x agents): {growth:.1f}x time"
-    )
+    _table(f"Wall time per frame in ms ({setup})", sizes, names, table, 0)
+    _table(f"CPU time per frame in ms ({setup})", sizes, names, table, 1)
+    small, big = sizes[2], sizes[-1]
+    for label, which in (("wall", 0), ("CPU", 1)):
+        growth = table[big]["all nine"][which] / table[small]["all nine"][which]
+        print(
+            f"All nine, {label} time, N={small} -> N={big} ({big // small}x agents): {growth:.1f}x"
+        )
 
     ref_sizes = [10] if args.quick else [10, 30]
     print()
-    print("Speed-up over risk/reference.py (same frames, all nine models, one reference run each):")
+    print("Speed-up over risk/reference.py (the same frame, all nine models; reference run once):")
     print()
     print("| N | reference (s) | evaluate (ms) | speed-up |")
     print("|---:|---:|---:|---:|")
     for n in ref_sizes:
         f = frames[n][0]
-        t_ref = _time(lambda f=f: reference_evaluate(f, prediction=settings), 1)
-        t_vec = _time(lambda f=f: evaluate(f, prediction=settings), repeats)
+        t_ref = _time(lambda f=f: reference_evaluate(f, prediction=settings), 1)[0]
+        t_vec = _time(lambda f=f: evaluate(f, prediction=settings), repeats)[0]
         print(f"| {n} | {t_ref:.2f} | {1e3 * t_vec:.2f} | {t_ref / t_vec:.0f}x |")
     return 0
 

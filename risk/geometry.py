@@ -227,7 +227,12 @@ def cut_paths(
     keep it whole. Also returns the number of real points ``(M,)`` of each cut path.
     """
     length = np.minimum(np.asarray(length_m, dtype=np.float64), cum[:, -1])
-    end, _ = interpolate(paths, cum, length[:, None])
+    flat = paths.reshape(-1, 2)
+    m, p = cum.shape
+    end_x, end_y, _ = interpolate_components(
+        flat[:, 0].reshape(m, p), flat[:, 1].reshape(m, p), cum, length[:, None]
+    )
+    end = np.stack([end_x, end_y], axis=-1)  # (M, 1, 2)
     keep = cum <= length[:, None]
     return np.where(keep[..., None], paths, end), np.minimum(keep.sum(axis=1) + 1, cum.shape[1])
 
@@ -381,14 +386,18 @@ def chunk_polylines(
         cum = cumulative_lengths(paths)
     c = -(-max(p - 1, 1) // k)
     pad = c * k + 1 - p
-    pts = np.concatenate([paths, np.repeat(paths[:, -1:], pad, axis=1)], axis=1)
-    arc = np.concatenate([cum, np.repeat(cum[:, -1:], pad, axis=1)], axis=1)
-    idx = np.arange(k + 1)[:, None] + np.arange(c)[None, :] * k  # (K+1, C)
 
-    def vertex_major(a: np.ndarray) -> np.ndarray:  # (M, C*K+1) -> (K+1, M*C)
-        return np.ascontiguousarray(a[:, idx].transpose(1, 0, 2).reshape(k + 1, m * c))
+    def vertex_major(a: np.ndarray) -> np.ndarray:
+        """(M, P) per-point values -> (K+1, M*C): element [j, m*C + c] = a[m, c*K + j]."""
+        a = np.concatenate([a, np.repeat(a[:, -1:], pad, axis=1)], axis=1)  # (M, C*K+1)
+        a = np.ascontiguousarray(a)
+        s_m, s_p = a.strides
+        view = np.lib.stride_tricks.as_strided(
+            a, shape=(k + 1, m, c), strides=(s_p, s_m, k * s_p), writeable=False
+        )
+        return view.reshape(k + 1, m * c)  # one copy
 
-    vx, vy = vertex_major(pts[..., 0]), vertex_major(pts[..., 1])
+    vx, vy = vertex_major(paths[..., 0]), vertex_major(paths[..., 1])
     sx, sy = np.diff(vx, axis=0), np.diff(vy, axis=0)
     len2 = sx * sx + sy * sy
     inv2 = np.where(len2 > 0, 1.0 / np.where(len2 > 0, len2, 1.0), 0.0)
@@ -399,7 +408,7 @@ def chunk_polylines(
         n_chunks=c,
         vx=vx,
         vy=vy,
-        cum=vertex_major(arc),
+        cum=vertex_major(cum),
         sx=sx,
         sy=sy,
         inv2=inv2,
