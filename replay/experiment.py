@@ -410,10 +410,15 @@ def calibration_seeds(config: CascadeConfig) -> tuple[int, int] | None:
 
 # ---------------------------------------------------------------------- writing
 def write_experiment(
-    result: ExperimentResult, out_dir: str | os.PathLike[str], *, command: str
+    result: ExperimentResult,
+    out_dir: str | os.PathLike[str],
+    *,
+    command: str,
+    report_copy: str | os.PathLike[str] | None = None,
 ) -> dict[str, pathlib.Path]:
     """Tables, summary.json, plots and report.md into ``out_dir``; adds the plot and
-    report times to ``result.times_s``. Returns name -> path."""
+    report times to ``result.times_s``. ``report_copy``: also write the report there,
+    with its image links relative to that file. Returns name -> path."""
     from replay.plots import plot_all, plot_funnel
     from replay.stats import write_stats
 
@@ -437,8 +442,23 @@ def write_experiment(
     path = out / "report.md"
     _atomic_text(path, text)
     files["report.md"] = path
+    if report_copy is not None:
+        copy = pathlib.Path(report_copy)
+        files["report copy"] = copy
+        _atomic_text(copy, relink(text, files, out, copy.parent))
     result.times_s["report"] = time.perf_counter() - start
     return files
+
+
+def relink(
+    text: str, files: dict[str, pathlib.Path], out_dir: pathlib.Path, where: pathlib.Path
+) -> str:
+    """The report's image links (``](name.png)``) made relative to the folder ``where``."""
+    prefix = pathlib.Path(os.path.relpath(out_dir.resolve(), where.resolve()))
+    for name in files:
+        if name.endswith(".png"):
+            text = text.replace(f"]({name})", f"]({(prefix / name).as_posix()})")
+    return text
 
 
 def _atomic_text(path: pathlib.Path, text: str) -> None:

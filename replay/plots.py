@@ -64,10 +64,10 @@ def plot_roc(
         fpr, tpr = _closed_curve(c["mean_fpr"].to_numpy(), c["mean_tpr"].to_numpy())
         info = models[name]
         op = info["points"][point]
-        label = (
-            f"{_title(name)}: AUC {info['auc']:.3f}, "
-            f"σ(TPR) {_num(op['std_tpr'], '.3f')} @ TPR {point.removeprefix('tpr_')}"
+        sig = ", ".join(
+            f"{_sigma(info, p)} @ {p.removeprefix('tpr_')}" for p in ("tpr_0.9", "tpr_0.95")
         )
+        label = f"{_title(name)}: AUC {info['auc']:.3f}, σ(TPR) {sig}"
         color = MODEL_COLORS.get(name)
         ax.plot(fpr, tpr, color=color, lw=1.8, label=label, drawstyle="default")
         if op["mean_fpr"] is not None and math.isfinite(op["mean_fpr"]):
@@ -87,6 +87,16 @@ def plot_roc(
     fig.text(0.01, 0.005, _caption(summary, point), fontsize=7.5, va="bottom", wrap=True)
     fig.tight_layout(rect=(0, 0.06, 1, 1))
     return _save(fig, path)
+
+
+def _sigma(info: Mapping[str, Any], point: str) -> str:
+    """σ at a point, or n/a when reaching that TPR keeps every agent (FPR 1)."""
+    p = info["points"].get(point)
+    if p is None:
+        return "n/a"
+    if p["mean_fpr"] is not None and p["mean_fpr"] >= 1 - 1e-9 and info["auc"] < 1:
+        return "n/a"
+    return _num(p["std_tpr"], ".3f")
 
 
 def _closed_curve(fpr: np.ndarray, tpr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -164,11 +174,18 @@ def plot_errors(
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     n = summary["situations"]["with_agents"]
+    off_axis = ""
+    if (~ok).any():
+        zero = errors.filter(pl.col("threshold") <= 0).row(0, named=True)
+        off_axis = (
+            f" Threshold 0 (off the log axis) keeps {zero['mean_kept']:.1f} agents: FN "
+            f"{zero['mean_false_negatives']:.2f}, FP {zero['mean_false_positives']:.1f}."
+        )
     fig.text(
         0.01,
         0.005,
-        f"Means over {n} situations with agents, against the survival "
-        "baseline. Lower threshold: fewer false negatives, more false positives.",
+        f"Means over {n} situations with agents, against the survival baseline. Lower "
+        "threshold: fewer false negatives, more false positives." + off_axis,
         fontsize=7.5,
         va="bottom",
     )
@@ -203,9 +220,10 @@ def plot_robustness(
             lw=1.5,
             label=f"paper: σ {value:g}, {_title(name)}",
         )
+    top = float(np.nanmax(curves["std_tpr"].to_numpy())) if curves.height else 0.1
     ax.set(
         xlim=(0, 1.01),
-        ylim=(0, None),
+        ylim=(0, 1.6 * top),  # headroom for the legend above the curves
         xlabel="mean true positive rate TPR (-)",
         ylabel="std of TPR across situations σ (-)",
     )
@@ -286,7 +304,8 @@ def _funnel_axes(ax: Any, cascade: Mapping[str, Any]) -> None:
         )
     ax.set_yticks(y, labels, fontsize=8.5)
     ax.set_xlim(0, top * 1.3)
-    ax.set_xlabel("agents per situation (mean); tiers: (min-max)")
+    ax.set_xlabel("agents per situation (mean); stages: cumulative FN; tiers: (min-max)")
+    ax.set_title("Agents after each stage, then the planner tiers", fontsize=9)
     ax.grid(axis="x", alpha=0.3)
 
 
@@ -311,8 +330,11 @@ def _compute_axes(ax: Any, cascade: Mapping[str, Any]) -> None:
     )
     ratio = comp["cascade_over_survival_all"]
     ax.set_yticks([1, 0], [f"cascade\n({ratio:.2f}x)", "survival\non all"], fontsize=8.5)
+    ax.set_ylim(-0.6, 2.9)  # room above the bars for the legend
+    ax.set_xlim(0, max(left[-1] + values[-1], ref) * 1.05)
     ax.set_xlabel("compute per situation (ms, mean wall time)")
-    ax.legend(fontsize=7.5, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=1)
+    ax.set_title("Compute: cascade vs survival analysis on all agents", fontsize=9)
+    ax.legend(fontsize=7, loc="upper left", ncol=1, framealpha=0.9)
     ax.grid(axis="x", alpha=0.3)
 
 

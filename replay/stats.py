@@ -792,7 +792,7 @@ def compute_stats(
     models: Sequence[str] | None = None,
     errors_model: str = DEFAULT_ERRORS_MODEL,
     stage_names: Sequence[str] | None = None,
-    tier_names: Sequence[str] = (),
+    tier_names: Sequence[str] | None = None,
     baseline_threshold: float | None = None,
     inputs: Iterable[str] = (),
 ) -> DatasetStats:
@@ -800,7 +800,8 @@ def compute_stats(
 
     ``models``: the models to compare (default: every ``risk_<model>`` column, registry
     order); ``errors_model``: the model of the FN/FP export; ``stage_names`` and
-    ``tier_names``: the cascade's (default stages: the table's ``kept_`` columns).
+    ``tier_names``: the cascade's (default: the agents table's ``kept_<stage>`` and the
+    frames table's ``tier_<name>`` columns).
     """
     agents = sort_agents(agents)
     present = model_names_of(agents)
@@ -811,6 +812,8 @@ def compute_stats(
                 f"no risk_{m} column in the table; it has: {', '.join(present) or 'none'}"
             )
     stages = list(stage_names_of(agents) if stage_names is None else stage_names)
+    if tier_names is None:  # the frames table's tier_<name> columns, in order
+        tier_names = [c.removeprefix("tier_") for c in frames.columns if c.startswith("tier_")]
     sits = situations_of(agents)
     per_model = {m: model_stats(agents[f"risk_{m}"].to_numpy(), sits, m) for m in names}
     if errors_model not in per_model:

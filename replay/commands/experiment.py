@@ -60,6 +60,13 @@ from replay.stats import DEFAULT_ERRORS_MODEL
     "second half.",
 )
 @click.option(
+    "--report",
+    "report_copy",
+    type=click.Path(dir_okay=False, path_type=pathlib.Path),
+    help="Also write the report to this file, with image links relative to it (e.g. "
+    "docs/experiment-report.md beside -o docs/experiment).",
+)
+@click.option(
     "--progress/--no-progress", default=True, show_default=True, help="Progress bars on stderr."
 )
 def experiment(
@@ -70,6 +77,7 @@ def experiment(
     errors_model: str,
     cascade_file: pathlib.Path | None,
     calibrate_half: bool,
+    report_copy: pathlib.Path | None,
     progress: bool,
 ) -> None:
     """Reproduce the paper's large-scale experiment (Sec. V-B) and write report.md.
@@ -84,7 +92,7 @@ def experiment(
     \b
     Writes into OUTPUT:
       report.md               the comparison with the paper, with the plots
-      roc.png, errors.png, cascade_funnel*.png
+      roc.png, robustness.png, errors.png, cascade_funnel*.png
       summary.json, roc / errors / funnel / per_frame / per_scene (.parquet and .csv)
     """
     from replay.experiment import (
@@ -105,9 +113,16 @@ def experiment(
         errors_model=errors_model,
         calibrate_half=calibrate_half,
     )
+    if report_copy is not None and not report_copy.parent.is_dir():
+        raise click.UsageError(f"--report: the folder {report_copy.parent} does not exist")
     start = time.perf_counter()
     result = run_experiment(settings, progress=progress, cascade=cascade)
-    files = write_experiment(result, out_dir, command=_command(settings, cascade_file))
+    files = write_experiment(
+        result,
+        out_dir,
+        command=_command(settings, cascade_file, out_dir, report_copy),
+        report_copy=report_copy,
+    )
     total = time.perf_counter() - start
     click.echo(_summary(result, total))
     click.echo("Wrote:")
@@ -115,7 +130,12 @@ def experiment(
         click.echo(f"  {path}")
 
 
-def _command(settings, cascade_file: pathlib.Path | None) -> str:
+def _command(
+    settings,
+    cascade_file: pathlib.Path | None,
+    out_dir: pathlib.Path,
+    report_copy: pathlib.Path | None,
+) -> str:
     parts = [
         "replay experiment",
         f"--situations {settings.situations}",
@@ -128,7 +148,10 @@ def _command(settings, cascade_file: pathlib.Path | None) -> str:
         parts.append(f"--cascade {cascade_file.name}")
     if not settings.calibrate_half:
         parts.append("--no-calibrate-half")
-    return " ".join(parts) + " -o OUT_DIR"
+    parts.append(f"-o {out_dir}")
+    if report_copy is not None:
+        parts.append(f"--report {report_copy}")
+    return " ".join(parts)
 
 
 def _summary(result, total_s: float) -> str:
