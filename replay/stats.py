@@ -55,7 +55,7 @@ import os
 import pathlib
 import tempfile
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -316,7 +316,7 @@ class Situations:
 
 
 def situations_of(agents: pl.DataFrame) -> Situations:
-    """Group an agents table by situation (sorting it by scene and frame first)."""
+    """Group an agents table, sorted by scene and frame (:func:`sort_agents`), by situation."""
     if agents.height == 0:
         raise StatsError("no agent-frames: every frame is empty (no agent besides the ego)")
     for col in (*SITUATION_KEY, "baseline"):
@@ -782,7 +782,6 @@ class DatasetStats:
     per_scene: pl.DataFrame
     stage_names: tuple[str, ...]
     tier_names: tuple[str, ...]
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 def compute_stats(
