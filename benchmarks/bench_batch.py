@@ -22,8 +22,10 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import pathlib
+import resource
 import shutil
 import statistics
 import tempfile
@@ -46,19 +48,24 @@ def make_scenes(folder: pathlib.Path, n: int, agents: int, duration_s: float) ->
 
 def one_run(
     inputs: pathlib.Path, out: pathlib.Path, engine: str, workers: int
-) -> tuple[float, float]:
-    """(engine seconds, total seconds) of one batch run into a fresh ``out``."""
+) -> tuple[float, float, float]:
+    """(engine seconds, total seconds, CPU seconds of the local worker processes) of one
+    batch run into a fresh ``out``. The worker CPU time comes from ``getrusage`` of the
+    reaped child processes, so it is NaN for Ray (its workers are the raylet's children)."""
     from replay.batch import BatchSettings, run_batch
     from risk.cascade import CascadeConfig
 
     shutil.rmtree(out, ignore_errors=True)
     settings = BatchSettings(cascade=CascadeConfig.default())
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     report = run_batch([inputs], out, settings, engine=engine, workers=workers, progress=False)
     total = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if report.failures or report.replayed == 0:
         raise SystemExit(f"benchmark run failed: {report.failures[:3]}")
-    return report.run_seconds, total
+    cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+    return report.run_seconds, total, cpu if engine == "local" else math.nan
 
 
 def main() -> None:
@@ -100,9 +107,14 @@ def main() -> None:
         times: dict[str, list[tuple[float, float]]] = {c[0]: [] for c in configs}
         for r in range(args.repeat):
             for label, engine, workers in configs:
-                run_s, total_s = one_run(inputs, root / "out", engine, workers)
+                load_before = os.getloadavg()[0]
+                run_s, total_s, cpu_s = one_run(inputs, root / "out", engine, workers)
                 times[label].append((run_s, total_s))
-                print(f"  run {r + 1} {label:<17} engine {run_s:6.2f} s  total {total_s:6.2f} s",
+                # How busy the shared machine was: the 1-minute load average, and how many
+                # CPUs the workers got on average while the engine ran.
+                share = "" if math.isnan(cpu_s) else f"  workers got {cpu_s / run_s:.2f} CPUs"
+                print(f"  run {r + 1} {label:<17} engine {run_s:6.2f} s  total {total_s:6.2f} s"
+                      f"  load {load_before:.1f} -> {os.getloadavg()[0]:.1f}{share}",
                       flush=True)  # fmt: skip
 
     print(f"\n{'configuration':<18}{'engine s':>10}{'scenes/s':>10}{'total s':>10}   all engine s")

@@ -1094,47 +1094,57 @@ def _execute(
     progress: bool,
 ) -> tuple[str, int]:
     """Run the planned tasks (none: no engine is started at all). Returns the engine's
-    name and worker count."""
+    name and worker count. An engine passed in is left open for its owner."""
     if not (run.replay_todo or run.convert_todo):
-        name = engine if isinstance(engine, str) else engine.name
-        return name, 0
-    eng = (
-        make_engine(engine, workers=workers, address=ray_address)
-        if isinstance(engine, str)
-        else engine
-    )
+        return (engine if isinstance(engine, str) else engine.name), 0
+    own = isinstance(engine, str)
+    eng = make_engine(engine, workers=workers, address=ray_address) if own else engine
     from tqdm import tqdm
 
     bar = tqdm(
         total=len(run.replay_todo), unit="scene", desc=f"batch ({eng.name}, {eng.workers} workers)",
         file=sys.stderr, disable=not progress, dynamic_ncols=True, smoothing=0.05,
     )  # fmt: skip
-    converting = len(run.convert_todo)
     try:
         with bar:
-            for t in run.convert_todo:
-                eng.submit(convert_one, t)
-            for t in run.replay_todo:
-                eng.submit(replay_one, t)
-            _postfix(bar, run, converting)
-            while eng.pending:
-                for task, outcome in eng.results():
-                    if isinstance(task, ConvertTask):
-                        converting -= 1
-                        new = _converted(run, task, outcome)
-                        for t in new:
-                            eng.submit(replay_one, t)
-                        bar.total += len(new)
-                        bar.refresh()
-                    else:
-                        _replayed(run, task, outcome)
-                        bar.update()
-                    _postfix(bar, run, converting)
+            _drive(run, eng, bar)
     except BaseException:
-        eng.close(cancel=True)
+        if own:
+            eng.close(cancel=True)
         raise
-    eng.close()
+    if own:
+        eng.close()
     return eng.name, eng.workers
+
+
+def _drive(run: _Run, eng: Engine, bar: Any) -> None:
+    """Feed the engine and collect its results until every task is back.
+
+    At most a few tasks per worker are queued in the engine at a time (``in_flight``):
+    enough to keep every worker busy, few enough that Ctrl-C drops the rest at once and
+    that waiting on a cluster's results stays cheap with many thousands of scenes. A
+    converted file's scenes go to the front of the queue, so replaying starts early.
+    """
+    queue: deque[tuple[Callable[[Any], Any], Any]] = deque(
+        [(convert_one, t) for t in run.convert_todo] + [(replay_one, t) for t in run.replay_todo]
+    )
+    in_flight = 2 * max(1, eng.workers) + 2
+    converting = len(run.convert_todo)
+    while queue or eng.pending:
+        while queue and eng.pending < in_flight:
+            eng.submit(*queue.popleft())
+        _postfix(bar, run, converting)
+        for task, outcome in eng.results():
+            if isinstance(task, ConvertTask):
+                converting -= 1
+                new = _converted(run, task, outcome)
+                queue.extendleft((replay_one, t) for t in reversed(new))
+                bar.total += len(new)
+                bar.refresh()
+            else:
+                _replayed(run, task, outcome)
+                bar.update()
+    _postfix(bar, run, converting)
 
 
 def _postfix(bar: Any, run: _Run, converting: int) -> None:

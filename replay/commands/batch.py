@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pathlib
+import sys
 
 import click
 
@@ -120,10 +121,16 @@ def batch(
         paths=path_mode,
         map_osm=None if map_osm is None else map_osm.absolute(),
     )
-    report = run_batch(
-        inputs, out_dir, settings, engine=engine, workers=workers, ray_address=ray_address,
-        progress=progress,
-    )  # fmt: skip
+    try:
+        report = run_batch(
+            inputs, out_dir, settings, engine=engine, workers=workers,
+            ray_address=ray_address, progress=progress,
+        )  # fmt: skip
+    except KeyboardInterrupt:
+        # Running scenes finished and are complete; the same command resumes.
+        click.echo("Interrupted. Run the same command again to resume: complete scenes "
+                   "are skipped.", err=True)  # fmt: skip
+        sys.exit(130)
     click.echo(format_report(report, settings))
     if report.all_failed:
         raise ReplayError(
