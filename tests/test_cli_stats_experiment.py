@@ -212,3 +212,24 @@ def test_help_texts_explain():
         result = run([cmd, "--help"])
         assert result.exit_code == 0
         assert "summary.json" in result.output and "--output" in result.output
+
+
+@pytest.mark.realdata
+def test_stats_on_a_real_argoverse_scene(shared_data, tmp_path):
+    (source,) = sorted((shared_data / "av2").glob("scenario_*.parquet"))
+    scene = tmp_path / "av2.mcap"
+    assert run(["convert", "av2", str(source), "-o", str(scene)]).exit_code == 0
+    result = run(["stats", str(scene), "-o", str(tmp_path / "out"), "--no-progress"])
+    assert result.exit_code == 0, result.output
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    frames = pl.read_parquet(tmp_path / "out" / "per_frame.parquet")
+    sit = s["situations"]
+    assert sit["total"] == frames.height > 0
+    assert sit["empty_baseline"] == (frames["degenerate"] == "empty baseline").sum()
+    assert sit["full_baseline"] == (frames["degenerate"] == "full baseline").sum()
+    assert s["baseline"]["important_agent_frames"] == frames["n_baseline"].sum()
+    assert s["models"]["survival"]["auc"] == pytest.approx(1.0)
+    # Each model's mean TPR at its tpr_1 threshold is 1, and it keeps at least the baseline.
+    for m in s["models"].values():
+        assert m["points"]["tpr_1"]["mean_tpr"] == pytest.approx(1.0)
+        assert m["points"]["tpr_1"]["mean_kept"] >= s["baseline"]["mean_important_per_situation"]
