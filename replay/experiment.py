@@ -80,6 +80,7 @@ def parallel_map(
     desc: str = "",
     weights: Sequence[int] | None = None,
     executor: cf.Executor | None = None,
+    unit: str = "situation",
 ) -> list[Any]:
     """``[fn(t) for t in tasks]`` on ``workers`` processes (in order of ``tasks``).
 
@@ -93,7 +94,7 @@ def parallel_map(
         disable=not progress,
         file=sys.stderr,
         desc=desc,
-        unit="situation",
+        unit=unit,
         leave=False,
     )
     results: list[Any] = [None] * len(tasks)

@@ -110,7 +110,7 @@ def collect(
     if inputs.scenes:
         tasks = [
             SceneTask(p, n, cascade, None if models is None else tuple(models))
-            for p, n in zip(inputs.scenes, names, strict=False)
+            for p, n in zip(inputs.scenes, names[: len(inputs.scenes)], strict=True)
         ]
         for a, f in parallel_map(
             replay_scene,
@@ -118,6 +118,7 @@ def collect(
             workers=min(workers, len(tasks)),
             progress=progress,
             desc="stats: scenes",
+            unit="scene",
         ):
             agents.append(a)
             frames.append(f)
