@@ -772,9 +772,11 @@ def _quiet_worker() -> None:
 class LocalEngine:
     """Worker processes on this machine (``ProcessPoolExecutor``, ``spawn`` start).
 
-    When a worker dies, the pool is broken and every task it was running fails with it;
-    those tasks are run again one at a time, alone in a fresh pool, so that only the task
-    that kills its worker is reported (as :class:`WorkerDied`), while other tasks wait.
+    When a worker dies, its pool is broken and every task running there fails with it;
+    the engine starts a fresh pool and runs those tasks again one at a time, alone, so
+    that only the task that kills its worker is reported (as :class:`WorkerDied`), while
+    the other tasks wait. A pool found broken when submitting (a worker killed while
+    idle) is replaced at once.
     """
 
     name = "local"
@@ -784,9 +786,10 @@ class LocalEngine:
         if self.workers < 1:
             raise ReplayError(f"--workers must be >= 1, got {self.workers}")
         self._pool = self._new_pool()
-        self._running: dict[cf.Future, tuple[Callable, Any]] = {}
-        self._suspects: deque[tuple[Callable, Any]] = deque()
-        self._held: deque[tuple[Callable, Any]] = deque()
+        # future -> (function, task, the pool it runs in)
+        self._running: dict[cf.Future, tuple[Callable, Any, cf.ProcessPoolExecutor]] = {}
+        self._suspects: deque[tuple[Callable, Any]] = deque()  # lost with a dead pool
+        self._held: deque[tuple[Callable, Any]] = deque()  # waiting while suspects run
         self._alone = False  # one suspect is running alone
 
     def _new_pool(self) -> cf.ProcessPoolExecutor:
@@ -795,6 +798,10 @@ class LocalEngine:
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_quiet_worker,
         )
+
+    def _replace_pool(self) -> None:
+        self._pool.shutdown(wait=False)
+        self._pool = self._new_pool()
 
     @property
     def pending(self) -> int:
@@ -807,32 +814,37 @@ class LocalEngine:
             self._start(fn, task)
 
     def _start(self, fn: Callable[[Any], Any], task: Any) -> None:
-        self._running[self._pool.submit(fn, task)] = (fn, task)
+        try:
+            future = self._pool.submit(fn, task)
+        except cf.process.BrokenProcessPool:
+            self._replace_pool()
+            future = self._pool.submit(fn, task)
+        self._running[future] = (fn, task, self._pool)
 
     def results(self) -> list[tuple[Any, Any]]:
         out: list[tuple[Any, Any]] = []
         self._schedule()
         while not out and self._running:
             done, _ = cf.wait(self._running, return_when=cf.FIRST_COMPLETED)
+            dead = {self._running[f][2] for f in done if _lost(f)}
+            if dead:  # every call in a dead pool is lost with it: collect them all
+                lost = [f for f, (_, _, pool) in self._running.items() if pool in dead]
+                done = set(done) | cf.wait(lost)[0]
             broken: list[tuple[Callable, Any]] = []
-            if any(isinstance(f.exception(), cf.process.BrokenProcessPool) for f in done):
-                # The pool is dead: every running call is lost with it; collect them all.
-                done, _ = cf.wait(self._running)
             for f in done:
-                fn, task = self._running.pop(f)
-                exc = f.exception()
-                if isinstance(exc, cf.process.BrokenProcessPool):
+                fn, task, _ = self._running.pop(f)
+                if _lost(f):
                     broken.append((fn, task))
                 else:
+                    exc = f.exception()
                     out.append((task, f.result() if exc is None else exc))
-            if broken:
-                if self._alone:  # it ran alone, so it is the culprit
-                    out += [(task, WorkerDied()) for _, task in broken]
-                else:
-                    self._suspects.extend(broken)
-                self._pool.shutdown(wait=True)
-                self._pool = self._new_pool()
-            self._alone = False
+            if broken and self._alone:  # it ran alone, so it is the culprit
+                out += [(task, WorkerDied()) for _, task in broken]
+            else:
+                self._suspects.extend(broken)
+            if self._pool in dead:
+                self._replace_pool()
+            self._alone = self._alone and bool(self._running)
             self._schedule()
         return out
 
@@ -851,6 +863,11 @@ class LocalEngine:
             self._held.clear()
             self._suspects.clear()
         self._pool.shutdown(wait=True, cancel_futures=cancel)
+
+
+def _lost(future: cf.Future) -> bool:
+    """True when the call was lost with its pool (a worker process died)."""
+    return isinstance(future.exception(), cf.process.BrokenProcessPool)
 
 
 class RayEngine:
@@ -872,10 +889,17 @@ class RayEngine:
             import logging
 
             kwargs: dict[str, Any] = {"logging_level": logging.WARNING, "log_to_driver": False}
-            if address:
-                ray.init(address=address, **kwargs)
-            else:
-                ray.init(num_cpus=workers or default_workers(), include_dashboard=False, **kwargs)
+            try:
+                if address:
+                    ray.init(address=address, **kwargs)
+                else:
+                    cpus = workers or default_workers()
+                    ray.init(num_cpus=cpus, include_dashboard=False, **kwargs)
+            except Exception as exc:  # Ray raises ConnectionError, RuntimeError, ...
+                where = f"the Ray cluster at {address}" if address else "a local Ray instance"
+                raise ReplayError(
+                    f"could not start or reach {where}: {_one_line(str(exc))}"
+                ) from None
             self._started = True
         self.workers = int(ray.cluster_resources().get("CPU", workers or 1))
         self._remote: dict[Callable, Any] = {}

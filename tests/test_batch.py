@@ -217,6 +217,28 @@ def test_local_engine_isolates_a_task_that_kills_its_worker():
     assert results == {1: 2, 2: 4, 3: 6, 4: 8}
 
 
+def test_local_engine_replaces_a_pool_whose_idle_worker_was_killed():
+    import multiprocessing
+    import signal
+    import time
+
+    engine = B.LocalEngine(workers=2)
+    try:
+        engine.submit(_double_or_die, 1)
+        assert engine.results() == [(1, 2)]
+        victim = multiprocessing.active_children()[0]  # a pool worker, idle now
+        os.kill(victim.pid, signal.SIGKILL)
+        time.sleep(0.5)  # the pool notices and marks itself broken
+        for x in (5, 6, 7):
+            engine.submit(_double_or_die, x)
+        results = {}
+        while engine.pending:
+            results.update(engine.results())
+    finally:
+        engine.close()
+    assert results == {5: 10, 6: 12, 7: 14}
+
+
 def test_ray_missing_is_one_line_error(monkeypatch: pytest.MonkeyPatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
     with pytest.raises(ReplayError) as info:
