@@ -400,7 +400,9 @@ def chunk_polylines(
     vx, vy = vertex_major(paths[..., 0]), vertex_major(paths[..., 1])
     sx, sy = np.diff(vx, axis=0), np.diff(vy, axis=0)
     len2 = sx * sx + sy * sy
-    inv2 = np.where(len2 > 0, 1.0 / np.where(len2 > 0, len2, 1.0), 0.0)
+    # Segments shorter than 1e-150 m act as points (1 / len2 would overflow).
+    real_seg = len2 > 1e-300
+    inv2 = np.where(real_seg, 1.0 / np.where(real_seg, len2, 1.0), 0.0)
     real = np.full(m, p) if n_points is None else np.asarray(n_points)
     active = np.arange(c)[None, :] * k < np.maximum(real - 1, 1)[:, None]
     return ChunkedPolylines(

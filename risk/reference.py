@@ -255,12 +255,14 @@ def _overlaps(a: _Agent, b: _Agent) -> list[float]:
 
 
 def _encounter(ego: _Agent, other: _Agent) -> tuple[float, int]:
-    best, best_k = math.inf, 0
-    for k in range(len(ego.pos)):
-        d = math.hypot(other.pos[k][0] - ego.pos[k][0], other.pos[k][1] - ego.pos[k][1])
-        if d < best:
-            best, best_k = d, k
-    return best, best_k
+    """Closest distance, and the first step within 1e-9 m of it."""
+    dists = [
+        math.hypot(other.pos[k][0] - ego.pos[k][0], other.pos[k][1] - ego.pos[k][1])
+        for k in range(len(ego.pos))
+    ]
+    best = min(dists)
+    first = next(k for k, d in enumerate(dists) if d <= best + 1e-9)
+    return best, first
 
 
 def _pair_risks(ego: _Agent, other: _Agent, params: dict[str, Any], st: PredictionSettings):

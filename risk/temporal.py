@@ -103,11 +103,19 @@ class Headway2DParams:
 
 
 # ---------------------------------------------------------------------- closest encounter
+#: Distances within this of the closest encounter count as reaching it (rounding ties).
+TIE_TOLERANCE_M = 1e-9
+
+
 def encounter_rows(ctx: FrameContext, ego_row: int) -> tuple[np.ndarray, np.ndarray]:
     """Closest encounter of every path row with ego candidate ``ego_row``.
 
-    Returns ``d_E`` ``(M,)`` in m and the step index ``(M,)`` of ``s_E`` (the first step
-    at which the minimum is reached).
+    Returns ``d_E`` ``(M,)`` in m and the step index ``(M,)`` of ``s_E``.
+
+    Choice: ``s_E`` is the first step whose distance is within ``TIE_TOLERANCE_M`` of the
+    minimum. Agents at a constant distance (same speed, parallel paths) then meet at
+    ``s = 0`` instead of wherever rounding noise puts the smallest value, which could be
+    the last step and zero the risk.
     """
 
     def compute() -> tuple[np.ndarray, np.ndarray]:
@@ -116,8 +124,9 @@ def encounter_rows(ctx: FrameContext, ego_row: int) -> tuple[np.ndarray, np.ndar
         dx *= dx
         dy *= dy
         dx += dy  # squared distance (M, n); sqrt only at the minimum
-        k = np.argmin(dx, axis=1)
-        return np.sqrt(dx[np.arange(dx.shape[0]), k]), k
+        d_min = np.sqrt(dx.min(axis=1))
+        k = np.argmax(dx <= ((d_min + TIE_TOLERANCE_M) ** 2)[:, None], axis=1)
+        return d_min, k
 
     return ctx.memo(("encounter", int(ego_row)), compute)
 
@@ -128,7 +137,8 @@ def encounter_risk_rows(
     """``R_E`` ``(M,)`` for ego candidate ``ego_row``: 0 when ``s_E >= s_max``.
 
     Choice: ``s_max`` defaults to the horizon, so an encounter whose minimum lies on the
-    last step (still closing at the horizon) is not counted; ties go to the earliest step.
+    last step (still closing at the horizon) is not counted; ties (within 1e-9 m) go to
+    the earliest step.
     """
     d, k = encounter_rows(ctx, ego_row)
     limit = ctx.settings.horizon_s if s_max is None else s_max

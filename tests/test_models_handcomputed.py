@@ -106,6 +106,20 @@ def test_closest_encounter_still_closing_at_the_horizon_is_not_counted():
     assert risk(f, "closest_encounter", later)[1] == pytest.approx(1 / 121)
 
 
+def test_closest_encounter_at_constant_distance_is_counted():
+    # Same speed on parallel paths: the distance never changes, so the encounter is at
+    # s = 0. Rounding noise must not move it to the last step (which gives risk 0): with
+    # these numbers the smallest computed distance is at s = T. (Found by hypothesis.)
+    x0, v = 1.5093435605671424, 5.509343560567142
+    f = make(
+        [{"path": [[0, 0], [300, 0]], "speed": v}, {"path": [[x0, 2], [x0 + 300, 2]], "speed": v}]
+    )
+    want = 1 / (1 + math.hypot(x0, 2))
+    assert risk(f, "closest_encounter", prediction=PredictionSettings(6.0, 0.2))[
+        1
+    ] == pytest.approx(want)
+
+
 def test_headway_leader_follower_and_standing_ego():
     leader = {"path": [[30, 0.5], [230, 0.5]], "speed": 10.0}  # on the path, 30 m ahead
     behind = {"path": [[-20, 0], [180, 0]], "speed": 5.0}
