@@ -154,3 +154,22 @@ def test_reference_is_independent_of_frame_padding(seed):
     )
     long[0] = (0.0, 0.0)
     assert_agree(f, prediction=PredictionSettings(5.0, 0.25))
+
+
+@pytest.mark.realdata
+def test_real_waymo_frames_agree(shared_data):
+    """Real map-based paths (Waymo sample, converted by converters.waymo): the full frame
+    has the right NaN pattern and a subset of agents agrees with the reference."""
+    from converters.waymo import read_scenes
+
+    scene = next(read_scenes(shared_data / "waymo" / "womd_637f20cafde22ff8.tfrecord"))
+    for frame in (scene.frames[10], scene.frames[60]):
+        full = evaluate(frame)
+        for name in MODELS:
+            np.testing.assert_array_equal(np.isnan(full[name]), ~frame.others, err_msg=name)
+        d = np.hypot(*(frame.xy - frame.xy[frame.ego]).T)
+        nearest = [int(i) for i in np.argsort(d) if frame.others[i]][:6]
+        sub = frame.select([frame.ego, *nearest])
+        r = assert_agree(sub)
+        for name in MODELS:  # same agents, same values as in the full frame
+            np.testing.assert_allclose(r[name][1:], full[name][nearest], rtol=1e-12, err_msg=name)
