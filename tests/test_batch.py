@@ -16,6 +16,7 @@ import polars as pl
 import pytest
 
 from replay import batch as B
+from replay.batch.driver import _Run
 from replay.errors import ReplayError
 from risk.cascade import CascadeConfig
 
@@ -111,7 +112,7 @@ def test_discover_errors(tmp_path: pathlib.Path):
 # ---------------------------------------------------------------------- one task
 def _task(dataset: pathlib.Path, out: pathlib.Path, name: str, scene: str, rrd: bool = False):
     s = B.BatchSettings(cascade=CascadeConfig.default(), rrd=rrd)
-    run = B._Run(B.Layout(out), s)
+    run = _Run(B.Layout(out), s)
     return run.replay_task(name, str(dataset / scene), dataset / scene)
 
 
@@ -138,7 +139,7 @@ def test_completeness_follows_input_and_outputs(dataset: pathlib.Path, tmp_path:
     scene = tmp_path / "copy.mcap"
     scene.write_bytes((dataset / "scene_2.mcap").read_bytes())
     s = B.BatchSettings(cascade=CascadeConfig.default())
-    task = B._Run(B.Layout(tmp_path / "out"), s).replay_task("copy", str(scene), scene)
+    task = _Run(B.Layout(tmp_path / "out"), s).replay_task("copy", str(scene), scene)
     assert B.replay_one(task).failure is None
     marker = pathlib.Path(task.marker)
     assert B.completed_scene(marker, scene, task.digest, rrd=False) is not None

@@ -1,0 +1,520 @@
+"""The driver of a batch run: find the inputs, plan, run the tasks on an engine, write
+the run's tables and the dataset statistics."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import os
+import pathlib
+import re
+import sys
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import astuple, dataclass, field
+from typing import Any
+
+from replay.batch.engines import Engine, make_engine
+from replay.batch.markers import (
+    MARKER_FORMAT,
+    atomic_write,
+    completed_conversion,
+    completed_scene,
+    fingerprint,
+)
+from replay.batch.records import ConvertTask, Failure, ReplayTask, SceneDone
+from replay.batch.tasks import convert_one, one_line, replay_one, safe_name
+from replay.errors import ReplayError
+from risk.cascade import CascadeConfig
+
+FAILURE_COLUMNS: tuple[str, ...] = ("input", "scene", "stage", "error_type", "reason")
+SCENE_COLUMNS: tuple[str, ...] = (
+    "scene", "input", "status", "frames", "skipped_frames", "agents", "seconds", "table",
+    "recording",
+)  # fmt: skip
+
+# Files each converter reads, when a folder is given (searched recursively).
+_PATTERNS: dict[str | None, tuple[str, ...]] = {
+    None: ("*.mcap",),
+    "waymo": ("*.tfrecord", "*.tfrecord-*", "*.tfrecords"),
+    "av2": ("scenario_*.parquet",),
+    "commonroad": ("*.xml",),
+    "interaction": ("*.csv",),
+}
+_KNOWN_SUFFIX = re.compile(r"\.(mcap|parquet|xml|csv|tfrecords?)$", re.IGNORECASE)
+
+
+@dataclass(frozen=True)
+class BatchSettings:
+    """What decides a batch run's outputs (besides its inputs)."""
+
+    cascade: CascadeConfig
+    rrd: bool = False  # also write a Rerun recording per scene
+    convert: str | None = None  # raw dataset kind of the inputs; None: MCAP scenes
+    paths: str = "map"  # converters' path mode (map or hindsight)
+    map_osm: pathlib.Path | None = None  # the Lanelet2 map of INTERACTION inputs
+
+    def replay_digest(self) -> str:
+        """Hash of everything that decides a per-scene table: the cascade, the models, the
+        package version. (``rrd`` is not in it: a marker lists the files it has.)"""
+        from risk import MODELS
+
+        return _digest(
+            {
+                "format": MARKER_FORMAT,
+                "version": _package_version(),
+                "cascade": self.cascade.to_dict(),
+                "models": list(MODELS),
+            }
+        )
+
+    def convert_digest(self) -> str:
+        """Hash of everything that decides a conversion: kind, path mode, the map file."""
+        map_fp = None if self.map_osm is None else fingerprint(self.map_osm)
+        return _digest(
+            {
+                "format": MARKER_FORMAT,
+                "version": _package_version(),
+                "convert": self.convert,
+                "paths": self.paths,
+                "map": None if self.map_osm is None else [str(self.map_osm), *map_fp],
+            }
+        )
+
+
+def _digest(data: dict[str, Any]) -> str:
+    text = json.dumps(data, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _package_version() -> str:
+    from replay import __version__
+
+    return __version__
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where a batch run writes (see the docstring of replay.batch)."""
+
+    root: pathlib.Path
+
+    @property
+    def scenes(self) -> pathlib.Path:
+        return self.root / "scenes"
+
+    @property
+    def tables(self) -> pathlib.Path:
+        return self.root / "tables"
+
+    @property
+    def frames(self) -> pathlib.Path:
+        return self.root / "frames"
+
+    @property
+    def recordings(self) -> pathlib.Path:
+        return self.root / "recordings"
+
+    @property
+    def done(self) -> pathlib.Path:
+        return self.root / ".done"
+
+    @property
+    def stats(self) -> pathlib.Path:
+        return self.root / "stats"
+
+    @property
+    def failures_csv(self) -> pathlib.Path:
+        return self.root / "failures.csv"
+
+    @property
+    def scenes_csv(self) -> pathlib.Path:
+        return self.root / "scenes.csv"
+
+    def scene_mcap(self, name: str) -> pathlib.Path:
+        return self.scenes / f"{name}.mcap"
+
+    def table(self, name: str) -> pathlib.Path:
+        return self.tables / f"{name}.parquet"
+
+    def frames_table(self, name: str) -> pathlib.Path:
+        return self.frames / f"{name}.parquet"
+
+    def recording(self, name: str) -> pathlib.Path:
+        return self.recordings / f"{name}.rrd"
+
+    def replay_marker(self, name: str) -> pathlib.Path:
+        return self.done / f"{name}.json"
+
+    def convert_marker(self, name: str) -> pathlib.Path:
+        return self.done / "convert" / f"{name}.json"
+
+
+@dataclass(frozen=True)
+class InputFile:
+    """One input file and the unique name its outputs get."""
+
+    path: pathlib.Path  # absolute
+    name: str
+
+
+def discover(
+    inputs: Sequence[str | os.PathLike[str]],
+    *,
+    convert: str | None = None,
+    exclude: pathlib.Path | None = None,
+) -> list[InputFile]:
+    """The input files named by ``inputs`` (files, or folders searched recursively for
+    ``*.mcap``, or for the raw files of ``convert``), each with a unique output name.
+
+    A name is the file name without its known suffix, restricted to letters, digits and
+    ``._-``; names that collide (same file name in two folders) get ``-`` and 8 hex
+    digits of a hash of the full path, so a rerun with the same inputs finds the same
+    names. Files under ``exclude`` (the output folder) are ignored. Raises ReplayError
+    for a missing input or when nothing is found.
+    """
+    patterns = _PATTERNS[convert]
+    found: dict[pathlib.Path, None] = {}
+    for raw in inputs:
+        path = pathlib.Path(raw).expanduser().absolute()
+        if path.is_file():
+            found[path] = None
+        elif path.is_dir():
+            for f in _walk(path, patterns, exclude):
+                found[f] = None
+        else:
+            raise ReplayError(f"{raw}: no such file or folder")
+    if not found:
+        what = ", ".join(patterns)
+        shown = ", ".join(str(i) for i in inputs[:3]) + (", ..." if len(inputs) > 3 else "")
+        hint = "" if convert else " (raw dataset files need --convert KIND)"
+        raise ReplayError(f"no input files ({what}) found in {shown}{hint}")
+    return _unique_names(list(found))
+
+
+def _walk(
+    folder: pathlib.Path, patterns: Sequence[str], exclude: pathlib.Path | None
+) -> list[pathlib.Path]:
+    hits: set[pathlib.Path] = set()
+    for pattern in patterns:
+        hits.update(p for p in folder.rglob(pattern) if p.is_file())
+    ex = None if exclude is None else exclude.absolute()
+    return sorted(p for p in hits if ex is None or not p.is_relative_to(ex))
+
+
+def _unique_names(paths: list[pathlib.Path]) -> list[InputFile]:
+    base = [safe_name(_KNOWN_SUFFIX.sub("", p.name).replace(".tfrecord", "")) for p in paths]
+    counts: dict[str, int] = {}
+    for b in base:
+        counts[b.lower()] = counts.get(b.lower(), 0) + 1
+    out = []
+    for p, b in zip(paths, base, strict=True):
+        if counts[b.lower()] > 1:
+            b = f"{b}-{hashlib.sha1(str(p).encode()).hexdigest()[:8]}"
+        out.append(InputFile(p, b))
+    return out
+
+
+@dataclass
+class BatchReport:
+    """What a batch run did; ``scenes`` holds replayed and skipped scenes, by name."""
+
+    out_dir: pathlib.Path
+    engine: str
+    workers: int
+    inputs: int  # input files
+    scenes: list[SceneDone]
+    failures: list[Failure]
+    conversions: int = 0  # files converted in this run
+    conversions_skipped: int = 0  # files whose conversion was complete already
+    seconds: float = 0.0  # the whole run, statistics included
+    run_seconds: float = 0.0  # converting and replaying (the engine's part)
+    stats_files: list[pathlib.Path] = field(default_factory=list)
+
+    @property
+    def replayed(self) -> int:
+        return sum(s.status == "replayed" for s in self.scenes)
+
+    @property
+    def skipped(self) -> int:
+        return sum(s.status == "skipped" for s in self.scenes)
+
+    @property
+    def all_failed(self) -> bool:
+        return not self.scenes and bool(self.failures)
+
+
+class _Run:
+    """The state of one batch run: planned tasks, results so far, the progress bar."""
+
+    def __init__(self, layout: Layout, settings: BatchSettings) -> None:
+        self.layout = layout
+        self.settings = settings
+        self.replay_digest = settings.replay_digest()
+        self.convert_digest = settings.convert_digest() if settings.convert else ""
+        self.done: list[SceneDone] = []
+        self.failures: list[Failure] = []
+        self.replay_todo: list[ReplayTask] = []
+        self.convert_todo: list[ConvertTask] = []
+        self.conversions_skipped = 0
+
+    def plan(self, files: Sequence[InputFile]) -> None:
+        """Sort every input into complete (skipped) and to-do."""
+        for f in files:
+            if self.settings.convert is None:
+                self.plan_scene(f.name, str(f.path), f.path)
+                continue
+            marker = self.layout.convert_marker(f.name)
+            prior = completed_conversion(marker, f.path, self.convert_digest)
+            if prior is None:
+                self.convert_todo.append(self.convert_task(f, marker))
+                continue
+            self.conversions_skipped += 1
+            scenes, failures = prior
+            self.failures += failures
+            for name, path in scenes:
+                self.plan_scene(name, str(f.path), pathlib.Path(path))
+
+    def plan_scene(self, name: str, input_: str, scene: pathlib.Path) -> None:
+        marker = self.layout.replay_marker(name)
+        prior = completed_scene(marker, scene, self.replay_digest, rrd=self.settings.rrd)
+        if prior is not None:
+            self.done.append(prior)
+        else:
+            self.replay_todo.append(self.replay_task(name, input_, scene))
+
+    def replay_task(self, name: str, input_: str, scene: pathlib.Path) -> ReplayTask:
+        lay = self.layout
+        return ReplayTask(
+            input=input_,
+            scene=str(scene),
+            name=name,
+            table=str(lay.table(name)),
+            frames_table=str(lay.frames_table(name)),
+            recording=str(lay.recording(name)) if self.settings.rrd else None,
+            marker=str(lay.replay_marker(name)),
+            digest=self.replay_digest,
+            cascade=self.settings.cascade,
+        )
+
+    def convert_task(self, f: InputFile, marker: pathlib.Path) -> ConvertTask:
+        s = self.settings
+        return ConvertTask(
+            input=str(f.path),
+            name=f.name,
+            kind=str(s.convert),
+            paths=s.paths,
+            map_osm=None if s.map_osm is None else str(s.map_osm),
+            scenes_dir=str(self.layout.scenes),
+            marker=str(marker),
+            digest=self.convert_digest,
+        )
+
+
+def run_batch(
+    inputs: Sequence[str | os.PathLike[str]],
+    out_dir: str | os.PathLike[str],
+    settings: BatchSettings,
+    *,
+    engine: str | Engine = "local",
+    workers: int | None = None,
+    ray_address: str | None = None,
+    progress: bool = True,
+) -> BatchReport:
+    """Convert (with ``settings.convert``), replay and tabulate every input scene into
+    ``out_dir``, then the dataset statistics over all complete scenes.
+
+    ``engine``: ``local``, ``ray`` or an :class:`Engine` instance. Scenes complete from
+    an earlier run are skipped (see replay.batch). Failures never stop the run; they are
+    in the report and ``failures.csv``. Raises ReplayError only for bad arguments (no
+    inputs, a missing input, Ray absent).
+    """
+    start = time.perf_counter()
+    layout = Layout(pathlib.Path(out_dir).absolute())
+    if layout.root.exists() and not layout.root.is_dir():
+        raise ReplayError(f"{layout.root}: exists and is not a folder")
+    files = discover(inputs, convert=settings.convert, exclude=layout.root)
+    for folder in (layout.tables, layout.done):
+        folder.mkdir(parents=True, exist_ok=True)
+    run = _Run(layout, settings)
+    run.plan(files)
+    run_start = time.perf_counter()
+    engine_name, n_workers = _execute(run, engine, workers, ray_address, progress)
+    run_seconds = time.perf_counter() - run_start
+    run.done.sort(key=lambda d: d.name)
+    run.failures.sort(key=lambda f: (f.input, f.scene, f.stage))
+    write_failures(layout.failures_csv, run.failures)
+    write_scenes(layout.scenes_csv, run.done, run.failures)
+    report = BatchReport(
+        out_dir=layout.root,
+        engine=engine_name,
+        workers=n_workers,
+        inputs=len(files),
+        scenes=run.done,
+        failures=run.failures,
+        conversions=len(run.convert_todo),
+        conversions_skipped=run.conversions_skipped,
+        run_seconds=run_seconds,
+    )
+    if run.done:
+        report.stats_files = dataset_stats(run.done, layout.stats, cascade=settings.cascade)
+    report.seconds = time.perf_counter() - start
+    return report
+
+
+def _execute(
+    run: _Run,
+    engine: str | Engine,
+    workers: int | None,
+    ray_address: str | None,
+    progress: bool,
+) -> tuple[str, int]:
+    """Run the planned tasks (none: no engine is started at all). Returns the engine's
+    name and worker count. An engine passed in is left open for its owner."""
+    if not (run.replay_todo or run.convert_todo):
+        return (engine if isinstance(engine, str) else engine.name), 0
+    own = isinstance(engine, str)
+    eng = make_engine(engine, workers=workers, address=ray_address) if own else engine
+    from tqdm import tqdm
+
+    bar = tqdm(
+        total=len(run.replay_todo), unit="scene", desc=f"batch ({eng.name}, {eng.workers} workers)",
+        file=sys.stderr, disable=not progress, dynamic_ncols=True, smoothing=0.05,
+    )  # fmt: skip
+    try:
+        with bar:
+            _drive(run, eng, bar)
+    except BaseException:
+        if own:
+            eng.close(cancel=True)
+        raise
+    if own:
+        eng.close()
+    return eng.name, eng.workers
+
+
+def _drive(run: _Run, eng: Engine, bar: Any) -> None:
+    """Feed the engine and collect its results until every task is back.
+
+    At most a few tasks per worker are queued in the engine at a time (``in_flight``):
+    enough to keep every worker busy, few enough that Ctrl-C drops the rest at once and
+    that waiting on a cluster's results stays cheap with many thousands of scenes. A
+    converted file's scenes go to the front of the queue, so replaying starts early.
+    """
+    queue: deque[tuple[Callable[[Any], Any], Any]] = deque(
+        [(convert_one, t) for t in run.convert_todo] + [(replay_one, t) for t in run.replay_todo]
+    )
+    in_flight = 2 * max(1, eng.workers) + 2
+    converting = len(run.convert_todo)
+    while queue or eng.pending:
+        while queue and eng.pending < in_flight:
+            eng.submit(*queue.popleft())
+        _postfix(bar, run, converting)
+        for task, outcome in eng.results():
+            if isinstance(task, ConvertTask):
+                converting -= 1
+                new = _converted(run, task, outcome)
+                queue.extendleft((replay_one, t) for t in reversed(new))
+                bar.total += len(new)
+                bar.refresh()
+            else:
+                _replayed(run, task, outcome)
+                bar.update()
+    _postfix(bar, run, converting)
+
+
+def _postfix(bar: Any, run: _Run, converting: int) -> None:
+    info = {"failed": len(run.failures)}
+    if converting:
+        info["converting"] = converting
+    bar.set_postfix(info, refresh=False)
+
+
+def _converted(run: _Run, task: ConvertTask, outcome: Any) -> list[ReplayTask]:
+    """Record a conversion's outcome; the replay tasks of the scenes it wrote."""
+    if isinstance(outcome, BaseException):
+        run.failures.append(_worker_failure(task.input, "", outcome))
+        return []
+    run.failures += outcome.failures
+    return [run.replay_task(name, task.input, pathlib.Path(p)) for name, p in outcome.scenes]
+
+
+def _replayed(run: _Run, task: ReplayTask, outcome: Any) -> None:
+    if isinstance(outcome, BaseException):
+        run.failures.append(_worker_failure(task.input, task.name, outcome))
+    elif outcome.failure is not None:
+        run.failures.append(outcome.failure)
+    else:
+        run.done.append(outcome.done)
+
+
+def _worker_failure(input_: str, scene: str, exc: BaseException) -> Failure:
+    reason = one_line(str(exc)) or type(exc).__name__
+    return Failure(input_, scene, "worker", type(exc).__name__, reason)
+
+
+def write_failures(path: pathlib.Path, failures: Iterable[Failure]) -> None:
+    """``failures.csv``: one row per failure (a header only when nothing failed)."""
+    rows = [astuple(f) for f in failures]
+    atomic_write(path, _csv_text(FAILURE_COLUMNS, rows))
+
+
+def write_scenes(
+    path: pathlib.Path, done: Iterable[SceneDone], failures: Iterable[Failure]
+) -> None:
+    """``scenes.csv``: every scene of the run, replayed, skipped or failed (failures of a
+    whole input, before any scene had a name, are only in ``failures.csv``)."""
+    rows: list[tuple] = [
+        (d.name, d.input, d.status, d.frames, d.skipped_frames, d.agents, f"{d.seconds:.3f}",
+         d.table, d.recording or "")
+        for d in done
+    ]  # fmt: skip
+    rows += [(f.scene, f.input, "failed", "", "", "", "", "", "") for f in failures if f.scene]
+    rows.sort(key=lambda r: r[0])
+    atomic_write(path, _csv_text(SCENE_COLUMNS, rows))
+
+
+def _csv_text(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(header)
+    writer.writerows(rows)
+    return buf.getvalue()
+
+
+def read_failures(path: str | os.PathLike[str]) -> list[Failure]:
+    """The rows of a ``failures.csv``."""
+    with open(path, newline="", encoding="utf-8") as fh:
+        return [Failure(**row) for row in csv.DictReader(fh)]
+
+
+def dataset_stats(
+    done: Sequence[SceneDone], out_dir: pathlib.Path, *, cascade: CascadeConfig
+) -> list[pathlib.Path]:
+    """The statistics of ``replay stats`` over the merged per-scene tables of ``done``
+    (tables, ``summary.json``, plots) into ``out_dir``; returns the files written.
+
+    Scenes are merged in the order given (the driver sorts them by name), so the result
+    does not depend on the order in which workers finished.
+    """
+    import polars as pl
+
+    from replay.plots import plot_all
+    from replay.stats import compute_stats, concat_agents, write_stats
+
+    agents = concat_agents([pl.read_parquet(d.table) for d in done])
+    frames = pl.concat([pl.read_parquet(d.frames_table) for d in done], how="vertical_relaxed")
+    stats = compute_stats(
+        agents,
+        frames,
+        stage_names=cascade.stage_names,
+        tier_names=[t.name for t in cascade.tiers],
+        baseline_threshold=cascade.baseline_threshold,
+        inputs=sorted({d.input for d in done}),
+    )
+    written = write_stats(stats, out_dir)
+    written |= plot_all(stats, out_dir)
+    return sorted(written.values())

@@ -1,0 +1,85 @@
+"""The plain data of a batch run: tasks, their outcomes and failures (picklable, so that
+any engine can ship them to its workers)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from risk.cascade import CascadeConfig
+
+STAGES: tuple[str, ...] = ("setup", "convert", "read", "replay", "record", "write", "worker")
+"""Where a scene can fail: loading riskreplay in the worker (a cluster node without the
+package), converting, reading the MCAP, replaying (models, cascade, missing ego), writing
+the recording, writing the tables or marker, and the worker process itself dying."""
+
+
+@dataclass(frozen=True)
+class Failure:
+    """One failed scene (or input): a row of ``failures.csv``."""
+
+    input: str  # the file the user's inputs named
+    scene: str  # the scene's name; "" when the whole input failed before naming scenes
+    stage: str  # one of STAGES
+    error_type: str  # exception class name
+    reason: str  # one line
+
+
+@dataclass(frozen=True)
+class ReplayTask:
+    """Replay one MCAP scene into its table (and recording). Paths are strings so that
+    the task reads the same on every node of a cluster (a shared file system)."""
+
+    input: str
+    scene: str  # the MCAP file
+    name: str
+    table: str  # agents table (replay.tables columns + scene)
+    frames_table: str  # frames table of replay.stats (cascade counts and times per frame)
+    recording: str | None
+    marker: str
+    digest: str
+    cascade: CascadeConfig
+
+
+@dataclass(frozen=True)
+class SceneDone:
+    """A replayed (or, on resume, previously replayed) scene: a row of ``scenes.csv``."""
+
+    name: str
+    input: str
+    table: str
+    frames_table: str
+    recording: str | None
+    frames: int
+    skipped_frames: int  # frames without the ego
+    agents: int
+    seconds: float  # wall-clock time of the replay task
+    status: str = "replayed"  # or "skipped" (complete from an earlier run)
+
+
+@dataclass(frozen=True)
+class ReplayOutcome:
+    task: ReplayTask
+    done: SceneDone | None
+    failure: Failure | None
+
+
+@dataclass(frozen=True)
+class ConvertTask:
+    """Convert one raw dataset file into MCAP scenes under ``scenes_dir``."""
+
+    input: str
+    name: str
+    kind: str
+    paths: str
+    map_osm: str | None
+    scenes_dir: str
+    marker: str
+    digest: str
+
+
+@dataclass(frozen=True)
+class ConvertOutcome:
+    task: ConvertTask
+    scenes: tuple[tuple[str, str], ...]  # (scene name, MCAP path) of every scene written
+    failures: tuple[Failure, ...]
+    seconds: float
