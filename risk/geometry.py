@@ -31,6 +31,18 @@ import numpy as np
 #: with 1-2 m point spacing (measured with benchmarks/bench_models.py).
 CHUNK_SEGMENTS = 8
 
+#: Largest float64 temporary, in elements, that the blocked loops below create. glibc
+#: serves allocations above 128 KB with fresh pages from the OS, and the page faults cost
+#: more than the arithmetic (measured: 8x slower on this project's 2-core VM); blocks of
+#: 12000 elements (96 KB) stay under that threshold.
+BLOCK_ELEMENTS = 12_000
+
+
+def blocks(n_items: int, elements_per_item: int) -> list[slice]:
+    """Slices covering ``range(n_items)`` with at most BLOCK_ELEMENTS elements per block."""
+    step = max(1, BLOCK_ELEMENTS // max(elements_per_item, 1))
+    return [slice(i, min(i + step, n_items)) for i in range(0, n_items, step)]
+
 
 # ---------------------------------------------------------------------- parametrisation
 def _norm(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -246,22 +258,30 @@ def project_points(
     point's arc length ``(K,)`` in m. When several segments are equally near, the first
     along the path wins (smallest arc length).
     """
+    k = points.shape[0]
     if path.shape[0] < 2:
-        d = np.hypot(points[:, 0] - path[0, 0], points[:, 1] - path[0, 1])
-        return d, np.zeros(points.shape[0])
+        d = _norm(points[:, 0] - path[0, 0], points[:, 1] - path[0, 1])
+        return d, np.zeros(k)
     a = path[:-1]
-    ab = path[1:] - a  # (S, 2)
-    len2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
-    rx = points[:, 0:1] - a[None, :, 0]  # (K, S)
-    ry = points[:, 1:2] - a[None, :, 1]
+    abx, aby = np.diff(path[:, 0]), np.diff(path[:, 1])  # (S,)
+    len2 = abx * abx + aby * aby
     ok = len2 > 0
-    t = np.where(ok, (rx * ab[:, 0] + ry * ab[:, 1]) / np.where(ok, len2, 1.0), 0.0)
-    np.clip(t, 0.0, 1.0, out=t)
-    dist = np.hypot(rx - t * ab[:, 0], ry - t * ab[:, 1])
-    best = np.argmin(dist, axis=1)
-    k = np.arange(points.shape[0])
+    inv2 = np.where(ok, 1.0 / np.where(ok, len2, 1.0), 0.0)
     seg_len = np.sqrt(len2)
-    return dist[k, best], cum[best] + t[k, best] * seg_len[best]
+    dist = np.empty(k)
+    arc = np.empty(k)
+    for blk in blocks(k, len(len2)):
+        rx = points[blk, 0:1] - a[None, :, 0]  # (k_blk, S)
+        ry = points[blk, 1:2] - a[None, :, 1]
+        t = np.clip((rx * abx + ry * aby) * inv2, 0.0, 1.0)
+        rx -= t * abx
+        ry -= t * aby
+        d2 = rx * rx + ry * ry
+        best = np.argmin(d2, axis=1)
+        rows = np.arange(best.size)
+        dist[blk] = np.sqrt(d2[rows, best])
+        arc[blk] = cum[best] + t[rows, best] * seg_len[best]
+    return dist, arc
 
 
 # ---------------------------------------------------------------------- segment maths
@@ -427,19 +447,6 @@ def _group_starts(owner: np.ndarray) -> np.ndarray:
     return np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]]) if owner.size else owner
 
 
-#: Largest float64 temporary, in elements, that the blocked loops below create. glibc
-#: serves allocations above 128 KB with fresh pages from the OS, and the page faults cost
-#: more than the arithmetic (measured: 8x slower on this project's 2-core VM); blocks of
-#: 12000 elements (96 KB) stay under that threshold.
-BLOCK_ELEMENTS = 12_000
-
-
-def _blocks(n_items: int, elements_per_item: int) -> list[slice]:
-    """Slices covering ``range(n_items)`` with at most BLOCK_ELEMENTS elements per block."""
-    step = max(1, BLOCK_ELEMENTS // max(elements_per_item, 1))
-    return [slice(i, min(i + step, n_items)) for i in range(0, n_items, step)]
-
-
 def _box_gaps2(a: ChunkedPolylines, b: ChunkedPolylines, cols: slice) -> np.ndarray:
     """Squared distance ``(Ca, n_cols)`` between the boxes of a's chunks and b's chunks
     ``cols`` (flat ids; inf where either chunk is inactive): a lower bound for every
@@ -454,10 +461,10 @@ def _box_gaps2(a: ChunkedPolylines, b: ChunkedPolylines, cols: slice) -> np.ndar
     return gx
 
 
-def _row_blocks(a: ChunkedPolylines, b: ChunkedPolylines) -> list[slice]:
+def _rowblocks(a: ChunkedPolylines, b: ChunkedPolylines) -> list[slice]:
     """Column slices of whole rows of ``b``, sized for BLOCK_ELEMENTS."""
     c = b.n_chunks
-    return [slice(r.start * c, r.stop * c) for r in _blocks(b.n_rows, a.n_chunks * c)]
+    return [slice(r.start * c, r.stop * c) for r in blocks(b.n_rows, a.n_chunks * c)]
 
 
 def _candidate_pairs(
@@ -477,7 +484,7 @@ def _candidate_pairs(
     """
     c = b.n_chunks
     found_b, found_a, found_lower = [], [], []
-    for cols in _row_blocks(a, b):
+    for cols in _rowblocks(a, b):
         lower2 = _box_gaps2(a, b, cols)  # (Ca, n_cols)
         fx = b.vx[0, cols] - a.vx[0][:, None]
         fy = b.vy[0, cols] - a.vy[0][:, None]
@@ -496,7 +503,7 @@ def _candidate_pairs(
         return fb, fa, fb, zero
     k1 = b.vx.shape[0]
     vv2 = np.empty(fb.size)
-    for blk in _blocks(fb.size, k1 * k1):
+    for blk in blocks(fb.size, k1 * k1):
         ib, ia = fb[blk], fa[blk]
         dx = np.take(b.vx, ib, axis=1)[None, :, :] - np.take(a.vx, ia, axis=1)[:, None, :]
         dy = np.take(b.vy, ib, axis=1)[None, :, :] - np.take(a.vy, ia, axis=1)[:, None, :]
@@ -563,7 +570,7 @@ def _fine(
     orientation sign is computed once, not once per segment pair.
     """
     k = b.sx.shape[0]
-    parts = [_fine_block(a, b, fb[blk], fa[blk]) for blk in _blocks(fb.size, k * (k + 1))]
+    parts = [_fine_block(a, b, fb[blk], fa[blk]) for blk in blocks(fb.size, k * (k + 1))]
     if len(parts) == 1:
         return parts[0]
     return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts], axis=2)
@@ -600,7 +607,7 @@ def first_intersections(
     c = b.n_chunks
     row_ids = np.arange(m) if rows is None else np.flatnonzero(rows)
     found_b, found_a = [], []
-    for blk in _blocks(row_ids.size, a.n_chunks * c):
+    for blk in blocks(row_ids.size, a.n_chunks * c):
         cols = (row_ids[blk, None] * c + np.arange(c)[None, :]).ravel()
         fb, fa = np.nonzero((_box_gaps2(a, b, cols) == 0.0).T)  # boxes touch
         found_b.append(cols[fb])

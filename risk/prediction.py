@@ -267,13 +267,27 @@ class FrameContext:
         return geometry.chunk_polylines(self.cut_paths, None, self._cut[1])
 
     # ------------------------------------------------------------------ prediction
+    def row_blocks(self) -> list[slice]:
+        """Row slices for per-step work: blocks of rows whose ``(rows, n)`` temporaries stay
+        under geometry.BLOCK_ELEMENTS (large temporaries cost page faults), so the cost
+        grows linearly with the number of agents."""
+        return geometry.blocks(self.row_agent.size, self.settings.n_steps)
+
     @cached_property
     def _trajectory(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        arc = self.row_speed[:, None] * self.steps_s[None, :]  # (M, n), m
-        x, y, seg = geometry.interpolate_components(*self.ext_xy, self.ext_cum, arc)
+        m, n = self.row_agent.size, self.settings.n_steps
+        out = [np.empty((m, n)) for _ in range(4)]
+        px, py = self.ext_xy
         ux, uy = self.ext_unit
-        flat = seg + (np.arange(ux.shape[0]) * ux.shape[1])[:, None]
-        return x, y, np.take(ux.ravel(), flat), np.take(uy.ravel(), flat)
+        cum, steps, speed = self.ext_cum, self.steps_s, self.row_speed
+        for blk in self.row_blocks():
+            arc = speed[blk, None] * steps[None, :]  # (rows, n), m
+            x, y, seg = geometry.interpolate_components(px[blk], py[blk], cum[blk], arc)
+            flat = seg + (np.arange(seg.shape[0]) * ux.shape[1])[:, None]
+            out[0][blk], out[1][blk] = x, y
+            out[2][blk] = np.take(ux[blk].ravel(), flat)
+            out[3][blk] = np.take(uy[blk].ravel(), flat)
+        return out[0], out[1], out[2], out[3]
 
     @property
     def traj_x(self) -> np.ndarray:
@@ -308,8 +322,13 @@ class FrameContext:
     @cached_property
     def _sigmas(self) -> tuple[np.ndarray, np.ndarray]:
         f = self.frame
-        lon, lat = uncertainty_sigmas(f.kinds, f.speed, self.steps_s, self.settings.uncertainty)
-        return lon[self.row_agent], lat[self.row_agent]
+        lon, lat = np.empty((2, self.row_agent.size, self.settings.n_steps))
+        for blk in self.row_blocks():
+            agent = self.row_agent[blk]
+            lon[blk], lat[blk] = uncertainty_sigmas(
+                f.kinds[agent], f.speed[agent], self.steps_s, self.settings.uncertainty
+            )
+        return lon, lat
 
     @property
     def sigma_lon(self) -> np.ndarray:
@@ -324,4 +343,9 @@ class FrameContext:
     @cached_property
     def cov(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Position covariance ``(xx, xy, yy)``, each ``(M, n)`` in m^2."""
-        return covariances(self.sigma_lon, self.sigma_lat, self.dir_x, self.dir_y)
+        xx, xy, yy = np.empty((3, self.row_agent.size, self.settings.n_steps))
+        for blk in self.row_blocks():
+            xx[blk], xy[blk], yy[blk] = covariances(
+                self.sigma_lon[blk], self.sigma_lat[blk], self.dir_x[blk], self.dir_y[blk]
+            )
+        return xx, xy, yy

@@ -76,25 +76,37 @@ def overlap_rows(ctx: FrameContext, ego_row: int) -> np.ndarray:
 
     def compute() -> np.ndarray:
         xx, xy, yy = ctx.cov
-        sxx, sxy, syy = xx + xx[ego_row], xy + xy[ego_row], yy + yy[ego_row]
-        det = sxx * syy - sxy * sxy
-        dx = ctx.traj_x - ctx.traj_x[ego_row]
-        dy = ctx.traj_y - ctx.traj_y[ego_row]
-        # -1/2 dmu^T S^-1 dmu with the closed-form inverse, in place to spare temporaries
-        syy *= dx * dx
-        sxx *= dy * dy
-        sxy *= dx * dy
-        syy -= 2.0 * sxy
-        syy += sxx
-        syy /= det
-        syy *= -0.5
-        np.exp(syy, out=syy)
-        np.sqrt(det, out=det)
-        det *= 2.0 * np.pi
-        syy /= det
-        return syy
+        out = np.empty_like(xx)
+        for blk in ctx.row_blocks():
+            out[blk] = _overlap(
+                xx[blk] + xx[ego_row],
+                xy[blk] + xy[ego_row],
+                yy[blk] + yy[ego_row],
+                ctx.traj_x[blk] - ctx.traj_x[ego_row],
+                ctx.traj_y[blk] - ctx.traj_y[ego_row],
+            )
+        return out
 
     return ctx.memo(("overlap", int(ego_row)), compute)
+
+
+def _overlap(sxx, sxy, syy, dx, dy) -> np.ndarray:
+    """``P_o`` from the summed covariance entries and the mean offset (all the same
+    shape); overwrites ``sxx``, ``sxy``, ``syy`` to spare temporaries."""
+    det = sxx * syy - sxy * sxy
+    # -1/2 dmu^T S^-1 dmu with the closed-form inverse
+    syy *= dx * dx
+    sxx *= dy * dy
+    sxy *= dx * dy
+    syy -= 2.0 * sxy
+    syy += sxx
+    syy /= det
+    syy *= -0.5
+    np.exp(syy, out=syy)
+    np.sqrt(det, out=det)
+    det *= 2.0 * np.pi
+    syy /= det
+    return syy
 
 
 # ---------------------------------------------------------------------- circles
@@ -112,23 +124,24 @@ def circle_distances_rows(ctx: FrameContext, ego_row: int, params: CirclesParams
     ego = f.ego
     r_ego = 0.5 * f.length[ego] + c * ctx.sigma_lon[ego_row]  # (n,)
     agent = ctx.row_agent
-    r_other = 0.5 * f.width[agent][:, None] + c * ctx.sigma_lon  # (M, n)
+    r_other = 0.5 * f.width[agent][:, None] + c * ctx.sigma_lon  # (M, n), stored once
     slices = (np.arange(k) + 0.5) / k - 0.5  # (k,)
     length = f.length[agent][:, None]  # (M, 1)
-    rel_x = ctx.traj_x - ctx.traj_x[ego_row]  # (M, n)
-    rel_y = ctx.traj_y - ctx.traj_y[ego_row]
-    reach = r_ego[None, :] + r_other  # (M, n)
-    # |rel + o u|^2 = |rel|^2 + 2 o (rel . u) + o^2 for the unit heading u: two shared
-    # terms, then a few operations per circle. No cancellation: o is at most half a body
-    # length, so the centre distance is never much smaller than |rel|.
-    rel2 = rel_x * rel_x + rel_y * rel_y
-    along = rel_x * ctx.dir_x + rel_y * ctx.dir_y
-    best = np.full(rel_x.shape[0], np.inf)
-    for frac in slices:  # a loop over the k circles (not agents) keeps arrays (M, n)
-        o = length * frac  # (M, 1), m
-        centre2 = rel2 + (2.0 * o) * along + o * o
-        gap = np.sqrt(np.maximum(centre2, 0.0)) - reach
-        np.minimum(best, gap.min(axis=1), out=best)
+    best = np.full(agent.size, np.inf)
+    for blk in ctx.row_blocks():
+        rel_x = ctx.traj_x[blk] - ctx.traj_x[ego_row]  # (rows, n)
+        rel_y = ctx.traj_y[blk] - ctx.traj_y[ego_row]
+        reach = r_ego[None, :] + r_other[blk]  # (rows, n)
+        # |rel + o u|^2 = |rel|^2 + 2 o (rel . u) + o^2 for the unit heading u: two shared
+        # terms, then a few operations per circle. No cancellation: o is at most half a
+        # body length, so the centre distance is never much smaller than |rel|.
+        rel2 = rel_x * rel_x + rel_y * rel_y
+        along = rel_x * ctx.dir_x[blk] + rel_y * ctx.dir_y[blk]
+        for frac in slices:  # a loop over the k circles (not agents)
+            o = length[blk] * frac  # (rows, 1), m
+            centre2 = rel2 + (2.0 * o) * along + o * o
+            gap = np.sqrt(np.maximum(centre2, 0.0)) - reach
+            np.minimum(best[blk], gap.min(axis=1), out=best[blk])
     return np.maximum(best, 0.0)
 
 
@@ -173,8 +186,11 @@ def survival(ctx: FrameContext, params: SurvivalParams) -> np.ndarray:
     present. The value depends on ``dt`` and ``tau_esc``.
     """
     dt = ctx.settings.dt_s
-    per_ego = [
-        ctx.reduce_rows(survival_risk(overlap_rows(ctx, e), dt, params.escape_time_s))
-        for e in ctx.ego_rows
-    ]
+    per_ego = []
+    for e in ctx.ego_rows:
+        p_o = overlap_rows(ctx, e)
+        rows = np.empty(p_o.shape[0])
+        for blk in ctx.row_blocks():
+            rows[blk] = survival_risk(p_o[blk], dt, params.escape_time_s)
+        per_ego.append(ctx.reduce_rows(rows))
     return ctx.finish(np.max(per_ego, axis=0))

@@ -119,13 +119,17 @@ def encounter_rows(ctx: FrameContext, ego_row: int) -> tuple[np.ndarray, np.ndar
     """
 
     def compute() -> tuple[np.ndarray, np.ndarray]:
-        dx = ctx.traj_x - ctx.traj_x[ego_row]
-        dy = ctx.traj_y - ctx.traj_y[ego_row]
-        dx *= dx
-        dy *= dy
-        dx += dy  # squared distance (M, n); sqrt only at the minimum
-        d_min = np.sqrt(dx.min(axis=1))
-        k = np.argmax(dx <= ((d_min + TIE_TOLERANCE_M) ** 2)[:, None], axis=1)
+        m = ctx.row_agent.size
+        d_min, k = np.empty(m), np.empty(m, dtype=np.intp)
+        ex, ey = ctx.traj_x[ego_row], ctx.traj_y[ego_row]
+        for blk in ctx.row_blocks():
+            dx = ctx.traj_x[blk] - ex
+            dy = ctx.traj_y[blk] - ey
+            dx *= dx
+            dy *= dy
+            dx += dy  # squared distance (rows, n); sqrt only at the minimum
+            d_min[blk] = np.sqrt(dx.min(axis=1))
+            k[blk] = np.argmax(dx <= ((d_min[blk] + TIE_TOLERANCE_M) ** 2)[:, None], axis=1)
         return d_min, k
 
     return ctx.memo(("encounter", int(ego_row)), compute)
