@@ -27,8 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Segments per chunk for the bounding-box prefilter. 8 was fastest on 150 m lane paths
-#: with 1-2 m point spacing (measured with benchmarks/bench_models.py).
+#: Segments per chunk for the bounding-box prefilter. On 150 m lane paths with 1.5 m point
+#: spacing, 6 and 8 were fastest (4, 12 and 16 slower by 20-90%; measured on the frames of
+#: benchmarks/bench_models.py).
 CHUNK_SEGMENTS = 8
 
 #: Largest float64 temporary, in elements, that the blocked loops below create. glibc
