@@ -233,3 +233,45 @@ def test_stats_on_a_real_argoverse_scene(shared_data, tmp_path):
     for m in s["models"].values():
         assert m["points"]["tpr_1"]["mean_tpr"] == pytest.approx(1.0)
         assert m["points"]["tpr_1"]["mean_kept"] >= s["baseline"]["mean_important_per_situation"]
+
+
+# ---------------------------------------------------------------------- experiment helpers
+def test_finding_verdicts():
+    from replay.experiment import Finding
+
+    def f(*met):
+        return Finding("claim", "measured", tuple((f"c{k}", m) for k, m in enumerate(met)))
+
+    assert f(True, True).verdict == "agrees"
+    assert f(True, False).verdict == "partly agrees"
+    assert f(False, False).verdict == "does not agree"
+
+
+def test_median_ratio_and_its_interval():
+    from replay.experiment import median_ratio
+
+    a = [1.0, 2.0, 3.0, 4.0, 5.0]
+    ratio, lo, hi = median_ratio(a, [2.0 * x for x in a])
+    assert ratio == lo == hi == 0.5  # every paired ratio is 0.5
+    ratio, lo, hi = median_ratio([1.0, 3.0, 2.0], [1.0, 1.0, 1.0])
+    assert ratio == 2.0 and lo <= 2.0 <= hi
+    assert all(x != x for x in median_ratio([1.0], [1.0]))  # too few: NaN
+
+
+def test_situation_seeds_chunks_and_relinks(tmp_path):
+    from replay.experiment import calibration_seeds, chunks, relink, situation_seed
+    from risk.cascade import CascadeConfig
+
+    seeds = [situation_seed(0, i) for i in range(100)]
+    assert len(set(seeds)) == 100 and seeds == [situation_seed(0, i) for i in range(100)]
+    assert situation_seed(1, 0) != situation_seed(0, 0)
+    parts = chunks(list(range(23)), workers=2, per_worker=3)
+    assert [x for p in parts for x in p] == list(range(23)) and len(parts) == 6
+    config = CascadeConfig.default()
+    assert (
+        calibration_seeds(config) is None
+        or calibration_seeds(config)[0] <= calibration_seeds(config)[1]
+    )
+    text = "![a](roc.png) and ![b](errors.png) and (roc.png)"
+    out = relink(text, {"roc.png": tmp_path / "x"}, tmp_path / "docs" / "exp", tmp_path / "docs")
+    assert out == "![a](exp/roc.png) and ![b](errors.png) and (roc.png)"

@@ -158,7 +158,12 @@ def _summary(result, total_s: float) -> str:
     from replay.commands.stats import format_stats
     from replay.experiment import findings, lane_width, model_times_ms
 
-    items = findings(result.stats, model_times_ms(result), lane_width_m=lane_width(result))
+    items = findings(
+        result.stats,
+        model_times_ms(result),
+        lane_width_m=lane_width(result),
+        model_times=result.tables.model_time_s,
+    )
     lines = [format_stats(result.stats)]
     if items:
         lines.append(
