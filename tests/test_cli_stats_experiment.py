@@ -267,11 +267,10 @@ def test_situation_seeds_chunks_and_relinks(tmp_path):
     assert situation_seed(1, 0) != situation_seed(0, 0)
     parts = chunks(list(range(23)), workers=2, per_worker=3)
     assert [x for p in parts for x in p] == list(range(23)) and len(parts) == 6
-    config = CascadeConfig.default()
-    assert (
-        calibration_seeds(config) is None
-        or calibration_seeds(config)[0] <= calibration_seeds(config)[1]
-    )
+    base = CascadeConfig.default()
+    made = CascadeConfig(base.stages, base.tiers, provenance="Made by: x\nSeeds: 1000-1049\n")
+    assert calibration_seeds(made) == (1000, 1049)
+    assert calibration_seeds(CascadeConfig(base.stages, base.tiers, provenance="")) is None
     text = "![a](roc.png) and ![b](errors.png) and (roc.png)"
     out = relink(text, {"roc.png": tmp_path / "x"}, tmp_path / "docs" / "exp", tmp_path / "docs")
     assert out == "![a](exp/roc.png) and ![b](errors.png) and (roc.png)"
