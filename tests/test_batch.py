@@ -158,6 +158,28 @@ def test_completeness_follows_input_and_outputs(dataset: pathlib.Path, tmp_path:
     assert B.completed_scene(marker, scene, task.digest, rrd=False) is None
 
 
+def test_conversion_complete_until_input_map_or_scene_changes(tmp_path: pathlib.Path):
+    from replay.batch.markers import write_convert_marker
+
+    src, osm, scene = tmp_path / "tracks.csv", tmp_path / "map.osm", tmp_path / "s.mcap"
+    for f in (src, osm, scene):
+        f.write_text(f.name)
+    task = B.ConvertTask(str(src), "tracks", "interaction", "map", None, str(tmp_path),
+                         str(tmp_path / "m.json"), "d1")  # fmt: skip
+    failure = B.Failure(str(src), "", "convert", "ConversionError", "row 7: bad speed")
+    write_convert_marker(task, [("tracks", str(scene))], [failure], [osm])
+    marker = pathlib.Path(task.marker)
+    assert B.completed_conversion(marker, src, "d1") == ([("tracks", str(scene))], [failure])
+    assert B.completed_conversion(marker, src, "d2") is None  # other settings
+    for changed in (src, osm, scene):
+        st = changed.stat()
+        os.utime(changed, ns=(st.st_atime_ns, st.st_mtime_ns + 1000))
+        assert B.completed_conversion(marker, src, "d1") is None, changed.name
+        os.utime(changed, ns=(st.st_atime_ns, st.st_mtime_ns))
+    scene.unlink()
+    assert B.completed_conversion(marker, src, "d1") is None
+
+
 def test_replay_one_reports_failures_by_stage(
     dataset: pathlib.Path, tmp_path: pathlib.Path, monkeypatch: pytest.MonkeyPatch
 ):

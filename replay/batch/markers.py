@@ -84,7 +84,9 @@ def completed_scene(
 def completed_conversion(
     marker: pathlib.Path, source: pathlib.Path, digest: str
 ) -> tuple[list[tuple[str, str]], list[Failure]] | None:
-    """(scenes, failures) of a complete conversion of ``source``, else None."""
+    """(scenes, failures) of a complete conversion of ``source``, else None: complete
+    when the input and every other file it read are unchanged (size and time), the
+    settings digest matches and every scene it wrote is still there (size and time)."""
     data = _read_marker(marker)
     if data is None or data.get("settings") != digest:
         return None
@@ -93,7 +95,7 @@ def completed_conversion(
         return None
     try:
         scenes = [(str(s["name"]), str(s["path"])) for s in data["scenes"]]
-        if not all(_entry_intact(s) for s in data["scenes"]):
+        if not all(_entry_intact(e) for e in [*data["also_read"], *data["scenes"]]):
             return None
         failures = [Failure(**f) for f in data["failures"]]
     except (KeyError, TypeError, ValueError):
@@ -163,13 +165,19 @@ def write_replay_marker(task: ReplayTask, done: SceneDone) -> None:
 
 
 def write_convert_marker(
-    task: ConvertTask, scenes: list[tuple[str, str]], failures: list[Failure]
+    task: ConvertTask,
+    scenes: list[tuple[str, str]],
+    failures: list[Failure],
+    also_read: list[pathlib.Path],
 ) -> None:
+    """The marker of a conversion; ``also_read``: files besides the input that the
+    conversion read (a map beside the tracks), checked like the input on resume."""
     write_json(
         pathlib.Path(task.marker),
         {
             "format": MARKER_FORMAT,
             "input": file_entry(task.input),
+            "also_read": [file_entry(p) for p in also_read],
             "settings": task.digest,
             "scenes": [{"name": n, **file_entry(p)} for n, p in scenes],
             "failures": [dataclasses.asdict(f) for f in failures],

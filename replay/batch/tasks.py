@@ -132,7 +132,7 @@ def convert_one(task: ConvertTask) -> ConvertOutcome:
         )
     if not transient:
         with contextlib.suppress(OSError):  # no marker: the file is converted again
-            write_convert_marker(task, scenes, failures)
+            write_convert_marker(task, scenes, failures, _also_read(task))
     return ConvertOutcome(task, tuple(scenes), tuple(failures), time.perf_counter() - start)
 
 
@@ -169,6 +169,18 @@ def _scene_builders(task: ConvertTask, skipped: Any) -> Iterator[tuple[str, Call
         yield task.name, lambda: interaction.read_scene(path, map_osm, paths=task.paths)
     else:  # pragma: no cover - the CLI offers only CONVERT_KINDS
         raise ReplayError(f"unknown --convert kind {task.kind!r}; valid: {CONVERT_KINDS}")
+
+
+def _also_read(task: ConvertTask) -> list[pathlib.Path]:
+    """The files a conversion reads besides its input: the map JSONs beside an
+    Argoverse 2 parquet, the Lanelet2 map of an INTERACTION CSV."""
+    path = pathlib.Path(task.input)
+    if task.kind == "av2":
+        return sorted(path.parent.glob("log_map_archive_*.json"))
+    if task.kind == "interaction":
+        with contextlib.suppress(Exception):  # no map: the conversion failed already
+            return [_interaction_map(path, task.map_osm)]
+    return []
 
 
 def _interaction_map(csv_path: pathlib.Path, given: str | None) -> pathlib.Path:
