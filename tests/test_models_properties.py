@@ -73,7 +73,7 @@ def transformed(f: Frame, theta: float, shift: np.ndarray) -> Frame:
 
 
 # ---------------------------------------------------------------------- distances
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=150, deadline=None)
 @given(seeds)
 def test_distance_ordering(seed):
     """d_path <= d_traj <= d_E <= d_current (same extended paths and horizon)."""
@@ -89,7 +89,7 @@ def test_distance_ordering(seed):
     assert np.all(d_e <= d_now + tol)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=120, deadline=None)
 @given(seeds)
 def test_ranges(seed):
     f = random_frame(np.random.default_rng(seed))
@@ -120,7 +120,7 @@ SYMMETRIC = (
 )
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=120, deadline=None)
 @given(seeds)
 def test_symmetry_swapping_ego_and_agent(seed):
     f = random_frame(np.random.default_rng(seed), bodies=False)
@@ -133,7 +133,7 @@ def test_symmetry_swapping_ego_and_agent(seed):
         np.testing.assert_allclose(a[name][j], b[name][0], rtol=1e-9, atol=1e-300, err_msg=name)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=120, deadline=None)
 @given(seeds, st.floats(-math.pi, math.pi), st.floats(-1e3, 1e3), st.floats(-1e3, 1e3))
 def test_rotation_and_translation_invariance(seed, theta, dx, dy):
     f = random_frame(np.random.default_rng(seed))
@@ -144,7 +144,7 @@ def test_rotation_and_translation_invariance(seed, theta, dx, dy):
 
 
 # ---------------------------------------------------------------------- monotonicity
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=120, deadline=None)
 @given(
     st.floats(2.0, 20.0),
     st.floats(0.01, 10.0),
@@ -198,7 +198,7 @@ def test_moving_a_crossing_agent_away_strictly_lowers_risk():
 
 
 # ---------------------------------------------------------------------- thresholds, baseline
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=150, deadline=None)
 @given(
     st.lists(st.one_of(st.floats(0, 1), st.just(math.nan)), min_size=1, max_size=30),
     st.integers(0, 2**32 - 1),

@@ -86,7 +86,7 @@ def random_frame(rng) -> Frame:
     )
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=120, deadline=None)
 @given(st.integers(0, 2**32 - 1))
 def test_random_frames_agree(seed):
     assert_agree(
