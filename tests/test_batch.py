@@ -271,6 +271,12 @@ def test_ray_missing_is_one_line_error(monkeypatch: pytest.MonkeyPatch):
     )
 
 
+def test_unreachable_ray_address_fails_at_once():
+    pytest.importorskip("ray", reason="ray is not installed (pip install 'riskreplay[ray]')")
+    with pytest.raises(ReplayError, match=r"cannot reach the Ray cluster at ray://127.0.0.1:1 "):
+        B.make_engine("ray", address="ray://127.0.0.1:1")
+
+
 def test_engine_argument_errors():
     with pytest.raises(ReplayError, match="--ray-address needs --engine ray"):
         B.make_engine("local", address="auto")

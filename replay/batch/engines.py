@@ -7,6 +7,7 @@ import concurrent.futures as cf
 import contextlib
 import multiprocessing
 import os
+import socket
 from collections import deque
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -184,6 +185,8 @@ class RayEngine:
         ray = _import_ray()
         self._ray = ray
         self._started = False
+        if address:
+            _check_reachable(address)
         if not ray.is_initialized():
             import logging
 
@@ -238,6 +241,22 @@ class RayEngine:
             self._running.clear()
         if self._started:
             self._ray.shutdown()
+
+
+def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
+    """Fail at once when an explicit ``HOST:PORT`` or ``ray://HOST:PORT`` accepts no
+    connection: Ray itself keeps retrying such an address for minutes. Other forms
+    (``auto``, ``local``) are left to Ray, which reports them quickly."""
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not (sep and host and port.isdigit()):
+        return
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        raise ReplayError(
+            f"cannot reach the Ray cluster at {address} ({exc.strerror or exc}); is it "
+            "running ('ray start --head' on the head node) and is the port open?"
+        ) from None
 
 
 def _import_ray() -> Any:
