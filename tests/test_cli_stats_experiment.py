@@ -274,3 +274,27 @@ def test_situation_seeds_chunks_and_relinks(tmp_path):
     text = "![a](roc.png) and ![b](errors.png) and (roc.png)"
     out = relink(text, {"roc.png": tmp_path / "x"}, tmp_path / "docs" / "exp", tmp_path / "docs")
     assert out == "![a](exp/roc.png) and ![b](errors.png) and (roc.png)"
+
+
+def test_stats_models_subset(scenes, tmp_path):
+    _, paths, _ = scenes
+    out = tmp_path / "out"
+    result = run(
+        [
+            "stats",
+            str(paths[1]),
+            "-o",
+            str(out),
+            "--models",
+            "gaussian,path_distance",
+            "--errors-model",
+            "circles",
+            "--no-plots",
+            "--no-progress",
+        ]
+    )
+    assert result.exit_code == 0, result.output
+    s = json.loads((out / "summary.json").read_text())
+    assert list(s["models"]) == ["gaussian", "path_distance"]  # the order asked for
+    assert s["errors_model"] == "circles"
+    assert pl.read_parquet(out / "errors.parquet")["model"].unique().to_list() == ["circles"]
