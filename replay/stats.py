@@ -676,6 +676,7 @@ def cascade_summary(
                 "fn_share": fn / baseline if baseline else math.nan,
                 "situations_with_fn": int((frames[f"fn_{s}"] > 0).sum()),
                 "time_s": float(timed[f"time_{s}_s"].sum()) if timed.height else None,
+                "median_time_s": float(timed[f"time_{s}_s"].median()) if timed.height else None,
             }
         )
     tiers = [
@@ -718,6 +719,7 @@ def _compute(timed: pl.DataFrame, stage_names: Sequence[str]) -> dict[str, float
         "survival_all_time_s": survival_all,
         "cascade_over_survival_all": cascade / survival_all if survival_all > 0 else math.nan,
         "median_cascade_time_s": float(per_situation.median()),
+        "median_sort_time_s": float(timed["sort_time_s"].median()),
         "median_survival_all_time_s": float(timed["survival_all_time_s"].median()),
     }
 
