@@ -265,9 +265,10 @@ def plot_funnel(
     fig.text(
         0.01,
         0.005,
-        f"Means over {n} situations. FN: important agents (survival baseline "
-        f"on all agents, {cascade['baseline_agent_frames']} agent-frames) dropped up to "
-        "that step, summed over situations.",
+        f"Means over {n} situations. FN: important agents (survival baseline on all agents, "
+        f"{cascade['baseline_agent_frames']} agent-frames) dropped up to that stage, summed "
+        "over situations; tiers: (min-max) per situation. Compute: medians per situation, "
+        "stages stacked; the ratio compares the median totals.",
         fontsize=7.5,
         va="bottom",
     )
@@ -304,7 +305,7 @@ def _funnel_axes(ax: Any, cascade: Mapping[str, Any]) -> None:
         )
     ax.set_yticks(y, labels, fontsize=8.5)
     ax.set_xlim(0, top * 1.3)
-    ax.set_xlabel("agents per situation (mean); stages: cumulative FN; tiers: (min-max)")
+    ax.set_xlabel("agents per situation (mean)")
     ax.set_title("Agents after each stage, then the planner tiers", fontsize=9)
     ax.grid(axis="x", alpha=0.3)
 
@@ -335,7 +336,7 @@ def _compute_axes(ax: Any, cascade: Mapping[str, Any]) -> None:
     ax.set_yticks([1, 0], [f"cascade\n({ratio:.2f}x)", "survival\non all"], fontsize=8.5)
     ax.set_ylim(-0.6, 2.9)  # room above the bars for the legend
     ax.set_xlim(0, max(left[-1] + values[-1], ref) * 1.05)
-    ax.set_xlabel("compute per situation (ms, median wall time; stages stacked)")
+    ax.set_xlabel("ms per situation (median wall time)")
     ax.set_title("Compute: cascade vs survival analysis on all agents", fontsize=9)
     ax.legend(fontsize=7, loc="upper left", ncol=1, framealpha=0.9)
     ax.grid(axis="x", alpha=0.3)
