@@ -502,19 +502,22 @@ def dataset_stats(
     """
     import polars as pl
 
-    from replay.plots import plot_all
-    from replay.stats import compute_stats, concat_agents, write_stats
+    from replay.commands.stats import run_stats  # the tail shared with ``replay stats``
+    from replay.stats import DEFAULT_ERRORS_MODEL, concat_agents
 
     agents = concat_agents([pl.read_parquet(d.table) for d in done])
     frames = pl.concat([pl.read_parquet(d.frames_table) for d in done], how="vertical_relaxed")
-    stats = compute_stats(
+    result = run_stats(
         agents,
         frames,
+        out_dir,
+        models=None,
+        errors_model=DEFAULT_ERRORS_MODEL,
         stage_names=cascade.stage_names,
         tier_names=[t.name for t in cascade.tiers],
-        baseline_threshold=cascade.baseline_threshold,
+        cascade=cascade,
         inputs=sorted({d.input for d in done}),
+        plots=True,
+        times={},
     )
-    written = write_stats(stats, out_dir)
-    written |= plot_all(stats, out_dir)
-    return sorted(written.values())
+    return sorted(result.files.values())
