@@ -29,6 +29,7 @@ ones), a scene without frames, or messages that disagree with the format.
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import pathlib
@@ -398,6 +399,11 @@ def _summary_or_raise(path: pathlib.Path, f: IO[bytes], reader: SeekingReader) -
     try:
         summary = reader.get_summary()
     except _DAMAGE:
+        raise SceneFormatError(_truncated_message(path, f)) from None
+    except OSError as exc:
+        # A file shorter than the MCAP footer makes the reader seek before its start.
+        if exc.errno != errno.EINVAL:
+            raise
         raise SceneFormatError(_truncated_message(path, f)) from None
     if summary is None:
         raise SceneFormatError(

@@ -352,6 +352,17 @@ def test_truncated_file_says_so_and_counts_intact_frames(tmp_path):
     assert "complete frame(s) precede the cut" in str(info.value)
 
 
+@pytest.mark.parametrize("keep", [8, 10, 20])
+def test_file_shorter_than_the_footer_is_reported_as_truncated(tmp_path, keep):
+    """Magic bytes, then almost nothing: the reader must not leak a raw OSError."""
+    frames = [Frame(**{**frame_b()._fields(), "t": 0.1 * k}) for k in range(3)]
+    full = write_scene(tmp_path / "full.mcap", Scene(small_map(), frames, 0.1)).read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(full[:keep])
+    with pytest.raises(SceneFormatError, match="truncated"):
+        open_scene(cut)
+
+
 def test_truncated_file_frame_count_is_exact_without_chunking(tmp_path):
     """The recovery hint counts whole frames; shown on an unchunked file cut mid-way."""
     path = tmp_path / "u.mcap"
