@@ -53,7 +53,6 @@ import json
 import math
 import os
 import pathlib
-import tempfile
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -61,6 +60,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
+from replay.atomic import atomic_output
 from replay.engine import FrameResult, SceneInfo
 from replay.errors import ReplayError
 from replay.tables import TableSink
@@ -1022,25 +1022,11 @@ def _write_table(df: pl.DataFrame, tmp: str, suffix: str) -> None:
 
 
 def atomic_write(path: str | os.PathLike[str], write: Callable[[str], Any]) -> pathlib.Path:
-    """``write(tmp)`` to a temp file in the same folder, then ``os.replace`` it onto
-    ``path`` with the mode a new file would get (mkstemp's is 0600)."""
-    path = pathlib.Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        pathlib.Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
+    """``write(tmp)`` to a temporary file beside ``path``, which then replaces ``path``
+    atomically (see :mod:`replay.atomic`)."""
+    with atomic_output(path) as tmp:
+        write(str(tmp))
+    return pathlib.Path(path)
 
 
 def _jsonable(value: Any) -> Any:

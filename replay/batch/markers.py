@@ -9,13 +9,12 @@ package docstring (:mod:`replay.batch`).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import os
 import pathlib
-import tempfile
 from typing import Any
 
+from replay.atomic import atomic_output, write_text
 from replay.batch.records import ConvertTask, Failure, ReplayTask, SceneDone
 
 MARKER_FORMAT = 1
@@ -103,14 +102,6 @@ def completed_conversion(
     return scenes, failures
 
 
-@functools.cache
-def _file_mode() -> int:
-    """The mode a new file gets from the umask (``mkstemp`` makes its files 0600)."""
-    mask = os.umask(0)
-    os.umask(mask)
-    return 0o666 & ~mask
-
-
 def write_json(path: pathlib.Path, data: dict[str, Any]) -> None:
     atomic_write(path, json.dumps(data, indent=1, sort_keys=True) + "\n")
 
@@ -118,29 +109,14 @@ def write_json(path: pathlib.Path, data: dict[str, Any]) -> None:
 def atomic_write(path: pathlib.Path, text: str) -> None:
     """Write ``text`` to ``path`` via a temporary file in the same folder + os.replace."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-            fh.write(text)
-        os.chmod(tmp, _file_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        pathlib.Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text(path, text)
 
 
 def write_parquet(path: pathlib.Path, df: Any) -> None:
     """A polars DataFrame to ``path`` atomically (temp file in the folder, os.replace)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_output(path) as tmp:
         df.write_parquet(tmp, compression="zstd")
-        os.chmod(tmp, _file_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        pathlib.Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def write_replay_marker(task: ReplayTask, done: SceneDone) -> None:
