@@ -86,25 +86,13 @@ class StatsError(ReplayError):
 
 
 # ---------------------------------------------------------------------- collecting
-class _MemoryTable(TableSink):
-    """The rows of :class:`replay.tables.TableSink`, kept in memory (no file)."""
-
-    def __init__(self) -> None:  # no path: nothing is ever written
-        self.path = None  # type: ignore[assignment]
-        self._info = None
-        self._chunks = []
-
-    def close(self) -> None:  # the rows stay available through dataframe()
-        pass
-
-
 class StatsSink:
     """A :class:`replay.engine.Sink` that collects the agents and frames tables of one
     scene, named ``scene`` in the ``scene`` column of both."""
 
     def __init__(self, scene: str):
         self.scene = scene
-        self._table = _MemoryTable()
+        self._table = TableSink(None)
         self._frames: list[dict[str, Any]] = []
         self._info: SceneInfo | None = None
 

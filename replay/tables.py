@@ -33,10 +33,18 @@ SUFFIXES = (".parquet", ".csv")
 
 
 class TableSink:
-    """A :class:`replay.engine.Sink` that collects per-agent rows and writes one table."""
+    """A :class:`replay.engine.Sink` that collects per-agent rows and writes one table.
 
-    def __init__(self, path: str | os.PathLike[str]):
-        self.path = pathlib.Path(path)
+    With ``path=None`` nothing is written: the rows stay in memory for :meth:`dataframe`
+    (what ``replay stats`` uses).
+    """
+
+    def __init__(self, path: str | os.PathLike[str] | None):
+        self._info: SceneInfo | None = None
+        self._chunks: list[dict[str, np.ndarray]] = []
+        self.path = None if path is None else pathlib.Path(path)
+        if self.path is None:
+            return
         if self.path.suffix.lower() not in SUFFIXES:
             raise ReplayError(
                 f"{self.path}: table files must end in .parquet or .csv, got "
@@ -44,8 +52,6 @@ class TableSink:
             )
         if not self.path.parent.is_dir():
             raise ReplayError(f"{self.path}: the folder {self.path.parent} does not exist")
-        self._info: SceneInfo | None = None
-        self._chunks: list[dict[str, np.ndarray]] = []
 
     def begin(self, info: SceneInfo) -> None:
         self._info = info
@@ -95,6 +101,8 @@ class TableSink:
         return df.select([*keys[:5], *keys[5:-3], "dropped_by", "tier", "baseline"])
 
     def close(self) -> None:
+        if self.path is None:
+            return  # in memory: the rows stay available through dataframe()
         df = self.dataframe()
         with atomic_output(self.path) as tmp:
             if self.path.suffix.lower() == ".csv":
