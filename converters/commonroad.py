@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from converters.errors import ConversionError
-from converters.lanegraph import PathSettings, arc_length, dedupe
+from converters.lanegraph import PathSettings, dedupe, lanelet_centerline
 from converters.tracks import Skipped, TrackTable, build_scene
 from risk.frame import Kind, Lane, LaneMap, Scene
 
@@ -177,23 +177,6 @@ def _fill_motion(
         speed = np.where(np.isnan(speed), np.hypot(*vel.T), speed)
         heading = np.where(np.isnan(heading), np.arctan2(vel[:, 1], vel[:, 0]), heading)
     return np.nan_to_num(heading), np.nan_to_num(speed)
-
-
-def lanelet_centerline(left: np.ndarray, right: np.ndarray) -> np.ndarray:
-    """Mean of the two bounds ``(P, 2)``; bounds with different point counts are first
-    resampled at the same fractions of their arc length."""
-    if len(left) != len(right):
-        n = max(len(left), len(right))
-        left, right = _resample(left, n), _resample(right, n)
-    return 0.5 * (left + right)
-
-
-def _resample(line: np.ndarray, n: int) -> np.ndarray:
-    cum = arc_length(line)
-    if cum[-1] == 0:
-        return np.repeat(line[:1], n, axis=0)
-    target = np.linspace(0.0, cum[-1], n)
-    return np.stack([np.interp(target, cum, line[:, 0]), np.interp(target, cum, line[:, 1])], 1)
 
 
 def read_lane_map(root: ET.Element, where: str) -> LaneMap:

@@ -37,7 +37,7 @@ import numpy as np
 import polars as pl
 
 from converters.errors import ConversionError
-from converters.lanegraph import PathSettings, arc_length
+from converters.lanegraph import PathSettings, lanelet_centerline
 from converters.tracks import Skipped, TrackTable, build_scene, integer_ids
 from risk.frame import Kind, Lane, LaneMap, Scene
 
@@ -212,25 +212,10 @@ def _lanes(directed, nodes) -> list[Lane]:
     for lid, left, right, kind in directed:
         L = np.array([nodes[i] for i in left])
         R = np.array([nodes[i] for i in right])
-        centre = _mean_bound(L, R)
+        centre = lanelet_centerline(L, R)
         successors = tuple(s for s in start.get((left[-1], right[-1]), ()) if s != -lid)
         lanes.append(Lane(id=lid, centerline=centre, successors=successors, kind=kind))
     return lanes
-
-
-def _mean_bound(left: np.ndarray, right: np.ndarray) -> np.ndarray:
-    if len(left) != len(right):
-        n = max(len(left), len(right))
-        left, right = _resample(left, n), _resample(right, n)
-    return 0.5 * (left + right)
-
-
-def _resample(line: np.ndarray, n: int) -> np.ndarray:
-    cum = arc_length(line)
-    if cum[-1] == 0:
-        return np.repeat(line[:1], n, axis=0)
-    target = np.linspace(0.0, cum[-1], n)
-    return np.stack([np.interp(target, cum, line[:, 0]), np.interp(target, cum, line[:, 1])], 1)
 
 
 # ---------------------------------------------------------------------- tracks

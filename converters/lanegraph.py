@@ -142,6 +142,25 @@ def arc_length(points: np.ndarray) -> np.ndarray:
     return np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(points, axis=0).T))))
 
 
+def lanelet_centerline(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """Centre line ``(P, 2)`` of a lane from its bounds: the mean of the two (CommonRoad
+    lanelets, Lanelet2 ways). Bounds with different point counts are first resampled at
+    the same fractions of their arc length."""
+    if len(left) != len(right):
+        n = max(len(left), len(right))
+        left, right = _resample(left, n), _resample(right, n)
+    return 0.5 * (left + right)
+
+
+def _resample(line: np.ndarray, n: int) -> np.ndarray:
+    """``n`` points at equal arc-length fractions along ``line`` ``(P, 2)``."""
+    cum = arc_length(line)
+    if cum[-1] == 0:
+        return np.repeat(line[:1], n, axis=0)
+    target = np.linspace(0.0, cum[-1], n)
+    return np.stack([np.interp(target, cum, line[:, 0]), np.interp(target, cum, line[:, 1])], 1)
+
+
 def wrap_angle(a: np.ndarray) -> np.ndarray:
     """Angles wrapped to [-pi, pi)."""
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from converters.commonroad import lanelet_centerline, read_scene
+from converters.commonroad import read_scene
 from converters.errors import ConversionError
+from converters.lanegraph import lanelet_centerline
 from converters.tracks import Skipped
 from replay.cli import main
 from replay.reader import read_scene as read_mcap
