@@ -293,15 +293,9 @@ def _open(source: str | os.PathLike[str] | SceneSource | Scene) -> tuple[Any, pa
 
 
 def _model_names(models: Sequence[str] | None) -> tuple[str, ...]:
-    from risk import MODELS
-    from risk.errors import UnknownModelError
+    from risk.registry import resolve_models
 
-    if models is None:
-        return tuple(MODELS)
-    for name in models:
-        if name not in MODELS:
-            raise UnknownModelError(name, list(MODELS))
-    return tuple(dict.fromkeys(models))  # unique, in the order given
+    return tuple(resolve_models(models))  # validated, unique, in the order given
 
 
 def _entries(reader: Any) -> Iterator[tuple[int, int, Frame | None]]:

@@ -280,13 +280,10 @@ def calibrate(
     kept, and so on, as the cascade runs. Prints each stage's threshold and how many
     agents it removes, and records how the file was made inside it.
     """
-    from risk import MODELS
-    from risk.errors import UnknownModelError
+    from risk.registry import resolve_models
 
     models = _parse_list(stages, "stage model")
-    for name in models:
-        if name not in MODELS:
-            raise UnknownModelError(name, list(MODELS))
+    resolve_models(models)  # an unknown name is an error listing the valid ones
     if len(set(models)) != len(models):
         raise click.BadParameter("a model may appear in only one stage", param_hint="--stages")
     try:
