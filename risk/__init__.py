@@ -11,6 +11,7 @@ Pure numpy, no I/O. The notebook entry point::
 
 from risk.errors import FrameError, RiskError, UnknownModelError
 from risk.frame import KIND_NAMES, Frame, Kind, Lane, LaneMap, Scene
+from risk.hindsight import HindsightSettings, Tracks, Truth, hindsight_truth
 from risk.prediction import (
     FrameContext,
     KindUncertainty,
@@ -34,6 +35,7 @@ __all__ = [
     "Frame",
     "FrameContext",
     "FrameError",
+    "HindsightSettings",
     "Kind",
     "KindUncertainty",
     "Lane",
@@ -42,8 +44,11 @@ __all__ = [
     "PredictionSettings",
     "RiskError",
     "Scene",
+    "Tracks",
+    "Truth",
     "UncertaintyTable",
     "UnknownModelError",
     "baseline_mask",
     "evaluate",
+    "hindsight_truth",
 ]
