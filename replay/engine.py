@@ -17,7 +17,7 @@ import pathlib
 import sys
 import time
 import warnings
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
@@ -27,6 +27,7 @@ from tqdm import tqdm
 from replay.errors import ReplayError
 from risk.cascade import SURVIVAL_MODEL, CascadeConfig, CascadeResult, Evaluator, run_cascade
 from risk.frame import Frame, LaneMap, Scene
+from risk.hindsight import Tracks, tracks_from_frames
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,6 +43,9 @@ class SceneInfo:
     model_names: tuple[str, ...]  # the keys of FrameResult.risks, in registry order
     source: pathlib.Path | None  # the scene file, None for an in-memory scene
     n_frames: int  # frames in the scene (some may be skipped: ego missing)
+    # The scene's recorded agent states (risk.hindsight.Tracks), read on first call and
+    # cached: for sinks that need the recorded future (hindsight truth). None: unknown.
+    tracks: Callable[[], Tracks] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -137,6 +141,9 @@ class InMemoryScene:
 
     def frames(self) -> Iterator[Frame]:
         return iter(self.scene.frames)
+
+    def tracks(self) -> Tracks:
+        return tracks_from_frames(self.scene.frames, frame_period_s=self.scene.frame_period_s)
 
 
 class _Totals:
@@ -241,6 +248,9 @@ def _run(
         model_names=model_names,
         source=path,
         n_frames=int(reader.n_frames),
+        tracks=functools.cache(reader.tracks)
+        if callable(getattr(reader, "tracks", None))
+        else None,
     )
     totals = _Totals(len(cascade.stages), len(cascade.tiers))
     totals.read_time_s = read_first_s
