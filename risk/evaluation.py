@@ -1,0 +1,380 @@
+"""Outcome evaluation of a risk filter against a boolean reference, with scene bootstrap.
+
+Pure numpy, arrays first, options keyword-only. The reference is either the survival
+baseline (``R_S >= 1e-25``) or the hindsight truth (:mod:`risk.hindsight`); it is given
+as label codes ``(A,)`` int: 1 positive, 0 negative, -1 unknown (censored). Unknown
+agent-frames are left out of every rate and counted.
+
+**Pooled** rates over agent-frames: at a threshold the filter keeps the agents with
+``score >= threshold``; ``TPR = kept positives / positives``, ``FPR = kept negatives /
+negatives`` over all included agent-frames together. Why pooled, unlike the paper's mean
+over situations (:mod:`risk.metrics`): against hindsight most frames have no positive, so a
+per-frame TPR is undefined almost everywhere, and the mean over the few frames that have
+one weighs a frame with one positive like a frame with five. The **miss rate** of a
+filter is ``1 - TPR`` at its threshold: the share of positives it drops.
+
+**Clustered bootstrap**: the agent-frames of one scene are not independent (the same
+agents, frame after frame), so intervals resample whole scenes: each replicate draws ``S``
+scenes with replacement out of ``S`` and weighs every agent-frame by how often its scene
+was drawn; the interval is the percentile interval of the replicates. All models and
+references share the same draws (paired).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from risk.errors import RiskError
+
+POSITIVE, NEGATIVE, UNKNOWN = 1, 0, -1
+#: FPRs at which the TPR is reported.
+FPR_POINTS = (0.01, 0.05, 0.1)
+#: Rounding tolerance on rates.
+RATE_TOLERANCE = 1e-12
+
+
+# ---------------------------------------------------------------------- the sweep
+@dataclass(frozen=True, eq=False)
+class SortedScores:
+    """Included agent-frames sorted by descending score, ready for weighted sweeps.
+
+    ``scores (A',)`` descending; ``positive (A',)`` bool; ``cluster (A',)`` cluster
+    codes; ``group_end (K,)``: index of the last agent-frame of each run of equal scores
+    (one operating point each, strictest first).
+    """
+
+    scores: np.ndarray
+    positive: np.ndarray
+    cluster: np.ndarray
+    group_end: np.ndarray
+
+    @classmethod
+    def build(
+        cls, scores: np.ndarray, positive: np.ndarray, cluster: np.ndarray | None = None
+    ) -> SortedScores:
+        s = np.asarray(scores, dtype=np.float64)
+        p = np.asarray(positive, dtype=bool)
+        c = np.zeros(s.size, dtype=np.int64) if cluster is None else np.asarray(cluster)
+        if s.shape != p.shape or s.shape != c.shape or s.ndim != 1:
+            raise RiskError(
+                f"scores, positive and cluster must all have shape (A,), got {s.shape}, "
+                f"{p.shape} and {c.shape}"
+            )
+        if np.isinf(s).any():
+            raise RiskError("scores must be finite or NaN (not an agent)")
+        ok = ~np.isnan(s)
+        order = np.argsort(-s[ok], kind="stable")
+        sd = s[ok][order]
+        end = np.flatnonzero(np.r_[sd[1:] != sd[:-1], True]) if sd.size else np.empty(0, int)
+        return cls(sd, p[ok][order], c[ok][order].astype(np.int64), end)
+
+    def rates(self, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(tpr, fpr)`` ``(K,)`` at each operating point, strictest first (weights
+        ``(A',)`` per sorted agent-frame; default 1). NaN when there is no positive (or
+        no negative)."""
+        w = np.ones(self.scores.size) if weights is None else weights
+        wp = np.cumsum(np.where(self.positive, w, 0.0))
+        wn = np.cumsum(np.where(self.positive, 0.0, w))
+        tot_p, tot_n = (wp[-1], wn[-1]) if wp.size else (0.0, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tpr = wp[self.group_end] / tot_p if tot_p > 0 else np.full(self.group_end.size, np.nan)
+            fpr = wn[self.group_end] / tot_n if tot_n > 0 else np.full(self.group_end.size, np.nan)
+        return tpr, fpr
+
+    def kept_before(self, threshold: float) -> int:
+        """How many sorted agent-frames have ``score >= threshold``."""
+        return int(np.searchsorted(-self.scores, -threshold, side="right"))
+
+
+@dataclass(frozen=True, eq=False)
+class PooledRoc:
+    """A pooled ROC curve: ``thresholds (K,)`` ascending, ``tpr``, ``fpr (K,)`` (keep
+    ``score >= threshold``), ``auc`` (trapezoids closed with (0, 0) and (1, 1)),
+    ``n_positive``, ``n_negative`` (included agent-frames)."""
+
+    thresholds: np.ndarray
+    tpr: np.ndarray
+    fpr: np.ndarray
+    auc: float
+    n_positive: int
+    n_negative: int
+
+
+def _auc(tpr_desc: np.ndarray, fpr_desc: np.ndarray) -> float:
+    if tpr_desc.size == 0 or np.isnan(tpr_desc).any() or np.isnan(fpr_desc).any():
+        return math.nan
+    x = np.r_[0.0, fpr_desc, 1.0]
+    y = np.r_[0.0, tpr_desc, 1.0]
+    return float(np.sum(np.diff(x) * (y[1:] + y[:-1]) / 2.0))
+
+
+def pooled_roc(scores: np.ndarray, reference: np.ndarray) -> PooledRoc:
+    """The pooled ROC of ``scores (A,)`` (NaN: not an agent) against ``reference (A,)``
+    label codes (1, 0, -1 = unknown, left out) or booleans. Exact: every distinct score is
+    a threshold."""
+    include, positive = reference_mask(reference)
+    s = np.where(include, np.asarray(scores, dtype=np.float64), np.nan)
+    srt = SortedScores.build(s, positive)
+    tpr, fpr = srt.rates()
+    return PooledRoc(
+        thresholds=srt.scores[srt.group_end][::-1],
+        tpr=tpr[::-1],
+        fpr=fpr[::-1],
+        auc=_auc(tpr, fpr),
+        n_positive=int(srt.positive.sum()),
+        n_negative=int((~srt.positive).sum()),
+    )
+
+
+def reference_mask(reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(included, positive)`` ``(A,)`` bool from label codes (1, 0, -1) or booleans."""
+    r = np.asarray(reference)
+    if r.dtype == bool:
+        return np.ones(r.shape, dtype=bool), r.copy()
+    if not np.issubdtype(r.dtype, np.integer) or not np.isin(r, (-1, 0, 1)).all():
+        raise RiskError("a reference must be booleans or label codes 1, 0, -1 (unknown)")
+    return r >= 0, r == POSITIVE
+
+
+def tpr_at_fpr(tpr_desc: np.ndarray, fpr_desc: np.ndarray, fpr: float) -> float:
+    """The best TPR of a sweep (strictest first) whose FPR is at most ``fpr``; 0 when even
+    the strictest threshold exceeds it; NaN when the FPR is undefined (no negative)."""
+    if fpr_desc.size == 0 or np.isnan(fpr_desc).any() or np.isnan(tpr_desc).any():
+        return math.nan
+    idx = int(np.searchsorted(fpr_desc, fpr + RATE_TOLERANCE, side="right")) - 1
+    return float(tpr_desc[idx]) if idx >= 0 else 0.0
+
+
+def threshold_for_recall(scores: np.ndarray, reference: np.ndarray, target: float) -> float:
+    """The highest threshold whose pooled TPR against ``reference`` reaches ``target``
+    (keeps the fewest agents); -inf when there is no positive."""
+    if not 0.0 <= target <= 1.0:
+        raise RiskError(f"target TPR must be in [0, 1], got {target}")
+    roc = pooled_roc(scores, reference)
+    ok = roc.tpr >= target - RATE_TOLERANCE
+    return float(roc.thresholds[ok].max()) if ok.any() else -math.inf
+
+
+# ---------------------------------------------------------------------- bootstrap
+def bootstrap_weights(
+    clusters: np.ndarray, *, n_boot: int = 1000, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Scene draws for a clustered bootstrap: ``(codes (A,), counts (B, S))``.
+
+    ``clusters (A,)``: any labels (scene names); ``codes`` maps each agent-frame to its
+    cluster ``0 .. S-1``; ``counts[b, s]``: how often replicate ``b`` drew cluster ``s``
+    (``S`` draws with replacement, so each row sums to ``S``).
+    """
+    if n_boot < 1:
+        raise RiskError(f"n_boot must be >= 1, got {n_boot}")
+    _, codes = np.unique(np.asarray(clusters), return_inverse=True)
+    n = int(codes.max()) + 1 if codes.size else 0
+    rng = np.random.default_rng(seed)
+    draws = rng.integers(0, max(n, 1), size=(n_boot, n))
+    counts = np.zeros((n_boot, n), dtype=np.int64)
+    np.add.at(counts, (np.repeat(np.arange(n_boot), n), draws.ravel()), 1)
+    return codes.astype(np.int64), counts
+
+
+def percentile_interval(replicates: np.ndarray, *, level: float = 0.95) -> tuple[float, float]:
+    """The central ``level`` percentile interval of bootstrap replicates (NaN ones left
+    out; NaN when none is finite)."""
+    r = np.asarray(replicates, dtype=np.float64)
+    r = r[np.isfinite(r)]
+    if r.size == 0:
+        return (math.nan, math.nan)
+    tail = (1.0 - level) / 2.0
+    lo, hi = np.quantile(r, [tail, 1.0 - tail])
+    return (float(lo), float(hi))
+
+
+def cluster_bootstrap(
+    statistic: Callable[[np.ndarray], float],
+    clusters: np.ndarray,
+    *,
+    n_boot: int = 1000,
+    level: float = 0.95,
+    seed: int = 0,
+) -> dict[str, float]:
+    """A statistic of weighted agent-frames and its clustered-bootstrap interval.
+
+    ``statistic(weights (A,))`` -> float, called once with unit weights (the estimate)
+    and once per replicate with each agent-frame weighted by its cluster's draw count.
+    Returns ``value``, ``lo``, ``hi`` and ``replicates_defined`` (replicates where the
+    statistic was finite).
+    """
+    codes, counts = bootstrap_weights(clusters, n_boot=n_boot, seed=seed)
+    value = float(statistic(np.ones(codes.size)))
+    reps = np.array([statistic(counts[b][codes].astype(np.float64)) for b in range(n_boot)])
+    lo, hi = percentile_interval(reps, level=level)
+    return {"value": value, "lo": lo, "hi": hi, "replicates_defined": int(np.isfinite(reps).sum())}
+
+
+# ---------------------------------------------------------------------- one filter
+def _interval(value: float, reps: np.ndarray, level: float) -> dict[str, Any]:
+    lo, hi = percentile_interval(reps, level=level)
+    return {"value": value, "ci": [lo, hi]}
+
+
+def evaluate_scores(
+    scores: np.ndarray,
+    reference: np.ndarray,
+    clusters: np.ndarray,
+    agents: np.ndarray,
+    *,
+    thresholds: Mapping[str, float] | None = None,
+    fpr_points: Sequence[float] = FPR_POINTS,
+    draws: np.ndarray | None = None,
+    level: float = 0.95,
+) -> dict[str, Any]:
+    """ROC, AUC, TPR at fixed FPRs and miss rates of one model against one reference.
+
+    ``scores (A,)`` (NaN: not an agent); ``reference (A,)`` label codes (1, 0, -1) or
+    bool; ``clusters (A,)`` int scene codes ``0 .. S-1`` (see :func:`bootstrap_weights`);
+    ``agents (A,)`` int64 identity of the agent (distinct agents are counted by it, e.g.
+    a hash of scene, ego and agent id); ``thresholds``: named filter thresholds whose miss
+    rate is reported; ``draws (B, S)``: bootstrap counts (none: no intervals).
+    """
+    include, positive = reference_mask(reference)
+    s = np.asarray(scores, dtype=np.float64)
+    srt = SortedScores.build(np.where(include, s, np.nan), positive, clusters)
+    tpr, fpr = srt.rates()
+    out: dict[str, Any] = {
+        "agent_frames": int(srt.scores.size),
+        "positives": int(srt.positive.sum()),
+        "auc": {"value": _auc(tpr, fpr)},
+        "tpr_at_fpr": {f"{f:g}": {"value": tpr_at_fpr(tpr, fpr, f)} for f in fpr_points},
+        "miss_rate": {},
+    }
+    cuts = {name: srt.kept_before(t) for name, t in (thresholds or {}).items()}
+    agents = np.asarray(agents, dtype=np.int64)
+    pos_all = include & positive & ~np.isnan(s)
+    for name, thr in (thresholds or {}).items():
+        missed = pos_all & ~(s >= thr)
+        n_pos = int(srt.positive.sum())
+        out["miss_rate"][name] = {
+            "threshold": float(thr),
+            "value": float(missed.sum() / n_pos) if n_pos else math.nan,
+            "missed_agent_frames": int(missed.sum()),
+            "missed_agents": int(np.unique(agents[missed]).size),
+            "kept_share": cuts[name] / srt.scores.size if srt.scores.size else math.nan,
+        }
+    if draws is None or srt.scores.size == 0:
+        return out
+    n_boot = draws.shape[0]
+    auc_r = np.empty(n_boot)
+    tpr_r = np.empty((n_boot, len(fpr_points)))
+    miss_r = np.empty((n_boot, len(cuts)))
+    pos_w = np.where(srt.positive, 1.0, 0.0)
+    for b in range(n_boot):
+        w = draws[b][srt.cluster].astype(np.float64)
+        t_b, f_b = srt.rates(w)
+        auc_r[b] = _auc(t_b, f_b)
+        tpr_r[b] = [tpr_at_fpr(t_b, f_b, f) for f in fpr_points]
+        cw = np.cumsum(w * pos_w)
+        total = cw[-1]
+        for k, cut in enumerate(cuts.values()):
+            kept = cw[cut - 1] if cut > 0 else 0.0
+            miss_r[b, k] = 1.0 - kept / total if total > 0 else np.nan
+    out["auc"] = _interval(out["auc"]["value"], auc_r, level)
+    for k, f in enumerate(fpr_points):
+        key = f"{f:g}"
+        out["tpr_at_fpr"][key] = _interval(out["tpr_at_fpr"][key]["value"], tpr_r[:, k], level)
+    for k, name in enumerate(cuts):
+        lo, hi = percentile_interval(miss_r[:, k], level=level)
+        out["miss_rate"][name]["ci"] = [lo, hi]
+    return out
+
+
+# ---------------------------------------------------------------------- counts
+def distinct(keys: np.ndarray, mask: np.ndarray) -> int:
+    """Distinct ``keys (A,)`` among the agent-frames where ``mask (A,)`` holds."""
+    return int(np.unique(np.asarray(keys)[np.asarray(mask, dtype=bool)]).size)
+
+
+def reference_counts(
+    reference: np.ndarray, agents: np.ndarray, clusters: np.ndarray
+) -> dict[str, int]:
+    """Agent-frames positive / negative / unknown, distinct positive agents, and clusters
+    (scenes) with a positive."""
+    r = np.asarray(reference)
+    include, positive = reference_mask(r)
+    return {
+        "agent_frames": int(r.size),
+        "positive_agent_frames": int(positive.sum()),
+        "negative_agent_frames": int((include & ~positive).sum()),
+        "unknown_agent_frames": int((~include).sum()),
+        "positive_agents": distinct(agents, positive),
+        "agents": distinct(agents, np.ones(r.size, dtype=bool)),
+        "scenes_with_positive": distinct(clusters, positive),
+    }
+
+
+def stage_misses(
+    kept: np.ndarray, reference: np.ndarray, agents: np.ndarray, stage_names: Sequence[str]
+) -> list[dict[str, Any]]:
+    """The cascade's misses per stage: positives of ``reference`` that stage ``k`` (or an
+    earlier one) dropped. ``kept (A, K)`` bool: kept after each stage (the table's
+    ``kept_<stage>``, already cumulative)."""
+    k = np.asarray(kept, dtype=bool)
+    include, positive = reference_mask(reference)
+    pos = include & positive
+    n_pos = int(pos.sum())
+    out = []
+    for j, name in enumerate(stage_names):
+        missed = pos & ~k[:, j]
+        out.append(
+            {
+                "stage": name,
+                "missed_agent_frames": int(missed.sum()),
+                "miss_rate": float(missed.sum() / n_pos) if n_pos else math.nan,
+                "missed_agents": distinct(agents, missed),
+                "kept_share": float(k[:, j].mean()) if k.shape[0] else math.nan,
+            }
+        )
+    return out
+
+
+def site_transfer(
+    scores: np.ndarray,
+    reference: np.ndarray,
+    sites: np.ndarray,
+    *,
+    calibration_sites: Sequence[Any],
+    target_tpr: float = 0.95,
+) -> dict[str, Any]:
+    """Calibrate a threshold on some recording sites, test it on the others.
+
+    The threshold is the highest one whose pooled TPR against ``reference`` reaches
+    ``target_tpr`` on the agent-frames of ``calibration_sites``; returns it with the TPR
+    (1 - miss rate) and the kept share it gives on the calibration and on the test sites.
+    """
+    site = np.asarray(sites)
+    calib = np.isin(site, np.asarray(list(calibration_sites), dtype=site.dtype))
+    if not calib.any() or calib.all():
+        raise RiskError("site transfer needs agent-frames on calibration and on test sites")
+    s = np.asarray(scores, dtype=np.float64)
+    r = np.asarray(reference)
+    thr = threshold_for_recall(s[calib], r[calib], target_tpr)
+    result: dict[str, Any] = {
+        "calibration_sites": sorted(str(x) for x in np.unique(site[calib])),
+        "test_sites": sorted(str(x) for x in np.unique(site[~calib])),
+        "target_tpr": target_tpr,
+        "threshold": thr,
+    }
+    for part, mask in (("calibration", calib), ("test", ~calib)):
+        include, positive = reference_mask(r[mask])
+        pos = include & positive & ~np.isnan(s[mask])
+        agent = include & ~np.isnan(s[mask])
+        keep = s[mask] >= thr
+        result[part] = {
+            "positives": int(pos.sum()),
+            "tpr": float((keep & pos).sum() / pos.sum()) if pos.any() else math.nan,
+            "kept_share": float((keep & agent).sum() / agent.sum()) if agent.any() else math.nan,
+        }
+    return result
