@@ -10,6 +10,7 @@ Pure numpy, no I/O. The notebook entry point::
 """
 
 from risk.errors import FrameError, RiskError, UnknownModelError
+from risk.evaluation import evaluate_references, pooled_roc
 from risk.frame import KIND_NAMES, Frame, Kind, Lane, LaneMap, Scene
 from risk.hindsight import HindsightSettings, Tracks, Truth, hindsight_truth
 from risk.prediction import (
@@ -50,5 +51,7 @@ __all__ = [
     "UnknownModelError",
     "baseline_mask",
     "evaluate",
+    "evaluate_references",
     "hindsight_truth",
+    "pooled_roc",
 ]

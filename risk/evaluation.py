@@ -378,3 +378,123 @@ def site_transfer(
             "kept_share": float((keep & agent).sum() / agent.sum()) if agent.any() else math.nan,
         }
     return result
+
+
+# ---------------------------------------------------------------------- everything
+#: Target TPRs of the named operating thresholds, calibrated on each reference.
+TPR_TARGETS = (0.95, 1.0)
+
+
+def operating_thresholds(
+    scores: np.ndarray,
+    references: Mapping[str, np.ndarray],
+    *,
+    targets: Sequence[float] = TPR_TARGETS,
+) -> dict[str, float]:
+    """Named thresholds of one model: ``tpr<target>_<reference>``, the highest threshold
+    whose pooled TPR against that reference reaches the target (the filter a user would
+    calibrate on it)."""
+    return {
+        f"tpr{t:g}_{name}": threshold_for_recall(scores, ref, t)
+        for name, ref in references.items()
+        for t in targets
+    }
+
+
+def evaluate_references(
+    scores: Mapping[str, np.ndarray],
+    references: Mapping[str, np.ndarray],
+    *,
+    scenes: np.ndarray,
+    agents: np.ndarray,
+    groups: Mapping[str, np.ndarray] | None = None,
+    kept: np.ndarray | None = None,
+    stage_names: Sequence[str] = (),
+    sites: np.ndarray | None = None,
+    calibration_sites: Sequence[Any] | None = None,
+    targets: Sequence[float] = TPR_TARGETS,
+    fpr_points: Sequence[float] = FPR_POINTS,
+    n_boot: int = 1000,
+    level: float = 0.95,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Every model against every reference, overall and per group, with scene-bootstrap
+    intervals; the cascade's misses per stage; thresholds moved between sites.
+
+    ``scores``: model -> ``(A,)`` risks (NaN: not an agent); ``references``: name ->
+    ``(A,)`` label codes (1, 0, -1 unknown) or bool; ``scenes (A,)``: the bootstrap
+    clusters; ``agents (A,)`` int64: agent identity for distinct counts; ``groups``:
+    grouping name -> ``(A,)`` labels (e.g. dataset, kind); ``kept (A, K)``: the cascade's
+    kept-after-stage flags with ``stage_names``; ``sites (A,)`` and
+    ``calibration_sites``: for :func:`site_transfer` (at the first target, per model
+    and reference). ``n_boot = 0``: no intervals.
+    """
+    if not scores:
+        raise RiskError("no model scores to evaluate")
+    codes, draws = (
+        bootstrap_weights(scenes, n_boot=n_boot, seed=seed)
+        if n_boot > 0
+        else (np.unique(np.asarray(scenes), return_inverse=True)[1], None)
+    )
+    refs = dict(references)
+    thresholds = {m: operating_thresholds(s, refs, targets=targets) for m, s in scores.items()}
+
+    def block(mask: np.ndarray | None) -> dict[str, Any]:
+        sel = slice(None) if mask is None else mask
+        return {
+            "references": {
+                name: reference_counts(r[sel], agents[sel], codes[sel]) for name, r in refs.items()
+            },
+            "models": {
+                m: {
+                    name: evaluate_scores(
+                        s[sel],
+                        r[sel],
+                        codes[sel],
+                        agents[sel],
+                        thresholds=thresholds[m],
+                        fpr_points=fpr_points,
+                        draws=draws,
+                        level=level,
+                    )
+                    for name, r in refs.items()
+                }
+                for m, s in scores.items()
+            },
+        }
+
+    agents = np.asarray(agents, dtype=np.int64)
+    refs = {k: np.asarray(v) for k, v in refs.items()}
+    scores = {k: np.asarray(v, dtype=np.float64) for k, v in scores.items()}
+    out: dict[str, Any] = {
+        "bootstrap": {
+            "n_boot": n_boot,
+            "level": level,
+            "seed": seed,
+            "scenes": int(codes.max()) + 1,
+        },
+        "thresholds": thresholds,
+        **block(None),
+        "by": {},
+    }
+    for gname, labels in (groups or {}).items():
+        lab = np.asarray(labels)
+        out["by"][gname] = {str(g): block(lab == g) for g in np.unique(lab)}
+    if kept is not None:
+        out["cascade"] = {
+            name: stage_misses(kept, r, agents, stage_names) for name, r in refs.items()
+        }
+    if sites is not None and calibration_sites:
+        site_arr = np.asarray(sites)
+        cal = np.isin(site_arr, np.asarray(list(calibration_sites), dtype=site_arr.dtype))
+        if cal.any() and not cal.all():
+            out["site_transfer"] = {
+                m: {
+                    name: site_transfer(
+                        s, r, site_arr, calibration_sites=calibration_sites, target_tpr=targets[0]
+                    )
+                    for name, r in refs.items()
+                }
+                for m, s in scores.items()
+            }
+    return out

@@ -13,6 +13,7 @@ from risk.errors import RiskError
 from risk.evaluation import (
     bootstrap_weights,
     cluster_bootstrap,
+    evaluate_references,
     evaluate_scores,
     pooled_roc,
     reference_counts,
@@ -125,3 +126,44 @@ def test_counts_stage_misses_and_site_transfer():
     assert tr["test"]["tpr"] == 0.0 and tr["test"]["positives"] == 1
     with pytest.raises(RiskError, match="calibration and on test"):
         site_transfer(scores, ref, sites, calibration_sites=["x", "y"])
+
+
+def test_evaluate_references_overall_groups_cascade_and_sites():
+    rng = np.random.default_rng(0)
+    a = 400
+    scenes = rng.integers(0, 20, a)
+    truth = np.where(rng.random(a) < 0.1, 1, np.where(rng.random(a) < 0.2, -1, 0))
+    baseline = rng.random(a) < 0.3
+    good = np.where(truth == 1, 0.6, 0.0) + rng.random(a) * 0.5  # separates truth well
+    kind = np.where(rng.random(a) < 0.5, "vehicle", "pedestrian")
+    kept = np.column_stack([good > 0.2, good > 0.4])
+    out = evaluate_references(
+        {"good": good, "noise": rng.random(a)},
+        {"survival": baseline, "hindsight": truth},
+        scenes=scenes,
+        agents=np.arange(a) // 2,
+        groups={"kind": kind},
+        kept=kept,
+        stage_names=["s1", "s2"],
+        sites=np.where(scenes < 10, "x", "y"),
+        calibration_sites=["x"],
+        n_boot=100,
+    )
+    h = out["models"]["good"]["hindsight"]
+    assert h["auc"]["value"] > 0.9 > out["models"]["noise"]["hindsight"]["auc"]["value"]
+    assert h["auc"]["ci"][0] <= h["auc"]["value"] <= h["auc"]["ci"][1]
+    assert out["references"]["hindsight"]["unknown_agent_frames"] == int((truth == -1).sum())
+    # Misses at one threshold add up over the kinds.
+    name = "tpr0.95_survival"
+    total = h["miss_rate"][name]["missed_agent_frames"]
+    parts = [
+        out["by"]["kind"][k]["models"]["good"]["hindsight"]["miss_rate"][name][
+            "missed_agent_frames"
+        ]
+        for k in ("pedestrian", "vehicle")
+    ]
+    assert sum(parts) == total
+    # The baseline-calibrated threshold keeps >= 95 % of the baseline.
+    assert out["models"]["good"]["survival"]["miss_rate"][name]["value"] <= 0.05 + 1e-12
+    assert [s["stage"] for s in out["cascade"]["hindsight"]] == ["s1", "s2"]
+    assert out["site_transfer"]["good"]["hindsight"]["test_sites"] == ["y"]
