@@ -65,6 +65,7 @@ from replay.engine import FrameResult, SceneInfo
 from replay.errors import ReplayError
 from replay.tables import TableSink
 from risk.cascade import CascadeResult
+from risk.hindsight import HindsightSettings
 from risk.metrics import confusion_counts
 from risk.registry import BASELINE_MODEL, MODELS
 
@@ -90,9 +91,9 @@ class StatsSink:
     """A :class:`replay.engine.Sink` that collects the agents and frames tables of one
     scene, named ``scene`` in the ``scene`` column of both."""
 
-    def __init__(self, scene: str):
+    def __init__(self, scene: str, *, hindsight: HindsightSettings | None = None):
         self.scene = scene
-        self._table = TableSink(None)
+        self._table = TableSink(None, hindsight=hindsight)
         self._frames: list[dict[str, Any]] = []
         self._info: SceneInfo | None = None
 

@@ -167,3 +167,25 @@ def test_evaluate_references_overall_groups_cascade_and_sites():
     assert out["models"]["good"]["survival"]["miss_rate"][name]["value"] <= 0.05 + 1e-12
     assert [s["stage"] for s in out["cascade"]["hindsight"]] == ["s1", "s2"]
     assert out["site_transfer"]["good"]["hindsight"]["test_sites"] == ["y"]
+
+
+def test_vectorised_replicates_match_one_at_a_time(monkeypatch):
+    import risk.evaluation as ev
+
+    rng = np.random.default_rng(5)
+    a = 300
+    scores = np.round(rng.random(a), 2)  # ties
+    ref = rng.random(a) < 0.2
+    clusters = rng.integers(0, 15, a)
+    srt = ev.SortedScores.build(scores, ref, clusters)
+    _, draws = bootstrap_weights(clusters, n_boot=30, seed=2)
+    cuts = [srt.kept_before(0.5), srt.kept_before(0.9)]
+    monkeypatch.setattr(ev, "BOOT_BLOCK_ELEMENTS", 7 * a)  # several blocks
+    auc, tpr, miss = ev._replicates(srt, draws, cuts, (0.05, 0.2))
+    for b in range(30):
+        w = draws[b][srt.cluster].astype(float)
+        t, f = srt.rates(w)
+        assert auc[b] == pytest.approx(ev._auc(t, f))
+        assert tpr[b].tolist() == pytest.approx([tpr_at_fpr(t, f, x) for x in (0.05, 0.2)])
+        wp = np.cumsum(w * srt.positive)
+        assert miss[b].tolist() == pytest.approx([1 - wp[c - 1] / wp[-1] for c in cuts])

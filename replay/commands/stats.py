@@ -67,6 +67,9 @@ class SceneTask:
     name: str
     cascade: object  # CascadeConfig
     models: tuple[str, ...] | None
+    params: object = None  # model name -> parameters, for every evaluation
+    prediction: object = None  # risk.PredictionSettings
+    hindsight: object = None  # risk.hindsight.HindsightSettings of the truth columns
 
 
 def replay_scene(task: SceneTask) -> tuple[pl.DataFrame, pl.DataFrame]:
@@ -76,10 +79,18 @@ def replay_scene(task: SceneTask) -> tuple[pl.DataFrame, pl.DataFrame]:
     from replay.engine import run_scene
     from replay.stats import StatsSink
 
-    sink = StatsSink(task.name)
+    sink = StatsSink(task.name, hindsight=task.hindsight)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # skipped frames (no ego) are simply absent
-        run_scene(task.path, sinks=[sink], cascade=task.cascade, models=task.models, progress=False)
+        run_scene(
+            task.path,
+            sinks=[sink],
+            cascade=task.cascade,
+            models=task.models,
+            params=task.params,
+            prediction=task.prediction,
+            progress=False,
+        )
     return sink.agents(), sink.frames()
 
 
@@ -90,8 +101,15 @@ def collect(
     models: Sequence[str] | None,
     workers: int,
     progress: bool,
+    params: object = None,
+    prediction: object = None,
+    hindsight: object = None,
 ) -> tuple[pl.DataFrame, pl.DataFrame, list[str], list[str]]:
-    """Agents and frames tables of every input, with the stage and tier names."""
+    """Agents and frames tables of every input, with the stage and tier names.
+
+    ``params``, ``prediction`` go to every model evaluation of the replayed scenes,
+    ``hindsight`` (``risk.hindsight.HindsightSettings``) to their truth columns; tables
+    are read as they were written."""
     from replay.experiment import parallel_map
     from replay.stats import (
         concat_agents,
@@ -109,7 +127,15 @@ def collect(
     names = scene_names([*inputs.scenes, *inputs.tables])
     if inputs.scenes:
         tasks = [
-            SceneTask(p, n, cascade, None if models is None else tuple(models))
+            SceneTask(
+                p,
+                n,
+                cascade,
+                None if models is None else tuple(models),
+                params=params,
+                prediction=prediction,
+                hindsight=hindsight,
+            )
             for p, n in zip(inputs.scenes, names[: len(inputs.scenes)], strict=True)
         ]
         for a, f in parallel_map(
