@@ -266,18 +266,28 @@ def boxes_overlap(
     return overlap
 
 
-def _corner_edge_distance(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Least distance ``(...)`` from the 4 corners of ``p (..., 4, 2)`` to the 4 edges
-    of ``q (..., 4, 2)``."""
-    s = q[..., None, :, :]  # edge starts (..., 1, 4, 2)
-    d = np.roll(q, -1, axis=-2)[..., None, :, :] - s  # edge vectors
-    r = p[..., :, None, :] - s  # corner - start (..., 4, 4, 2)
-    dd = np.sum(d * d, axis=-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        u = np.where(dd > 0, np.sum(r * d, axis=-1) / dd, 0.0)
-    u = np.clip(u, 0.0, 1.0)
-    e = r - u[..., None] * d
-    return np.sqrt(np.min(np.sum(e * e, axis=-1), axis=(-2, -1)))
+def _corners_to_box(
+    x: np.ndarray,
+    y: np.ndarray,
+    h: np.ndarray,
+    length: np.ndarray,
+    width: np.ndarray,
+    xb: np.ndarray,
+    yb: np.ndarray,
+    hb: np.ndarray,
+    lb: np.ndarray,
+    wb: np.ndarray,
+) -> np.ndarray:
+    """Least distance from the 4 corners of box A to box B (as a filled rectangle):
+    each corner in B's frame, then the distance to an axis-aligned rectangle."""
+    corners = box_corners(x, y, h, length, width)  # (..., 4, 2)
+    dx = corners[..., 0] - xb[..., None]
+    dy = corners[..., 1] - yb[..., None]
+    c, s = np.cos(hb)[..., None], np.sin(hb)[..., None]
+    u = np.abs(dx * c + dy * s) - lb[..., None] / 2.0
+    v = np.abs(-dx * s + dy * c) - wb[..., None] / 2.0
+    d2 = np.maximum(u, 0.0) ** 2 + np.maximum(v, 0.0) ** 2
+    return np.sqrt(d2.min(axis=-1))
 
 
 def box_gap(
@@ -295,7 +305,8 @@ def box_gap(
     """Exact clearance (m) between two oriented boxes, 0 when they touch or overlap.
 
     Arguments broadcast. Two disjoint convex polygons are nearest between a corner of one
-    and an edge of the other, so the gap is the least of the 32 corner-edge distances.
+    and an edge of the other, so the gap is the least distance from a corner of either box
+    to the other box (8 point-to-rectangle distances, each in the rectangle's own frame).
     """
     shape = np.broadcast_shapes(*(np.shape(a) for a in (xa, ya, ha, la, wa, xb, yb, hb, lb, wb)))
     args = [np.broadcast_to(np.asarray(a, dtype=np.float64), shape) for a in (xa, ya, ha, la, wa)]
@@ -304,9 +315,9 @@ def box_gap(
     out = np.zeros(shape)
     apart = ~overlap
     if apart.any():
-        pa = box_corners(*(a[apart] for a in args))
-        pb = box_corners(*(b[apart] for b in brgs))
-        out[apart] = np.minimum(_corner_edge_distance(pa, pb), _corner_edge_distance(pb, pa))
+        a_ = [a[apart] for a in args]
+        b_ = [b[apart] for b in brgs]
+        out[apart] = np.minimum(_corners_to_box(*a_, *b_), _corners_to_box(*b_, *a_))
     return out
 
 
@@ -429,21 +440,59 @@ def _block_truth(
         return a[:, None, :]  # (T, 1, N)
 
     both = ego(ok) & other(ok) & not_self  # (T, E, N)
-    gap_now = np.where(
-        both,
-        box_gap(ego(x), ego(y), ego(hd), ego(ln), ego(wd), other(x), other(y), other(hd),
-                other(ln), other(wd)),
-        np.inf,
+    t_i, e_i, a_i = np.nonzero(both)  # only where both are recorded
+    c_i = egos[e_i]
+    gap_now = np.full(both.shape, np.inf)
+    gap_now[t_i, e_i, a_i] = box_gap(
+        x[t_i, c_i], y[t_i, c_i], hd[t_i, c_i], ln[t_i, c_i], wd[t_i, c_i],
+        x[t_i, a_i], y[t_i, a_i], hd[t_i, a_i], ln[t_i, a_i], wd[t_i, a_i],
     )  # fmt: skip
     gap = forward_window_min(gap_now, h + 1)
     gap[~np.isfinite(gap)] = np.nan
     observed = forward_window_sum(both.astype(np.int64), h + 1)
 
-    # PET: one pass per lag d = j - i (ego frame i, agent frame j), |d| <= h, by
-    # increasing |d| so that the first lag that meets is the least. A pair (i, j)
-    # belongs to the window of frame f when f <= min(i, j) and max(i, j) <= f + h.
-    radius = np.hypot(ln, wd) / 2.0
     pet = np.full((n_t, egos.size, n), np.nan)
+    pe, pa = _pet_candidates(tracks, egos)
+    if pe.size:
+        pet[:, pe, pa] = _pet_pairs(tracks, egos[pe], pa, h)
+    return gap, pet, observed
+
+
+def _pet_candidates(tracks: Tracks, egos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ego position in ``egos``, agent column) of the pairs whose footprints can meet at
+    all: the axis-aligned boxes around their whole recorded sweeps intersect."""
+    x, y, ok = tracks.xy[..., 0], tracks.xy[..., 1], tracks.valid
+    r = np.hypot(tracks.length, tracks.width) / 2.0
+    lo_x = np.where(ok, x - r, np.inf).min(axis=0)
+    hi_x = np.where(ok, x + r, -np.inf).max(axis=0)
+    lo_y = np.where(ok, y - r, np.inf).min(axis=0)
+    hi_y = np.where(ok, y + r, -np.inf).max(axis=0)
+    e = egos[:, None]
+    meet = (lo_x[e] <= hi_x[None, :]) & (lo_x[None, :] <= hi_x[e])
+    meet &= (lo_y[e] <= hi_y[None, :]) & (lo_y[None, :] <= hi_y[e])
+    meet &= e != np.arange(tracks.n_agents)[None, :]
+    return np.nonzero(meet)
+
+
+def _pet_pairs(tracks: Tracks, e_col: np.ndarray, a_col: np.ndarray, h: int) -> np.ndarray:
+    """PET ``(T, P)`` of the pairs (``e_col``, ``a_col``) over every frame's window.
+
+    One vectorised pass per lag ``d = j - i`` (ego frame ``i``, agent frame ``j``,
+    ``|d| <= h``), by increasing ``|d|`` so that the first lag that meets is the least: a
+    bounding-circle test, then the separating-axis test on the survivors. An overlap at
+    ``(i, j)`` belongs to the window of frame ``f`` when ``max(i, j) - h <= f <= min(i,
+    j)``; those frames get ``|d| dt`` unless a smaller lag already gave them a value.
+    """
+    n_t = tracks.n_frames
+    cols = {
+        "x": tracks.xy[..., 0], "y": tracks.xy[..., 1], "h": tracks.heading,
+        "l": tracks.length, "w": tracks.width, "ok": tracks.valid,
+        "r": np.hypot(tracks.length, tracks.width) / 2.0,
+    }  # fmt: skip
+    ego = {k: v[:, e_col] for k, v in cols.items()}  # (T, P)
+    oth = {k: v[:, a_col] for k, v in cols.items()}
+    n_p = e_col.size
+    pet = np.full((n_t, n_p), np.nan)
     for lag in sorted(range(-h, h + 1), key=abs):
         k = abs(lag)
         if k >= n_t:
@@ -451,22 +500,28 @@ def _block_truth(
         m = n_t - k  # pairs (i, j) indexed by min(i, j) = 0 .. m - 1
         ei = slice(0, m) if lag >= 0 else slice(k, n_t)  # ego frames
         aj = slice(k, n_t) if lag >= 0 else slice(0, m)  # agent frames
-        pair = ego(ok)[ei] & other(ok)[aj] & not_self
-        dist = np.hypot(ego(x)[ei] - other(x)[aj], ego(y)[ei] - other(y)[aj])
-        near = pair & (dist <= ego(radius)[ei] + other(radius)[aj])
-        meet = np.zeros_like(near)
-        if near.any():
-            idx = np.nonzero(near)
-            t_e, e_col, a_col = idx[0] + ei.start, egos[idx[1]], idx[2]
-            t_a = idx[0] + aj.start
-            meet[idx] = boxes_overlap(
-                x[t_e, e_col], y[t_e, e_col], hd[t_e, e_col], ln[t_e, e_col], wd[t_e, e_col],
-                x[t_a, a_col], y[t_a, a_col], hd[t_a, a_col], ln[t_a, a_col], wd[t_a, a_col],
-            )  # fmt: skip
-        if not meet.any():
+        dx = ego["x"][ei] - oth["x"][aj]
+        dy = ego["y"][ei] - oth["y"][aj]
+        reach = ego["r"][ei] + oth["r"][aj]
+        near = ego["ok"][ei] & oth["ok"][aj] & (dx * dx + dy * dy <= reach * reach)
+        mi, pi = np.nonzero(near)
+        if mi.size == 0:
             continue
-        hit = forward_window_sum(meet.astype(np.int64), h - k + 1) > 0  # (m, E, N)
-        frames = np.zeros((n_t, egos.size, n), dtype=bool)
-        frames[:m] = hit
-        pet[frames & np.isnan(pet)] = k * tracks.dt_s
-    return gap, pet, observed
+        ti, tj = mi + ei.start, mi + aj.start
+        meet = boxes_overlap(
+            ego["x"][ti, pi], ego["y"][ti, pi], ego["h"][ti, pi], ego["l"][ti, pi], ego["w"][ti, pi],
+            oth["x"][tj, pi], oth["y"][tj, pi], oth["h"][tj, pi], oth["l"][tj, pi], oth["w"][tj, pi],
+        )  # fmt: skip
+        mi, pi = mi[meet], pi[meet]
+        if mi.size == 0:
+            continue
+        # Frames max(0, m + k - h) .. m of pair p get k: +1 / -1 on a difference array
+        # over the pairs that meet at this lag, then a cumulative sum over frames.
+        up, local = np.unique(pi, return_inverse=True)
+        diff = np.zeros((n_t + 1, up.size), dtype=np.int64)
+        np.add.at(diff, (np.maximum(mi + k - h, 0), local), 1)
+        np.add.at(diff, (mi + 1, local), -1)
+        covered = np.cumsum(diff[:n_t], axis=0) > 0
+        sub = pet[:, up]
+        pet[:, up] = np.where(covered & np.isnan(sub), k * tracks.dt_s, sub)
+    return pet

@@ -313,3 +313,39 @@ def test_bad_settings_are_refused():
         HindsightSettings(gap_m=-1.0)
     with pytest.raises(RiskError, match="out of range"):
         hindsight_truth(_crossing(), 5)
+
+
+def _slow_pet(tracks: Tracks, e: int, a: int, f: int, h: int) -> float:
+    """Plain loops: the least |i - j| dt over window frames whose boxes overlap."""
+    best = math.inf
+    for i in range(f, min(f + h, tracks.n_frames - 1) + 1):
+        for j in range(f, min(f + h, tracks.n_frames - 1) + 1):
+            if not (tracks.valid[i, e] and tracks.valid[j, a]):
+                continue
+            bi = (*tracks.xy[i, e], tracks.heading[i, e], tracks.length[i, e], tracks.width[i, e])
+            bj = (*tracks.xy[j, a], tracks.heading[j, a], tracks.length[j, a], tracks.width[j, a])
+            if oracle_gap(bi, bj) <= 1e-9:
+                best = min(best, abs(i - j) * tracks.dt_s)
+    return best
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.integers(0, 10_000))
+def test_pet_matches_slow_loops_on_random_tracks(seed):
+    rng = np.random.default_rng(seed)
+    n_t, n = 14, 4
+    xy = np.cumsum(rng.normal(0, 1.2, (n_t, n, 2)), axis=0) + rng.uniform(-6, 6, (1, n, 2))
+    tracks = Tracks(
+        np.arange(n), np.zeros(n, np.int8), xy, rng.uniform(-3, 3, (n_t, n)),
+        rng.uniform(1, 5, (n_t, n)), rng.uniform(0.5, 2, (n_t, n)), rng.random((n_t, n)) > 0.15,
+        0.0, 0.5,
+    )  # fmt: skip
+    t = hindsight_truth(tracks, np.arange(n), settings=HindsightSettings(horizon_s=2.5))
+    for e in range(n):
+        for a in range(n):
+            for f in range(n_t):
+                if e == a or not (tracks.valid[f, e] and tracks.valid[f, a]):
+                    continue
+                want = _slow_pet(tracks, e, a, f, 5)
+                got = t.pet_s[f, e, a]
+                assert (np.isnan(got) and want == math.inf) or got == pytest.approx(want)
