@@ -7,10 +7,8 @@ The input is an agents table (the columns of ``replay run --table`` plus ``scene
 :func:`risk.evaluation.evaluate_references`; :func:`write_evaluation` writes
 ``summary.json``, tables and plots. ``docs/evaluation.md`` describes every field.
 
-For notebooks and the sensitivity sweep::
-
-    from replay.evaluation import evaluate_inputs
-    summary = evaluate_inputs(["../shared/data/recorded-mcap/sind"], params=..., n_boot=200)
+Replaying scenes or reading tables first (``replay stats``' input collection, which
+lives in :mod:`replay.commands.stats`) is :func:`replay.commands.evaluate.evaluate_inputs`.
 """
 
 from __future__ import annotations
@@ -230,77 +228,6 @@ def _short_scenes(df: pl.DataFrame, hs: HindsightSettings) -> list[str]:
     """Scenes whose recorded span is shorter than the horizon (every window censored)."""
     span = df.group_by("scene").agg((pl.col("t_s").max() - pl.col("t_s").min()).alias("span"))
     return sorted(span.filter(pl.col("span") < hs.horizon_s - 1e-9)["scene"].to_list())
-
-
-# ---------------------------------------------------------------------- scenes / tables
-def evaluate_inputs(
-    paths: Sequence[str | os.PathLike[str]],
-    *,
-    cascade: Any = None,
-    params: Any = None,
-    prediction: Any = None,
-    hindsight: HindsightSettings | None = None,
-    settings: EvaluationSettings | None = None,
-    workers: int = 1,
-    progress: bool = False,
-) -> dict[str, Any]:
-    """Replay (scenes) or read (tables) the inputs and evaluate them; the summary dict.
-
-    ``params`` (model name -> parameters) and ``prediction`` go to every model evaluation
-    of the replayed scenes; tables are read as they were written. This is what
-    ``replay evaluate`` runs, without writing files."""
-    agents, datasets, hs = collect_agents(
-        paths, cascade=cascade, params=params, prediction=prediction, hindsight=hindsight,
-        workers=workers, progress=progress,
-    )  # fmt: skip
-    return evaluate_agents(
-        agents, settings=settings, datasets=datasets, hindsight=hs,
-        inputs=[str(p) for p in paths],
-    )  # fmt: skip
-
-
-def collect_agents(
-    paths: Sequence[str | os.PathLike[str]],
-    *,
-    cascade: Any = None,
-    params: Any = None,
-    prediction: Any = None,
-    hindsight: HindsightSettings | None = None,
-    workers: int = 1,
-    progress: bool = False,
-) -> tuple[pl.DataFrame, dict[str, str], HindsightSettings]:
-    """The agents table of scenes, tables or folders (as ``replay stats`` reads them),
-    the dataset of each scene (the name of the folder its file is in) and the hindsight
-    settings of its truth columns."""
-    from replay.commands.stats import collect, resolve_inputs, scene_names
-    from risk.cascade import CascadeConfig
-
-    found = resolve_inputs([pathlib.Path(p) for p in paths])
-    if found.tables and hindsight is not None and hindsight != HindsightSettings():
-        raise EvaluationError(
-            "tables carry the hindsight truth they were written with; to evaluate other "
-            "--truth-* settings give the .mcap scenes"
-        )
-    hs = hindsight or HindsightSettings()
-    agents, _, _, _ = collect(
-        found,
-        cascade or CascadeConfig.default(),
-        models=None,
-        workers=workers,
-        progress=progress,
-        params=params,
-        prediction=prediction,
-        hindsight=hs,
-    )
-    files = [*found.scenes, *found.tables]
-    names = scene_names(files)
-    datasets = {n: p.resolve().parent.name for n, p in zip(names, files, strict=True)}
-    if "scene" in agents.columns:  # merged tables name their scenes themselves
-        table_dirs = {p.resolve().parent.name for p in found.tables}
-        for s in agents["scene"].unique().to_list():
-            if s not in datasets and len(table_dirs) == 1:
-                datasets[s] = next(iter(table_dirs))
-    return agents, datasets, hs
 
 
 # ---------------------------------------------------------------------- output

@@ -1,14 +1,100 @@
 """``replay evaluate``: every model against the survival baseline and against what really
-happened (the hindsight truth), over scenes or tables, with scene-bootstrap intervals."""
+happened (the hindsight truth), over scenes or tables, with scene-bootstrap intervals.
+
+:func:`evaluate_inputs` is the same without writing files (notebooks, the sensitivity
+sweep). It lives here because the input collection it shares with ``replay stats``
+(:func:`replay.commands.stats.collect`) does; the library part is
+:mod:`replay.evaluation`."""
 
 from __future__ import annotations
 
+import os
 import pathlib
 import time
+from collections.abc import Sequence
+from typing import Any
 
 import click
+import polars as pl
 
-from replay.evaluation import DEFAULT_GROUPINGS, GROUPINGS
+from replay.evaluation import (
+    DEFAULT_GROUPINGS,
+    GROUPINGS,
+    EvaluationError,
+    EvaluationSettings,
+    evaluate_agents,
+)
+from risk.cascade import CascadeConfig
+from risk.hindsight import HindsightSettings
+
+
+def evaluate_inputs(
+    paths: Sequence[str | os.PathLike[str]],
+    *,
+    cascade: Any = None,
+    params: Any = None,
+    prediction: Any = None,
+    hindsight: HindsightSettings | None = None,
+    settings: EvaluationSettings | None = None,
+    workers: int = 1,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Replay (scenes) or read (tables) the inputs and evaluate them; the summary dict.
+
+    ``params`` (model name -> parameters) and ``prediction`` go to every model evaluation
+    of the replayed scenes; tables are read as they were written. This is what
+    ``replay evaluate`` runs, without writing files."""
+    agents, datasets, hs = collect_agents(
+        paths, cascade=cascade, params=params, prediction=prediction, hindsight=hindsight,
+        workers=workers, progress=progress,
+    )  # fmt: skip
+    return evaluate_agents(
+        agents, settings=settings, datasets=datasets, hindsight=hs,
+        inputs=[str(p) for p in paths],
+    )  # fmt: skip
+
+
+def collect_agents(
+    paths: Sequence[str | os.PathLike[str]],
+    *,
+    cascade: Any = None,
+    params: Any = None,
+    prediction: Any = None,
+    hindsight: HindsightSettings | None = None,
+    workers: int = 1,
+    progress: bool = False,
+) -> tuple[pl.DataFrame, dict[str, str], HindsightSettings]:
+    """The agents table of scenes, tables or folders (as ``replay stats`` reads them),
+    the dataset of each scene (the name of the folder its file is in) and the hindsight
+    settings of its truth columns."""
+    from replay.commands.stats import collect, resolve_inputs, scene_names
+
+    found = resolve_inputs([pathlib.Path(p) for p in paths])
+    if found.tables and hindsight is not None and hindsight != HindsightSettings():
+        raise EvaluationError(
+            "tables carry the hindsight truth they were written with; to evaluate other "
+            "--truth-* settings give the .mcap scenes"
+        )
+    hs = hindsight or HindsightSettings()
+    agents, _, _, _ = collect(
+        found,
+        cascade or CascadeConfig.default(),
+        models=None,
+        workers=workers,
+        progress=progress,
+        params=params,
+        prediction=prediction,
+        hindsight=hs,
+    )
+    files = [*found.scenes, *found.tables]
+    names = scene_names(files)
+    datasets = {n: p.resolve().parent.name for n, p in zip(names, files, strict=True)}
+    if "scene" in agents.columns:  # merged tables name their scenes themselves
+        table_dirs = {p.resolve().parent.name for p in found.tables}
+        for s in agents["scene"].unique().to_list():
+            if s not in datasets and len(table_dirs) == 1:
+                datasets[s] = next(iter(table_dirs))
+    return agents, datasets, hs
 
 
 def _names(text: str | None) -> list[str]:
