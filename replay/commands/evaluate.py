@@ -193,17 +193,8 @@ def evaluate(
 
     Exits non-zero when no agent came close (every rate against hindsight undefined).
     """
-    from replay.evaluation import (
-        EvaluationSettings,
-        check_groupings,
-        collect_agents,
-        evaluate_agents,
-        format_evaluation,
-        write_evaluation,
-    )
+    from replay.evaluation import check_groupings, format_evaluation, write_evaluation
     from replay.experiment import default_workers
-    from risk.cascade import CascadeConfig
-    from risk.hindsight import HindsightSettings
     from risk.registry import resolve_models
 
     chosen = tuple(resolve_models(_names(models))) if models else None
