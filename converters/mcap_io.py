@@ -46,9 +46,9 @@ from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 
+from base.atomic import temp_path_beside
 from converters import scene_format as sf
 from converters.errors import ConversionError
-from replay.atomic import temp_path_beside
 from risk.frame import Frame, LaneMap, Scene
 
 CHUNK_SIZE_BYTES = 1024 * 1024

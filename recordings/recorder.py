@@ -20,20 +20,20 @@ import os
 import pathlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 import numpy as np
 import pyarrow as pa
 import rerun as rr
 
+from base.atomic import temp_path_beside
+from base.sinks import FrameResult, SceneInfo
 from recordings import columns as C
 from recordings import layout as L
 from recordings.errors import RecordingError
 from recordings.summary import recording_name, summary_markdown
-from replay.atomic import temp_path_beside
-
-if TYPE_CHECKING:
-    from replay.engine import FrameResult, SceneInfo
+from risk.cascade import SURVIVAL_MODEL
+from risk.registry import MODELS
 
 LabelMode = Literal["kept", "all", "none"]
 LABEL_MODES: tuple[str, ...] = ("kept", "all", "none")
@@ -656,15 +656,11 @@ def _log_cascade_series(rec, info: SceneInfo, scene: _Scene) -> None:
 # ---------------------------------------------------------------------- helpers
 def _baseline_model(models: Sequence[str]) -> str | None:
     """The model whose tab opens first: the survival baseline the cascade is judged by."""
-    from risk.cascade import SURVIVAL_MODEL
-
     return SURVIVAL_MODEL if SURVIVAL_MODEL in models else (models[0] if models else None)
 
 
 def _units(models: Sequence[str]) -> dict[str, str]:
     """Each model's unit from the registry ("" when dimensionless or not registered)."""
-    from risk import MODELS
-
     return {m: MODELS[m].unit for m in models if m in MODELS}
 
 

@@ -19,52 +19,15 @@ import time
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol
 
 import numpy as np
 from tqdm import tqdm
 
+from base.sinks import FrameResult, SceneInfo, Sink
 from replay.errors import ReplayError
 from risk.cascade import SURVIVAL_MODEL, CascadeConfig, CascadeResult, Evaluator, run_cascade
 from risk.frame import Frame, LaneMap, Scene
-
-
-@dataclass(frozen=True, eq=False)
-class SceneInfo:
-    """What a sink needs to know about a scene before its first frame."""
-
-    map: LaneMap
-    metadata: dict[str, str]
-    labels: dict[str, tuple[int, ...]]
-    frame_period_s: float
-    ego_id: int
-    cascade: CascadeConfig
-    model_names: tuple[str, ...]  # the keys of FrameResult.risks, in registry order
-    source: pathlib.Path | None  # the scene file, None for an in-memory scene
-    n_frames: int  # frames in the scene (some may be skipped: ego missing)
-
-
-@dataclass(frozen=True, eq=False)
-class FrameResult:
-    """One frame's results. ``N = frame.n_agents``."""
-
-    index: int  # frame index in the scene
-    frame: Frame
-    risks: dict[str, np.ndarray]  # model name -> (N,) risk on ALL agents (NaN: ego/invalid)
-    cascade: CascadeResult
-
-
-@runtime_checkable
-class Sink(Protocol):
-    """A consumer of per-frame results (recording, table, statistics)."""
-
-    def begin(self, info: SceneInfo) -> None: ...
-
-    def add(self, result: FrameResult) -> None: ...
-
-    def close(self) -> None: ...  # finalise atomically
-
-    def abort(self) -> None: ...  # discard partial output
 
 
 @dataclass(frozen=True)

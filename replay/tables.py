@@ -24,8 +24,8 @@ import pathlib
 import numpy as np
 import polars as pl
 
-from replay.atomic import atomic_output
-from replay.engine import FrameResult, SceneInfo
+from base.atomic import atomic_output
+from base.sinks import FrameResult, SceneInfo
 from replay.errors import ReplayError
 from risk.frame import KIND_NAMES
 

