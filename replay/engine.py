@@ -26,8 +26,11 @@ from tqdm import tqdm
 
 from base.sinks import FrameResult, SceneInfo, Sink
 from replay.errors import ReplayError
+from replay.reader import open_scene
+from risk import evaluate as default_evaluate
 from risk.cascade import SURVIVAL_MODEL, CascadeConfig, CascadeResult, Evaluator, run_cascade
 from risk.frame import Frame, LaneMap, Scene
+from risk.registry import resolve_models
 
 
 @dataclass(frozen=True)
@@ -162,8 +165,6 @@ def run_scene(
     reader, path = _open(source)
     cascade = CascadeConfig.default() if cascade is None else cascade
     if evaluate is None:
-        from risk import evaluate as default_evaluate
-
         evaluate = default_evaluate
     if prediction is not None:
         evaluate = functools.partial(evaluate, prediction=prediction)
@@ -247,8 +248,6 @@ def _open(source: str | os.PathLike[str] | SceneSource | Scene) -> tuple[Any, pa
     if isinstance(source, Scene):
         return InMemoryScene(source), None
     if isinstance(source, (str, os.PathLike)):
-        from replay.reader import open_scene
-
         path = pathlib.Path(source)
         return open_scene(path), path
     path = getattr(source, "path", None)
@@ -256,8 +255,6 @@ def _open(source: str | os.PathLike[str] | SceneSource | Scene) -> tuple[Any, pa
 
 
 def _model_names(models: Sequence[str] | None) -> tuple[str, ...]:
-    from risk.registry import resolve_models
-
     return tuple(resolve_models(models))  # validated, unique, in the order given
 
 
