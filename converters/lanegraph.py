@@ -59,7 +59,7 @@ class PathSettings:
     """How agent paths are built (both ``map`` and ``hindsight`` modes).
 
     A path is at least ``v * horizon_s + margin_m`` long (``v`` the agent's speed, m/s):
-    the distance the constant-speed prediction of docs/risk-models.md covers, plus a
+    the distance the constant-speed prediction of the model spec (docs/models.md) covers, plus a
     margin so that a slow or stopped agent still has a path ahead of it.
     """
 

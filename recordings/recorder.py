@@ -1,10 +1,10 @@
-"""The Rerun recording of a replay: a :class:`replay.engine.Sink` that writes one ``.rrd``.
+"""The Rerun recording of a replay: a :class:`base.sinks.Sink` that writes one ``.rrd``.
 
 ``add()`` keeps only the arrays the recording needs (valid agents, the cascade outcome,
 every model's risk, the paths to draw); ``close()`` writes everything at once, batched:
 one ``send_columns`` call per scene layer for the whole scene (all agents of all frames,
 partitioned by frame) and one per timeline entity. Measured with rerun-sdk 0.41 (see
-``docs/architecture.md``), this is 20-60x faster than one ``log`` call per agent or
+``docs/recording.md``, "Writing: batched, atomic"), this is 20-60x faster than one ``log`` call per agent or
 frame. The file appears atomically: it is written to a temporary file beside the output
 and renamed at the end; ``abort()`` (or any error) leaves nothing behind.
 

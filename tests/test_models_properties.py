@@ -1,4 +1,4 @@
-"""Property tests (hypothesis) for the invariants of docs/risk-models.md."""
+"""Property tests (hypothesis) for the invariants of the model spec (docs/models.md)."""
 
 from __future__ import annotations
 

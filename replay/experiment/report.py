@@ -154,7 +154,7 @@ def _setup(result: ExperimentResult) -> str:
         f"Measured: {agents.min()}-{agents.max()} agents per situation (mean "
         f"{agents.mean():.1f}, ego included), speeds {speeds.min():.1f}-{speeds.max():.1f} "
         "m/s. All vehicles, as in the paper.",
-        "- **Models**: the nine models with the defaults of `docs/risk-models.md` (horizon "
+        "- **Models**: the nine models with the defaults of `docs/models.md` (horizon "
         "T = 12 s, step 0.1 s; the uncertainty growth and τ_esc = 0.4 s are the spec's "
         "choices, the paper gives none).",
         f"- **Baseline**: survival analysis; an agent is important when R_S >= "
