@@ -24,10 +24,10 @@ from typing import Any, Protocol
 import numpy as np
 from tqdm import tqdm
 
+import risk
 from base.sinks import FrameResult, SceneInfo, Sink
 from replay.errors import ReplayError
 from replay.reader import open_scene
-from risk import evaluate as default_evaluate
 from risk.cascade import SURVIVAL_MODEL, CascadeConfig, CascadeResult, Evaluator, run_cascade
 from risk.frame import Frame, LaneMap, Scene
 from risk.registry import resolve_models
@@ -165,7 +165,7 @@ def run_scene(
     reader, path = _open(source)
     cascade = CascadeConfig.default() if cascade is None else cascade
     if evaluate is None:
-        evaluate = default_evaluate
+        evaluate = risk.evaluate  # looked up per call: tests and notebooks may replace it
     if prediction is not None:
         evaluate = functools.partial(evaluate, prediction=prediction)
     model_names = _model_names(models)
