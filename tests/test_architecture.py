@@ -35,6 +35,7 @@ ALLOWED_INNER_IMPORTS = {
     ("replay/batch/tasks.py", "recordings.errors"),
     # matplotlib (about 1 s) only in the driver, not in every spawned worker
     ("replay/batch/driver.py", "replay.stats.run"),
+    ("replay/experiment/report.py", "replay.stats.plots"),
     # `replay --help` stays fast: the error types load numpy, the models and rerun
     ("replay/user_errors.py", "converters.errors"),
     ("replay/user_errors.py", "recordings.errors"),

@@ -32,7 +32,6 @@ from replay.experiment.run import (
     situation_seed,
 )
 from replay.stats.files import write_stats
-from replay.stats.plots import plot_all, plot_funnel
 
 
 def write_experiment(
@@ -45,6 +44,10 @@ def write_experiment(
     """Tables, summary.json, plots and report.md into ``out_dir``; adds the plot and
     report times to ``result.times_s``. ``report_copy``: also write the report there,
     with its image links relative to that file. Returns name -> path."""
+    # Imported here: matplotlib takes about 1 s (python -X importtime), and every worker
+    # process of the experiment imports this package to run its situations.
+    from replay.stats.plots import plot_all, plot_funnel
+
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
