@@ -25,7 +25,7 @@ import numpy as np
 from tqdm import tqdm
 
 import risk
-from base.sinks import FrameResult, SceneInfo, Sink
+from base.sinks import FrameResult, SceneInfo, Sink  # also importable from here, as before
 from replay.errors import ReplayError
 from replay.reader import open_scene
 from risk.cascade import SURVIVAL_MODEL, CascadeConfig, CascadeResult, Evaluator, run_cascade
