@@ -59,6 +59,7 @@ from replay.experiment.run import (
     situation_name,
     situation_seed,
 )
+
 # Re-exported while other branches move over (they live in replay.pool now).
 from replay.pool import chunks, default_workers, parallel_map
 
