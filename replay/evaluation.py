@@ -25,8 +25,9 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from replay.atomic import atomic_output
+from base.atomic import atomic_output
 from replay.errors import ReplayError
+from replay.evaluation_plots import plot_evaluation
 from risk.evaluation import FPR_POINTS, TPR_TARGETS, evaluate_references, pooled_roc
 from risk.hindsight import HindsightSettings
 from risk.registry import BASELINE_THRESHOLD, MODELS
@@ -364,9 +365,7 @@ def write_evaluation(
                     df.write_parquet(tmp, compression="zstd")
             written[path.name] = path
     if plots:
-        from replay.evaluation_plots import plot_evaluation
-
-        written.update(plot_evaluation(summary, tables["roc"], out))
+        written.update(plot_evaluation(summary, tables["roc"], out, threshold=HEADLINE_THRESHOLD))
     path = out / "summary.json"
     text = json.dumps(
         _jsonable({**summary, "files": sorted([*written, "summary.json"])}),

@@ -15,20 +15,19 @@ import matplotlib.pyplot as plt
 import numpy as np
 import polars as pl
 
-from replay.atomic import atomic_output
-from replay.plots import DPI, MODEL_COLORS
+from base.atomic import atomic_output
+from replay.stats.plots import DPI, MODEL_COLORS
 
 
 def plot_evaluation(
-    summary: Mapping[str, Any], roc: pl.DataFrame, out_dir: pathlib.Path
+    summary: Mapping[str, Any], roc: pl.DataFrame, out_dir: pathlib.Path, *, threshold: str
 ) -> dict[str, pathlib.Path]:
-    """``roc_hindsight.png`` and one ``miss_rate_by_<grouping>.png`` per grouping."""
-    from replay.evaluation import HEADLINE_THRESHOLD
-
+    """``roc_hindsight.png`` and one ``miss_rate_by_<grouping>.png`` per grouping (miss
+    rates at the operating threshold named ``threshold``)."""
     written = {"roc_hindsight.png": _roc(summary, roc, out_dir / "roc_hindsight.png")}
     for grouping, blocks in summary.get("by", {}).items():
         name = f"miss_rate_by_{grouping}.png"
-        written[name] = _miss(summary, grouping, blocks, HEADLINE_THRESHOLD, out_dir / name)
+        written[name] = _miss(summary, grouping, blocks, threshold, out_dir / name)
     return written
 
 

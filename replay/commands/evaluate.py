@@ -194,7 +194,7 @@ def evaluate(
     Exits non-zero when no agent came close (every rate against hindsight undefined).
     """
     from replay.evaluation import check_groupings, format_evaluation, write_evaluation
-    from replay.experiment import default_workers
+    from replay.pool import default_workers
     from risk.registry import resolve_models
 
     chosen = tuple(resolve_models(_names(models))) if models else None
