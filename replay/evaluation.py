@@ -175,6 +175,9 @@ def evaluate_agents(
         stage_names=stages,
         sites=site,
         calibration_sites=calibration,
+        situations=df.select(pl.struct("scene", "ego_id", "frame").rank("dense"))
+        .to_series()
+        .to_numpy(),
         targets=TPR_TARGETS,
         fpr_points=FPR_POINTS,
         n_boot=settings.n_boot,

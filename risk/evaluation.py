@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from risk.errors import RiskError
+from risk.metrics import exact_sweep
 
 POSITIVE, NEGATIVE, UNKNOWN = 1, 0, -1
 #: FPRs at which the TPR is reported.
@@ -231,8 +232,14 @@ def evaluate_scores(
     fpr_points: Sequence[float] = FPR_POINTS,
     draws: np.ndarray | None = None,
     level: float = 0.95,
+    situations: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """ROC, AUC, TPR at fixed FPRs and miss rates of one model against one reference.
+
+    With ``situations (A,)`` (int situation codes) the summary also holds
+    ``auc_situation_mean``: the AUC of the curve averaged over situations, as
+    ``replay stats`` computes it (:func:`risk.metrics.exact_sweep`), over the included
+    agent-frames (no interval).
 
     ``scores (A,)`` (NaN: not an agent); ``reference (A,)`` label codes (1, 0, -1) or
     bool; ``clusters (A,)`` int scene codes ``0 .. S-1`` (see :func:`bootstrap_weights`);
@@ -248,6 +255,7 @@ def evaluate_scores(
         "agent_frames": int(srt.scores.size),
         "positives": int(srt.positive.sum()),
         "auc": {"value": _auc(tpr, fpr)},
+        "auc_situation_mean": _situation_mean_auc(s, include, positive, situations),
         "tpr_at_fpr": {f"{f:g}": {"value": tpr_at_fpr(tpr, fpr, f)} for f in fpr_points},
         "miss_rate": {},
     }
@@ -343,6 +351,18 @@ def _replicates(
             val = np.where(idx >= 0, tpr[rows, np.maximum(idx, 0)], 0.0)
             tpr_at[start : start + step, k] = np.where(np.isnan(fpr[:, 0]), np.nan, val)
     return auc, tpr_at, miss
+
+
+def _situation_mean_auc(
+    scores: np.ndarray, include: np.ndarray, positive: np.ndarray, situations: np.ndarray | None
+) -> float | None:
+    if situations is None:
+        return None
+    ok = include & ~np.isnan(scores)
+    if not ok.any():
+        return math.nan
+    _, sit = np.unique(np.asarray(situations)[ok], return_inverse=True)
+    return float(exact_sweep(scores[ok], sit.astype(np.int64), positive[ok]).auc)
 
 
 # ---------------------------------------------------------------------- counts
@@ -466,6 +486,7 @@ def evaluate_references(
     stage_names: Sequence[str] = (),
     sites: np.ndarray | None = None,
     calibration_sites: Sequence[Any] | None = None,
+    situations: np.ndarray | None = None,
     targets: Sequence[float] = TPR_TARGETS,
     fpr_points: Sequence[float] = FPR_POINTS,
     n_boot: int = 1000,
@@ -481,7 +502,8 @@ def evaluate_references(
     grouping name -> ``(A,)`` labels (e.g. dataset, kind); ``kept (A, K)``: the cascade's
     kept-after-stage flags with ``stage_names``; ``sites (A,)`` and
     ``calibration_sites``: for :func:`site_transfer` (at the first target, per model
-    and reference). ``n_boot = 0``: no intervals.
+    and reference); ``situations (A,)``: situation codes for the situation-mean AUC of
+    ``replay stats`` beside the pooled one. ``n_boot = 0``: no intervals.
     """
     if not scores:
         raise RiskError("no model scores to evaluate")
@@ -510,6 +532,7 @@ def evaluate_references(
                         fpr_points=fpr_points,
                         draws=draws,
                         level=level,
+                        situations=None if situations is None else situations[sel],
                     )
                     for name, r in refs.items()
                 }
@@ -518,6 +541,7 @@ def evaluate_references(
         }
 
     agents = np.asarray(agents, dtype=np.int64)
+    situations = None if situations is None else np.asarray(situations)
     refs = {k: np.asarray(v) for k, v in refs.items()}
     scores = {k: np.asarray(v, dtype=np.float64) for k, v in scores.items()}
     out: dict[str, Any] = {

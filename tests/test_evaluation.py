@@ -189,3 +189,16 @@ def test_vectorised_replicates_match_one_at_a_time(monkeypatch):
         assert tpr[b].tolist() == pytest.approx([tpr_at_fpr(t, f, x) for x in (0.05, 0.2)])
         wp = np.cumsum(w * srt.positive)
         assert miss[b].tolist() == pytest.approx([1 - wp[c - 1] / wp[-1] for c in cuts])
+
+
+def test_situation_mean_auc_is_replay_stats_sweep():
+    from risk.metrics import exact_sweep
+
+    scores = np.array([0.9, 0.2, 0.5, 0.4, 0.8, 0.1, 0.3])
+    ref = np.array([1, 0, 0, 1, -1, 0, 1])
+    sit = np.array([0, 0, 1, 1, 1, 2, 2])
+    out = evaluate_scores(scores, ref, sit, np.arange(7), situations=sit)
+    keep = ref >= 0  # the censored one is left out
+    want = exact_sweep(scores[keep], sit[keep], ref[keep] == 1).auc
+    assert out["auc_situation_mean"] == pytest.approx(want)
+    assert evaluate_scores(scores, ref, sit, np.arange(7))["auc_situation_mean"] is None
