@@ -184,6 +184,7 @@ def run_scene(
     prediction: Any = None,
     progress: bool = True,
     evaluate: Evaluator | None = None,
+    every: int = 1,
 ) -> RunSummary:
     """Replay a scene through every model and the cascade, feeding ``sinks``.
 
@@ -193,9 +194,12 @@ def run_scene(
     timelines (default: every registered model). ``params`` (model name -> parameters)
     and ``prediction`` (``risk.PredictionSettings``) go to every model evaluation, the
     cascade's included. Frames where the ego is absent or
-    invalid are skipped and counted (one :class:`ReplayWarning` at the end). On any error
-    every sink is aborted, so no partial output stays behind.
+    invalid are skipped and counted (one :class:`ReplayWarning` at the end). ``every``:
+    replay only frames whose index is a multiple of it (a frame stride that keeps
+    dataset-wide runs affordable; the others are neither processed nor counted as
+    skipped). On any error every sink is aborted, so no partial output stays behind.
     """
+    check_every(every)
     reader, path = _open(source)
     cascade = CascadeConfig.default() if cascade is None else cascade
     if evaluate is None:
@@ -206,7 +210,9 @@ def run_scene(
         evaluate = functools.partial(evaluate, prediction=prediction)
     model_names = _model_names(models)
     try:
-        return _run(reader, path, sinks, cascade, ego, model_names, params, progress, evaluate)
+        return _run(
+            reader, path, sinks, cascade, ego, model_names, params, progress, evaluate, every
+        )
     finally:
         close = getattr(reader, "close", None)
         if reader is not source and callable(close):
@@ -223,6 +229,7 @@ def _run(
     params: Mapping[str, Any] | None,
     progress: bool,
     evaluate: Evaluator,
+    every: int = 1,
 ) -> RunSummary:
     entries = _entries(reader)
     start = time.perf_counter()
@@ -256,6 +263,8 @@ def _run(
         with bar:
             for index, frame in _timed(totals, itertools.chain([first], entries)):
                 bar.update()
+                if index % every:
+                    continue
                 seen = None if frame is None else _seen_from(frame, ego_id)
                 if seen is None:
                     totals.skipped.append(index)
@@ -277,6 +286,12 @@ def _run(
     if totals.skipped:
         warnings.warn(_skipped_message(ego_id, totals.skipped), ReplayWarning, stacklevel=3)
     return _summary(totals, info, sinks)
+
+
+def check_every(every: int) -> None:
+    """A frame stride must be a whole number >= 1."""
+    if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
+        raise ReplayError(f"the frame stride must be a whole number >= 1, got {every!r}")
 
 
 # ---------------------------------------------------------------------- helpers
@@ -350,7 +365,7 @@ def _timed(
 def _timed_sink(totals: _Totals, sink: Sink, method: str, *args: Any) -> None:
     start = time.perf_counter()
     getattr(sink, method)(*args)
-    name = type(sink).__name__
+    name = getattr(sink, "timing_name", type(sink).__name__)
     totals.sink_time_s[name] = totals.sink_time_s.get(name, 0.0) + time.perf_counter() - start
 
 

@@ -76,7 +76,7 @@ TPR_TARGETS = (0.9, 0.95, 1.0)
 TPR_TOLERANCE = 1e-9
 #: Mean TPRs over which the std of TPR is reported as a range (the filtering region).
 HIGH_TPR_RANGE = (0.8, 1.0)
-SITUATION_KEY = ("scene", "frame")
+SITUATION_KEY = ("scene", "ego_id", "frame")  # one situation: a frame seen by one ego
 #: Variances of TPR below this are rounding (see :func:`exact_sweep`); std < 3e-7.
 VAR_ROUNDING = 1e-13
 
@@ -98,15 +98,20 @@ class StatsSink:
 
     def begin(self, info: SceneInfo) -> None:
         self._info = info
-        self._table.begin(info)
-        self._frames = []
+        self._table.begin(info)  # rows accumulate over begin() calls: one per ego
 
     def add(self, result: FrameResult) -> None:
         info = self._require_info()
         self._table.add(result)
         row = cascade_frame_row(result.cascade, [t.name for t in info.cascade.tiers])
         self._frames.append(
-            {"scene": self.scene, "frame": result.index, "t_s": result.frame.t, **row}
+            {
+                "scene": self.scene,
+                "ego_id": result.frame.ego_id,
+                "frame": result.index,
+                "t_s": result.frame.t,
+                **row,
+            }
         )
 
     def close(self) -> None:
@@ -176,13 +181,14 @@ def frames_table(
     return df
 
 
-_FRAME_DTYPES = {"scene": pl.String, "frame": pl.Int64, "t_s": pl.Float64}
+_FRAME_DTYPES = {"scene": pl.String, "ego_id": pl.Int64, "frame": pl.Int64, "t_s": pl.Float64}
 
 
 def frame_columns(stage_names: Sequence[str], tier_names: Sequence[str]) -> list[str]:
     """The frames-table columns, in order."""
     return [
         "scene",
+        "ego_id",
         "frame",
         "t_s",
         "n_others",
@@ -234,6 +240,7 @@ def frames_from_agents(
 ) -> pl.DataFrame:
     """The frames table of an agents table (no times; frames without agents are absent,
     because a table has no row for them)."""
+    agents = with_ego_column(agents)
     tier_index = {name: k for k, name in enumerate(tier_names)}
     tier_code = (
         agents["tier"].cast(pl.String).replace_strict(tier_index, default=-1, return_dtype=pl.Int64)
@@ -303,8 +310,16 @@ class Situations:
         return np.split(values, bounds)
 
 
+def with_ego_column(agents: pl.DataFrame) -> pl.DataFrame:
+    """The table with an ``ego_id`` column: hand-made tables without one have a single ego."""
+    if "ego_id" in agents.columns:
+        return agents
+    return agents.with_columns(pl.lit(0, dtype=pl.Int64).alias("ego_id"))
+
+
 def situations_of(agents: pl.DataFrame) -> Situations:
     """Group an agents table, sorted by scene and frame (:func:`sort_agents`), by situation."""
+    agents = with_ego_column(agents)
     if agents.height == 0:
         raise StatsError("no agent-frames: every frame is empty (no agent besides the ego)")
     for col in (*SITUATION_KEY, "baseline"):
@@ -331,7 +346,7 @@ def situations_of(agents: pl.DataFrame) -> Situations:
 
 def sort_agents(agents: pl.DataFrame) -> pl.DataFrame:
     """The agents table sorted by situation (stable within a situation)."""
-    return agents.sort(SITUATION_KEY, maintain_order=True)
+    return with_ego_column(agents).sort(SITUATION_KEY, maintain_order=True)
 
 
 def per_situation_rates(
@@ -960,7 +975,11 @@ def read_agents_table(path: str | os.PathLike[str], scene: str | None = None) ->
         df = df.with_columns(pl.col("baseline").cast(pl.String).str.to_lowercase() == "true")
     if "scene" not in df.columns:
         df = df.select(pl.lit(scene or path.stem).alias("scene"), pl.all())
-    return df.with_columns(pl.col("scene").cast(pl.String), pl.col("frame").cast(pl.Int64))
+    return with_ego_column(df).with_columns(
+        pl.col("scene").cast(pl.String),
+        pl.col("ego_id").cast(pl.Int64),
+        pl.col("frame").cast(pl.Int64),
+    )
 
 
 def concat_agents(tables: Sequence[pl.DataFrame]) -> pl.DataFrame:

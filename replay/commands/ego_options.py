@@ -1,0 +1,50 @@
+"""The ``--ego`` and ``--every`` options shared by ``run``, ``stats`` and ``batch``."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import click
+
+from replay.egos import ALL_EGOS
+from risk.motion import MIN_TRAVEL_M
+
+
+class EgoParam(click.ParamType):
+    """An agent id, or ``all`` for every agent that moves."""
+
+    name = "ID|all"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if value is None or isinstance(value, int):
+            return value
+        text = str(value).strip()
+        if text.lower() == ALL_EGOS:
+            return ALL_EGOS
+        try:
+            return int(text)
+        except ValueError:
+            self.fail(f"{value!r} is neither an agent id (a whole number) nor 'all'", param, ctx)
+
+
+def ego_option(default_help: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """``--ego ID|all``; ``default_help`` says what happens without it."""
+    return click.option(
+        "--ego", type=EgoParam(), default=None,
+        help=f"Agent id to see the scene from, or 'all': every agent whose centre moves "
+        f"{MIN_TRAVEL_M:g} m or more from where it was first seen becomes the ego in turn "
+        f"(one replay per ego; tables gain one row set per ego, told apart by ego_id). "
+        f"{default_help}",
+    )  # fmt: skip
+
+
+def every_option(func: Callable[..., Any]) -> Callable[..., Any]:
+    """``--every K``: a frame stride."""
+    return click.option(
+        "--every", type=click.IntRange(min=1, max=1_000_000), default=1, show_default=True,
+        metavar="K",
+        help="Replay every K-th frame only (frame index a multiple of K), e.g. --every 10 "
+        "for one frame per second at 10 Hz. Keeps dataset-wide runs affordable; hindsight "
+        "truth still uses every recorded frame.",
+    )(func)  # fmt: skip
