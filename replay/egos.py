@@ -153,6 +153,10 @@ def run_every_ego(
             f"{scene.path}: no agent moves {min_travel_m:g} m or more in this scene, so "
             "--ego all has no ego to replay; pick an agent with --ego ID"
         )
+    # With a stride, an agent valid only between replayed frames has nothing to replay.
+    strided = [f for index, f in scene.indexed if index % every == 0]
+    present = np.unique(np.concatenate([f.ids[f.valid] for f in strided] or [np.zeros(0)]))
+    egos = egos[np.isin(egos, present)]
     wrapped = [_KeepOpen(s) for s in sinks]
     runs: list[RunSummary] = []
     bar = tqdm(

@@ -144,3 +144,24 @@ def test_cli_ego_option_errors(scene_file: pathlib.Path) -> None:
     assert stride.exit_code == 2
     rrd = runner.invoke(main, ["run", str(scene_file), "--ego", "all", "-o", "x.rrd"])
     assert rrd.exit_code == 2 and "--ego all writes the table only" in rrd.output
+
+
+def test_stride_leaves_out_egos_valid_only_between_replayed_frames(
+    tmp_path: pathlib.Path,
+) -> None:
+    scene = _scene()
+    # Agent 13 valid only in frames 11..13: with a stride of 5 no replayed frame has it.
+    frames = []
+    for k, f in enumerate(scene.frames):
+        valid = f.valid.copy()
+        valid[3] = 11 <= k <= 13
+        frames.append(_frame(f.t, f.xy.copy(), valid, ego=0))
+    for k, f in enumerate(frames):
+        # agent 13 at 5 m per frame: 10 m over frames 11..13
+        xy = f.xy.copy()
+        xy[3] = [5.0 * k, -15.0]
+        frames[k] = _frame(f.t, xy, f.valid, ego=0)
+    path = tmp_path / "short.mcap"
+    write_scene(path, Scene(map=LaneMap(), frames=tuple(frames), frame_period_s=0.1))
+    assert run_every_ego(path, progress=False).egos == (10, 13)
+    assert run_every_ego(path, every=5, progress=False).egos == (10,)
