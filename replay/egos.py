@@ -29,7 +29,7 @@ from replay.engine import (
     RunSummary,
     SceneInfo,
     Sink,
-    check_every,
+    Stride,
     run_scene,
 )
 from replay.errors import ReplayError
@@ -98,7 +98,7 @@ class EgosSummary:
     source: pathlib.Path | None
     egos: tuple[int, ...]
     min_travel_m: float
-    every: int
+    every: Stride
     runs: tuple[RunSummary, ...]
     outputs: tuple[pathlib.Path, ...] = ()
 
@@ -131,7 +131,7 @@ def run_every_ego(
     *,
     sinks: Sequence[Sink] = (),
     cascade: CascadeConfig | None = None,
-    every: int = 1,
+    every: int | Stride = 1,
     min_travel_m: float = MIN_TRAVEL_M,
     models: Sequence[str] | None = None,
     params: Mapping[str, Any] | None = None,
@@ -145,8 +145,9 @@ def run_every_ego(
     each agent is present for part of the scene). Raises ReplayError when no agent moves
     enough. ``every`` is the frame stride of :func:`replay.engine.run_scene`.
     """
-    check_every(every)
+    stride = Stride.of(every)
     scene = load_scene(source)
+    step = stride.frames_at(scene.frame_period_s)
     egos = moving_agent_ids(scene.frames(), min_travel_m)
     if egos.size == 0:
         raise ReplayError(
@@ -154,7 +155,7 @@ def run_every_ego(
             "--ego all has no ego to replay; pick an agent with --ego ID"
         )
     # With a stride, an agent valid only between replayed frames has nothing to replay.
-    strided = [f for index, f in scene.indexed if index % every == 0]
+    strided = [f for index, f in scene.indexed if index % step == 0]
     present = np.unique(np.concatenate([f.ids[f.valid] for f in strided] or [np.zeros(0)]))
     egos = egos[np.isin(egos, present)]
     wrapped = [_KeepOpen(s) for s in sinks]
@@ -171,7 +172,7 @@ def run_every_ego(
                 run = run_scene(
                     scene, sinks=wrapped, cascade=cascade, ego=int(ego), models=models,
                     params=params, prediction=prediction, progress=False, evaluate=evaluate,
-                    every=every,
+                    every=step,
                 )  # fmt: skip
                 runs.append(run)
         for sink in sinks:
@@ -186,7 +187,7 @@ def run_every_ego(
         source=scene.path,
         egos=tuple(int(e) for e in egos),
         min_travel_m=float(min_travel_m),
-        every=int(every),
+        every=stride,
         runs=tuple(runs),
         outputs=tuple(pathlib.Path(p) for p in files if p is not None),
     )

@@ -184,7 +184,7 @@ def run_scene(
     prediction: Any = None,
     progress: bool = True,
     evaluate: Evaluator | None = None,
-    every: int = 1,
+    every: int | Stride = 1,
 ) -> RunSummary:
     """Replay a scene through every model and the cascade, feeding ``sinks``.
 
@@ -194,12 +194,13 @@ def run_scene(
     timelines (default: every registered model). ``params`` (model name -> parameters)
     and ``prediction`` (``risk.PredictionSettings``) go to every model evaluation, the
     cascade's included. Frames where the ego is absent or
-    invalid are skipped and counted (one :class:`ReplayWarning` at the end). ``every``:
-    replay only frames whose index is a multiple of it (a frame stride that keeps
-    dataset-wide runs affordable; the others are neither processed nor counted as
-    skipped). On any error every sink is aborted, so no partial output stays behind.
+    invalid are skipped and counted (one :class:`ReplayWarning` at the end). ``every``: a
+    :class:`Stride` (or a whole number of frames); only frames whose index is a multiple
+    of it are replayed, which keeps dataset-wide runs affordable (the others are neither
+    processed nor counted as skipped). On any error every sink is aborted, so no partial
+    output stays behind.
     """
-    check_every(every)
+    stride = Stride.of(every)
     reader, path = _open(source)
     cascade = CascadeConfig.default() if cascade is None else cascade
     if evaluate is None:
@@ -211,8 +212,9 @@ def run_scene(
     model_names = _model_names(models)
     try:
         return _run(
-            reader, path, sinks, cascade, ego, model_names, params, progress, evaluate, every
-        )
+            reader, path, sinks, cascade, ego, model_names, params, progress, evaluate,
+            stride.frames_at(float(reader.frame_period_s)),
+        )  # fmt: skip
     finally:
         close = getattr(reader, "close", None)
         if reader is not source and callable(close):
@@ -288,10 +290,55 @@ def _run(
     return _summary(totals, info, sinks)
 
 
-def check_every(every: int) -> None:
-    """A frame stride must be a whole number >= 1."""
-    if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
-        raise ReplayError(f"the frame stride must be a whole number >= 1, got {every!r}")
+@dataclass(frozen=True)
+class Stride:
+    """Which frames to replay: every ``frames``-th, or one per ``seconds`` of scene time.
+
+    A stride in seconds becomes ``max(1, round(seconds / frame_period_s))`` frames for each
+    scene, so datasets recorded at 5, 10 or 25 Hz are sampled alike.
+    """
+
+    frames: int = 1
+    seconds: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.seconds is not None:
+            if not (isinstance(self.seconds, (int, float)) and 0 < self.seconds < 1e6):
+                raise ReplayError(f"a stride in seconds must be in (0, 1e6), got {self.seconds!r}")
+        elif (
+            isinstance(self.frames, bool)
+            or not isinstance(self.frames, (int, np.integer))
+            or not 1 <= self.frames <= 1_000_000
+        ):
+            raise ReplayError(f"a frame stride must be a whole number >= 1, got {self.frames!r}")
+
+    @classmethod
+    def of(cls, value: int | Stride) -> Stride:
+        return value if isinstance(value, Stride) else cls(frames=value)
+
+    @classmethod
+    def parse(cls, text: str) -> Stride:
+        """``"10"``: every 10th frame; ``"1s"`` or ``"0.5s"``: one frame per that time."""
+        text = str(text).strip().lower()
+        try:
+            if text.endswith("s"):
+                return cls(seconds=float(text[:-1]))
+            return cls(frames=int(text))
+        except ValueError:
+            raise ReplayError(
+                f"{text!r} is not a stride: give a whole number of frames (10) or seconds (1s)"
+            ) from None
+
+    def frames_at(self, frame_period_s: float) -> int:
+        """The stride in frames for a scene with this frame period."""
+        if self.seconds is None:
+            return int(self.frames)
+        return max(1, round(self.seconds / frame_period_s))
+
+    def __str__(self) -> str:
+        if self.seconds is not None:
+            return f"one frame per {self.seconds:g} s"
+        return "every frame" if self.frames == 1 else f"every {self.frames}th frame"
 
 
 # ---------------------------------------------------------------------- helpers

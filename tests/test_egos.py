@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from converters.mcap_io import write_scene
 from replay.cli import main
 from replay.egos import run_every_ego
+from replay.engine import Stride
 from replay.errors import ReplayError
 from replay.tables import TableSink
 from risk.frame import Frame, LaneMap, Scene
@@ -165,3 +166,15 @@ def test_stride_leaves_out_egos_valid_only_between_replayed_frames(
     write_scene(path, Scene(map=LaneMap(), frames=tuple(frames), frame_period_s=0.1))
     assert run_every_ego(path, progress=False).egos == (10, 13)
     assert run_every_ego(path, every=5, progress=False).egos == (10,)
+
+
+def test_stride_in_seconds_follows_the_frame_rate(scene_file: pathlib.Path) -> None:
+    assert Stride.parse("1s").frames_at(0.1) == 10
+    assert Stride.parse("1s").frames_at(0.04) == 25
+    assert Stride.parse("0.01s").frames_at(0.1) == 1
+    assert Stride.parse("7").frames_at(0.04) == 7
+    with pytest.raises(ReplayError):
+        Stride.parse("ten")
+    sink = TableSink(None)
+    run_every_ego(scene_file, sinks=[sink], every=Stride(seconds=0.5), progress=False)
+    assert sorted(sink.dataframe()["frame"].unique().to_list()) == [0, 5, 10, 15]

@@ -8,6 +8,8 @@ from typing import Any
 import click
 
 from replay.egos import ALL_EGOS
+from replay.engine import Stride
+from replay.errors import ReplayError
 from risk.motion import MIN_TRAVEL_M
 
 
@@ -39,12 +41,25 @@ def ego_option(default_help: str) -> Callable[[Callable[..., Any]], Callable[...
     )  # fmt: skip
 
 
+class StrideParam(click.ParamType):
+    """A frame stride: ``K`` frames or ``Ts`` seconds."""
+
+    name = "K|Ts"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if isinstance(value, Stride):
+            return value
+        try:
+            return Stride.parse(value)
+        except ReplayError as exc:
+            self.fail(str(exc), param, ctx)
+
+
 def every_option(func: Callable[..., Any]) -> Callable[..., Any]:
-    """``--every K``: a frame stride."""
+    """``--every K|Ts``: a frame stride."""
     return click.option(
-        "--every", type=click.IntRange(min=1, max=1_000_000), default=1, show_default=True,
-        metavar="K",
-        help="Replay every K-th frame only (frame index a multiple of K), e.g. --every 10 "
-        "for one frame per second at 10 Hz. Keeps dataset-wide runs affordable; hindsight "
-        "truth still uses every recorded frame.",
+        "--every", type=StrideParam(), default="1", show_default=True,
+        help="Replay every K-th frame only (frame index a multiple of K), or one frame per "
+        "T seconds of scene time ('1s': whatever the frame rate). Keeps dataset-wide runs "
+        "affordable; hindsight truth still uses every recorded frame.",
     )(func)  # fmt: skip

@@ -9,7 +9,7 @@ import click
 
 from replay.commands.ego_options import ego_option, every_option
 from replay.egos import ALL_EGOS, EgosSummary, pooled, run_every_ego
-from replay.engine import ReplayWarning, RunSummary, Sink, run_scene
+from replay.engine import ReplayWarning, RunSummary, Sink, Stride, run_scene
 from risk.cascade import CascadeConfig
 
 
@@ -44,7 +44,7 @@ def run(
     scene: pathlib.Path,
     output: pathlib.Path | None,
     ego: int | str | None,
-    every: int,
+    every: Stride,
     cascade_file: pathlib.Path | None,
     table: pathlib.Path | None,
     no_rrd: bool,
@@ -89,7 +89,7 @@ def run(
 def format_egos_summary(egos: EgosSummary) -> str:
     """The end-of-run summary of an every-ego replay: the egos, then the pooled funnel."""
     shown = ", ".join(str(e) for e in egos.egos[:12]) + (", ..." if len(egos.egos) > 12 else "")
-    stride = f", every {egos.every}th frame" if egos.every > 1 else ""
+    stride = f", {egos.every}" if egos.every != Stride() else ""
     head = (
         f"Egos: {len(egos.egos)} agents that move {egos.min_travel_m:g} m or more ({shown});"
         f" {egos.ego_frames} ego-frames{stride}"
