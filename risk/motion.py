@@ -22,26 +22,37 @@ from risk.frame import Frame
 MIN_TRAVEL_M = 5.0
 
 
-def travel_extents(frames: Iterable[Frame]) -> tuple[np.ndarray, np.ndarray]:
-    """``(ids (A,), extent_m (A,))`` of every agent valid in at least one frame.
+def track_extents(xy: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``(N,)`` travel extent in m of ``N`` tracks over ``T`` steps.
 
-    ``extent_m[a]`` is ``max_t |xy_a(t) - xy_a(t0)|`` over the frames where agent ``a`` is
-    valid, ``t0`` its first such frame (0 for an agent seen once). Ids ascend.
+    ``xy``: ``(T, N, 2)`` centres (m), ``valid``: ``(T, N)`` bool; 0 for a track seen at
+    most once or never.
     """
+    xy = np.asarray(xy, dtype=np.float64)
+    valid = np.asarray(valid, dtype=bool)
+    if valid.size == 0:
+        return np.zeros(valid.shape[1] if valid.ndim == 2 else 0)
+    first = np.argmax(valid, axis=0)  # (N,) first valid step (0 when never valid)
+    start = xy[first, np.arange(valid.shape[1])]  # (N, 2)
+    dist = np.hypot(*(xy - start[None]).transpose(2, 0, 1))  # (T, N)
+    return np.where(valid, dist, 0.0).max(axis=0)
+
+
+def travel_extents(frames: Iterable[Frame]) -> tuple[np.ndarray, np.ndarray]:
+    """``(ids (A,), extent_m (A,))`` of every agent valid in at least one frame, ids
+    ascending (see :func:`track_extents`)."""
     frames = list(frames)
     seen = [f.ids[f.valid] for f in frames]
-    if not seen or not any(s.size for s in seen):
+    if not any(s.size for s in seen):
         return np.zeros(0, dtype=np.int64), np.zeros(0)
     ids = np.unique(np.concatenate(seen))
-    start = np.full((ids.size, 2), np.nan)
-    extent = np.zeros(ids.size)
-    for frame, frame_ids in zip(frames, seen, strict=True):
+    xy = np.zeros((len(frames), ids.size, 2))
+    valid = np.zeros((len(frames), ids.size), dtype=bool)
+    for k, (frame, frame_ids) in enumerate(zip(frames, seen, strict=True)):
         rows = np.searchsorted(ids, frame_ids)  # ids are unique within a frame
-        xy = frame.xy[frame.valid]
-        first = np.isnan(start[rows, 0])
-        start[rows[first]] = xy[first]
-        extent[rows] = np.maximum(extent[rows], np.hypot(*(xy - start[rows]).T))
-    return ids, extent
+        xy[k, rows] = frame.xy[frame.valid]
+        valid[k, rows] = True
+    return ids, track_extents(xy, valid)
 
 
 def moving_agent_ids(frames: Iterable[Frame], min_travel_m: float = MIN_TRAVEL_M) -> np.ndarray:
