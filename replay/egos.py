@@ -33,6 +33,7 @@ from replay.engine import (
     run_scene,
 )
 from replay.errors import ReplayError
+from replay.reader import open_scene
 from risk.cascade import CascadeConfig, Evaluator
 from risk.frame import Frame, LaneMap
 from risk.motion import MIN_TRAVEL_M, moving_agent_ids
@@ -109,8 +110,6 @@ class EgosSummary:
 
 def load_scene(source: str | os.PathLike[str]) -> _LoadedScene:
     """Read a scene file into memory, every frame with at least one valid agent."""
-    from replay.reader import open_scene
-
     path = pathlib.Path(source)
     reader = open_scene(path)
     indexed = tuple(

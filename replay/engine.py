@@ -305,6 +305,10 @@ class Stride:
         return "every frame" if self.frames == 1 else f"every {self.frames}th frame"
 
 
+#: The default stride: every frame.
+EVERY_FRAME = Stride()
+
+
 # ---------------------------------------------------------------------- helpers
 def _open(source: str | os.PathLike[str] | SceneSource | Scene) -> tuple[Any, pathlib.Path | None]:
     if isinstance(source, Scene):

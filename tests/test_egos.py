@@ -178,3 +178,33 @@ def test_stride_in_seconds_follows_the_frame_rate(scene_file: pathlib.Path) -> N
     sink = TableSink(None)
     run_every_ego(scene_file, sinks=[sink], every=Stride(seconds=0.5), progress=False)
     assert sorted(sink.dataframe()["frame"].unique().to_list()) == [0, 5, 10, 15]
+
+
+def test_cli_stats_and_batch_take_ego_all(scene_file: pathlib.Path, tmp_path: pathlib.Path) -> None:
+    runner = CliRunner()
+    out = tmp_path / "stats"
+    result = runner.invoke(
+        main,
+        ["stats", str(scene_file), "-o", str(out), "--ego", "all", "--every", "2",
+         "--workers", "1", "--no-plots", "--no-progress"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    per_frame = pl.read_parquet(out / "per_frame.parquet")
+    assert sorted(per_frame["ego_id"].unique().to_list()) == [10, 13]
+    # One situation per (ego, frame): ego 10 at the 10 even frames, ego 13 at 10..18.
+    assert per_frame.height == 10 + 5
+
+    batch_out = tmp_path / "batch"
+    result = runner.invoke(
+        main,
+        ["batch", str(scene_file.parent), "-o", str(batch_out), "--ego", "all", "--every",
+         "0.2s", "--workers", "1", "--no-progress"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    table = pl.read_parquet(next((batch_out / "tables").glob("*.parquet")))
+    assert sorted(table["ego_id"].unique().to_list()) == [10, 13]
+    assert set(table["frame"].unique().to_list()) <= set(range(0, 20, 2))
+    refused = runner.invoke(
+        main, ["batch", str(scene_file.parent), "-o", str(batch_out), "--ego", "all", "--rrd"]
+    )
+    assert refused.exit_code == 2 and "cannot go with --ego all" in refused.output

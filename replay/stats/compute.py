@@ -288,8 +288,8 @@ def _std_range(roc: Sweep, tpr_range: tuple[float, float]) -> tuple[float, float
 
 def _tpr_above_min(roc: Sweep) -> float:
     """The highest mean TPR at a threshold above the lowest score (which keeps everyone)."""
-    sel = roc.thresholds > np.min(roc.thresholds)
-    return float(np.nanmax(roc.mean_tpr[sel])) if sel.any() else math.nan
+    sel = (roc.thresholds > np.min(roc.thresholds)) & np.isfinite(roc.mean_tpr)
+    return float(np.max(roc.mean_tpr[sel])) if sel.any() else math.nan
 
 
 def _nanmean(x: np.ndarray) -> float:
