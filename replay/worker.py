@@ -18,7 +18,8 @@ from typing import Any
 import polars as pl
 
 from base.sinks import Sink
-from replay.engine import ReplayWarning, RunSummary, SceneSource, run_scene
+from replay.egos import ALL_EGOS, pooled, run_every_ego
+from replay.engine import EVERY_FRAME, ReplayWarning, RunSummary, SceneSource, Stride, run_scene
 from replay.stats.sink import StatsSink
 from risk.cascade import CascadeConfig
 from risk.frame import Scene
@@ -44,12 +45,29 @@ def replay_scene(
     params: Any = None,
     prediction: Any = None,
     hindsight: HindsightSettings | None = None,
+    ego: int | str | None = None,
+    every: int | Stride = 1,
 ) -> SceneTables:
     """Replay ``source`` (a scene file, an open reader or an in-memory scene) into its
     tables, named ``name`` in their ``scene`` column; also write its ``.rrd`` to
     ``recording`` (its folder is created). Every output is aborted on an error.
+
     ``params`` (model name -> parameters) and ``prediction`` go to every model
-    evaluation; ``hindsight``: the settings of the table's truth columns."""
+    evaluation; ``hindsight``: the settings of the table's truth columns. ``ego``: an
+    agent id, None for the recording's ego, or ``"all"`` for every moving agent in turn
+    (:mod:`replay.egos`; a scene file only, and no recording). ``every``: the frame
+    stride."""
+    if ego == ALL_EGOS:
+        if recording is not None:
+            raise ValueError("a recording shows one ego's view; it cannot go with ego='all'")
+        if not isinstance(source, (str, os.PathLike)):
+            raise TypeError("ego='all' replays a scene file")
+        collect = StatsSink(name, hindsight=hindsight)
+        egos = run_every_ego(
+            source, sinks=[collect], cascade=cascade, models=models, every=every,
+            params=params, prediction=prediction, progress=False,
+        )  # fmt: skip
+        return SceneTables(collect.agents(), collect.frames(), pooled(egos))
     collect = StatsSink(name, hindsight=hindsight)
     sinks: list[Sink] = [collect]
     if recording is not None:
@@ -63,7 +81,8 @@ def replay_scene(
         warnings.simplefilter("ignore", ReplayWarning)  # skipped frames: absent from tables
         summary = run_scene(
             source, sinks=sinks, cascade=cascade, models=models, params=params,
-            prediction=prediction, progress=False,
+            prediction=prediction, progress=False, ego=None if ego is None else int(ego),
+            every=every,
         )  # fmt: skip
     return SceneTables(collect.agents(), collect.frames(), summary)
 
@@ -76,6 +95,8 @@ class SceneJob:
     name: str
     cascade: CascadeConfig
     models: tuple[str, ...] | None = None
+    ego: int | str | None = None
+    every: Stride = EVERY_FRAME
     params: Any = None  # model name -> parameters, for every evaluation
     prediction: Any = None  # risk.PredictionSettings
     hindsight: HindsightSettings | None = None  # settings of the truth columns
@@ -84,8 +105,8 @@ class SceneJob:
 def replay_job(job: SceneJob) -> tuple[pl.DataFrame, pl.DataFrame]:
     """The agents and frames tables of one scene file (runs in a worker process)."""
     tables = replay_scene(
-        job.path, name=job.name, cascade=job.cascade, models=job.models, params=job.params,
-        prediction=job.prediction, hindsight=job.hindsight,
+        job.path, name=job.name, cascade=job.cascade, models=job.models, ego=job.ego,
+        every=job.every, params=job.params, prediction=job.prediction, hindsight=job.hindsight,
     )  # fmt: skip
     return tables.agents, tables.frames
 

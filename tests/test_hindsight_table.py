@@ -13,6 +13,7 @@ from replay.cli import main
 from replay.engine import run_scene
 from replay.reader import open_scene, read_scene
 from replay.tables import TableSink
+from risk.cascade import CascadeConfig
 from risk.hindsight import HindsightSettings, hindsight_truth, tracks_from_frames
 
 
@@ -71,3 +72,27 @@ def test_in_memory_scene_and_a_shorter_horizon(scene_file):
     early = df.filter(pl.col("frame") <= last - 10)
     assert early["truth_label"].null_count() < early.height
     assert (df.filter(pl.col("frame") > last - 10)["truth_label"].fill_null(True)).all()
+
+
+def test_every_ego_gets_its_own_truth(scene_file):
+    from replay.worker import replay_scene
+
+    tables = replay_scene(
+        scene_file, name="s", cascade=CascadeConfig.default(),
+        ego="all", hindsight=HindsightSettings(horizon_s=1.0),
+    )  # fmt: skip
+    df = tables.agents
+    assert df["ego_id"].n_unique() > 1
+    scene = read_scene(scene_file)
+    tracks = tracks_from_frames(scene.frames, frame_period_s=scene.frame_period_s)
+    egos = np.unique(df["ego_id"].to_numpy())
+    truth = hindsight_truth(
+        tracks, tracks.index_of(egos), settings=HindsightSettings(horizon_s=1.0)
+    )
+    e = np.searchsorted(egos, df["ego_id"].to_numpy())
+    k = tracks.frame_of(df["t_s"].to_numpy())
+    a = tracks.index_of(df["agent_id"].to_numpy())
+    want = truth.label[k, e, a]
+    got = df["truth_label"].to_list()
+    assert [None if w < 0 else bool(w) for w in want] == got
+    assert df["truth_label"].null_count() < df.height
