@@ -171,3 +171,19 @@ def test_site_names():
     assert site_of("DEU_LocationALower26-1_26150_T-225") == "DEU_LocationALower"
     assert site_of("CHN_SIND-8021_1654_T-1729") == "CHN_SIND"
     assert site_of("DR_USA_Intersection_EP0") == "DR_USA_Intersection_EP"
+
+
+def test_every_moving_agent_as_the_ego(corpus, tmp_path):
+    out = tmp_path / "out"
+    r = invoke("evaluate", corpus / "setA", "-o", out, "--ego", "all", "--every", "0.5s",
+               "--bootstrap", 20, "--workers", 1, "--no-progress", "--no-plots")  # fmt: skip
+    assert r.exit_code == 0, r.output
+    summary = json.loads((out / "summary.json").read_text())
+    # Two scenes: 3 and 4 moving agents, each one an ego. The crossing agent passes the
+    # ego's lane 0.5 s after it and the next lane (y = 5) about 0.9 s after the agent
+    # there; the lane at y = 10 1.4 s after (> 1 s). Each pair counts from both sides:
+    # 4 distinct (scene, ego, agent) positives.
+    assert summary["egos"] == 7
+    assert summary["references"]["hindsight"]["positive_agents"] == 4
+    r = invoke("evaluate", corpus / "setA", "-o", out, "--ego", "nobody", "--no-progress")
+    assert r.exit_code != 0 and "neither an agent id" in r.output

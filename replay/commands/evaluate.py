@@ -17,6 +17,8 @@ from typing import Any
 import click
 import polars as pl
 
+from replay.commands.ego_options import ego_option, every_option
+from replay.engine import Stride
 from replay.evaluation import (
     DEFAULT_GROUPINGS,
     GROUPINGS,
@@ -38,6 +40,8 @@ def evaluate_inputs(
     settings: EvaluationSettings | None = None,
     workers: int = 1,
     progress: bool = False,
+    ego: int | str | None = None,
+    every: Any = 1,
 ) -> dict[str, Any]:
     """Replay (scenes) or read (tables) the inputs and evaluate them; the summary dict.
 
@@ -46,7 +50,7 @@ def evaluate_inputs(
     ``replay evaluate`` runs, without writing files."""
     agents, datasets, hs = collect_agents(
         paths, cascade=cascade, params=params, prediction=prediction, hindsight=hindsight,
-        workers=workers, progress=progress,
+        workers=workers, progress=progress, ego=ego, every=every,
     )  # fmt: skip
     return evaluate_agents(
         agents, settings=settings, datasets=datasets, hindsight=hs,
@@ -63,6 +67,8 @@ def collect_agents(
     hindsight: HindsightSettings | None = None,
     workers: int = 1,
     progress: bool = False,
+    ego: int | str | None = None,
+    every: Any = 1,
 ) -> tuple[pl.DataFrame, dict[str, str], HindsightSettings]:
     """The agents table of scenes, tables or folders (as ``replay stats`` reads them),
     the dataset of each scene (the name of the folder its file is in) and the hindsight
@@ -85,6 +91,8 @@ def collect_agents(
         params=params,
         prediction=prediction,
         hindsight=hs,
+        ego=ego,
+        every=Stride.of(every),
     )
     files = [*found.scenes, *found.tables]
     names = scene_names(files)
@@ -147,6 +155,8 @@ def _names(text: str | None) -> list[str]:
 )  # fmt: skip
 @click.option("--bootstrap", "n_boot", type=click.IntRange(min=0), default=1000, show_default=True,
               help="Scene-bootstrap replicates for the 95 % intervals (0: none).")  # fmt: skip
+@ego_option("Default: each scene's recorded ego. Applies to scenes, not to tables.")
+@every_option
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the bootstrap.")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="Processes replaying scenes in parallel. Default: the number of CPUs.")  # fmt: skip
@@ -167,6 +177,8 @@ def evaluate(
     groupings: str,
     calibration_sites: str | None,
     n_boot: int,
+    ego: int | str | None,
+    every: Stride,
     seed: int,
     workers: int | None,
     plots: bool,
@@ -219,7 +231,7 @@ def evaluate(
     start = time.perf_counter()
     agents, datasets, hs = collect_agents(
         inputs, cascade=cascade, hindsight=hindsight, workers=workers or default_workers(),
-        progress=progress,
+        progress=progress, ego=ego, every=every,
     )  # fmt: skip
     read_s = time.perf_counter() - start
     start = time.perf_counter()
