@@ -78,7 +78,7 @@ class _CompileNotice(event.Listener):
         pass
 
 
-event.install_listener("numba:compile", _CompileNotice())
+event.register("numba:compile", _CompileNotice())
 
 # Model slots, in registry order.
 CUR, PATH, TRAJ, ENC, HW, H2D, CIRC, GAUSS, SURV = range(9)
@@ -100,6 +100,8 @@ K = 8
 #: Numpy's pairwise summation block (numpy/core/src/umath/loops_utils.h).
 PW_BLOCK = 128
 TIE = 1e-9  # risk.temporal.TIE_TOLERANCE_M
+#: exp(x) is exactly 0 in float64 below about -745.13; a margin keeps it exact.
+EXP_ZERO = -760.0
 INF = math.inf
 
 
@@ -202,7 +204,8 @@ def _extend(paths, m, npts, heading, min_len, seg, ex, ey, ecum, eux, euy):
     for j in range(p1 - 1):
         dx = ex[j + 1] - ex[j]
         dy = ey[j + 1] - ey[j]
-        length = math.sqrt(dx * dx + dy * dy)
+        # the given segments keep their lengths (same points, same root)
+        length = seg[j] if j < npts - 1 else math.sqrt(dx * dx + dy * dy)
         ecum[j + 1] = ecum[j] + length
         if length > 0:
             inv = 1.0 / length
@@ -297,27 +300,35 @@ def _pseg2(px, py, ox, oy, sx, sy, inv2):
 
 
 @numba.njit(cache=True)
-def _chunk_pair2(ax, ay, an, ca, bx, by, bn, cb):
+def _chunk_pair2(ax, ay, an, ca, bx, by, bn, cb, best):
     """Least squared distance between the segments of chunk ``ca`` of polyline a and chunk
-    ``cb`` of b; 0 when two segments intersect (risk.geometry._fine)."""
+    ``cb`` of b, or ``best`` when none is nearer; 0 when two segments intersect
+    (risk.geometry._fine). Segment pairs whose boxes are farther apart than ``best`` are
+    skipped (they can neither intersect nor be nearer)."""
     sa = max(an - 1, 1)
     sb = max(bn - 1, 1)
-    best = INF
     for i in range(ca * K, min(ca * K + K, sa)):
         i1 = min(i + 1, an - 1)
         p1x, p1y = ax[i], ay[i]
-        s1x, s1y = ax[i1] - p1x, ay[i1] - p1y
+        q1x, q1y = ax[i1], ay[i1]
+        s1x, s1y = q1x - p1x, q1y - p1y
+        lo1x, hi1x = min(p1x, q1x), max(p1x, q1x)
+        lo1y, hi1y = min(p1y, q1y), max(p1y, q1y)
         len1 = s1x * s1x + s1y * s1y
         inv1 = 1.0 / len1 if len1 > 1e-300 else 0.0
         for j in range(cb * K, min(cb * K + K, sb)):
             j1 = min(j + 1, bn - 1)
             p2x, p2y = bx[j], by[j]
             q2x, q2y = bx[j1], by[j1]
+            gx = max(max(min(p2x, q2x) - hi1x, lo1x - max(p2x, q2x)), 0.0)
+            gy = max(max(min(p2y, q2y) - hi1y, lo1y - max(p2y, q2y)), 0.0)
+            if gx * gx + gy * gy > best:
+                continue
             s2x, s2y = q2x - p2x, q2y - p2y
             o1 = _sign(s1x * (p2y - p1y) - s1y * (p2x - p1x))
             o2 = _sign(s1x * (q2y - p1y) - s1y * (q2x - p1x))
             o3 = _sign(s2x * (p1y - p2y) - s2y * (p1x - p2x))
-            o4 = _sign(s2x * (ay[i1] - p2y) - s2y * (ax[i1] - p2x))
+            o4 = _sign(s2x * (q1y - p2y) - s2y * (q1x - p2x))
             collinear = o1 == 0 and o2 == 0 and o3 == 0 and o4 == 0
             if o1 * o2 <= 0 and o3 * o4 <= 0 and not collinear:
                 return 0.0
@@ -326,7 +337,7 @@ def _chunk_pair2(ax, ay, an, ca, bx, by, bn, cb):
             d = _pseg2(p2x, p2y, p1x, p1y, s1x, s1y, inv1)
             d = min(d, _pseg2(q2x, q2y, p1x, p1y, s1x, s1y, inv1))
             d = min(d, _pseg2(p1x, p1y, p2x, p2y, s2x, s2y, inv2))
-            d = min(d, _pseg2(ax[i1], ay[i1], p2x, p2y, s2x, s2y, inv2))
+            d = min(d, _pseg2(q1x, q1y, p2x, p2y, s2x, s2y, inv2))
             best = min(best, d)
     return best
 
@@ -347,7 +358,7 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
                 gmin, amin, bmin = g, i, j
     if gmin > cut2:
         return math.sqrt(gmin)  # a lower bound beyond the cut: the caller drops
-    best = _chunk_pair2(ax, ay, an, amin, bx, by, bn, bmin)
+    best = _chunk_pair2(ax, ay, an, amin, bx, by, bn, bmin, INF)
     if best == 0.0 or best <= stop2:
         return math.sqrt(best)
     for i in range(nca):
@@ -355,7 +366,7 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
             g = gaps[i * ncb + j]
             if g > best or g > cut2 or (i == amin and j == bmin):
                 continue
-            d = _chunk_pair2(ax, ay, an, i, bx, by, bn, j)
+            d = _chunk_pair2(ax, ay, an, i, bx, by, bn, j, best)
             if d < best:
                 best = d
                 if best == 0.0 or best <= stop2:
@@ -509,15 +520,18 @@ def _row_starts(path_agent, n):
 
 @numba.njit(cache=True)
 def evaluate_agents(
-    xy, heading, speed, length, width, kinds, paths, path_points, path_agent, ego,
+    xy, heading, speed, length, width, kinds, valid, paths, path_points, path_agent, ego,
     agents, steps, unc, want, fp, ip, stop2, cut2,
 ):  # fmt: skip
-    """Risks ``(9, N)`` of the requested models (``want``) for ``agents``; NaN elsewhere.
+    """Risks ``(9, N)`` of the requested models (``want``) for ``agents`` (an empty array:
+    every valid agent but the ego); NaN elsewhere.
 
     ``stop2`` / ``cut2`` (9,): squared distances for the keep/drop mode of the distance
     models (the cascade): stop at ``stop2``, prune beyond ``cut2``; ``-1`` / ``inf`` for
     exact values."""
     n = xy.shape[0]
+    if agents.shape[0] == 0:
+        agents = np.array([i for i in range(n) if valid[i] and i != ego], dtype=np.int64)
     p = paths.shape[1]
     p1 = p + 1
     ns = steps.shape[0]
@@ -611,6 +625,8 @@ def evaluate_agents(
         path_done = False
         traj_done = False
         for r in range(starts[i], starts[i + 1]):
+            if not (want_path or want[TRAJ] or want_pred):
+                break
             en = _extend(
                 paths, r, path_points[r], heading[i], v * horizon, seg, ex, ey, ecum, eux, euy
             )
@@ -660,10 +676,12 @@ def evaluate_agents(
                     if want[CIRC]:
                         reach = (r_ego + scale * g_sl[e, k]) + (0.5 * width[i] + scale * slon[k])
                         along = rx * dxs[k] + ry * dys[k]
+                        c2min = INF
                         for c in range(n_circ):
                             o = length[i] * ((c + 0.5) / n_circ - 0.5)
-                            centre2 = d2 + (2.0 * o) * along + o * o
-                            circ = min(circ, math.sqrt(max(centre2, 0.0)) - reach)
+                            c2min = min(c2min, d2 + (2.0 * o) * along + o * o)
+                        # sqrt is monotone: one root per step gives the same minimum
+                        circ = min(circ, math.sqrt(max(c2min, 0.0)) - reach)
                     if want[GAUSS] or want[SURV]:
                         sxx = cxx[k] + g_xx[e, k]
                         sxy = cxy[k] + g_xy[e, k]
@@ -671,9 +689,14 @@ def evaluate_agents(
                         det = sxx * syy - sxy * sxy
                         q = syy * (rx * rx) - 2.0 * (sxy * (rx * ry))
                         q = (q + sxx * (ry * ry)) / det * -0.5
-                        po = math.exp(q) / (math.sqrt(det) * (2.0 * math.pi))
+                        if q < EXP_ZERO:  # exp(q) is exactly 0: skip two exp and a root
+                            po = 0.0
+                            terms[k] = 0.0
+                        else:
+                            po = math.exp(q) / (math.sqrt(det) * (2.0 * math.pi))
+                            if want[SURV]:
+                                terms[k] = po * math.exp(-log_s)
                         gmax = max(gmax, po)
-                        terms[k] = po * math.exp(-log_s)
                         log_s += po + dt_tau
                 if want[ENC] or want[HW] or want[H2D]:
                     d_e = math.sqrt(d2min)
@@ -791,21 +814,27 @@ def _readonly(a: np.ndarray) -> np.ndarray:
 
 
 def frame_arrays(frame: Any) -> tuple[np.ndarray, ...]:
-    """The frame's arrays in kernel order (xy .. path_agent)."""
-    return tuple(
-        _readonly(a)
-        for a in (
-            frame.xy,
-            frame.heading,
-            frame.speed,
-            frame.length,
-            frame.width,
-            frame.kinds,
-            frame.paths,
-            frame.path_points,
-            frame.path_agent,
+    """The frame's arrays in kernel order (xy .. path_agent), cached on the frame (frames
+    are immutable)."""
+    cached = frame.__dict__.get("_kernel_arrays")
+    if cached is None:
+        cached = tuple(
+            _readonly(a)
+            for a in (
+                frame.xy,
+                frame.heading,
+                frame.speed,
+                frame.length,
+                frame.width,
+                frame.kinds,
+                frame.valid,
+                frame.paths,
+                frame.path_points,
+                frame.path_agent,
+            )
         )
-    )
+        object.__setattr__(frame, "_kernel_arrays", cached)
+    return cached
 
 
 def pack_params(chosen: dict[str, Any], horizon_s: float, dt_s: float) -> tuple[np.ndarray, ...]:
@@ -826,12 +855,20 @@ def pack_params(chosen: dict[str, Any], horizon_s: float, dt_s: float) -> tuple[
     ip = np.zeros(N_INT, np.int64)
     ip[I_NCIRC] = circles.n_circles
     ip[I_RADIUS_RULE] = RADIUS_RULES.index(circles.radius_rule)
+    fp.flags.writeable = False
+    ip.flags.writeable = False
     return fp, ip
 
 
-def no_stop() -> tuple[np.ndarray, np.ndarray]:
-    """``stop2``, ``cut2`` for exact values."""
-    return np.full(N_MODELS, -1.0), np.full(N_MODELS, np.inf)
+def _constant(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
+
+
+#: ``stop2``, ``cut2`` for exact values; the empty agent list ("every valid agent").
+NO_STOP = _constant(np.full(N_MODELS, -1.0))
+NO_CUT = _constant(np.full(N_MODELS, np.inf))
+ALL_AGENTS = _constant(np.zeros(0, np.int64))
 
 
 def run(
@@ -846,20 +883,21 @@ def run(
     cut2: np.ndarray | None = None,
 ) -> np.ndarray:
     """Risks ``(9, N)`` of the models flagged in ``want`` for ``agents`` (default: every
-    valid agent but the ego); NaN elsewhere."""
+    valid agent but the ego); NaN elsewhere. Every array argument must be read-only (one
+    compiled signature)."""
     if agents is None:
-        agents = np.flatnonzero(frame.others)
-    if stop2 is None or cut2 is None:
-        stop2, cut2 = no_stop()
+        agents = ALL_AGENTS
+    elif agents.size == 0:
+        return np.full((N_MODELS, frame.n_agents), np.nan)
     return evaluate_agents(
         *frame_arrays(frame),
         int(frame.ego),
-        np.ascontiguousarray(agents, dtype=np.int64),
+        agents,
         steps,
         unc,
         want,
         fp,
         ip,
-        stop2,
-        cut2,
+        NO_STOP if stop2 is None else stop2,
+        NO_CUT if cut2 is None else cut2,
     )

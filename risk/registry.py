@@ -217,14 +217,46 @@ def resolve_prediction(prediction: PredictionSettings | None) -> PredictionSetti
 _DEFAULT_PREDICTION = PredictionSettings()
 
 
-@functools.lru_cache(maxsize=32)
 def kernel_settings(prediction: PredictionSettings) -> tuple[np.ndarray, np.ndarray]:
-    """Read-only steps ``(n,)`` and uncertainty table ``(4, 8)`` of ``prediction``."""
-    steps = prediction.steps_s
-    unc = prediction.uncertainty.as_array()
-    steps.flags.writeable = False
-    unc.flags.writeable = False
-    return steps, unc
+    """Read-only steps ``(n,)`` and uncertainty table ``(4, 8)`` of ``prediction`` (cached
+    on the immutable settings object)."""
+    cached = prediction.__dict__.get("_kernel")
+    if cached is None:
+        steps = prediction.steps_s
+        unc = prediction.uncertainty.as_array()
+        steps.flags.writeable = False
+        unc.flags.writeable = False
+        cached = (steps, unc)
+        object.__setattr__(prediction, "_kernel", cached)
+    return cached
+
+
+_PACKED: dict[tuple[int, ...], tuple[Any, np.ndarray, np.ndarray]] = {}
+
+
+def kernel_params(
+    chosen: dict[str, Any], settings: PredictionSettings
+) -> tuple[np.ndarray, np.ndarray]:
+    """The kernel's parameter vectors, cached by the identity of the (immutable) parameter
+    objects; the cache holds them, so an identity is never reused while cached."""
+    objects = (*chosen.values(), settings)
+    key = tuple(map(id, objects))
+    hit = _PACKED.get(key)
+    if hit is None:
+        if len(_PACKED) > 256:
+            _PACKED.clear()
+        fp, ip = kernel.pack_params(chosen, settings.horizon_s, settings.dt_s)
+        hit = _PACKED[key] = (objects, fp, ip)
+    return hit[1], hit[2]
+
+
+@functools.lru_cache(maxsize=256)
+def _want(names: tuple[str, ...]) -> np.ndarray:
+    want = np.zeros(kernel.N_MODELS, dtype=np.bool_)
+    for name in names:
+        want[kernel.SLOTS.index(name)] = True
+    want.flags.writeable = False
+    return want
 
 
 def evaluate(
@@ -249,11 +281,8 @@ def evaluate(
     chosen = resolve_params(params)
     settings = resolve_prediction(prediction)
     steps, unc = kernel_settings(settings)
-    want = np.zeros(kernel.N_MODELS, dtype=np.bool_)
-    for name in names:
-        want[kernel.SLOTS.index(name)] = True
-    fp, ip = kernel.pack_params(chosen, settings.horizon_s, settings.dt_s)
-    out = kernel.run(frame, want, fp, ip, steps, unc)
+    fp, ip = kernel_params(chosen, settings)
+    out = kernel.run(frame, _want(tuple(names)), fp, ip, steps, unc)
     return {name: out[kernel.SLOTS.index(name)] for name in names}
 
 
