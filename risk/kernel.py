@@ -38,6 +38,8 @@ import numba
 import numpy as np
 from numba.core import event
 
+from risk.frame import Frame
+
 log = logging.getLogger("risk")
 
 
@@ -901,3 +903,36 @@ def run(
         NO_STOP if stop2 is None else stop2,
         NO_CUT if cut2 is None else cut2,
     )
+
+
+def warm_up() -> None:
+    """Compile every kernel, or load it from the cache, with the argument types that
+    :func:`risk.evaluate` and the cascade use.
+
+    Call it once in a parent process before starting workers (pytest-xdist, batch, Ray),
+    so that they load the cached kernels instead of each compiling them."""
+    frame = Frame.from_arrays(
+        np.array([[0.0, 0.0], [8.0, 1.0]]),
+        np.zeros(2),
+        np.array([5.0, 3.0]),
+        np.full(2, 4.5),
+        np.full(2, 1.9),
+        [np.array([[0.0, 0.0], [20.0, 0.0]]), np.array([[8.0, 1.0], [8.0, 20.0]])],
+        ego=0,
+    )
+    steps = _constant(np.linspace(0.0, 1.0, 5))
+    unc = _constant(np.tile([0.5, 0.3, 0.1, 0.1, 2.0, 1.0, 0.0, 0.0], (4, 1)))
+    fp = np.ones(N_FLOAT)
+    fp[F_DT_TAU] = 0.25
+    ip = np.array([3, 0], dtype=np.int64)
+    run(
+        frame,
+        _constant(np.ones(N_MODELS, dtype=np.bool_)),
+        _constant(fp),
+        _constant(ip),
+        steps,
+        unc,
+    )
+    fa = frame_arrays(frame)
+    speeds = _constant(np.full(4, 10.0))
+    reachable(fa[7], fa[9], fa[2], fa[5], 0, _constant(np.array([1])), 1.0, 5, unc, speeds, 1e-25)

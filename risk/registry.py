@@ -158,7 +158,8 @@ BASELINE_MODEL = "survival"
 #: default of every ``threshold`` argument; pass another value to study its influence.
 BASELINE_THRESHOLD = 1e-25
 
-assert kernel.SLOTS == tuple(MODELS), "risk.kernel.SLOTS must follow the registry order"
+if tuple(MODELS) != kernel.SLOTS:
+    raise RuntimeError("risk.kernel.SLOTS must list the models in registry order")
 
 
 def baseline_mask(risks: np.ndarray, threshold: float = BASELINE_THRESHOLD) -> np.ndarray:
