@@ -316,19 +316,23 @@ def keep_bounds(threshold: float, epsilon_m: float) -> tuple[float, float]:
 
     Any ``d`` with ``d^2 <= stop2`` certainly keeps and any ``d`` with ``d^2 > cut2``
     certainly drops, in floating point (the risk is monotone in ``d`` and both ends are
-    stepped to the exact float where the comparison turns), so the kernel can stop early
+    stepped past the float where the comparison turns), so the kernel can stop early
     and prune without changing one decision."""
     if not threshold > 0:
         return math.inf, math.inf  # everything is kept
     if threshold > 1:
         return -1.0, -1.0  # nothing reaches a risk above 1
     d_cut = max(epsilon_m / threshold - epsilon_m, 0.0)
+    step = max(d_cut * 1e-15, 1e-300)
     lo = d_cut
     while lo > 0 and epsilon_m / (epsilon_m + lo) < threshold:
-        lo = math.nextafter(lo, 0.0)
+        lo = max(lo - step, 0.0)
+        step *= 2.0
+    step = max(d_cut * 1e-15, 1e-300)
     hi = d_cut
     while epsilon_m / (epsilon_m + hi) >= threshold:
-        hi = math.nextafter(hi, math.inf)
+        hi += step
+        step *= 2.0
     stop = lo * (1 - 1e-12)
     cut = hi * (1 + 1e-12)
     return (stop * stop if epsilon_m / (epsilon_m + lo) >= threshold else -1.0), cut * cut
@@ -370,11 +374,7 @@ def _run_fused(
     current = np.flatnonzero(others)
     unreachable = np.zeros(n, dtype=bool)
     if reachability and current.size:
-        fa = kernel.frame_arrays(frame)
-        reach = kernel.reachable(
-            fa[7], fa[9], fa[2], fa[5], int(frame.ego), _ro(current), settings.horizon_s,
-            settings.n_steps, unc, _MAX_SPEEDS, float(config.baseline_threshold),
-        )  # fmt: skip
+        reach = _reachable(frame, current, settings, unc, _MAX_SPEEDS, config.baseline_threshold)
         unreachable[current[~reach]] = True
         current = current[reach]
     reach_time_s = time.perf_counter() - start
@@ -433,6 +433,45 @@ def _run_fused(
         unreachable=unreachable,
         reach_time_s=reach_time_s,
     )
+
+
+def reachable_mask(
+    frame: Frame,
+    threshold: float = BASELINE_THRESHOLD,
+    *,
+    prediction: Any = None,
+    max_speed_mps: Mapping[str, float] | None = None,
+) -> np.ndarray:
+    """``(N,)`` bool: False for the agents that the reachability bound drops (their
+    survival risk is certainly below ``threshold``), True for every other valid agent;
+    False for the ego and invalid agents. ``max_speed_mps``: per kind name (default
+    :data:`MAX_SPEED_MPS`)."""
+    settings = resolve_prediction(prediction)
+    _, unc = kernel_settings(settings)
+    speeds = _MAX_SPEEDS
+    if max_speed_mps is not None:
+        speeds = np.array([float(max_speed_mps[k]) for k in KIND_NAMES])
+        speeds.flags.writeable = False
+    out = np.zeros(frame.n_agents, dtype=bool)
+    agents = np.flatnonzero(frame.others)
+    if agents.size:
+        out[agents] = _reachable(frame, agents, settings, unc, speeds, threshold)
+    return out
+
+
+def _reachable(
+    frame: Frame,
+    agents: np.ndarray,
+    settings: Any,
+    unc: np.ndarray,
+    speeds: np.ndarray,
+    threshold: float,
+) -> np.ndarray:
+    fa = kernel.frame_arrays(frame)
+    return kernel.reachable(
+        fa[7], fa[9], fa[2], fa[5], int(frame.ego), _ro(agents), float(settings.horizon_s),
+        int(settings.n_steps), unc, speeds, float(threshold),
+    )  # fmt: skip
 
 
 class _Wants(dict):
