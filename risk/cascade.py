@@ -201,7 +201,7 @@ def _parse_config(data: Mapping[str, Any], source: str) -> CascadeConfig:
     raw_stages = data["stages"]
     if not isinstance(raw_stages, list) or not raw_stages:
         raise fail("stages", "expected a non-empty array of tables ([[stages]])")
-    stages = []
+    stages: list[Stage] = []
     for i, raw in enumerate(raw_stages):
         prefix = f"stages[{i}]."
         check_keys(raw, _STAGE_KEYS, _STAGE_KEYS, prefix)

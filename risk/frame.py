@@ -387,7 +387,7 @@ def _is_polyline(entry: object) -> bool:
 
 
 def _vector(name: str, values: object, n: int, dtype: type) -> np.ndarray:
-    a = np.array(values, dtype=dtype)
+    a: np.ndarray = np.array(values, dtype=dtype)
     if a.shape != (n,):
         raise FrameError(name, f"expected shape ({n},), got {a.shape}")
     return a

@@ -55,7 +55,7 @@ def default_cache_dir() -> pathlib.Path:
 def _configure_cache() -> str:
     path = os.environ.get("NUMBA_CACHE_DIR") or str(default_cache_dir())
     os.environ["NUMBA_CACHE_DIR"] = path  # worker processes inherit it
-    numba.config.CACHE_DIR = path  # read when the decorators below enable caching
+    numba.config.CACHE_DIR = path  # type: ignore[attr-defined]  # read by the decorators
     return path
 
 
@@ -891,7 +891,7 @@ def run(
         agents = ALL_AGENTS
     elif agents.size == 0:
         return np.full((N_MODELS, frame.n_agents), np.nan)
-    return evaluate_agents(
+    return evaluate_agents(  # type: ignore[call-arg]
         *frame_arrays(frame),
         int(frame.ego),
         agents,

@@ -210,7 +210,7 @@ class FrameContext:
         self.row_agent = frame.path_agent
         # Rows are grouped by owner, so each agent's rows start where the owner changes.
         self.row_starts = np.flatnonzero(np.r_[True, self.row_agent[1:] != self.row_agent[:-1]])
-        self.ego_rows = np.flatnonzero(self.row_agent == frame.ego)
+        self.ego_rows: list[int] = [int(r) for r in np.flatnonzero(self.row_agent == frame.ego)]
         self._memo: dict[Hashable, Any] = {}
 
     # ------------------------------------------------------------------ helpers
