@@ -56,6 +56,7 @@ from replay.stats import (
     compute_stats,
     frames_table,
 )
+from risk import kernel
 from risk.cascade import CascadeConfig, run_cascade
 
 #: The paper's situation ranges (Sec. V-B), as the synthetic generator's defaults.
@@ -124,7 +125,9 @@ def parallel_map(
 
 
 def make_pool(workers: int) -> cf.ProcessPoolExecutor:
-    """A process pool of ``workers`` spawned processes."""
+    """A process pool of ``workers`` spawned processes (the risk kernels are compiled, or
+    loaded, here first so that the workers load them from the cache)."""
+    kernel.warm_up()
     return cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
 
 

@@ -626,8 +626,25 @@ def evaluate_agents(
         u = unc[kinds[i]]
         path_done = False
         traj_done = False
+        if (want[PATH] and not exact_path) or (want[TRAJ] and stop2[TRAJ] >= 0):
+            # Keep/drop mode: the paths' first points bound both distances from above, so
+            # an agent whose path starts near an ego path start is kept in O(1).
+            d0 = INF
+            for r in range(starts[i], starts[i + 1]):
+                for e in range(ne):
+                    ddx = paths[r, 0, 0] - paths[e0 + e, 0, 0]
+                    ddy = paths[r, 0, 1] - paths[e0 + e, 0, 1]
+                    d0 = min(d0, ddx * ddx + ddy * ddy)
+            for slot in (PATH, TRAJ):
+                if want[slot] and d0 <= stop2[slot]:
+                    eps = fp[F_EPS + slot]
+                    best[slot] = eps / (eps + math.sqrt(d0))
+                    if slot == PATH:
+                        path_done = True
+                    else:
+                        traj_done = True
         for r in range(starts[i], starts[i + 1]):
-            if not (want_path or want[TRAJ] or want_pred):
+            if not ((want_path and not path_done) or (want[TRAJ] and not traj_done) or want_pred):
                 break
             en = _extend(
                 paths, r, path_points[r], heading[i], v * horizon, seg, ex, ey, ecum, eux, euy

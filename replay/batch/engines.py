@@ -14,6 +14,7 @@ from typing import Any, Protocol
 
 from replay.batch.tasks import init_worker, one_line
 from replay.errors import ReplayError
+from risk import kernel
 
 ENGINES: tuple[str, ...] = ("local", "ray")
 RAY_MISSING = "Ray is not installed; install it with: pip install 'riskreplay[ray]'"
@@ -93,6 +94,7 @@ class LocalEngine:
         self._alone = False  # one suspect is running alone
 
     def _new_pool(self) -> cf.ProcessPoolExecutor:
+        kernel.warm_up()  # compile once here; the workers load the cached kernels
         return cf.ProcessPoolExecutor(
             max_workers=self.workers,
             mp_context=multiprocessing.get_context("spawn"),
@@ -187,6 +189,7 @@ class RayEngine:
         self._started = False
         if address:
             _check_reachable(address)
+        kernel.warm_up()  # compile once here; workers on this machine load the cache
         if not ray.is_initialized():
             import logging
 
