@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from frames import scattered_frame
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -254,31 +255,13 @@ def test_default_config_loads_and_is_the_paper_cascade():
 
 
 # ---------------------------------------------------------------------- with the real models
-def random_frame(seed: int, n: int = 40) -> Frame:
-    """Agents scattered over a 120 m square, straight paths of 40 m to 120 m."""
-    rng = np.random.default_rng(seed)
-    xy = rng.uniform(-60, 60, (n, 2))
-    heading = rng.uniform(-np.pi, np.pi, n)
-    reach = rng.uniform(40, 120, n)
-    steps = np.linspace(0, 1, 12)[None, :, None]
-    direction = np.c_[np.cos(heading), np.sin(heading)][:, None, :]
-    paths = xy[:, None, :] + steps * reach[:, None, None] * direction
-    kinds = rng.choice(["vehicle", "pedestrian", "cyclist"], n, p=[0.7, 0.2, 0.1])
-    valid = rng.random(n) > 0.1
-    valid[0] = True
-    return Frame.from_arrays(
-        xy, heading, rng.uniform(0, 12, n), np.full(n, 4.5), np.full(n, 1.8), list(paths), 0,
-        kinds=kinds, valid=valid,
-    )  # fmt: skip
-
-
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_sub_frame_risks_equal_whole_frame_risks(seed):
     """Every model is a function of the ego and one agent, so a stage on a sub-frame must
     decide exactly as the same threshold on the whole frame (what calibration assumes)."""
     import risk
 
-    frame = random_frame(seed)
+    frame = scattered_frame(seed)
     whole = risk.evaluate(
         frame, models=["path_distance", "trajectory_distance", "gaussian", "survival"]
     )
@@ -308,7 +291,7 @@ def test_sub_frame_risks_equal_whole_frame_risks(seed):
 def test_prediction_settings_reach_every_evaluation():
     import risk
 
-    frame = random_frame(4)
+    frame = scattered_frame(4)
     short = risk.PredictionSettings(horizon_s=3.0)
     config = CascadeConfig(stages=(Stage("gaussian", 0.0),), tiers=TIERS)
     res = run_cascade(frame, config, prediction=short)
@@ -321,7 +304,7 @@ def test_prediction_settings_reach_every_evaluation():
 
 
 # ---------------------------------------------------------------------- fused cascade
-def scattered_frame(rng: np.random.Generator, n: int, spread: float) -> Frame:
+def spread_frame(rng: np.random.Generator, n: int, spread: float) -> Frame:
     """Agents of every kind scattered up to ``spread`` m from the ego, random headings,
     speeds and straight or bent paths (some long, some a single point)."""
     xy = rng.uniform(-spread, spread, (n, 2))
@@ -360,7 +343,7 @@ def test_reachability_bound_never_drops_an_important_agent(seed, threshold, vmax
     from risk.cascade import reachable_mask
 
     rng = np.random.default_rng(seed)
-    frame = scattered_frame(rng, 40, spread)
+    frame = spread_frame(rng, 40, spread)
     pred = PredictionSettings(horizon_s=float(rng.choice([2.0, 6.0])), dt_s=0.25)
     speeds = (
         None if vmax is None else dict.fromkeys(("vehicle", "pedestrian", "cyclist", "other"), vmax)
@@ -376,7 +359,7 @@ def test_reachability_bound_drops_far_agents():
     from risk import PredictionSettings
     from risk.cascade import reachable_mask
 
-    frame = scattered_frame(np.random.default_rng(1), 60, 20.0)
+    frame = spread_frame(np.random.default_rng(1), 60, 20.0)
     far = Frame.from_arrays(
         np.array([[0.0, 0.0], [5000.0, 0.0], [40.0, 0.0]]), np.zeros(3), np.array([10.0, 0, 0]),
         np.full(3, 4.0), np.full(3, 2.0),
@@ -396,7 +379,7 @@ def test_fused_cascade_matches_the_staged_oracle(seed, spread):
     from risk import PredictionSettings, evaluate
 
     rng = np.random.default_rng(seed)
-    frame = scattered_frame(rng, 50, spread)
+    frame = spread_frame(rng, 50, spread)
     pred = PredictionSettings(horizon_s=4.0, dt_s=0.25)
     config = CascadeConfig(
         stages=(
@@ -423,7 +406,7 @@ def test_engine_style_partial_uses_the_fused_cascade():
 
     from risk import PredictionSettings, evaluate
 
-    frame = scattered_frame(np.random.default_rng(4), 30, 3000.0)
+    frame = spread_frame(np.random.default_rng(4), 30, 3000.0)
     pred = PredictionSettings(horizon_s=2.0, dt_s=0.5)
     res = run_cascade(frame, CONFIG, evaluate=functools.partial(evaluate, prediction=pred))
     assert res.unreachable is not None and res.unreachable.any()

@@ -16,9 +16,9 @@ import sys
 
 import numpy as np
 import pytest
+from frames import mixed_frame as random_frame
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_reference_oracle import random_frame
 
 from risk import (
     BASELINE_THRESHOLD,
