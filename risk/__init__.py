@@ -1,6 +1,7 @@
 """Driving risk models for importance filtering (Puphal et al., ICRAE 2022).
 
-Pure numpy, no I/O. The notebook entry point::
+numpy and a compiled numba kernel (risk.kernel), no I/O but the kernel cache. The notebook
+entry point::
 
     from risk import Frame, evaluate, MODELS
 
