@@ -119,7 +119,8 @@ def encode_frame(
 
 
 def encode_map(lane_map: LaneMap) -> sf.Map:
-    """The ``/map`` message: every lane's centre line (mm) and successor ids."""
+    """The ``/map`` message: every lane's centre line (mm) and successor ids, and the
+    other map lines (lane boundaries, road edges, crosswalks; format version 2)."""
     message = sf.Map()
     for lane in lane_map.lanes:
         line = np.asarray(lane.centerline, dtype=np.float64).reshape(-1, 2)
@@ -132,6 +133,23 @@ def encode_map(lane_map: LaneMap) -> sf.Map:
             x_mm=mm[:, 0].tolist(),
             y_mm=mm[:, 1].tolist(),
             successors=[int(s) for s in lane.successors],
+        )
+    for line in lane_map.lines:
+        pts = np.asarray(line.points, dtype=np.float64).reshape(-1, 2)
+        if not np.isfinite(pts).all():
+            raise ConversionError(f"map line {line.id}: a non-finite point")
+        if line.kind not in sf.MAP_LINE_KINDS:
+            raise ConversionError(
+                f"map line {line.id}: kind {line.kind!r} is not one of {', '.join(sf.MAP_LINE_KINDS)}"
+            )
+        mm = quantise(pts, sf.MM_PER_M, f"map line {line.id}")
+        message.lines.add(
+            id=int(line.id),
+            kind=line.kind,
+            style=str(line.style),
+            x_mm=mm[:, 0].tolist(),
+            y_mm=mm[:, 1].tolist(),
+            closed=bool(line.closed),
         )
     return message
 

@@ -49,6 +49,24 @@ SCALARS = Component(
 SERIES_COLORS = Component(
     "SeriesLines:colors", "rerun.components.Color", "rerun.archetypes.SeriesLines", pa.uint32()
 )
+SERIES_NAMES = Component(
+    "SeriesLines:names", "rerun.components.Name", "rerun.archetypes.SeriesLines", pa.utf8()
+)
+DRAW_ORDER = Component(
+    "LineStrips2D:draw_order", "rerun.components.DrawOrder", "rerun.archetypes.LineStrips2D",
+    pa.float32(),
+)  # fmt: skip
+SHOW_LABELS = Component(
+    "LineStrips2D:show_labels", "rerun.components.ShowLabels", "rerun.archetypes.LineStrips2D",
+    pa.bool_(),
+)  # fmt: skip
+LOG_TEXT = Component("TextLog:text", "rerun.components.Text", "rerun.archetypes.TextLog", pa.utf8())
+LOG_LEVEL = Component(
+    "TextLog:level", "rerun.components.TextLogLevel", "rerun.archetypes.TextLog", pa.utf8()
+)
+LOG_COLOR = Component(
+    "TextLog:color", "rerun.components.Color", "rerun.archetypes.TextLog", pa.uint32()
+)
 
 
 def pack_colors(rgb: np.ndarray) -> np.ndarray:
@@ -80,11 +98,23 @@ def rows(values: pa.Array | np.ndarray, lengths: np.ndarray, item: pa.DataType) 
     return pa.ListArray.from_arrays(pa.array(offsets), values)
 
 
-def one_per_row(values: np.ndarray, item: pa.DataType, missing: np.ndarray | None = None):
-    """A column of one value per row; rows where ``missing`` is True hold nothing (null)."""
-    offsets = pa.array(np.arange(len(values) + 1, dtype=np.int32))
-    mask = None if missing is None else pa.array(missing)
-    return pa.ListArray.from_arrays(offsets, pa.array(values, item), mask=mask)
+def one_per_row(values, item: pa.DataType, missing: np.ndarray | None = None) -> pa.Array:
+    """A column of one value per row; rows where ``missing`` is True hold nothing (null).
+
+    Built from buffers (validity bitmap + offsets): ``ListArray.from_arrays(mask=...)``
+    would pull in ``pyarrow.compute``, a third of a second to import.
+    """
+    values = values if isinstance(values, pa.Array) else pa.array(values, item)
+    n = len(values)
+    offsets = pa.py_buffer(np.arange(n + 1, dtype=np.int32).tobytes())
+    validity = None
+    if missing is not None:
+        valid = ~np.asarray(missing, dtype=bool)
+        validity = pa.py_buffer(np.packbits(valid, bitorder="little").tobytes())
+    return pa.Array.from_buffers(
+        pa.list_(item), n, [validity, offsets], children=[values],
+        null_count=-1 if missing is not None else 0,
+    )  # fmt: skip
 
 
 @dataclass
@@ -109,7 +139,9 @@ class Batch:
         name = f"{entity}:{component.name}"
         self._fields.append(pa.field(name, pa.list_(component.item), metadata=meta))
         target = pa.list_(component.item)
-        self._arrays.append(column if column.type == target else column.cast(target))
+        if column.type != target:
+            raise TypeError(f"{name}: column type {column.type} is not {target}")
+        self._arrays.append(column)
 
     def __len__(self) -> int:
         return len(self._arrays)

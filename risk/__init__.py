@@ -10,7 +10,7 @@ Pure numpy, no I/O. The notebook entry point::
 """
 
 from risk.errors import FrameError, RiskError, UnknownModelError
-from risk.frame import KIND_NAMES, Frame, Kind, Lane, LaneMap, Scene
+from risk.frame import KIND_NAMES, Frame, Kind, Lane, LaneMap, MapLine, Scene
 from risk.prediction import (
     FrameContext,
     KindUncertainty,
@@ -38,6 +38,7 @@ __all__ = [
     "KindUncertainty",
     "Lane",
     "LaneMap",
+    "MapLine",
     "ModelSpec",
     "PredictionSettings",
     "RiskError",
