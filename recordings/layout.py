@@ -85,7 +85,7 @@ def threshold_path(model: str, *, log10: bool = False) -> str:
 
 # ---------------------------------------------------------------------- colours (RGB)
 BACKGROUND = (18, 18, 20)
-LANE = (105, 105, 110)
+LANE = (88, 88, 94)
 LANE_OTHER = (70, 90, 110)  # lanes whose kind is not "vehicle" (crosswalks, bike lanes)
 # Map lines (version 2): muted, below the lanes' contrast, so that agents stay on top.
 MAP_LINE_COLORS = {

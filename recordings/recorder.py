@@ -791,7 +791,7 @@ def _log_misses(rec, info: SceneInfo, scene: _Scene) -> None:
         text[cell] = (
             f"agent {e['agent']} · dropped by stage {e['stage']} ({e['model']}) · important by "
             f"{e['reference']} · {duration:.1f} s ({frames} frame{'s' if frames > 1 else ''})"
-        )
+        )  # the row's time is the episode's start
         missing[cell] = False
     batch = _timed_batch(scene)
     texts = C.one_per_row(text.tolist(), pa.utf8(), missing)
