@@ -103,7 +103,7 @@ MAP_LINE_WIDTHS_UI = {
     "other": 0.7,
 }
 EGO = (40, 200, 90)
-DROPPED = (95, 95, 100)
+DROPPED = (150, 150, 158)  # lighter than every map line: agents stay on top
 RISK_LOW = (255, 200, 200)  # survivor with the lowest survival risk on the scale
 RISK_HIGH = (215, 25, 25)  # survivor with survival risk >= 1
 MISSED = (255, 225, 0)  # a miss: dropped although the baseline or hindsight marks it important
@@ -305,20 +305,21 @@ def ego_bounds(
     margin_m: float = 20.0,
     aspect: float = SCENE_ASPECT,
 ):
-    """Visual bounds that open the scene view on the ego: ``size_m`` around its drive.
+    """Visual bounds that open the scene view on the ego: ``size_m`` wide around its drive.
 
-    The box is centred on the ego's positions over the scene (``(K, 2)`` map metres) and
-    is ``size_m`` tall, or the drive's extent plus ``margin_m`` on each side when the ego
-    travels further, widened to ``aspect``. Returns ``(x_range, y_range)`` in view
-    coordinates (y flipped).
+    The box is centred on the ego's positions over the scene (``(K, 2)`` map metres), is
+    ``size_m`` wide (``size_m / aspect`` tall), or larger when the ego's drive plus
+    ``margin_m`` on each side needs more, and has the scene view's ``aspect``. Returns
+    ``(x_range, y_range)`` in view coordinates (y flipped).
     """
     pts = _finite(ego_xy)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     centre = (lo + hi) / 2.0
-    half = np.maximum((hi - lo) / 2.0 + margin_m, size_m / 2.0)
-    half = np.array([max(half[0], aspect * half[1]), max(half[1], half[0] / aspect)])
-    x_range = (float(centre[0] - half[0]), float(centre[0] + half[0]))
-    y_range = (float(-centre[1] - half[1]), float(-centre[1] + half[1]))
+    need = (hi - lo) / 2.0 + margin_m
+    half_x = max(size_m / 2.0, need[0], aspect * need[1])
+    half_y = half_x / aspect
+    x_range = (float(centre[0] - half_x), float(centre[0] + half_x))
+    y_range = (float(-centre[1] - half_y), float(-centre[1] + half_y))
     return x_range, y_range
 
 

@@ -448,13 +448,19 @@ class _Parts:
         self.points.append(np.asarray(points, dtype=np.float64))
         self.colors.append(colors)
         self.radii.append(np.asarray(radii, dtype=np.float32))
-        self.labels.append(np.full(m, "", dtype=object) if labels is None else labels)
+        self.labels.append(
+            np.full(m, "", dtype="<U1") if labels is None else np.asarray(labels, str)
+        )
 
     def columns(self, n_cells: int) -> tuple[pa.Array, pa.Array, pa.Array, pa.Array]:
         if not self.cells:
             cell = np.zeros(0, np.int64)
             points, n_points = np.zeros((0, 2)), np.zeros(0, np.int64)
-            colors, radii, labels = np.zeros(0, np.uint32), np.zeros(0, np.float32), []
+            colors, radii, labels = (
+                np.zeros(0, np.uint32),
+                np.zeros(0, np.float32),
+                np.zeros(0, str),
+            )
             order = np.zeros(0, np.int64)
         else:
             cell = np.concatenate(self.cells)
@@ -472,7 +478,7 @@ class _Parts:
             n_points = n_points[order]
             colors = C.pack_colors(np.concatenate(self.colors)[order])
             radii = np.concatenate(self.radii)[order]
-            labels = np.concatenate(self.labels)[order].tolist()
+            labels = np.concatenate(self.labels)[order]
         lengths = np.bincount(cell, minlength=n_cells)
         return (
             C.rows(C.strips(points, n_points), lengths, C.STRIPS.item),
@@ -526,7 +532,7 @@ def _add_ego(batch: C.Batch, static: C.Batch, scene: _Scene, labels: np.ndarray)
     cell, k = scene.frame_of[ego], int(ego.sum())
     parts = _Parts()
     caps, radius = L.capsules(r["xy"][ego], r["heading"][ego], r["length"][ego], r["width"][ego])
-    parts.add(cell, caps, _tile(L.EGO, k), radius, labels[ego].astype(object))
+    parts.add(cell, caps, _tile(L.EGO, k), radius, labels[ego])
     parts.add(
         cell, L.noses(r["xy"][ego], r["heading"][ego], r["length"][ego]), _tile(L.NOSE, k),
         np.full(k, -L.NOSE_WIDTH_UI),
@@ -567,7 +573,7 @@ def _add_agents(
     rgb[miss] = L.MISSED
     parts = _Parts()
     caps, radius = L.capsules(xy, heading, length, width)
-    parts.add(cell, caps, rgb, radius, labels[others].astype(object))
+    parts.add(cell, caps, rgb, radius, labels[others])
     parts.add(
         cell, L.noses(xy, heading, length), _tile(L.NOSE, cell.size),
         np.full(cell.size, -L.NOSE_WIDTH_UI),
@@ -679,28 +685,34 @@ def _label_texts(info: SceneInfo, scene: _Scene, mode: str) -> np.ndarray:
     not decluttered. ``"none"``: no labels.
     """
     r = scene.rows
-    ids = r["ids"].astype(str)
+    n = r["ids"].size
+    if mode == "none":
+        return np.full(n, "", dtype="<U1")
+    if mode == "all":
+        shown = np.ones(n, dtype=bool)
+    else:
+        survivor_tier = np.where(r["dropped_at"] < 0, r["tier"], -1)
+        wanted = r["is_ego"] | r["miss"] | (survivor_tier >= 0)
+        priority = np.where(r["is_ego"], 1000, np.where(r["miss"], 100, survivor_tier + 1))
+        shown = _declutter(scene, wanted, priority, L.LABEL_SPACING_M)
+    # Texts only for the labelled rows (string operations are slow in numpy).
+    rows = np.flatnonzero(shown)
+    ids = r["ids"][rows].astype(str)
     tags = _tier_tags(tuple(t.name for t in info.cascade.tiers))
-    stage = (r["dropped_at"] + 1).astype(str)
+    stage = (r["dropped_at"][rows] + 1).astype(str)
     text = np.where(
-        r["is_ego"], np.char.add("ego ", ids),
+        r["is_ego"][rows], np.char.add("ego ", ids),
         np.where(
-            r["miss"], np.char.add(np.char.add(ids, " MISS ✗"), stage),
+            r["miss"][rows], np.char.add(np.char.add(ids, " MISS ✗"), stage),
             np.where(
-                r["dropped_at"] >= 0, np.char.add(np.char.add(ids, " ✗"), stage),
-                np.char.rstrip(np.char.add(np.char.add(ids, " "), tags[r["tier"]])),
+                r["dropped_at"][rows] >= 0, np.char.add(np.char.add(ids, " ✗"), stage),
+                np.char.rstrip(np.char.add(np.char.add(ids, " "), tags[r["tier"][rows]])),
             ),
         ),
     )  # fmt: skip
-    if mode == "none":
-        return np.full(ids.size, "", dtype=text.dtype)
-    if mode == "all":
-        return text
-    survivor_tier = np.where(r["dropped_at"] < 0, r["tier"], -1)
-    wanted = r["is_ego"] | r["miss"] | (survivor_tier >= 0)
-    priority = np.where(r["is_ego"], 1000, np.where(r["miss"], 100, survivor_tier + 1))
-    shown = _declutter(scene, wanted, priority, L.LABEL_SPACING_M)
-    return np.where(shown, text, "")
+    out = np.full(n, "", dtype=text.dtype if text.size else "<U1")
+    out[rows] = text
+    return out
 
 
 def _declutter(

@@ -213,12 +213,13 @@ def test_map_layers_below_the_agents(tmp_path):
 def test_view_opens_120_m_around_the_ego():
     ego = np.array([[100.0, 50.0], [110.0, 50.0]])
     (x0, x1), (y0, y1) = L.ego_bounds(ego, aspect=1.5)
-    assert (y1 - y0) == pytest.approx(120.0) and (x1 - x0) == pytest.approx(180.0)
+    assert (x1 - x0) == pytest.approx(120.0) and (y1 - y0) == pytest.approx(80.0)
     assert ((x0 + x1) / 2, -(y0 + y1) / 2) == pytest.approx((105.0, 50.0))  # y flipped
     # An ego that drives further: its whole drive plus 20 m on either side.
-    long = np.array([[0.0, 0.0], [300.0, 0.0]])
-    (x0, x1), _ = L.ego_bounds(long, aspect=1.0)
-    assert (x0, x1) == pytest.approx((-20.0, 320.0))
+    (x0, x1), (y0, y1) = L.ego_bounds(np.array([[0.0, 0.0], [300.0, 0.0]]), aspect=1.0)
+    assert (x0, x1) == pytest.approx((-20.0, 320.0)) and (y1 - y0) == pytest.approx(340.0)
+    (x0, x1), (y0, y1) = L.ego_bounds(np.array([[0.0, 0.0], [0.0, 100.0]]), aspect=2.0)
+    assert (-y1, -y0) == pytest.approx((-20.0, 120.0)) and (x1 - x0) == pytest.approx(280.0)
 
 
 # ---------------------------------------------------------------------- real data
