@@ -20,6 +20,7 @@ reviewer (the recording draws them below the agents); no risk model reads them.
 
 from __future__ import annotations
 
+import dataclasses
 import xml.etree.ElementTree as ET
 from collections.abc import Iterable, Mapping
 from typing import Any
@@ -41,6 +42,12 @@ WAYMO_ROAD_LINE_STYLES = {
 WAYMO_ROAD_EDGE_STYLES = {1: "boundary", 2: "median"}
 
 
+def _key(points: np.ndarray) -> bytes:
+    """A polyline's identity to the centimetre, the same in either direction."""
+    cm = np.rint(np.asarray(points, dtype=np.float64).reshape(-1, 2) * 100.0).astype(np.int64)
+    return min(cm.tobytes(), cm[::-1].tobytes())
+
+
 def dedupe_lines(lines: Iterable[MapLine]) -> tuple[MapLine, ...]:
     """Drop lines with fewer than two points and repeats of the same polyline.
 
@@ -54,8 +61,7 @@ def dedupe_lines(lines: Iterable[MapLine]) -> tuple[MapLine, ...]:
         pts = np.asarray(line.points, dtype=np.float64).reshape(-1, 2)
         if len(pts) < 2 or not np.isfinite(pts).all():
             continue
-        cm = np.rint(pts * 100.0).astype(np.int64)
-        key = min(cm.tobytes(), cm[::-1].tobytes())
+        key = _key(pts)
         if key in seen:
             continue
         seen.add(key)
@@ -137,4 +143,14 @@ def commonroad_lines(root: ET.Element) -> tuple[MapLine, ...]:
             kind = "lane_boundary" if elem.find(adjacent) is not None else "road_edge"
             style = (elem.findtext(f"{side}Bound/lineMarking") or "").strip()
             lines.append(MapLine(lid, kind, bounds[side], style=style))
+    # A bound that two lanelets share lies between lanes, whatever the adjacency tags say
+    # (recorded maps such as SinD's often leave them out).
+    keys = [_key(ln.points) for ln in lines]
+    shared = {k for k in keys if keys.count(k) > 1}
+    lines = [
+        dataclasses.replace(ln, kind="lane_boundary")
+        if ln.kind == "road_edge" and k in shared
+        else ln
+        for ln, k in zip(lines, keys, strict=True)
+    ]
     return dedupe_lines(lines)

@@ -263,3 +263,18 @@ def test_mcap_core_reads_the_file(tmp_path):
     counts = json.loads(res.stdout)["counts"]
     assert counts == {"/map": 1, "/agents": 2, "/paths": 2, "/foxglove/map": 1,
                       "/foxglove/scene": 2}  # fmt: skip
+
+
+def test_commonroad_shared_bound_is_a_lane_boundary_without_adjacency_tags():
+    root = ET.fromstring(
+        """<commonRoad>
+        <lanelet id="1"><leftBound><point><x>0</x><y>3</y></point><point><x>10</x><y>3</y></point>
+          </leftBound><rightBound><point><x>0</x><y>0</y></point><point><x>10</x><y>0</y></point>
+          </rightBound></lanelet>
+        <lanelet id="2"><leftBound><point><x>10</x><y>3</y></point><point><x>0</x><y>3</y></point>
+          </leftBound><rightBound><point><x>10</x><y>6</y></point><point><x>0</x><y>6</y></point>
+          </rightBound></lanelet>
+        </commonRoad>"""
+    )  # lanelet 2 runs the other way; its left bound is lanelet 1's left bound, reversed
+    got = [(ln.id, ln.kind) for ln in map_lines.commonroad_lines(root)]
+    assert got == [(1, "lane_boundary"), (1, "road_edge"), (2, "road_edge")]
