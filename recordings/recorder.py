@@ -571,27 +571,32 @@ def _add_agents(
     rgb = L.risk_colors(r["survival"][others], info.cascade.baseline_threshold)
     rgb[dropped] = L.DROPPED
     rgb[miss] = L.MISSED
+    # A label takes the colour of the strip it sits on: it goes on the agent's marker
+    # (white / cyan / magenta tier outline, yellow miss ring, orange hindsight ring) when
+    # it has one, so that the text never reads red on a red body.
+    text = labels[others]
+    tiered = ~dropped & (tier >= 0)
+    ringed = came_close_kept & ~tiered
     parts = _Parts()
     caps, radius = L.capsules(xy, heading, length, width)
-    parts.add(cell, caps, rgb, radius, labels[others])
+    parts.add(cell, caps, rgb, radius, np.where(tiered | miss | ringed, "", text))
     parts.add(
         cell, L.noses(xy, heading, length), _tile(L.NOSE, cell.size),
         np.full(cell.size, -L.NOSE_WIDTH_UI),
     )  # fmt: skip
-    tiered = ~dropped & (tier >= 0)
     tier_rgb = np.array([L.tier_color(k) for k in range(max(len(info.cascade.tiers), 1))], np.uint8)
     parts.add(
         cell[tiered], L.outlines(xy[tiered], heading[tiered], length[tiered], width[tiered], 0.35),
-        tier_rgb[tier[tiered]], -L.outline_width_ui(tier[tiered]),
+        tier_rgb[tier[tiered]], -L.outline_width_ui(tier[tiered]), text[tiered],
     )  # fmt: skip
-    for mask, color, ui, margin in (
-        (miss, L.MISSED, 2.5, 1.2),
-        (came_close_kept, L.HINDSIGHT, 1.5, 0.8),
+    for mask, label_mask, color, ui, margin in (
+        (miss, miss, L.MISSED, 2.5, 1.2),
+        (came_close_kept, ringed, L.HINDSIGHT, 1.5, 0.8),
     ):
         k = int(mask.sum())
         parts.add(
             cell[mask], L.rings(xy[mask], length[mask], width[mask], margin), _tile(color, k),
-            np.full(k, -ui),
+            np.full(k, -ui), np.where(label_mask, text, "")[mask],
         )  # fmt: skip
     paths = [L.body_path(int(a)) for a in agent_ids]
     columns = parts.columns(agent_ids.size * n_frames)

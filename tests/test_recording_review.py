@@ -258,7 +258,7 @@ def test_waymo_recording_review(shared_data, tmp_path):
             continue
         strips = ent.column("strips", rows_with="strips")
         for f, labels in enumerate(ent.column("labels", rows_with="strips")):
-            if labels and labels[0]:
+            if labels and any(labels):
                 labelled[f] += 1
                 positions.setdefault(f, []).append(np.mean(strips[f][0], axis=0))
     n_agents = df.group_by("frame").len().sort("frame")["len"].to_numpy()

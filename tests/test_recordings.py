@@ -335,12 +335,12 @@ def test_bodies_markers_and_colours(recording):
     assert counts == [2, 2, 5]
     assert colors[0][0] > 200 and colors[0][0] > colors[0][1]  # red by survival risk
     assert colors[2] == L.tier_color(2)
-    assert labels == ["1 C", "", ""]
+    assert labels == ["", "", "1 C"]  # on the outline: white/cyan/magenta text, not red
     # Agents 2 and 3 were dropped although baseline-important: yellow capsule and ring.
     for agent, stage in ((2, 2), (3, 1)):
         counts, colors, labels = body(ents, agent, 0)
         assert counts == [2, 2, 17] and colors[0] == L.MISSED and colors[2] == L.MISSED
-        assert labels[0] == f"{agent} MISS ✗{stage}"
+        assert labels == ["", "", f"{agent} MISS ✗{stage}"]  # on the yellow ring
     # Frame 2: agents 3 and 4 dropped, not important: grey, no marker, no label.
     for agent in (3, 4):
         counts, colors, labels = body(ents, agent, 2)
