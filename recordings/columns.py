@@ -12,6 +12,7 @@ instances).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,6 +27,21 @@ class Component:
     component_type: str  # "rerun.components.LineStrip2D"
     archetype: str  # "rerun.archetypes.LineStrips2D"
     item: pa.DataType
+
+    @functools.cached_property
+    def list_type(self) -> pa.DataType:
+        """The column type: a list of ``item`` per row."""
+        return pa.list_(self.item)
+
+    @functools.cached_property
+    def metadata(self) -> dict[str, str]:
+        """The column metadata Rerun reads, except the entity path."""
+        return {
+            "rerun:component": self.name,
+            "rerun:component_type": self.component_type,
+            "rerun:archetype": self.archetype,
+            "rerun:kind": "data",
+        }
 
 
 _POINT2D = pa.list_(pa.field("item", pa.float32(), nullable=False), 2)
@@ -129,18 +145,11 @@ class Batch:
     _arrays: list[pa.Array] = field(default_factory=list)
 
     def add(self, entity: str, component: Component, column: pa.Array) -> None:
-        meta = {
-            "rerun:entity_path": entity,
-            "rerun:component": component.name,
-            "rerun:component_type": component.component_type,
-            "rerun:archetype": component.archetype,
-            "rerun:kind": "data",
-        }
-        name = f"{entity}:{component.name}"
-        self._fields.append(pa.field(name, pa.list_(component.item), metadata=meta))
-        target = pa.list_(component.item)
+        target = component.list_type
         if column.type != target:
-            raise TypeError(f"{name}: column type {column.type} is not {target}")
+            raise TypeError(f"{entity}:{component.name}: column type {column.type} is not {target}")
+        meta = {"rerun:entity_path": entity, **component.metadata}
+        self._fields.append(pa.field(f"{entity}:{component.name}", target, metadata=meta))
         self._arrays.append(column)
 
     def __len__(self) -> int:
