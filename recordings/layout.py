@@ -356,6 +356,9 @@ def blueprint(
         contents=f"{SCENE}/**",
         background=BACKGROUND,
         visual_bounds=rrb.VisualBounds2D(x_range=x_range, y_range=y_range),
+        # The agents' bodies (one entity each) take these; the map, the ego and the
+        # paths log their own draw order.
+        defaults=[rr.LineStrips2D.from_fields(draw_order=ORDER_AGENTS, show_labels=True)],
     )
     legend = rrb.PlotLegend(corner=rrb.Corner2D.LeftTop, visible=True)
     funnel = rrb.TimeSeriesView(name="Funnel: agents left", origin=FUNNEL, plot_legend=legend)

@@ -494,20 +494,27 @@ def _add_entities(
     paths: Sequence[str],
     n_frames: int,
     columns: tuple[pa.Array, pa.Array, pa.Array, pa.Array],
-    order: float,
+    order: float | None,
     *,
     labels: bool,
 ) -> None:
-    """Line-strip entities ``paths[e]`` whose frame-``f`` instances are row ``e*F + f``."""
+    """Line-strip entities ``paths[e]`` whose frame-``f`` instances are row ``e*F + f``.
+
+    ``order``: the entities' draw order, logged static with ``show_labels``; None leaves
+    both to the scene view's defaults (the agents' bodies: one entity each, so per-entity
+    static values would cost two columns per agent for the same value).
+    """
     strips, colors, radii, texts = columns
     for e, path in enumerate(paths):
         start = e * n_frames
-        static.add(path, C.DRAW_ORDER, C.one_per_row(np.array([order]), pa.float32()))
+        if order is not None:
+            static.add(path, C.DRAW_ORDER, C.one_per_row(np.array([order]), pa.float32()))
         batch.add(path, C.STRIPS, strips.slice(start, n_frames))
         batch.add(path, C.STRIP_COLORS, colors.slice(start, n_frames))
         batch.add(path, C.STRIP_RADII, radii.slice(start, n_frames))
         if labels:
-            static.add(path, C.SHOW_LABELS, C.one_per_row(np.array([True]), pa.bool_()))
+            if order is not None:
+                static.add(path, C.SHOW_LABELS, C.one_per_row(np.array([True]), pa.bool_()))
             batch.add(path, C.STRIP_LABELS, texts.slice(start, n_frames))
 
 
@@ -600,7 +607,8 @@ def _add_agents(
         )  # fmt: skip
     paths = [L.body_path(int(a)) for a in agent_ids]
     columns = parts.columns(agent_ids.size * n_frames)
-    _add_entities(batch, static, paths, n_frames, columns, L.ORDER_AGENTS, labels=show)
+    # Draw order and show_labels: the scene view's defaults (layout.blueprint).
+    _add_entities(batch, static, paths, n_frames, columns, None, labels=show)
 
 
 def _add_links(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: _Scene) -> None:

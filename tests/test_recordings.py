@@ -361,7 +361,6 @@ def test_label_counts_per_frame(recording):
             for f, labels in enumerate(ent.column("labels", rows_with="strips")):
                 per_frame[f] += sum(bool(x) for x in labels or [])
     assert per_frame == [4, 3, 3]
-    assert ents[L.body_path(1)].static["show_labels"] == [True]
 
 
 @pytest.mark.parametrize(
