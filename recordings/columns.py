@@ -65,6 +65,10 @@ SCALARS = Component(
 SERIES_COLORS = Component(
     "SeriesLines:colors", "rerun.components.Color", "rerun.archetypes.SeriesLines", pa.uint32()
 )
+SERIES_WIDTHS = Component(
+    "SeriesLines:widths", "rerun.components.StrokeWidth", "rerun.archetypes.SeriesLines",
+    pa.float32(),
+)  # fmt: skip
 SERIES_NAMES = Component(
     "SeriesLines:names", "rerun.components.Name", "rerun.archetypes.SeriesLines", pa.utf8()
 )

@@ -81,6 +81,7 @@ class _Scene:
     sort_time_ms: np.ndarray  # (F,) ms
     survival_all_time_ms: np.ndarray  # (F,) ms
     rows: dict[str, np.ndarray] = field(default_factory=dict)  # name -> (K, ...) or (S, K)
+    grid: tuple[np.ndarray, ...] | None = None  # _agent_grid's result, computed once
 
 
 @dataclass(frozen=True)
@@ -853,6 +854,12 @@ def _log10_range(values: np.ndarray, window_decades: float = 30.0) -> tuple[floa
 
 
 def _agent_grid(scene: _Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    if scene.grid is None:
+        scene.grid = _compute_agent_grid(scene)
+    return scene.grid
+
+
+def _compute_agent_grid(scene: _Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The other agents as columns of a frame x agent grid.
 
     Returns ``agent_ids (A,)``, ``column (K,)`` (-1 for the ego rows), and each agent's
@@ -961,15 +968,16 @@ def _log_cascade_series(rec, info: SceneInfo, scene: _Scene) -> None:
         (f"{L.TIMING}/cascade_total", "cascade total", L.OTHERS_SERIES, total_ms),
         (f"{L.TIMING}/survival_all", "survival (all)", L.MISSED, scene.survival_all_time_ms),
     ]
-    for path, name, color, values in series:
-        style = rr.SeriesLines(colors=color, names=name, widths=2.0)
-        rec.log(path, style, static=True, strict=True)
-        rec.send_columns(
-            path,
-            indexes=_time_columns(scene),
-            columns=rr.Scalars.columns(scalars=np.asarray(values, dtype=np.float64)),
-            strict=True,
-        )
+    # Two record batches (styles, static; values, one row per frame) for all series.
+    static, batch = C.Batch(), _timed_batch(scene)
+    colors = C.pack_colors(np.array([c for _, _, c, _ in series], dtype=np.uint8))
+    for k, (path, name, _, values) in enumerate(series):
+        static.add(path, C.SERIES_COLORS, C.one_per_row(colors[k : k + 1], pa.uint32()))
+        static.add(path, C.SERIES_NAMES, C.one_per_row([name], pa.utf8()))
+        static.add(path, C.SERIES_WIDTHS, C.one_per_row(np.array([2.0]), pa.float32()))
+        batch.add(path, C.SCALARS, C.one_per_row(np.asarray(values, np.float64), pa.float64()))
+    static.send(rec)
+    batch.send(rec)
 
 
 # ---------------------------------------------------------------------- helpers
