@@ -14,11 +14,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from google.protobuf import descriptor_pb2
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
+from converters import av2, commonroad, map_lines, waymo
 from converters import foxglove_scene as fg
-from converters import map_lines
 from converters import scene_format as sf
 from converters.mcap_io import write_scene
 from replay.cli import main
@@ -152,8 +153,6 @@ def test_av2_boundaries_and_crossings():
 
 
 def test_real_sources_carry_map_lines(shared_data, tmp_path):
-    from converters import av2, commonroad, waymo
-
     w = next(iter(waymo.read_scenes(next((shared_data / "waymo").glob("*.tfrecord")))))
     kinds = {k: sum(ln.kind == k for ln in w.map.lines) for k in sf.MAP_LINE_KINDS}
     # The sample's 301 map features: 199 lanes, 58 road lines, 28 road edges,
@@ -214,8 +213,6 @@ def test_foxglove_channels_decode_with_foreign_readers(tmp_path):
 
 
 def test_foxglove_schema_holds_every_import():
-    from google.protobuf import descriptor_pb2
-
     fds = descriptor_pb2.FileDescriptorSet.FromString(fg.schema_data())
     names = {f.name for f in fds.file}
     for f in fds.file:

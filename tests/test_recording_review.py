@@ -17,7 +17,7 @@ from recordings import SceneRecorder
 from recordings import layout as L
 from recordings import recorder as R
 from replay.cli import main
-from replay.engine import FrameResult
+from base.sinks import FrameResult
 from replay.tables import TableSink
 from risk import MODELS
 from risk.frame import MapLine

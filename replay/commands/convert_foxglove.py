@@ -6,6 +6,10 @@ import pathlib
 
 import click
 
+from converters.errors import ConversionError
+from converters.mcap_io import write_scene
+from replay.reader import read_scene
+
 
 @click.command("foxglove")
 @click.argument("scene_file", type=click.Path(exists=True, dir_okay=False, path_type=pathlib.Path))
@@ -26,10 +30,6 @@ def foxglove(scene_file: pathlib.Path, output: pathlib.Path) -> None:
     Examples:
       replay convert foxglove scene.mcap -o scene.foxglove.mcap
     """
-    from converters.errors import ConversionError
-    from converters.mcap_io import write_scene
-    from replay.reader import read_scene
-
     if output.resolve() == scene_file.resolve():
         raise ConversionError(f"{output}: the output may not be the input; name another file")
     scene = read_scene(scene_file)
