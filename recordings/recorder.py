@@ -899,7 +899,7 @@ def _log_timelines(
     # agent added in the viewer takes the view's quiet grey. The series name is the
     # entity path, which holds the agent id.
     coloured = np.isin(agent_ids, np.asarray(focus, dtype=np.int64))
-    static = C.Batch()
+    static, batch = C.Batch(), _timed_batch(scene)  # every model in one record batch
     thresholds = {s.model: s.threshold for s in info.cascade.stages}
     for model in info.model_names:
         grid = np.full((agent_ids.size, n_frames), np.nan)  # (A, F): one row per agent
@@ -909,7 +909,6 @@ def _log_timelines(
             with np.errstate(divide="ignore", invalid="ignore"):
                 variants.append((True, np.where(grid > 0, np.log10(grid), np.nan)))
         for is_log, values in variants:
-            batch = _timed_batch(scene)
             # All agents' cells in one array; each agent's column is a zero-copy slice.
             cells = C.one_per_row(values.reshape(-1), pa.float64(), outside.reshape(-1))
             for a, agent in enumerate(agent_ids):
@@ -917,9 +916,9 @@ def _log_timelines(
                 batch.add(path, C.SCALARS, cells.slice(a * n_frames, n_frames))
                 if coloured[a]:
                     static.add(path, C.SERIES_COLORS, colors.slice(a, 1))
-            batch.send(rec)
             if model in thresholds:
                 _log_threshold(rec, scene, model, thresholds[model], is_log)
+    batch.send(rec)
     static.send(rec)
 
 
