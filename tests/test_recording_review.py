@@ -13,11 +13,11 @@ import pytest
 from click.testing import CliRunner
 from test_recordings import TIMES, make_results, read_rrd, rgba
 
+from base.sinks import FrameResult
 from recordings import SceneRecorder
 from recordings import layout as L
 from recordings import recorder as R
 from replay.cli import main
-from base.sinks import FrameResult
 from replay.tables import TableSink
 from risk import MODELS
 from risk.frame import MapLine
