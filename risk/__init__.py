@@ -11,7 +11,7 @@ entry point::
 """
 
 from risk.errors import FrameError, RiskError, UnknownModelError
-from risk.frame import KIND_NAMES, Frame, Kind, Lane, LaneMap, Scene
+from risk.frame import KIND_NAMES, Frame, Kind, Lane, LaneMap, MapLine, Scene
 from risk.prediction import (
     FrameContext,
     KindUncertainty,
@@ -39,6 +39,7 @@ __all__ = [
     "KindUncertainty",
     "Lane",
     "LaneMap",
+    "MapLine",
     "ModelSpec",
     "PredictionSettings",
     "RiskError",
