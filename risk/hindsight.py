@@ -471,7 +471,8 @@ def _pet_candidates(tracks: Tracks, egos: np.ndarray) -> tuple[np.ndarray, np.nd
     meet = (lo_x[e] <= hi_x[None, :]) & (lo_x[None, :] <= hi_x[e])
     meet &= (lo_y[e] <= hi_y[None, :]) & (lo_y[None, :] <= hi_y[e])
     meet &= e != np.arange(tracks.n_agents)[None, :]
-    return np.nonzero(meet)
+    ego_pos, agent = np.nonzero(meet)
+    return ego_pos, agent
 
 
 def _pet_pairs(tracks: Tracks, e_col: np.ndarray, a_col: np.ndarray, h: int) -> np.ndarray:
