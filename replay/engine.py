@@ -175,6 +175,9 @@ def run_scene(
     cascade = CascadeConfig.default() if cascade is None else cascade
     if evaluate is None:
         evaluate = risk.evaluate  # looked up per call: tests and notebooks may replace it
+    named = cascade.model_settings()  # the cascade TOML's [params.*] / [prediction]
+    params = named.params_or_none() if params is None else params
+    prediction = named.prediction_or_none() if prediction is None else prediction
     if prediction is not None:
         evaluate = functools.partial(evaluate, prediction=prediction)
     model_names = _model_names(models)

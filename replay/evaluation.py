@@ -2,13 +2,13 @@
 what really happened (the hindsight truth), with scene-bootstrap intervals.
 
 The input is an agents table (the columns of ``replay run --table`` plus ``scene``, as
-``replay stats`` collects them, see :func:`replay.commands.stats.collect`);
+``replay stats`` collects them, see :func:`replay.inputs.collect`);
 :func:`evaluate_agents` turns it into arrays and calls the pure
 :func:`risk.evaluation.evaluate_references`; :func:`write_evaluation` writes
 ``summary.json``, tables and plots. ``docs/evaluation.md`` describes every field.
 
-Replaying scenes or reading tables first (``replay stats``' input collection, which
-lives in :mod:`replay.commands.stats`) is :func:`replay.commands.evaluate.evaluate_inputs`.
+Replaying scenes or reading tables first (``replay stats``' input collection,
+:mod:`replay.inputs`) is :func:`evaluate_inputs`.
 """
 
 from __future__ import annotations
@@ -26,8 +26,11 @@ import numpy as np
 import polars as pl
 
 from base.atomic import atomic_output
+from replay.engine import Stride
 from replay.errors import ReplayError
 from replay.evaluation_plots import plot_evaluation
+from replay.inputs import collect, resolve_inputs, scene_names
+from risk.cascade import CascadeConfig
 from risk.evaluation import FPR_POINTS, TPR_TARGETS, evaluate_references, pooled_roc
 from risk.hindsight import HindsightSettings
 from risk.registry import BASELINE_THRESHOLD, MODELS
@@ -455,3 +458,78 @@ def _ci(block: Mapping[str, Any]) -> str:
     if not ci or ci[0] is None or not math.isfinite(ci[0]):
         return ""
     return f"[{ci[0]:.3f}, {ci[1]:.3f}]"
+
+
+# ---------------------------------------------------------------------- inputs
+def evaluate_inputs(
+    paths: Sequence[str | os.PathLike[str]],
+    *,
+    cascade: Any = None,
+    params: Any = None,
+    prediction: Any = None,
+    hindsight: HindsightSettings | None = None,
+    settings: EvaluationSettings | None = None,
+    workers: int = 1,
+    progress: bool = False,
+    ego: int | str | None = None,
+    every: Any = 1,
+) -> dict[str, Any]:
+    """Replay (scenes) or read (tables) the inputs and evaluate them; the summary dict.
+
+    ``params`` (model name -> parameters) and ``prediction`` go to every model evaluation
+    of the replayed scenes; tables are read as they were written. This is what
+    ``replay evaluate`` runs, without writing files."""
+    agents, datasets, hs = collect_agents(
+        paths, cascade=cascade, params=params, prediction=prediction, hindsight=hindsight,
+        workers=workers, progress=progress, ego=ego, every=every,
+    )  # fmt: skip
+    return evaluate_agents(
+        agents, settings=settings, datasets=datasets, hindsight=hs,
+        inputs=[str(p) for p in paths],
+    )  # fmt: skip
+
+
+def collect_agents(
+    paths: Sequence[str | os.PathLike[str]],
+    *,
+    cascade: Any = None,
+    params: Any = None,
+    prediction: Any = None,
+    hindsight: HindsightSettings | None = None,
+    workers: int = 1,
+    progress: bool = False,
+    ego: int | str | None = None,
+    every: Any = 1,
+    models: Sequence[str] | None = None,
+) -> tuple[pl.DataFrame, dict[str, str], HindsightSettings]:
+    """The agents table of scenes, tables or folders (as ``replay stats`` reads them),
+    the dataset of each scene (the name of the folder its file is in) and the hindsight
+    settings of its truth columns. ``models``: the risk columns to compute (default: all)."""
+    found = resolve_inputs([pathlib.Path(p) for p in paths])
+    if found.tables and hindsight is not None and hindsight != HindsightSettings():
+        raise EvaluationError(
+            "tables carry the hindsight truth they were written with; to evaluate other "
+            "--truth-* settings give the .mcap scenes"
+        )
+    hs = hindsight or HindsightSettings()
+    agents, _, _, _ = collect(
+        found,
+        cascade or CascadeConfig.default(),
+        models=models,
+        workers=workers,
+        progress=progress,
+        params=params,
+        prediction=prediction,
+        hindsight=hs,
+        ego=ego,
+        every=Stride.of(every),
+    )
+    files = [*found.scenes, *found.tables]
+    names = scene_names(files)
+    datasets = {n: p.resolve().parent.name for n, p in zip(names, files, strict=True)}
+    if "scene" in agents.columns:  # merged tables name their scenes themselves
+        table_dirs = {p.resolve().parent.name for p in found.tables}
+        for s in agents["scene"].unique().to_list():
+            if s not in datasets and len(table_dirs) == 1:
+                datasets[s] = next(iter(table_dirs))
+    return agents, datasets, hs

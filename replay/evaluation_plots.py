@@ -104,3 +104,36 @@ def _miss(
     ax.legend(fontsize=7, ncol=3)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def plot_sensitivity(rows: pl.DataFrame, path: pathlib.Path) -> pathlib.Path:
+    """``sensitivity.png``: each model's AUC (with its interval) per sweep variant, one
+    panel per reference; the defaults' value as a dotted line."""
+    variants = rows.select("group", "variant").unique(maintain_order=True).rows()
+    refs = list(dict.fromkeys(rows["reference"].to_list()))
+    fig, axes = plt.subplots(len(refs), 1, figsize=(12, 4.2 * len(refs)), dpi=DPI, squeeze=False)
+    x = np.arange(len(variants))
+    models = list(dict.fromkeys(rows["model"].to_list()))
+    for ax, ref in zip(axes[:, 0], refs, strict=True):
+        sub = rows.filter(pl.col("reference") == ref)
+        for i, m in enumerate(models):
+            if ref == "survival" and m == "survival":
+                continue
+            by = {
+                (r["group"], r["variant"]): r
+                for r in sub.filter(pl.col("model") == m).iter_rows(named=True)
+            }
+            y = np.array([by[v]["auc"] if v in by else np.nan for v in variants], dtype=float)
+            lo = np.array([by[v]["ci_lo"] if v in by else np.nan for v in variants], dtype=float)
+            hi = np.array([by[v]["ci_hi"] if v in by else np.nan for v in variants], dtype=float)
+            color = MODEL_COLORS.get(m, f"C{i}")
+            off = (i - len(models) / 2) * 0.04
+            ax.errorbar(x + off, y, yerr=[np.nan_to_num(y - lo), np.nan_to_num(hi - y)], fmt="o",
+                        ms=3, lw=0.8, color=color, label=m)  # fmt: skip
+            ax.axhline(y[0], color=color, lw=0.5, ls=":")
+        ax.set_xticks(x, [f"{g}\n{v}" for g, v in variants], rotation=60, ha="right", fontsize=7)
+        ax.set_ylabel(f"AUC against {ref}")
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7, ncol=3, loc="lower left")
+    fig.tight_layout()
+    return _save(fig, path)

@@ -38,6 +38,7 @@ Choices the spec leaves open (documented here, see also ``docs/cascade.md``):
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import pathlib
@@ -61,6 +62,7 @@ from risk.registry import (
     resolve_prediction,
 )
 from risk.registry import evaluate as risk_evaluate
+from risk.settings import BASELINE_KEY, ModelSettings, SettingsError, flatten_tables, parse_settings
 
 DEFAULT_CASCADE_PATH = pathlib.Path(__file__).with_name("default_cascade.toml")
 #: The model of the sorting step and of the baseline (survival analysis).
@@ -115,6 +117,25 @@ class CascadeConfig:
     tiers: tuple[Tier, ...]
     baseline_threshold: float = BASELINE_THRESHOLD  # important when R_S >= this (paper)
     provenance: str = ""  # how the thresholds were made (calibration record)
+    #: Model and prediction settings of the ``[params.<model>]`` and ``[prediction]``
+    #: tables, as flat keys of :mod:`risk.settings` (empty: the paper's values).
+    settings: Mapping[str, Any] = field(default_factory=dict)
+
+    def model_settings(self) -> ModelSettings:
+        """The parameters, prediction and baseline threshold this cascade names."""
+        return parse_settings(
+            self.settings, base=ModelSettings(baseline_threshold=self.baseline_threshold)
+        )
+
+    def with_settings(self, items: Any) -> CascadeConfig:
+        """This cascade with the settings ``items`` (``KEY=VALUE`` strings or a mapping,
+        see :func:`risk.settings.parse_settings`) on top of its own; ``baseline.threshold``
+        sets :attr:`baseline_threshold`. Raises SettingsError for a bad key or value."""
+        merged = parse_settings(items, base=self.model_settings())
+        flat = {**self.settings, **{k: v for k, v in merged.overrides.items() if k != BASELINE_KEY}}
+        return dataclasses.replace(
+            self, settings=flat, baseline_threshold=merged.baseline_threshold
+        )
 
     @property
     def stage_names(self) -> tuple[str, ...]:
@@ -150,12 +171,26 @@ class CascadeConfig:
             if t.max_agents is not None:
                 entry["max_agents"] = t.max_agents
             tiers.append(entry)
-        return {
+        out: dict[str, Any] = {
             "provenance": self.provenance,
             "baseline_threshold": self.baseline_threshold,
             "stages": [{"model": s.model, "threshold": s.threshold} for s in self.stages],
             "tiers": tiers,
         }
+        for key, value in self.settings.items():
+            head, _, rest = key.partition(".")
+            if value is None:
+                value = "none"
+            if head == "prediction":
+                table = out.setdefault("prediction", {})
+                if "." in rest:
+                    kind, fname = rest.split(".", 1)
+                    table.setdefault(kind, {})[fname] = value
+                else:
+                    table[rest] = value
+            else:
+                out.setdefault("params", {}).setdefault(head, {})[rest] = value
+        return out
 
     def to_toml_string(self) -> str:
         """The configuration as TOML text (what :meth:`from_toml` reads back)."""
@@ -164,7 +199,7 @@ class CascadeConfig:
         return tomli_w.dumps(self.to_dict(), multiline_strings=True)
 
 
-_TOP_KEYS = {"provenance", "baseline_threshold", "stages", "tiers"}
+_TOP_KEYS = {"provenance", "baseline_threshold", "stages", "tiers", "params", "prediction"}
 _STAGE_KEYS = {"model", "threshold"}
 _TIER_KEYS = {"name", "min_survival_risk", "max_agents"}
 
@@ -229,8 +264,17 @@ def _parse_config(data: Mapping[str, Any], source: str) -> CascadeConfig:
         tiers.append(Tier(name=name, min_survival_risk=risk_min, max_agents=cap))
     if len({t.name for t in tiers}) != len(tiers):
         raise fail("tiers", "tier names must be unique")
+    try:
+        flat = flatten_tables({k: data[k] for k in ("params", "prediction") if k in data})
+        parse_settings(flat)  # checks every key and value
+    except SettingsError as exc:
+        raise fail("params/prediction", str(exc)) from None
     return CascadeConfig(
-        stages=tuple(stages), tiers=tuple(tiers), baseline_threshold=baseline, provenance=provenance
+        stages=tuple(stages),
+        tiers=tuple(tiers),
+        baseline_threshold=baseline,
+        provenance=provenance,
+        settings=flat,
     )
 
 

@@ -9,10 +9,10 @@ import click
 
 from replay.batch import CONVERT_KINDS, ENGINES, BatchReport, BatchSettings, run_batch
 from replay.commands.ego_options import ego_option, every_option
+from replay.commands.settings_option import load_cascade, set_option
 from replay.egos import ALL_EGOS
 from replay.engine import Stride
 from replay.errors import ReplayError
-from risk.cascade import CascadeConfig
 
 _FAILURES_SHOWN = 5
 
@@ -79,6 +79,7 @@ _FAILURES_SHOWN = 5
     "--progress/--no-progress", default=True, show_default=True,
     help="Progress bar on stderr.",
 )  # fmt: skip
+@set_option
 def batch(
     inputs: tuple[pathlib.Path, ...],
     out_dir: pathlib.Path,
@@ -94,6 +95,7 @@ def batch(
     every: Stride,
     strict: bool,
     progress: bool,
+    sets: tuple[str, ...] = (),
 ) -> None:
     """Replay every scene of a dataset and compute its statistics, in parallel.
 
@@ -124,7 +126,7 @@ def batch(
             "--rrd writes one recording per scene, which shows one ego's view; it cannot go "
             "with --ego all"
         )
-    cascade = CascadeConfig.from_toml(cascade_file) if cascade_file else CascadeConfig.default()
+    cascade = load_cascade(cascade_file, sets)
     settings = BatchSettings(
         cascade=cascade,
         rrd=rrd,

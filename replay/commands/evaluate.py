@@ -1,108 +1,32 @@
 """``replay evaluate``: every model against the survival baseline and against what really
 happened (the hindsight truth), over scenes or tables, with scene-bootstrap intervals.
 
-:func:`evaluate_inputs` is the same without writing files (notebooks, the sensitivity
-sweep). It lives here because the input collection it shares with ``replay stats``
-(:func:`replay.commands.stats.collect`) does; the library part is
-:mod:`replay.evaluation`."""
+The library part (including :func:`replay.evaluation.evaluate_inputs`, the same without
+writing files) is :mod:`replay.evaluation`; the sensitivity sweep is
+:mod:`replay.sensitivity`."""
 
 from __future__ import annotations
 
-import os
 import pathlib
+import sys
 import time
-from collections.abc import Sequence
-from typing import Any
+from dataclasses import replace
 
 import click
-import polars as pl
 
 from replay.commands.ego_options import ego_option, every_option
+from replay.commands.settings_option import load_cascade, set_option
 from replay.engine import Stride
 from replay.evaluation import (
     DEFAULT_GROUPINGS,
     GROUPINGS,
-    EvaluationError,
     EvaluationSettings,
+    collect_agents,
     evaluate_agents,
 )
-from risk.cascade import CascadeConfig
+from replay.evaluation_report import write_report
+from replay.sensitivity import format_sweep, run_sweep, write_sweep
 from risk.hindsight import HindsightSettings
-
-
-def evaluate_inputs(
-    paths: Sequence[str | os.PathLike[str]],
-    *,
-    cascade: Any = None,
-    params: Any = None,
-    prediction: Any = None,
-    hindsight: HindsightSettings | None = None,
-    settings: EvaluationSettings | None = None,
-    workers: int = 1,
-    progress: bool = False,
-    ego: int | str | None = None,
-    every: Any = 1,
-) -> dict[str, Any]:
-    """Replay (scenes) or read (tables) the inputs and evaluate them; the summary dict.
-
-    ``params`` (model name -> parameters) and ``prediction`` go to every model evaluation
-    of the replayed scenes; tables are read as they were written. This is what
-    ``replay evaluate`` runs, without writing files."""
-    agents, datasets, hs = collect_agents(
-        paths, cascade=cascade, params=params, prediction=prediction, hindsight=hindsight,
-        workers=workers, progress=progress, ego=ego, every=every,
-    )  # fmt: skip
-    return evaluate_agents(
-        agents, settings=settings, datasets=datasets, hindsight=hs,
-        inputs=[str(p) for p in paths],
-    )  # fmt: skip
-
-
-def collect_agents(
-    paths: Sequence[str | os.PathLike[str]],
-    *,
-    cascade: Any = None,
-    params: Any = None,
-    prediction: Any = None,
-    hindsight: HindsightSettings | None = None,
-    workers: int = 1,
-    progress: bool = False,
-    ego: int | str | None = None,
-    every: Any = 1,
-) -> tuple[pl.DataFrame, dict[str, str], HindsightSettings]:
-    """The agents table of scenes, tables or folders (as ``replay stats`` reads them),
-    the dataset of each scene (the name of the folder its file is in) and the hindsight
-    settings of its truth columns."""
-    from replay.commands.stats import collect, resolve_inputs, scene_names
-
-    found = resolve_inputs([pathlib.Path(p) for p in paths])
-    if found.tables and hindsight is not None and hindsight != HindsightSettings():
-        raise EvaluationError(
-            "tables carry the hindsight truth they were written with; to evaluate other "
-            "--truth-* settings give the .mcap scenes"
-        )
-    hs = hindsight or HindsightSettings()
-    agents, _, _, _ = collect(
-        found,
-        cascade or CascadeConfig.default(),
-        models=None,
-        workers=workers,
-        progress=progress,
-        params=params,
-        prediction=prediction,
-        hindsight=hs,
-        ego=ego,
-        every=Stride.of(every),
-    )
-    files = [*found.scenes, *found.tables]
-    names = scene_names(files)
-    datasets = {n: p.resolve().parent.name for n, p in zip(names, files, strict=True)}
-    if "scene" in agents.columns:  # merged tables name their scenes themselves
-        table_dirs = {p.resolve().parent.name for p in found.tables}
-        for s in agents["scene"].unique().to_list():
-            if s not in datasets and len(table_dirs) == 1:
-                datasets[s] = next(iter(table_dirs))
-    return agents, datasets, hs
 
 
 def _names(text: str | None) -> list[str]:
@@ -160,10 +84,27 @@ def _names(text: str | None) -> list[str]:
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the bootstrap.")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="Processes replaying scenes in parallel. Default: the number of CPUs.")  # fmt: skip
+@click.option(
+    "--sensitivity/--no-sensitivity", default=False, show_default=True,
+    help="Also run the sensitivity sweep over the baseline's choices (survival threshold, "
+    "tau_esc, uncertainty growth, horizon, closest-encounter rule, circle radii): each "
+    "variant re-thresholds or recomputes only the models it changes, on the same inputs, "
+    "--ego and --every. Writes sensitivity*.parquet/.csv and sensitivity.png.",
+)  # fmt: skip
+@click.option("--sensitivity-bootstrap", type=click.IntRange(min=0), default=200, show_default=True,
+              help="Bootstrap replicates per sensitivity variant.")  # fmt: skip
+@click.option(
+    "--report", "report_path", default=None,
+    type=click.Path(dir_okay=False, path_type=pathlib.Path),
+    help="Also write a Markdown report of the evaluation (and the sweep, with "
+    "--sensitivity) to this .md file, its plots into the folder of the same name without "
+    ".md (e.g. docs/recorded-evaluation.md and docs/recorded-evaluation/).",
+)  # fmt: skip
 @click.option("--plots/--no-plots", default=True, show_default=True, help="Write the PNG plots.")
 @click.option(
     "--progress/--no-progress", default=True, show_default=True, help="Progress bar on stderr."
 )
+@set_option
 def evaluate(
     inputs: tuple[pathlib.Path, ...],
     out_dir: pathlib.Path,
@@ -183,6 +124,10 @@ def evaluate(
     workers: int | None,
     plots: bool,
     progress: bool,
+    sensitivity: bool = False,
+    sensitivity_bootstrap: int = 200,
+    report_path: pathlib.Path | None = None,
+    sets: tuple[str, ...] = (),
 ) -> None:
     """Which agents does each filter drop that really came close?
 
@@ -211,7 +156,7 @@ def evaluate(
 
     chosen = tuple(resolve_models(_names(models))) if models else None
     by = check_groupings(_names(groupings))
-    cascade = CascadeConfig.from_toml(cascade_file) if cascade_file else CascadeConfig.default()
+    cascade = load_cascade(cascade_file, sets)
     given = {
         "horizon_s": truth_horizon, "gap_m": truth_gap, "pet_s": truth_pet,
         "coverage": truth_coverage,
@@ -229,8 +174,9 @@ def evaluate(
         seed=seed,
     )
     start = time.perf_counter()
+    workers_n = workers or default_workers()
     agents, datasets, hs = collect_agents(
-        inputs, cascade=cascade, hindsight=hindsight, workers=workers or default_workers(),
+        inputs, cascade=cascade, hindsight=hindsight, workers=workers_n,
         progress=progress, ego=ego, every=every,
     )  # fmt: skip
     read_s = time.perf_counter() - start
@@ -242,6 +188,25 @@ def evaluate(
     summary["time_s"] = {"replay / read": read_s, "evaluation": time.perf_counter() - start}
     files = write_evaluation(summary, agents, out_dir, datasets=datasets, plots=plots)
     click.echo(format_evaluation(summary))
+    sweep = None
+    if sensitivity:
+        start = time.perf_counter()
+        sweep = run_sweep(
+            inputs, default_agents=agents, datasets=datasets, cascade=cascade, hindsight=hs,
+            settings=replace(settings, n_boot=sensitivity_bootstrap), workers=workers_n,
+            progress=progress, ego=ego, every=every,
+        )  # fmt: skip
+        summary["time_s"]["sensitivity"] = time.perf_counter() - start
+        files.update(write_sweep(sweep, out_dir, plots=plots))
+        click.echo(format_sweep(sweep))
+    if report_path is not None:
+        files.update(
+            write_report(
+                report_path, summary, agents, out_dir=out_dir, sweep=sweep,
+                command=" ".join(["replay", "evaluate", *sys.argv[2:]]) if len(sys.argv) > 1 else "",
+                datasets=datasets,
+            )
+        )  # fmt: skip
     click.echo("Time: " + ", ".join(f"{k} {v:.1f} s" for k, v in summary["time_s"].items()))
     click.echo("Wrote:")
     for path in files.values():

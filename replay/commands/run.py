@@ -8,9 +8,9 @@ import warnings
 import click
 
 from replay.commands.ego_options import ego_option, every_option
+from replay.commands.settings_option import load_cascade, set_option
 from replay.egos import ALL_EGOS, EgosSummary, pooled, run_every_ego
 from replay.engine import ReplayWarning, RunSummary, Sink, Stride, run_scene
-from risk.cascade import CascadeConfig
 
 
 @click.command("run")
@@ -40,6 +40,7 @@ from risk.cascade import CascadeConfig
     "--progress/--no-progress", default=True, show_default=True,
     help="Progress bar on stderr.",
 )  # fmt: skip
+@set_option
 def run(
     scene: pathlib.Path,
     output: pathlib.Path | None,
@@ -49,6 +50,7 @@ def run(
     table: pathlib.Path | None,
     no_rrd: bool,
     progress: bool,
+    sets: tuple[str, ...] = (),
 ) -> None:
     """Replay SCENE (an MCAP scene) through the nine risk models and the filter cascade.
 
@@ -59,7 +61,7 @@ def run(
 
     Writes SCENE.rrd (open it with 'rerun SCENE.rrd') and prints a summary.
     """
-    cascade = CascadeConfig.from_toml(cascade_file) if cascade_file else CascadeConfig.default()
+    cascade = load_cascade(cascade_file, sets)
     if no_rrd and output is not None:
         raise click.UsageError("--output names the recording; it cannot go with --no-rrd")
     if ego == ALL_EGOS:

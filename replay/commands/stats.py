@@ -5,141 +5,20 @@ from __future__ import annotations
 import pathlib
 import sys
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass
 
 import click
-import polars as pl
 
 from replay.commands.ego_options import ego_option, every_option
-from replay.engine import EVERY_FRAME, Stride
-from replay.errors import ReplayError
-from replay.pool import default_workers, parallel_map
+from replay.commands.settings_option import load_cascade, set_option
+from replay.engine import Stride
+from replay.inputs import collect, resolve_inputs
+from replay.pool import default_workers
 from replay.stats import (
     DEFAULT_ERRORS_MODEL,
     DatasetStats,
-    concat_agents,
-    frames_from_agents,
-    read_agents_table,
-    stage_names_of,
-    tier_names_of,
 )
 from replay.stats.run import run_stats
-from replay.worker import SceneJob, replay_job
-from risk.cascade import CascadeConfig
 from risk.registry import resolve_models
-
-SCENE_SUFFIXES = (".mcap",)
-TABLE_SUFFIXES = (".parquet", ".csv")
-
-
-@dataclass(frozen=True)
-class Inputs:
-    """The files named on the command line, split by kind (each list sorted)."""
-
-    scenes: tuple[pathlib.Path, ...]
-    tables: tuple[pathlib.Path, ...]
-
-
-def resolve_inputs(paths: Sequence[pathlib.Path]) -> Inputs:
-    """Scenes (``.mcap``) and tables (``.parquet``, ``.csv``) among ``paths``; a directory
-    contributes the files of those kinds directly inside it (not in subfolders)."""
-    scenes: list[pathlib.Path] = []
-    tables: list[pathlib.Path] = []
-    for p in paths:
-        if p.is_dir():
-            found = sorted(f for f in p.iterdir() if f.is_file() and _kind(f))
-            if not found:
-                raise ReplayError(f"{p}: no .mcap scene or .parquet/.csv table in this folder")
-        else:
-            if not _kind(p):
-                raise ReplayError(
-                    f"{p}: expected an MCAP scene (.mcap) or a table (.parquet, .csv), "
-                    f"got {p.suffix or 'no suffix'!r}"
-                )
-            found = [p]
-        for f in found:
-            (scenes if _kind(f) == "scene" else tables).append(f)
-    return Inputs(tuple(dict.fromkeys(scenes)), tuple(dict.fromkeys(tables)))
-
-
-def _kind(path: pathlib.Path) -> str:
-    suffix = path.suffix.lower()
-    if suffix in SCENE_SUFFIXES:
-        return "scene"
-    return "table" if suffix in TABLE_SUFFIXES else ""
-
-
-def scene_names(paths: Sequence[pathlib.Path]) -> list[str]:
-    """A short unique name per file: its stem, or its path when stems repeat."""
-    stems = [p.stem for p in paths]
-    return [s if stems.count(s) == 1 else str(p) for s, p in zip(stems, paths, strict=True)]
-
-
-def collect(
-    inputs: Inputs,
-    cascade: CascadeConfig,
-    *,
-    models: Sequence[str] | None,
-    workers: int,
-    progress: bool,
-    params: object = None,
-    prediction: object = None,
-    hindsight: object = None,
-    ego: int | str | None = None,
-    every: Stride = EVERY_FRAME,
-) -> tuple[pl.DataFrame, pl.DataFrame, list[str], list[str]]:
-    """Agents and frames tables of every input, with the stage and tier names.
-
-    ``params``, ``prediction`` go to every model evaluation of the replayed scenes,
-    ``hindsight`` (``risk.hindsight.HindsightSettings``) to their truth columns; tables
-    are read as they were written."""
-    stage_names = list(cascade.stage_names)
-    cascade_tiers = [t.name for t in cascade.tiers]
-    tier_names = cascade_tiers
-    agents: list[pl.DataFrame] = []
-    frames: list[pl.DataFrame] = []
-    names = scene_names([*inputs.scenes, *inputs.tables])
-    if inputs.scenes:
-        tasks = [
-            SceneJob(
-                p,
-                n,
-                cascade,
-                None if models is None else tuple(models),
-                ego,
-                every,
-                params=params,
-                prediction=prediction,
-                hindsight=hindsight,
-            )
-            for p, n in zip(inputs.scenes, names[: len(inputs.scenes)], strict=True)
-        ]
-        for a, f in parallel_map(
-            replay_job,
-            tasks,
-            workers=min(workers, len(tasks)),
-            progress=progress,
-            desc="stats: scenes",
-            unit="scene",
-        ):
-            agents.append(a)
-            frames.append(f)
-    for path, name in zip(inputs.tables, names[len(inputs.scenes) :], strict=True):
-        table = read_agents_table(path, scene=name)
-        stages = stage_names_of(table)
-        if inputs.scenes and stages != stage_names:
-            raise ReplayError(
-                f"{path}: its cascade stages ({', '.join(stages)}) differ from the cascade "
-                f"the scenes run with ({', '.join(stage_names)}); give --cascade"
-            )
-        stage_names = stages
-        tier_names = tier_names_of(table, fallback=cascade_tiers)
-        agents.append(table)
-        frames.append(frames_from_agents(table, stages, tier_names))
-    if not agents:
-        raise ReplayError("no input")
-    return concat_agents(agents), pl.concat(frames, how="diagonal_relaxed"), stage_names, tier_names
 
 
 @click.command("stats")
@@ -185,6 +64,7 @@ def collect(
 @click.option(
     "--progress/--no-progress", default=True, show_default=True, help="Progress bar on stderr."
 )
+@set_option
 def stats(
     inputs: tuple[pathlib.Path, ...],
     out_dir: pathlib.Path,
@@ -196,6 +76,7 @@ def stats(
     every: Stride,
     plots: bool,
     progress: bool,
+    sets: tuple[str, ...] = (),
 ) -> None:
     """How well each risk model filters against the survival baseline, over a dataset.
 
@@ -215,7 +96,7 @@ def stats(
     """
     chosen = resolve_models([m.strip() for m in models.split(",") if m.strip()]) if models else None
     resolve_models([errors_model])
-    cascade = CascadeConfig.from_toml(cascade_file) if cascade_file else CascadeConfig.default()
+    cascade = load_cascade(cascade_file, sets)
     found = resolve_inputs(inputs)
     engine_models = None
     if chosen is not None:
