@@ -75,8 +75,11 @@ def _above(a: tuple[float, float, float], b: tuple[float, float, float]) -> str:
 
 
 def paper_findings(summary: Mapping[str, Any], ref: str) -> list[tuple[str, str]]:
-    """(finding, verdict) of the paper's ranking findings against ``ref``."""
+    """(finding, verdict) of the paper's ranking findings against ``ref``. With fewer
+    than two scenes there is no interval, so no order is "intervals apart"."""
     a = {m: _auc(summary, m, ref) for m in summary["models"]}
+    if summary["scenes"] < 2:
+        a = {m: (v[0], -math.inf, math.inf) for m, v in a.items()}
     out: list[tuple[str, str]] = []
     others = [m for m in RANKED if m != "current_distance" and m in a]
     if "current_distance" in a and others:
@@ -158,7 +161,8 @@ def _auc_section(summary: Mapping[str, Any]) -> str:
                 TITLES.get(m, m),
                 _fmt_ci(s),
                 _fmt_ci(h),
-                f"{_fmt(float(miss.get('value') or math.nan))} ({miss.get('missed_agents', 0)} agents)",
+                f"{_fmt(math.nan if miss.get('value') is None else float(miss['value']))} "
+                f"({miss.get('missed_agents', 0)} (ego, agent) pairs)",
             ]
         )
     return _table(

@@ -365,3 +365,14 @@ def format_sweep(result: SweepResult) -> str:
             f"{'holds' if r['variant_holds'] else 'does not'} here"
         )
     return "\n".join(lines)
+
+
+def sweep_subset(scenes: Sequence[Any], every_kth: int) -> list[Any]:
+    """Every ``every_kth`` scene of each folder (the first, then every k-th after it, in
+    sorted order): a spread subset that keeps every dataset in the sweep."""
+    import pathlib
+
+    by_dir: dict[Any, list[Any]] = {}
+    for s in sorted(pathlib.Path(p) for p in scenes):
+        by_dir.setdefault(s.parent, []).append(s)
+    return [s for files in by_dir.values() for s in files[::every_kth]]

@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from converters.mcap_io import write_scene
 from replay.cli import main
-from replay.commands.evaluate import evaluate_inputs
+from replay.evaluation import evaluate_inputs
 from replay.evaluation import EvaluationSettings, site_of
 from risk.frame import Frame, LaneMap, Scene
 

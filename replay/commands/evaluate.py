@@ -14,18 +14,20 @@ from dataclasses import replace
 
 import click
 
-from replay.commands.ego_options import ego_option, every_option
+from replay.commands.ego_options import StrideParam, ego_option, every_option
 from replay.commands.settings_option import load_cascade, set_option
 from replay.engine import Stride
 from replay.evaluation import (
     DEFAULT_GROUPINGS,
     GROUPINGS,
+    EvaluationError,
     EvaluationSettings,
     collect_agents,
     evaluate_agents,
 )
 from replay.evaluation_report import write_report
-from replay.sensitivity import format_sweep, run_sweep, write_sweep
+from replay.inputs import resolve_inputs
+from replay.sensitivity import format_sweep, run_sweep, sweep_subset, write_sweep
 from risk.hindsight import HindsightSettings
 
 
@@ -93,6 +95,10 @@ def _names(text: str | None) -> list[str]:
 )  # fmt: skip
 @click.option("--sensitivity-bootstrap", type=click.IntRange(min=0), default=200, show_default=True,
               help="Bootstrap replicates per sensitivity variant.")  # fmt: skip
+@click.option("--sensitivity-every", type=StrideParam(), default=None,
+              help="Frame stride of the sweep (K frames or Ts seconds). Default: --every.")  # fmt: skip
+@click.option("--sensitivity-scenes", type=click.IntRange(min=1), default=1, show_default=True,
+              help="The sweep takes every K-th scene of each folder (1: all).")  # fmt: skip
 @click.option(
     "--report", "report_path", default=None,
     type=click.Path(dir_okay=False, path_type=pathlib.Path),
@@ -126,6 +132,8 @@ def evaluate(
     progress: bool,
     sensitivity: bool = False,
     sensitivity_bootstrap: int = 200,
+    sensitivity_every: Stride | None = None,
+    sensitivity_scenes: int = 1,
     report_path: pathlib.Path | None = None,
     sets: tuple[str, ...] = (),
 ) -> None:
@@ -186,19 +194,33 @@ def evaluate(
         inputs=[str(p) for p in inputs],
     )  # fmt: skip
     summary["time_s"] = {"replay / read": read_s, "evaluation": time.perf_counter() - start}
-    files = write_evaluation(summary, agents, out_dir, datasets=datasets, plots=plots)
     click.echo(format_evaluation(summary))
+    files: dict[str, pathlib.Path] = {}
     sweep = None
     if sensitivity:
         start = time.perf_counter()
+        found = resolve_inputs(list(inputs))
+        if found.tables:
+            raise EvaluationError(
+                "--sensitivity replays the scenes with other settings; give .mcap scenes, "
+                "not tables"
+            )
+        subset = sweep_subset(found.scenes, sensitivity_scenes)
+        same = sensitivity_scenes == 1 and sensitivity_every in (None, every)
         sweep = run_sweep(
-            inputs, default_agents=agents, datasets=datasets, cascade=cascade, hindsight=hs,
+            subset, default_agents=agents if same else None,
+            datasets=datasets if same else None, cascade=cascade, hindsight=hs,
             settings=replace(settings, n_boot=sensitivity_bootstrap), workers=workers_n,
-            progress=progress, ego=ego, every=every,
+            progress=progress, ego=ego, every=sensitivity_every or every,
         )  # fmt: skip
+        summary["sensitivity"] = {
+            "scenes": len(subset), "every": str(sensitivity_every or every),
+            "bootstrap": sensitivity_bootstrap, "time_s": sweep.time_s,
+        }  # fmt: skip
         summary["time_s"]["sensitivity"] = time.perf_counter() - start
         files.update(write_sweep(sweep, out_dir, plots=plots))
         click.echo(format_sweep(sweep))
+    files.update(write_evaluation(summary, agents, out_dir, datasets=datasets, plots=plots))
     if report_path is not None:
         files.update(
             write_report(
