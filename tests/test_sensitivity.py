@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -52,7 +53,7 @@ def scene(crossing: bool, duration_s: float = 7.0) -> Scene:
         frames.append(
             Frame.from_arrays(
                 xy_a, h, np.array(speed), np.full(n, 4.0), np.full(n, 2.0), paths, ego=0, t=t
-            )  # fmt: skip
+            )
         )
     return Scene(map=LaneMap(), frames=frames, frame_period_s=dt, metadata={"dataset": "test"})
 
@@ -183,7 +184,7 @@ def test_findings_flip_and_rank_correlation_on_hand_made_summaries():
         base["path_distance"],
         base["current_distance"],
     )
-    rows, per_variant, findings = sweep_table(
+    _, per_variant, findings = sweep_table(
         [
             (Variant("defaults", "paper"), summary(base), []),
             (Variant("g", "swap"), summary(swapped), ["x"]),
@@ -241,8 +242,6 @@ def test_evaluate_set_changes_the_models(corpus, tmp_path):
     r = invoke("evaluate", *paths(corpus), "-o", tmp_path / "o", "--bootstrap", 0, "--no-plots",
                "--workers", 1, "--no-progress", "--set", "baseline.threshold=1e-4")  # fmt: skip
     assert r.exit_code == 0, r.output
-    import json
-
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert summary["baseline"]["threshold"] == 1e-4
 

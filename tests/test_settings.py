@@ -6,8 +6,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import polars as pl
 import pytest
 
+from converters.mcap_io import write_scene
+from replay.engine import run_scene
+from replay.tables import TableSink
 from risk.cascade import CascadeConfig, CascadeConfigError
 from risk.prediction import PredictionSettings
 from risk.registry import BASELINE_THRESHOLD, MODELS
@@ -17,6 +21,7 @@ from risk.settings import (
     parse_settings,
     valid_keys,
 )
+from tests.test_cli_evaluate import straight_scene
 
 
 def test_defaults_are_the_papers():
@@ -162,19 +167,12 @@ def test_cascade_toml_bad_setting_names_the_file(tmp_path):
 
 
 def test_the_engine_takes_the_cascades_settings(tmp_path):
-    from converters.mcap_io import write_scene
-    from replay.engine import run_scene
-    from replay.tables import TableSink
-    from tests.test_cli_evaluate import straight_scene
-
     scene = tmp_path / "s.mcap"
     write_scene(scene, straight_scene(crossing=True, duration_s=3.0))
 
     def risks(cascade):
         out = tmp_path / f"t{len(list(tmp_path.iterdir()))}.parquet"
         run_scene(scene, sinks=[TableSink(out)], cascade=cascade, progress=False)
-        import polars as pl
-
         return pl.read_parquet(out)
 
     base = risks(CascadeConfig.default())
