@@ -12,8 +12,7 @@ from click.testing import CliRunner
 
 from converters.mcap_io import write_scene
 from replay.cli import main
-from replay.evaluation import evaluate_inputs
-from replay.evaluation import EvaluationSettings, site_of
+from replay.evaluation import EvaluationSettings, evaluate_inputs, site_of
 from risk.frame import Frame, LaneMap, Scene
 
 
