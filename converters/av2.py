@@ -258,6 +258,7 @@ def parquet_to_scene(
         "converter": CONVERTER,
         "converter_version": CONVERTER_VERSION,
         "ego_track": EGO_TRACK,
+        "ego_choice": "the autonomous vehicle (track AV)",
         "renamed_tracks": json.dumps(renamed, sort_keys=True),
     }
     if "city" in df.columns:

@@ -192,8 +192,17 @@ def test_cli(files, tmp_path):
     written = out / "vehicle_tracks_007.mcap"
     assert result.stdout.strip() == str(written)
     assert read_mcap(written).metadata["map_file"] == "map.osm"
+    # Without --map: the only .osm beside the CSV; with none there, an error says --map.
     result = runner.invoke(main, ["convert", "interaction", str(csv), "-o", str(out)])
-    assert result.exit_code == 2 and "--map" in result.output
+    assert result.exit_code == 0, result.output
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    (alone / csv.name).write_text(csv.read_text())
+    result = runner.invoke(main, ["convert", "interaction", str(alone / csv.name), "-o", str(out)])
+    assert result.exit_code == 1
+    assert result.output.strip().splitlines()[-1].endswith(
+        "no .osm map beside it; name the map with --map MAP.osm"
+    )
     result = runner.invoke(
         main,
         ["convert", "interaction", str(csv), "--map", str(osm), "-o", str(out), "--origin", "x"],
