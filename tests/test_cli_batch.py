@@ -87,7 +87,8 @@ def test_everything_failed_is_an_error(scenes: pathlib.Path, tmp_path: pathlib.P
     [
         (["missing-folder"], 1, "Error: missing-folder: no such file or folder"),
         (["SCENES", "--ray-address", "auto"], 2, "--ray-address needs --engine ray"),
-        (["SCENES", "--map", "SCENES/s0.mcap"], 2, "--map and --paths apply to --convert only"),
+        (["SCENES", "--convert", "waymo", "--map", "SCENES/s0.mcap"], 2,
+         "--map applies to INTERACTION track files only"),
         (["SCENES", "--workers", "0"], 2, "Invalid value for '--workers'"),
     ],
 )
@@ -118,7 +119,7 @@ def test_convert_commonroad_in_place_with_a_bad_file(shared_data: pathlib.Path, 
     result = _run(*map(str, inputs), str(bad), "-o", str(out), "--convert", "commonroad",
                   "--workers", "2", "--no-progress")  # fmt: skip
     assert result.exit_code == 0, result.output
-    assert "converted 3 commonroad file(s)" in result.output
+    assert "converted 3 commonroad input(s)" in result.output
     assert sorted(p.name for p in (out / "scenes").iterdir()) == [
         "BEL_Putte-8_2_T-1.mcap", "DEU_TestIntersectionInteract-3_1_T-1.mcap",
     ]  # fmt: skip
@@ -133,7 +134,7 @@ def test_convert_commonroad_in_place_with_a_bad_file(shared_data: pathlib.Path, 
 
     again = _run(*map(str, inputs), str(bad), "-o", str(out), "--convert", "commonroad",
                  "--workers", "1", "--no-progress")  # fmt: skip
-    assert "converted 0 commonroad file(s), skipped 3" in again.output
+    assert "converted 0 commonroad input(s), skipped 3" in again.output
     assert "replayed 0, skipped 2" in again.output
     assert [f.input for f in read_failures(out / "failures.csv")] == [str(bad)]
 
