@@ -184,6 +184,7 @@ def build_scene(
     }
     if paths == "map":
         facts.update(
+            map_path_m=f"{settings.map_path_m:g}",
             max_lateral_m=f"{settings.max_lateral_m:g}",
             max_heading_rad=f"{settings.max_heading_rad:g}",
             max_candidates=str(settings.max_candidates),

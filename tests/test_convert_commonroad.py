@@ -113,9 +113,10 @@ def test_obstacles_lanelets_and_the_default_ego(tiny):
     np.testing.assert_allclose(lanes[1].centerline, [(0, 0), (25, 0), (50, 0)])
     assert lanes[1].successors == (2,) and lanes[3].kind == "walkway"
     assert sorted(lanes) == [1, 2, 3]  # the goal's <lanelet ref> is not a lanelet
-    # The ego follows lanelet 1 into 2: 10 m/s * 12 s + 10 m beyond x = 12.
+    # The ego follows lanelet 1 into 2 to the map's end at x = 150 (more than the
+    # 10 m/s * 12 s + 10 m = 130 m it needs beyond x = 12: the whole known path).
     (path,) = f.agent_paths(0)
-    np.testing.assert_allclose(path[-1], (12 + 130, 0))
+    np.testing.assert_allclose(path[-1], (150, 0))
 
 
 def test_chosen_ego_and_unknown_ego(tiny):

@@ -119,7 +119,7 @@ def test_tracks_ego_period_and_paths(files):
     assert f.heading[1] == pytest.approx(math.pi)
     assert (f.length[1], f.width[1]) == pytest.approx((8, 2.5))
     (car,) = f.agent_paths(0)
-    np.testing.assert_allclose(car[-1], (12 + 130, 0), atol=1e-6)  # lanelets 10 -> 11 -> 12, then straight
+    np.testing.assert_allclose(car[-1], (150, 0), atol=1e-6)  # lanelets 10 -> 11 -> 12, to the end
     (truck,) = f.agent_paths(1)  # west on the reversed copy of the two-way lanelet
     assert truck[-1][0] < 0 and truck[1][1] == pytest.approx(10)
     scene = read_scene(csv, osm, ego=2, paths="hindsight")

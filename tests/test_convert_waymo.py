@@ -185,10 +185,11 @@ def test_scenario_maps_tracks_validity_kinds_and_labels(tmp_path):
     lanes = scene.map.by_id()
     assert sorted(lanes) == [11, 12, 14]  # the road line is not a lane
     assert lanes[11].successors == (12,) and lanes[14].kind == "bike"
-    # The SDC follows lane 11 into lane 12: 10 m/s * 12 s + 10 m past its projection.
+    # The SDC follows lane 11 into lane 12 to the map's end at x = 200 (the whole known
+    # path: more than the 10 m/s * 12 s + 10 m it needs past its projection).
     (path,) = f.agent_paths(1)
     np.testing.assert_allclose(path[0], (12, 0.3))
-    np.testing.assert_allclose(path[-1], (12 + 130, 0), atol=1e-9)
+    np.testing.assert_allclose(path[-1], (200, 0), atol=1e-9)
     assert np.all(path[1:, 1] == 0)
     # The cyclist rides the bike lane (x = 40) only if it is close: it is not (x = 50).
     (bike,) = f.agent_paths(2)

@@ -58,6 +58,7 @@ def source_command(spec: SourceSpec) -> click.Command:
         path_mode: str,
         horizon_s: float,
         margin_m: float,
+        map_path_m: float,
         max_candidates: int,
         skip_bad: bool,
         ego: int | None = None,
@@ -66,7 +67,7 @@ def source_command(spec: SourceSpec) -> click.Command:
     ) -> None:
         options = ReadOptions(
             paths=path_mode,
-            settings=settings_from(horizon_s, margin_m, max_candidates),
+            settings=settings_from(horizon_s, margin_m, max_candidates, map_path_m),
             ego=ego,
             origin=origin,
             skip_bad=skip_bad,

@@ -8,6 +8,7 @@ import warnings
 import click
 
 from replay.engine import ReplayWarning, RunSummary, Sink, run_scene
+from replay.reader import open_scene
 from risk.cascade import CascadeConfig
 
 
@@ -59,8 +60,20 @@ def run(
     if no_rrd and output is not None:
         raise click.UsageError("--output names the recording; it cannot go with --no-rrd")
     sinks = make_sinks(None if no_rrd else (output or scene.with_suffix(".rrd")), table)
-    summary = run_with_warnings(scene, sinks=sinks, cascade=cascade, ego=ego, progress=progress)
+    reader = open_scene(scene)
+    click.echo(ego_note(reader.metadata, ego), err=True)
+    summary = run_with_warnings(reader, sinks=sinks, cascade=cascade, ego=ego, progress=progress)
     click.echo(format_summary(summary))
+
+
+def ego_note(metadata: dict[str, str], ego: int | None) -> str:
+    """Which agent the run sees the scene from, and why (the converter's choice, which
+    it records in the scene metadata as ``ego_track`` and ``ego_choice``)."""
+    if ego is not None:
+        return f"Ego: agent {ego} (--ego)"
+    track = metadata.get("ego_track") or metadata.get("ego_id", "?")
+    why = metadata.get("ego_choice") or "the scene's ego"
+    return f"Ego: agent {metadata.get('ego_id', '?')} (source track {track}): {why}"
 
 
 def make_sinks(rrd: pathlib.Path | None, table: pathlib.Path | None) -> list[Sink]:
