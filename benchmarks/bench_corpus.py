@@ -30,9 +30,9 @@ from converters.mcap_io import write_scene  # noqa: E402
 from converters.sources import SOURCES, ReadOptions, discover  # noqa: E402
 from converters.tracks import Skipped  # noqa: E402
 
-CORPUS = Path(
-    os.environ.get("RISKREPLAY_SHARED_DATA") or ROOT.parent / "shared" / "data"
-) / "recorded"
+CORPUS = (
+    Path(os.environ.get("RISKREPLAY_SHARED_DATA") or ROOT.parent / "shared" / "data") / "recorded"
+)
 
 
 def one_run(corpus: Path, paths: str, out: Path) -> dict:
@@ -52,7 +52,7 @@ def one_run(corpus: Path, paths: str, out: Path) -> dict:
                 scenes += 1
                 agents += scene.frames[0].n_agents
                 frames += len(scene.frames)
-        except Exception as exc:  # noqa: BLE001 - reported, the run goes on
+        except Exception as exc:
             failures.append(f"{inp.path}: {type(exc).__name__}: {exc}".splitlines()[0])
         dt = time.perf_counter() - t0
         per_source[inp.source] += dt

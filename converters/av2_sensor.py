@@ -224,9 +224,7 @@ def log_tracks(log: pathlib.Path) -> tuple[TrackTable, list[str], dict[str, int]
     length[:, -1], width[:, -1] = ego_size
     valid[:, -1] = True
     t_s = (stamps - stamps[0]) / 1e9
-    categories = (
-        ann.group_by("track_uuid").agg(pl.col("category").first()).to_dict(as_series=False)
-    )
+    categories = ann.group_by("track_uuid").agg(pl.col("category").first()).to_dict(as_series=False)
     cat_of = dict(zip(categories["track_uuid"], categories["category"], strict=True))
     kinds = np.array(
         [CATEGORY_KINDS.get(cat_of[u], Kind.OTHER) for u in names] + [Kind.VEHICLE], np.int8

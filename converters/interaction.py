@@ -28,9 +28,9 @@ parser it replaced in docs/recorded-data.md). Mapping (docs/recorded-data.md has
 from __future__ import annotations
 
 import json
-import re
 import os
 import pathlib
+import re
 from collections.abc import Sequence
 from typing import Any
 
@@ -117,10 +117,11 @@ def read_lane_map(path: str | os.PathLike, origin: tuple[float, float] = (0.0, 0
     local = _local_positions(lmap)
     directed = []
     for ll in lmap.laneletLayer:
-        subtype = ll.attributes["subtype"] if "subtype" in ll.attributes else "road"
+        attrs = dict(ll.attributes)  # a Lanelet2 AttributeMap has no .get
+        subtype = attrs.get("subtype", "road")
         kind = LANELET_KINDS.get(subtype, "vehicle")
         directed.append((ll.id, ll, kind))
-        if "one_way" in ll.attributes and ll.attributes["one_way"] == "no":
+        if attrs.get("one_way") == "no":
             directed.append((-ll.id, ll.invert(), kind))
     return LaneMap(tuple(_lanes(directed, local)))
 

@@ -535,19 +535,19 @@ class LaneGraph:
         mq, ml, ms = m.query[order], m.lane[order], m.s_m[order]
         at_end = ms >= self.lane_length_m[ml] - 1e-6
         bounds = np.flatnonzero(np.diff(mq)) + 1
+        first = np.concatenate(([0], bounds))
+        # Per query, vectorised: the largest required length from the start of its lanes.
+        need_from_start = (np.maximum.reduceat(ms, first) + reach[mq[first]]).tolist()
         row_q: list[int] = []
         row_route: list[int] = []
         row_s: list[float] = []
-        for lo, hi in zip(
-            np.concatenate(([0], bounds)), np.concatenate((bounds, [mq.size])), strict=True
-        ):
-            qi = int(mq[lo])
-            lanes = ml[lo:hi].tolist()
-            need_from_start = float(ms[lo:hi].max() + reach[qi])
-            for i, rid in self.candidates(lanes, at_end[lo:hi].tolist(), need_from_start):
+        mq_l, ml_l, ms_l, end_l = mq.tolist(), ml.tolist(), ms.tolist(), at_end.tolist()
+        for k, (lo, hi) in enumerate(zip(first.tolist(), [*bounds.tolist(), mq.size], strict=True)):
+            qi = mq_l[lo]
+            for i, rid in self.candidates(ml_l[lo:hi], end_l[lo:hi], need_from_start[k]):
                 row_q.append(qi)
                 row_route.append(rid)
-                row_s.append(float(ms[lo + i]))
+                row_s.append(ms_l[lo + i])
         rq = np.array(row_q, dtype=np.int64)
         routes, starts = np.array(row_route, dtype=np.int64), np.array(row_s)
         # To the route's end (the graph's end, or where the expansion stopped beyond

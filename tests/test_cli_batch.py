@@ -87,8 +87,11 @@ def test_everything_failed_is_an_error(scenes: pathlib.Path, tmp_path: pathlib.P
     [
         (["missing-folder"], 1, "Error: missing-folder: no such file or folder"),
         (["SCENES", "--ray-address", "auto"], 2, "--ray-address needs --engine ray"),
-        (["SCENES", "--convert", "waymo", "--map", "SCENES/s0.mcap"], 2,
-         "--map applies to INTERACTION track files only"),
+        (
+            ["SCENES", "--convert", "waymo", "--map", "SCENES/s0.mcap"],
+            2,
+            "--map applies to INTERACTION track files only",
+        ),
         (["SCENES", "--workers", "0"], 2, "Invalid value for '--workers'"),
     ],
 )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import xml.etree.ElementTree as ET
 
@@ -93,7 +94,9 @@ def tiny(tmp_path):
 def test_obstacles_lanelets_and_the_default_ego(tiny):
     scene = read_scene(tiny)
     assert len(scene.frames) == 5  # obstacle 7 has the most states: the ego
-    assert scene.metadata["ego_track"] == "7" and scene.metadata["ego_choice"].endswith("the one with the most states (5)")
+    assert scene.metadata["ego_track"] == "7" and scene.metadata["ego_choice"].endswith(
+        "the one with the most states (5)"
+    )
     assert scene.metadata["scenario_id"] == "ZAM_Tiny-1_1_T-1"
     assert scene.frame_period_s == pytest.approx(0.1)
     f = scene.frames[2]
@@ -221,7 +224,7 @@ def test_real_samples(shared_data, tmp_path, name):
             for s in o.iter() if s.tag in ("initialState", "state")
         )  # fmt: skip
         travelled[int(o.get("id"))] = sum(
-            math.hypot(b[1] - a[1], b[2] - a[2]) for a, b in zip(pts, pts[1:], strict=False)
+            math.hypot(b[1] - a[1], b[2] - a[2]) for a, b in itertools.pairwise(pts)
         )
     assert travelled[ego] == pytest.approx(max(travelled.values()))
     assert len(scene.frames) == states[ego]

@@ -8,6 +8,9 @@ import math
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from lanelet2.core import BasicPoint3d
+from lanelet2.io import Origin
+from lanelet2.projection import UtmProjector
 
 from converters.errors import ConversionError
 from converters.interaction import (
@@ -18,9 +21,6 @@ from converters.interaction import (
     read_scene,
 )
 from converters.tracks import Skipped
-from lanelet2.core import BasicPoint3d
-from lanelet2.io import Origin
-from lanelet2.projection import UtmProjector
 from replay.cli import main
 from replay.reader import read_scene as read_mcap
 from risk.frame import Kind
@@ -177,7 +177,7 @@ def test_map_errors(tmp_path):
     with pytest.raises(ConversionError, match=r"not an OSM map \(root element <commonRoad>"):
         read_lane_map(bad)
     bad.write_text(osm_text().replace('<way id="101">', '<way id="1001">'))
-    with pytest.raises(ConversionError, match="lanelet 10: .*nonexistent member 101"):
+    with pytest.raises(ConversionError, match=r"lanelet 10: .*nonexistent member 101"):
         read_lane_map(bad)
 
 
@@ -200,8 +200,10 @@ def test_cli(files, tmp_path):
     (alone / csv.name).write_text(csv.read_text())
     result = runner.invoke(main, ["convert", "interaction", str(alone / csv.name), "-o", str(out)])
     assert result.exit_code == 1
-    assert result.output.strip().splitlines()[-1].endswith(
-        "no .osm map beside it; name the map with --map MAP.osm"
+    assert (
+        result.output.strip()
+        .splitlines()[-1]
+        .endswith("no .osm map beside it; name the map with --map MAP.osm")
     )
     result = runner.invoke(
         main,

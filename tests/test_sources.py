@@ -71,12 +71,11 @@ def _quat_z(yaw: float) -> tuple[float, float, float, float]:
 def _write_log(folder: pathlib.Path, pose_stamps: list[int]) -> pathlib.Path:
     folder.mkdir(parents=True)
     stamps = [1_000_000_000, 1_100_000_000]
+    n = len(pose_stamps)
+    qw, qx, qy, qz = _quat_z(math.pi / 2)  # every pose: at (100, 200, 5), facing +y
     poses = {
-        "timestamp_ns": pose_stamps,
-        **dict(zip(("qw", "qx", "qy", "qz"), zip(*[_quat_z(math.pi / 2)] * len(pose_stamps)),
-                   strict=True)),
-        "tx_m": [100.0] * len(pose_stamps), "ty_m": [200.0] * len(pose_stamps),
-        "tz_m": [5.0] * len(pose_stamps),
+        "timestamp_ns": pose_stamps, "qw": [qw] * n, "qx": [qx] * n, "qy": [qy] * n,
+        "qz": [qz] * n, "tx_m": [100.0] * n, "ty_m": [200.0] * n, "tz_m": [5.0] * n,
     }  # fmt: skip
     pl.DataFrame(poses).write_ipc(folder / "city_SE3_egovehicle.feather")
     # One car 10 m ahead of the vehicle (its +x), turned 90 deg left, moving 1 m per sweep
@@ -163,7 +162,10 @@ def test_two_csvs_of_one_recording_make_one_scene(tmp_path):
     # The registry groups the two files into one input, vehicles first, with the map.
     [inp] = sources.discover([tmp_path]).inputs
     assert (inp.source, inp.path, inp.extra, inp.map) == (
-        "interaction", veh, (ped,), tmp_path / "m.osm"
+        "interaction",
+        veh,
+        (ped,),
+        tmp_path / "m.osm",
     )
 
 
@@ -194,7 +196,9 @@ def test_damaged_and_foreign_files_give_one_line_naming_the_file(
 def test_damaged_av2_sensor_log_gives_one_line(tmp_path):
     log = _write_log(tmp_path / "log", [1_000_000_000, 1_100_000_000])
     (log / "annotations.feather").write_bytes(b"ARROW1 cut")
-    result = CliRunner().invoke(main, ["convert", "av2-sensor", str(log), "-o", str(tmp_path / "o")])
+    result = CliRunner().invoke(
+        main, ["convert", "av2-sensor", str(log), "-o", str(tmp_path / "o")]
+    )
     assert result.exit_code == 1
     [line] = result.output.strip().splitlines()
     assert line.startswith(f"Error: {log / 'annotations.feather'}: not a readable Feather file")
@@ -230,9 +234,7 @@ def _first_input(corpus: pathlib.Path, dataset: str) -> SourceInput:
 
 @pytest.mark.realdata
 @pytest.mark.parametrize("dataset", DATASETS)
-def test_one_file_of_each_dataset_converts_and_every_valid_agent_is_scored(
-    shared_data, dataset
-):
+def test_one_file_of_each_dataset_converts_and_every_valid_agent_is_scored(shared_data, dataset):
     corpus = shared_data / "recorded"
     if not corpus.is_dir():
         pytest.skip(f"the recorded corpus is not at {corpus}")

@@ -193,9 +193,7 @@ def discover(
         raise ReplayError(f"{exc.filename}: no such file or folder") from None
     items = [InputFile(p, "") for p in found.scenes]
     items += [InputFile(i.path, "", i.source, i.extra, i.map) for i in found.inputs]
-    items += [
-        InputFile(p, "", problem=sources.unreadable_reason(p)) for p in found.unreadable
-    ]
+    items += [InputFile(p, "", problem=sources.unreadable_reason(p)) for p in found.unreadable]
     if not found.scenes and not found.inputs:
         patterns = (
             sources.SOURCES[convert].patterns

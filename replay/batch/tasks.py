@@ -17,6 +17,8 @@ import warnings
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
+from converters.sources import SOURCES, ReadOptions, SourceInput, SourceSpec
+from converters.tracks import Skipped
 from replay.batch.markers import write_convert_marker, write_parquet, write_replay_marker
 from replay.batch.records import (
     ConvertOutcome,
@@ -26,8 +28,6 @@ from replay.batch.records import (
     ReplayTask,
     SceneDone,
 )
-from converters.sources import SOURCES, ReadOptions, SourceInput, SourceSpec
-from converters.tracks import Skipped
 
 if TYPE_CHECKING:
     from risk.frame import Scene
@@ -147,7 +147,9 @@ def _source(task: ConvertTask) -> tuple[SourceSpec, SourceInput]:
     return spec, source
 
 
-def _scene_builders(task: ConvertTask, skipped: Skipped) -> Iterator[tuple[str, Callable[[], Scene]]]:
+def _scene_builders(
+    task: ConvertTask, skipped: Skipped
+) -> Iterator[tuple[str, Callable[[], Scene]]]:
     """(label, build) per scene of the input; ``build()`` converts that one scene.
 
     A label names the scene in failures before it is built: the input's name for

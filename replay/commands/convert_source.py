@@ -91,23 +91,30 @@ def source_command(spec: SourceSpec) -> click.Command:
     if spec.ego_option:
         params.append(
             click.option(
-                "--ego", type=int, default=None,
+                "--ego",
+                type=int,
+                default=None,
                 help="Track id to replay as the ego  [default: the vehicle that travels "
                 "farthest; see docs/recorded-data.md].",
-            )  # fmt: skip
+            )
         )
     if spec.map_option:
         params += [
             click.option(
-                "--map", "map_osm", default=None,
+                "--map",
+                "map_osm",
+                default=None,
                 type=click.Path(exists=True, dir_okay=False, path_type=pathlib.Path),
                 help="The Lanelet2 OSM map of the recording.  [default: the only *.osm "
                 "beside the first input]",
-            ),  # fmt: skip
+            ),
             click.option(
-                "--origin", default="0,0", show_default=True, callback=_origin,
+                "--origin",
+                default="0,0",
+                show_default=True,
+                callback=_origin,
                 help="LAT,LON of the map's local origin (INTERACTION maps use 0,0).",
-            ),  # fmt: skip
+            ),
         ]
 
     def run(inputs: Any, **kwargs: Any) -> None:
