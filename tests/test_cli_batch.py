@@ -155,3 +155,28 @@ def test_convert_waymo_names_scenes_by_scenario(shared_data: pathlib.Path, tmp_p
     assert (out / "tables" / "womd_637f20cafde22ff8" / f"{scene.stem}.parquet").is_file()
     failures = read_failures(out / "failures.csv")
     assert {(f.input, f.stage) for f in failures} == {(str(truncated), "convert")}
+
+
+@pytest.mark.realdata
+def test_detects_each_files_source_in_a_mixed_folder(shared_data: pathlib.Path, tmp_path):
+    # A folder as a user has it: a CommonRoad file, an INTERACTION recording of one CSV
+    # with its map, a page that only looks like data, and notes. No --convert.
+    data = tmp_path / "data"
+    (data / "cr").mkdir(parents=True)
+    (data / "inter").mkdir()
+    src = shared_data / "commonroad" / "DEU_TestIntersectionInteract-3_1_T-1.xml"
+    (data / "cr" / src.name).symlink_to(src)
+    for name in ("vehicle_tracks_000.csv", "TestScenarioForScripts.osm"):
+        (data / "inter" / name).symlink_to(shared_data / "interaction" / name)
+    (data / "cr" / "page.xml").write_text("<html><body>not a scenario</body></html>")
+    (data / "README.md").write_text("notes")
+    out = tmp_path / "out"
+    result = _run(str(data), "-o", str(out), "--workers", "1", "--no-progress")
+    assert result.exit_code == 0, result.output
+    assert "converted 2 input(s)" in result.output
+    assert sorted(p.name for p in (out / "scenes").iterdir()) == [
+        "DEU_TestIntersectionInteract-3_1_T-1.mcap", "vehicle_tracks_000.mcap",
+    ]  # fmt: skip
+    [failure] = read_failures(out / "failures.csv")
+    assert failure.input == str(data / "cr" / "page.xml")
+    assert "no converter reads this file" in failure.reason and "\n" not in failure.reason
