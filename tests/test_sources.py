@@ -282,3 +282,25 @@ def test_interaction_cli_with_two_csvs_keeps_the_pedestrians(shared_data, tmp_pa
     # Pedestrians are valid (present) in some frames of the ego's lifetime.
     assert any((f.valid & peds).any() for f in frames)
     assert len(scene.map.lanes) == 59
+
+
+def test_convert_and_run_say_which_agent_is_the_ego_and_why(tmp_path):
+    (tmp_path / "m.osm").write_text(OSM)
+    csv = tmp_path / "vehicle_tracks_001.csv"
+    rows = ["track_id,frame_id,timestamp_ms,agent_type,x,y,vx,vy,psi_rad,length,width"]
+    for k in range(1, 11):
+        rows.append(f"4,{k},{100 * k},car,30,1,0,0,0,4,2")  # parked, every frame
+        if k > 2:
+            rows.append(f"6,{k},{100 * k},car,{2 * k},1.7,20,0,0,4,2")  # drives 14 m
+    csv.write_text("\n".join(rows) + "\n")
+    out = tmp_path / "s.mcap"
+    runner = CliRunner()
+    result = runner.invoke(main, ["convert", "interaction", str(csv), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    why = "the vehicle that travels farthest (14.0 m)"
+    assert f"vehicle_tracks_001: ego 6 (id 6): {why}" in result.stderr
+    result = runner.invoke(main, ["run", str(out), "--no-rrd", "--no-progress"])
+    assert result.exit_code == 0, result.output
+    assert f"Ego: agent 6 (source track 6): {why}" in result.stderr
+    result = runner.invoke(main, ["run", str(out), "--no-rrd", "--no-progress", "--ego", "4"])
+    assert "Ego: agent 4 (--ego)" in result.stderr
