@@ -143,16 +143,32 @@ def _interaction_group(files: Sequence[pathlib.Path]) -> list[SourceInput]:
     out = []
     for members in groups.values():
         members.sort(key=lambda p: (not p.stem.startswith("vehicle"), p.name))
-        maps = sorted(members[0].parent.glob("*.osm"))
         out.append(
             SourceInput(
                 source="interaction",
                 path=members[0],
                 extra=tuple(members[1:]),
-                map=maps[0] if len(maps) == 1 else None,
+                map=interaction_map_for(members[0]),
             )
         )
     return out
+
+
+def interaction_map_for(csv: pathlib.Path) -> pathlib.Path | None:
+    """The Lanelet2 map of a track CSV: the only ``*.osm`` beside it, else the dataset's
+    own layout, ``maps/LOCATION.osm`` next to ``recorded_trackfiles/LOCATION/`` (or one
+    level up); None when neither exists (the conversion then asks for ``--map``)."""
+    beside = sorted(csv.parent.glob("*.osm"))
+    if len(beside) == 1:
+        return beside[0]
+    if beside:
+        return None
+    location = csv.parent.name
+    for root in (csv.parent.parent, csv.parent.parent.parent):
+        candidate = root / "maps" / f"{location}.osm"
+        if candidate.is_file():
+            return candidate
+    return None
 
 
 def _av2_sensor_group(files: Sequence[pathlib.Path]) -> list[SourceInput]:
@@ -233,13 +249,12 @@ def _commonroad_scenes(
 def _interaction_map(inp: SourceInput) -> pathlib.Path:
     if inp.map is not None:
         return inp.map
-    found = sorted(inp.path.parent.glob("*.osm"))
-    if len(found) != 1:
-        what = "no" if not found else f"{len(found)}"
-        raise ConversionError(
-            f"{inp.path}: {what} .osm map beside it; name the map with --map MAP.osm"
-        )
-    return found[0]
+    found = interaction_map_for(inp.path)
+    if found is None:
+        n = len(list(inp.path.parent.glob("*.osm")))
+        what = f"{n} .osm maps beside it" if n else "no .osm map beside it (nor in ../maps/)"
+        raise ConversionError(f"{inp.path}: {what}; name the map with --map MAP.osm")
+    return found
 
 
 def _interaction_scenes(

@@ -203,7 +203,7 @@ def test_cli(files, tmp_path):
     assert (
         result.output.strip()
         .splitlines()[-1]
-        .endswith("no .osm map beside it; name the map with --map MAP.osm")
+        .endswith("no .osm map beside it (nor in ../maps/); name the map with --map MAP.osm")
     )
     result = runner.invoke(
         main,
