@@ -173,11 +173,12 @@ def _also_read(task: ConvertTask) -> list[pathlib.Path]:
 def _scene_name(task: ConvertTask, scene: Scene, label: str, used: set[str]) -> str:
     """A converted scene's name: the input's name for one-scene sources; for sources whose
     inputs hold several scenes ``NAME/SCENARIO_ID`` (the label's last part added when an
-    id repeats)."""
+    id repeats); an input that is itself the scenario (an Argoverse 2 Sensor log folder
+    named by its log id) keeps ``NAME``."""
     if not SOURCES[task.kind].multi_scene:
         return task.name
     scenario = safe_name(scene.metadata.get("scenario_id", ""), label.rsplit("/", 1)[-1])
-    name = f"{task.name}/{scenario}"
+    name = task.name if scenario == task.name else f"{task.name}/{scenario}"
     if name in used:
         name = f"{name}-{label.rsplit('-', 1)[-1]}"
     used.add(name)
