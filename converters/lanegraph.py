@@ -307,6 +307,7 @@ class LaneGraph:
         self._route_cache: dict[tuple[int, int], tuple[int, ...]] = {}
         self._candidate_cache: dict[tuple, tuple[tuple[int, int], ...]] = {}
         self._route_len: dict[int, float] = {}
+        self._route_lines: dict[int, np.ndarray] = {}
 
     @property
     def n_lanes(self) -> int:
@@ -462,9 +463,15 @@ class LaneGraph:
         return np.array([cache[r] for r in routes.tolist()], dtype=np.float64)
 
     def route_polyline(self, route_id: int) -> np.ndarray:
-        """The centre line ``(K, 2)`` of a route: its lanes' simplified centre lines joined."""
-        lanes = self._routes[route_id]
-        return dedupe(np.concatenate([self._points[i] for i in lanes]))
+        """The centre line ``(K, 2)`` of a route: its lanes' simplified centre lines joined.
+        Cached per route (read-only)."""
+        line = self._route_lines.get(route_id)
+        if line is None:
+            lanes = self._routes[route_id]
+            line = dedupe(np.concatenate([self._points[i] for i in lanes]))
+            line.flags.writeable = False
+            self._route_lines[route_id] = line
+        return line
 
     # ------------------------------------------------------------------ candidates
     def candidates(self, lanes: Sequence[int], at_end: Sequence[bool], need_m: float):
