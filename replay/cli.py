@@ -14,6 +14,7 @@ import sys
 import click
 
 from replay import __version__
+from replay.user_errors import user_errors
 
 # name -> "module:attribute"; the order is the order of ``replay --help``.
 COMMANDS: dict[str, str] = {
@@ -27,16 +28,6 @@ COMMANDS: dict[str, str] = {
     "batch": "replay.commands.batch:batch",
     "models": "replay.commands.models:models",
 }
-
-
-def user_errors() -> tuple[type[BaseException], ...]:
-    """Exception types whose message is meant for the user (no traceback)."""
-    from converters.errors import ConversionError
-    from recordings.errors import RecordingError
-    from replay.errors import ReplayError
-    from risk.errors import RiskError
-
-    return (RiskError, ConversionError, ReplayError, RecordingError, OSError)
 
 
 class LazyGroup(click.Group):

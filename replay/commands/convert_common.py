@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import math
 import pathlib
-import re
 from collections.abc import Callable, Sequence
 
 import click
 
+from base.atomic import safe_name as safe_name  # re-exported for the convert_* commands
 from converters.errors import ConversionError
 from converters.lanegraph import PathSettings
 from converters.tracks import PATH_MODES, Skipped
@@ -101,12 +101,6 @@ def settings_from(
         horizon_s=horizon_s, margin_m=margin_m, max_candidates=max_candidates,
         map_path_m=map_path_m,
     )  # fmt: skip
-
-
-def safe_name(name: str, fallback: str) -> str:
-    """A file name stem from a scenario id: letters, digits, ``-``, ``_``, ``.`` only."""
-    cleaned = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._")
-    return cleaned or fallback
 
 
 class Outputs:

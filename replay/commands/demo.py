@@ -6,6 +6,9 @@ import pathlib
 
 import click
 
+from converters.mcap_io import write_scene
+from converters.synthetic import SyntheticSettings, generate_scene
+from replay.commands.run import format_summary, make_sinks, run_with_warnings
 from risk.frame import Scene
 
 DEMO_SEED = 7  # fixed so that every demo shows the same scene (not a calibration seed)
@@ -23,8 +26,6 @@ def demo_scene(
 ) -> Scene:
     """The demo's synthetic four-way intersection: ``n_agents`` vehicles (ego included)
     for ``duration_s`` at ``1 / frame_period_s`` Hz (shorter if the ego leaves the map)."""
-    from converters.synthetic import SyntheticSettings, generate_scene
-
     settings = SyntheticSettings(
         n_agents=n_agents, duration_s=duration_s, frame_period_s=frame_period_s
     )
@@ -53,9 +54,6 @@ def demo(output_dir: pathlib.Path, seed: int, agents: int, progress: bool) -> No
       intersection.rrd      the recording: open it with 'rerun intersection.rrd'
       intersection.parquet  every agent's risks and the cascade decisions, per frame
     """
-    from converters.mcap_io import write_scene
-    from replay.commands.run import format_summary, make_sinks, run_with_warnings
-
     output_dir.mkdir(parents=True, exist_ok=True)
     scene_path = output_dir / "intersection.mcap"
     click.echo(f"Generating a synthetic intersection: {agents} agents, seed {seed} ...", err=True)
