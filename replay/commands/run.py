@@ -61,16 +61,15 @@ def run(
         raise click.UsageError("--output names the recording; it cannot go with --no-rrd")
     sinks = make_sinks(None if no_rrd else (output or scene.with_suffix(".rrd")), table)
     reader = open_scene(scene)
-    click.echo(ego_note(reader.metadata, ego), err=True)
+    if ego is None:  # the scene's own ego: say which agent it is and why
+        click.echo(ego_note(reader.metadata), err=True)
     summary = run_with_warnings(reader, sinks=sinks, cascade=cascade, ego=ego, progress=progress)
     click.echo(format_summary(summary))
 
 
-def ego_note(metadata: dict[str, str], ego: int | None) -> str:
-    """Which agent the run sees the scene from, and why (the converter's choice, which
-    it records in the scene metadata as ``ego_track`` and ``ego_choice``)."""
-    if ego is not None:
-        return f"Ego: agent {ego} (--ego)"
+def ego_note(metadata: dict[str, str]) -> str:
+    """Which agent the scene's own ego is, and why (the converter's choice, which it
+    records in the scene metadata as ``ego_track`` and ``ego_choice``)."""
     track = metadata.get("ego_track") or metadata.get("ego_id", "?")
     why = metadata.get("ego_choice") or "the scene's ego"
     return f"Ego: agent {metadata.get('ego_id', '?')} (source track {track}): {why}"
