@@ -233,3 +233,21 @@ def test_real_samples(shared_data, tmp_path, name):
     # Every recorded state at a time the ego is present is a valid agent in that frame.
     expected = sum(len(t & times[ego]) for t in times.values())
     assert sum(int(f.valid.sum()) for f in scene.frames) == expected
+
+
+def test_static_obstacles_stand_and_traffic_lights_are_counted(tmp_path):
+    parked = (
+        f'<staticObstacle id="50"><type>parkedVehicle</type><shape>{RECT}</shape>'
+        f"{_state(0, 20, 3.5, 0.5, tag='initialState')}</staticObstacle>"
+        '<trafficLight id="60"><cycle><cycleElement><duration>5</duration><color>red</color>'
+        "</cycleElement></cycle></trafficLight>"
+    )
+    path = tmp_path / "s.xml"
+    path.write_text(scenario_xml(parked))
+    scene = read_scene(path)
+    assert scene.metadata["static_obstacles"] == "1" and scene.metadata["traffic_lights"] == "1"
+    for f in scene.frames:  # in every frame, standing at its initial pose
+        [k] = np.flatnonzero(f.ids == 50)
+        assert f.valid[k] and f.speed[k] == 0.0 and f.kinds[k] == Kind.VEHICLE
+        np.testing.assert_allclose((*f.xy[k], f.heading[k]), (20, 3.5, 0.5))
+        assert (f.length[k], f.width[k]) == (4.0, 2.0)
