@@ -8,6 +8,9 @@ import sys
 import click
 
 from replay.batch import CONVERT_KINDS, ENGINES, BatchReport, BatchSettings, run_batch
+from replay.commands.ego_options import ego_option, every_option
+from replay.egos import ALL_EGOS
+from replay.engine import Stride
 from replay.errors import ReplayError
 from risk.cascade import CascadeConfig
 
@@ -67,6 +70,8 @@ _FAILURES_SHOWN = 5
     help="Cascade TOML (stages, thresholds, tiers), e.g. from 'replay calibrate'. "
     "Default: the calibrated cascade shipped with riskreplay.",
 )  # fmt: skip
+@ego_option("Default: each scene's recorded ego. 'all' cannot go with --rrd.")
+@every_option
 @click.option(
     "--strict", is_flag=True,
     help="Exit with an error when any scene failed. Default: only when every scene failed.",
@@ -86,6 +91,8 @@ def batch(
     map_osm: pathlib.Path | None,
     rrd: bool,
     cascade_file: pathlib.Path | None,
+    ego: int | str | None,
+    every: Stride,
     strict: bool,
     progress: bool,
 ) -> None:
@@ -113,6 +120,11 @@ def batch(
         raise click.UsageError("--ray-address needs --engine ray")
     if map_osm is not None and convert not in (None, "interaction"):
         raise click.UsageError("--map applies to INTERACTION track files only")
+    if ego == ALL_EGOS and rrd:
+        raise click.UsageError(
+            "--rrd writes one recording per scene, which shows one ego's view; it cannot go "
+            "with --ego all"
+        )
     cascade = CascadeConfig.from_toml(cascade_file) if cascade_file else CascadeConfig.default()
     settings = BatchSettings(
         cascade=cascade,
@@ -120,6 +132,8 @@ def batch(
         convert=convert,
         paths=path_mode,
         map_osm=None if map_osm is None else map_osm.absolute(),
+        ego=ego,
+        every=every,
     )
     try:
         report = run_batch(
