@@ -24,12 +24,12 @@ from converters.errors import ConversionError
 from converters.hindsight import Hindsight
 from converters.lanegraph import LaneGraph, PathRows, PathSettings, straight_rows
 from risk.frame import Frame, Kind, LaneMap, Scene
+from risk.motion import MIN_TRAVEL_M, track_extents
 
 PATH_MODES: tuple[str, ...] = ("map", "hindsight")
 
-MOVING_EGO_MIN_M = 5.0
-"""A default ego must travel at least this far (m) to count as moving (see
-:func:`moving_ego`)."""
+MOVING_EGO_MIN_M = MIN_TRAVEL_M
+"""A default ego must move at least this far (m; risk.motion's threshold for "moves")."""
 
 _INTEGER = re.compile(r"[+-]?\d{1,18}")
 
@@ -98,41 +98,28 @@ class TrackTable:
         return ok
 
 
-def travelled_m(table: TrackTable) -> np.ndarray:
-    """``(N,)`` distance each track travels, metres: the sum of the straight steps between
-    its consecutive usable states (a gap is bridged by one straight step). Vectorised."""
-    ok = table.usable()
-    xy = np.where(ok[:, :, None], table.xy, np.nan)
-    # Carry the last usable position forward, so a gap becomes one straight step.
-    step = np.arange(table.n_steps)[:, None]
-    last = np.maximum.accumulate(np.where(ok, step, -1), axis=0)
-    prev = np.concatenate([np.full((1, table.n_tracks), -1), last[:-1]], axis=0)
-    cols = np.broadcast_to(np.arange(table.n_tracks), prev.shape)
-    has_prev = ok & (prev >= 0)
-    a = xy[np.maximum(prev, 0), cols]
-    d = np.hypot(*(xy - a).transpose(2, 0, 1))
-    return np.where(has_prev, d, 0.0).sum(axis=0)
-
-
 def moving_ego(table: TrackTable) -> tuple[int, str]:
     """The default ego of a recording without one, and why it was chosen.
 
-    The rule (docs/recorded-data.md): the **vehicle that travels farthest** over the
-    recording (:func:`travelled_m`; ties: the lowest id). Travelled distance favours an
-    agent that is both present for long (only the steps at which the ego is valid become
-    frames) and moving, so a parked car, however many states it has, is never chosen
-    while some vehicle moves. When no vehicle travels :data:`MOVING_EGO_MIN_M`, the agent
-    of any kind that travels farthest; when nothing moves that far, the track with the most
+    The rule (docs/recorded-data.md): the **vehicle that travels farthest**, measured as
+    the travel extent of :func:`risk.motion.track_extents` (the largest distance of its
+    usable positions from its first one; ties: the lowest id) — the same measure that
+    ``--ego all`` uses for "moves". The extent favours an agent that is present for long
+    (only the steps at which the ego is valid become frames) and moving, and does not grow
+    with position jitter, so a parked car, however many states it has, is never chosen
+    while some vehicle moves. When no vehicle moves :data:`MOVING_EGO_MIN_M`, the agent of
+    any kind that moves farthest; when nothing moves that far, the track with the most
     usable states. Returns the track index and a one-line reason.
     """
-    dist = travelled_m(table)
+    usable = table.usable()
+    dist = track_extents(np.where(usable[:, :, None], table.xy, 0.0), usable)
     vehicle = table.kinds == Kind.VEHICLE
     for pool, what in ((vehicle, "vehicle"), (np.ones_like(vehicle), "agent")):
         candidates = np.flatnonzero(pool & (dist >= MOVING_EGO_MIN_M))
         if candidates.size:
             best = candidates[np.lexsort((table.ids[candidates], -dist[candidates]))[0]]
             return int(best), f"the {what} that travels farthest ({dist[best]:.1f} m)"
-    counts = table.usable().sum(axis=0)
+    counts = usable.sum(axis=0)
     best = int(np.lexsort((table.ids, -counts))[0])
     return best, (
         f"no agent travels {MOVING_EGO_MIN_M:g} m: the one with the most states ({counts[best]})"

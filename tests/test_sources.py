@@ -15,7 +15,7 @@ from converters import av2_sensor, sources
 from converters.errors import ConversionError
 from converters.interaction import read_scene as read_interaction
 from converters.sources import SOURCES, ReadOptions, SourceInput
-from converters.tracks import Skipped, TrackTable, moving_ego, travelled_m
+from converters.tracks import Skipped, TrackTable, moving_ego
 from replay.batch.driver import discover as batch_discover
 from replay.cli import main
 from replay.reader import read_scene as read_mcap
@@ -46,7 +46,6 @@ def test_moving_ego_is_not_the_parked_car_with_the_most_states():
     valid[:, 2] = True  # track 2: a pedestrian walking 2 m per step: moves most, not a vehicle
     xy[:, 2, 1] = 2.0 * np.arange(T)
     table = _table(xy, valid, [V, V, P], [5, 9, 2])
-    np.testing.assert_allclose(travelled_m(table), [49 * 0.02 * math.sqrt(2), 29.0, 98.0])
     assert moving_ego(table) == (1, "the vehicle that travels farthest (29.0 m)")
     # No vehicle moves 5 m: the agent of any kind that travels farthest.
     table = _table(xy, valid, [V, P, P], [5, 9, 2])
@@ -56,11 +55,20 @@ def test_moving_ego_is_not_the_parked_car_with_the_most_states():
     assert moving_ego(still)[0] == 1 and "most states (50)" in moving_ego(still)[1]
 
 
-def test_travelled_bridges_gaps_with_one_straight_step():
-    xy = np.zeros((4, 1, 2))
-    xy[:, 0, 0] = [0.0, 99.0, 3.0, 7.0]
-    valid = np.array([[True], [False], [True], [True]])
-    assert travelled_m(_table(xy, valid, [V], [1]))[0] == pytest.approx(7.0)
+def test_moving_ego_ignores_jitter_and_invalid_values():
+    # Track 1 jitters by 0.9 m back and forth for 400 steps (summed path: 360 m, extent
+    # 0.9 m); track 2 drives 6 m. An invalid state far away does not count.
+    T = 400
+    xy = np.zeros((T, 2, 2))
+    xy[:, 0, 0] = 0.9 * (np.arange(T) % 2)
+    xy[:, 1, 0] = np.linspace(0, 6, T)
+    valid = np.ones((T, 2), bool)
+    valid[5, 1] = False
+    xy[5, 1] = (1e6, 1e6)
+    assert moving_ego(_table(xy, valid, [V, V], [1, 2])) == (
+        1,
+        "the vehicle that travels farthest (6.0 m)",
+    )
 
 
 # ---------------------------------------------------------------------- AV2 Sensor
@@ -274,7 +282,7 @@ def test_interaction_cli_with_two_csvs_keeps_the_pedestrians(shared_data, tmp_pa
          str(folder / "I_INTERACTION_0_USA.osm"), "-o", str(out)],
     )  # fmt: skip
     assert result.exit_code == 0, result.output
-    assert "vehicle_tracks_000: ego 7 (id 7): the vehicle that travels farthest" in result.stderr
+    assert "vehicle_tracks_000: ego 27 (id 27): the vehicle that travels farthest" in result.stderr
     scene = read_mcap(out)
     frames = scene.frames
     peds = frames[0].kinds == P
