@@ -26,6 +26,7 @@ from typing import Any
 from tqdm import tqdm
 
 from replay.errors import ReplayError
+from risk import kernel
 
 
 class WorkerDied(ReplayError):
@@ -77,6 +78,7 @@ class LocalEngine:
         self._alone = False  # one suspect is running alone
 
     def _new_pool(self) -> cf.ProcessPoolExecutor:
+        kernel.warm_up()  # compile once here; the workers load the cached kernels
         return cf.ProcessPoolExecutor(
             max_workers=self.workers,
             mp_context=multiprocessing.get_context("spawn"),

@@ -7,6 +7,8 @@ import pathlib
 
 import pytest
 
+from risk import kernel
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 # ../shared/data beside the project; RISKREPLAY_SHARED_DATA names it when the checkout
 # lives elsewhere (a git worktree, CI).
@@ -23,3 +25,10 @@ def shared_data() -> pathlib.Path:
             f"real data samples not found at {SHARED_DATA} (clone ../shared beside the project)"
         )
     return SHARED_DATA
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Compile the risk kernels once, in the controller, before pytest-xdist starts its
+    workers: they then load the cached kernels instead of each compiling them."""
+    if not hasattr(config, "workerinput"):
+        kernel.warm_up()

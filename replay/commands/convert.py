@@ -22,8 +22,10 @@ if TYPE_CHECKING:
 SOURCES: dict[str, str] = {
     "synthetic": "replay.commands.convert:synthetic",
     **{name: f"replay.commands.convert_source:{name}" for name in RECORDED},
+    "foxglove": "replay.commands.convert_foxglove:foxglove",
 }
-"""``synthetic`` here; one command per recorded source of converters.sources.SOURCES."""
+"""``synthetic`` here; one command per recorded source of converters.sources.SOURCES;
+``foxglove`` (an existing scene's Foxglove channels)."""
 
 
 @click.group("convert", cls=LazyGroup, lazy_commands=SOURCES)
