@@ -11,7 +11,8 @@ Read with polars (no ``av2`` package). Mapping (docs/recorded-data.md has the ta
   ``(end_timestamp - start_timestamp) / (num_timestamps - 1)`` (ns);
 - pose ``position_x/y`` (m), ``heading`` (rad), speed ``|(velocity_x, velocity_y)|`` (m/s);
 - sizes: Argoverse 2 has none, so :data:`DEFAULT_SIZES` per ``object_type``;
-- map ``log_map_archive_*.json``: every lane segment (``centerline``, ``successors``,
+- map ``log_map_archive_*.json``: every lane segment (``centerline``, or the mean of
+  its two boundaries when a log map leaves it out, ``successors``,
   ``lane_type`` VEHICLE/BIKE/BUS -> kind vehicle/bike/bus);
 - labels: ``focal`` = tracks with ``object_category`` 3 (it equals ``focal_track_id``),
   ``scored`` = ``object_category`` 2 (0 is a track fragment, 1 an unscored track).
@@ -30,7 +31,7 @@ import numpy as np
 import polars as pl
 
 from converters.errors import ConversionError
-from converters.lanegraph import PathSettings
+from converters.lanegraph import PathSettings, lanelet_centerline
 from converters.map_lines import av2_lines
 from converters.tracks import Skipped, TrackTable, build_scene, integer_ids
 from risk.frame import Kind, Lane, LaneMap, Scene
@@ -187,7 +188,7 @@ def read_lane_map(path: pathlib.Path | None) -> LaneMap:
         segments = data["lane_segments"]
         lanes = []
         for key, seg in segments.items():
-            line = np.array([(p["x"], p["y"]) for p in seg["centerline"]], dtype=np.float64)
+            line = _centerline(seg)
             if len(line) < 2:
                 continue
             lanes.append(
@@ -204,6 +205,18 @@ def read_lane_map(path: pathlib.Path | None) -> LaneMap:
             f"{path}: not an Argoverse 2 map ({type(exc).__name__}: {exc})"
         ) from None
     return LaneMap(tuple(sorted(lanes, key=lambda lane: lane.id)), lines=lines)
+
+
+def _centerline(seg: dict[str, Any]) -> np.ndarray:
+    """A lane segment's ``centerline``; Argoverse 2 Sensor log maps may leave it out, then
+    the mean of ``left_lane_boundary`` and ``right_lane_boundary`` (as av2-api does)."""
+    if seg.get("centerline"):
+        return np.array([(p["x"], p["y"]) for p in seg["centerline"]], dtype=np.float64)
+    left, right = (
+        np.array([(p["x"], p["y"]) for p in seg[k]], dtype=np.float64)
+        for k in ("left_lane_boundary", "right_lane_boundary")
+    )
+    return lanelet_centerline(left, right)
 
 
 def parquet_to_scene(
@@ -247,6 +260,7 @@ def parquet_to_scene(
         "converter": CONVERTER,
         "converter_version": CONVERTER_VERSION,
         "ego_track": EGO_TRACK,
+        "ego_choice": "the autonomous vehicle (track AV)",
         "renamed_tracks": json.dumps(renamed, sort_keys=True),
     }
     if "city" in df.columns:

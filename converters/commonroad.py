@@ -16,8 +16,13 @@ Mapping (docs/recorded-data.md has the tables):
   values given as intervals take the interval's midpoint;
 - kinds: car, truck, bus, taxi, priorityVehicle, parkedVehicle, motorcycle -> vehicle;
   bicycle -> cyclist; pedestrian -> pedestrian; anything else -> other;
-- ego: ``--ego ID``, default the dynamic obstacle with the most states (ties: lowest id);
-  ``planningProblem`` is ignored (it holds the planned vehicle's start only, no motion);
+- static obstacles (``staticObstacle``, e.g. a parked vehicle): an agent with speed 0 at
+  its ``initialState`` pose, valid at every step of the scene;
+- traffic lights are counted (metadata ``traffic_lights``) but their states are not used:
+  the risk models have no notion of signals;
+- ego: ``--ego ID``, default the moving-ego rule of :func:`converters.tracks.moving_ego`
+  (the vehicle that travels farthest); ``planningProblem`` is ignored (it holds the
+  planned vehicle's start only, no motion);
 - map: each ``lanelet`` is a lane whose centre line is the mean of its left and right
   bounds (resampled to a common count when they differ), with its ``successor`` links;
   kind from ``laneletType`` (bicycleLane -> bike, busLane/busStop -> bus, crosswalk,
@@ -26,6 +31,7 @@ Mapping (docs/recorded-data.md has the tables):
 
 from __future__ import annotations
 
+import math
 import os
 import pathlib
 import xml.etree.ElementTree as ET
@@ -36,11 +42,11 @@ import numpy as np
 from converters.errors import ConversionError
 from converters.lanegraph import PathSettings, dedupe, lanelet_centerline
 from converters.map_lines import commonroad_lines
-from converters.tracks import Skipped, TrackTable, build_scene
+from converters.tracks import Skipped, TrackTable, build_scene, moving_ego
 from risk.frame import Kind, Lane, LaneMap, Scene
 
 CONVERTER = "converters.commonroad"
-CONVERTER_VERSION = "1"
+CONVERTER_VERSION = "2"
 
 OBSTACLE_KINDS: dict[str, Kind] = {
     "car": Kind.VEHICLE,
@@ -97,6 +103,8 @@ def _value(elem: ET.Element | None, what: str) -> float:
     """A CommonRoad value: ``<exact>``, an interval's midpoint, or a bare number."""
     if elem is None:
         raise ValueError(f"missing <{what}>")
+    if len(elem) and elem[0].tag == "exact":  # the common case, without a search
+        return float(elem[0].text or "")
     exact = elem.find("exact")
     if exact is not None:
         return float(exact.text or "")
@@ -134,7 +142,8 @@ def _shape_size(shape: ET.Element | None) -> tuple[float, float]:
 
 
 def parse_obstacle(elem: ET.Element, dt_s: float) -> Obstacle:
-    """One ``dynamicObstacle``; raises ValueError naming what is wrong."""
+    """One ``dynamicObstacle`` or ``staticObstacle`` (its one ``initialState``; the
+    caller spreads it over the scene); raises ValueError naming what is wrong."""
     oid = int(elem.get("id", ""))
     kind = OBSTACLE_KINDS.get((elem.findtext("type") or "").strip(), Kind.OTHER)
     length, width = _shape_size(elem.find("shape"))
@@ -142,22 +151,7 @@ def parse_obstacle(elem: ET.Element, dt_s: float) -> Obstacle:
     states += elem.findall("trajectory/state")
     if not states:
         raise ValueError("no states")
-    rows = []
-    for state in states:
-        point = state.find("position/point")
-        if point is None:
-            raise ValueError("a state has no <position><point>")
-        vx = _optional(state.find("velocity"), "velocity")
-        vy = _optional(state.find("velocityY"), "velocityY")
-        rows.append(
-            (
-                round(_value(state.find("time"), "time")),
-                *_point(point),
-                _optional(state.find("orientation"), "orientation"),
-                np.hypot(vx, 0.0 if np.isnan(vy) else vy),
-            )
-        )
-    table = np.array(rows, dtype=np.float64)
+    table = np.array([_state_row(state) for state in states], dtype=np.float64)
     table = table[np.argsort(table[:, 0], kind="stable")]
     steps = table[:, 0].astype(np.int64)
     if np.any(np.diff(steps) == 0):
@@ -165,6 +159,27 @@ def parse_obstacle(elem: ET.Element, dt_s: float) -> Obstacle:
     xy = table[:, 1:3]
     heading, speed = _fill_motion(steps, xy, table[:, 3], table[:, 4], dt_s)
     return Obstacle(oid, kind, length, width, steps, xy, heading, speed)
+
+
+def _state_row(state: ET.Element) -> tuple[float, float, float, float, float]:
+    """``(time step, x, y, orientation, speed)`` of one state (NaN: not given). One pass
+    over the state's children: a path ``find`` per value costs ten times more on files of
+    tens of thousands of states."""
+    found: dict[str, ET.Element] = {}
+    for child in state:
+        found[child.tag] = child
+    position = found.get("position")
+    point = None if position is None else position.find("point")
+    if point is None:
+        raise ValueError("a state has no <position><point>")
+    vx = _optional(found.get("velocity"), "velocity")
+    vy = _optional(found.get("velocityY"), "velocityY")
+    return (
+        round(_value(found.get("time"), "time")),
+        *_point(point),
+        _optional(found.get("orientation"), "orientation"),
+        math.hypot(vx, 0.0 if math.isnan(vy) else vy),
+    )
 
 
 def _fill_motion(
@@ -206,14 +221,21 @@ def read_lane_map(root: ET.Element, where: str) -> LaneMap:
 
 
 def read_obstacles(
-    root: ET.Element, dt_s: float, where: str, *, skip_bad: bool, skipped: Skipped | None
+    root: ET.Element,
+    dt_s: float,
+    where: str,
+    *,
+    skip_bad: bool,
+    skipped: Skipped | None,
+    tag: str = "dynamicObstacle",
 ) -> list[Obstacle]:
+    """The obstacles of element ``tag`` (``dynamicObstacle`` or ``staticObstacle``)."""
     obstacles = []
-    for elem in root.findall("dynamicObstacle"):
+    for elem in root.findall(tag):
         try:
             obstacles.append(parse_obstacle(elem, dt_s))
         except (ValueError, TypeError) as exc:
-            message = f"{where}: dynamicObstacle {elem.get('id')!r}: {exc}"
+            message = f"{where}: {tag} {elem.get('id')!r}: {exc}"
             if not skip_bad:
                 raise ConversionError(message) from None
             if skipped is not None:
@@ -221,10 +243,25 @@ def read_obstacles(
     return obstacles
 
 
-def obstacles_table(obstacles: list[Obstacle], dt_s: float) -> TrackTable:
-    """The obstacles on a common grid of time steps (from the earliest state's step)."""
+def obstacles_table(
+    obstacles: list[Obstacle], dt_s: float, static: list[Obstacle] | None = None
+) -> TrackTable:
+    """The obstacles on a common grid of time steps (from the earliest state's step of a
+    dynamic obstacle); each ``static`` obstacle stands at its pose, speed 0, at every
+    step."""
+    static = static or []
     first = min(int(o.steps[0]) for o in obstacles)
     n_steps = max(int(o.steps[-1]) for o in obstacles) - first + 1
+    grid = np.arange(n_steps)
+    static = [
+        Obstacle(
+            o.id, o.kind, o.length, o.width, grid + first,
+            np.repeat(o.xy[:1], n_steps, axis=0), np.repeat(o.heading[:1], n_steps),
+            np.zeros(n_steps),
+        )
+        for o in static
+    ]  # fmt: skip
+    obstacles = [*obstacles, *static]
     shape = (n_steps, len(obstacles))
     xy = np.zeros((*shape, 2))
     heading = np.zeros(shape)
@@ -250,11 +287,6 @@ def obstacles_table(obstacles: list[Obstacle], dt_s: float) -> TrackTable:
     )
 
 
-def default_ego(obstacles: list[Obstacle]) -> int:
-    """Index of the obstacle with the most states (ties: the lowest id)."""
-    return min(range(len(obstacles)), key=lambda i: (-len(obstacles[i].steps), obstacles[i].id))
-
-
 def read_scene(
     path: str | os.PathLike,
     *,
@@ -265,8 +297,8 @@ def read_scene(
     skipped: Skipped | None = None,
     progress: bool = False,
 ) -> Scene:
-    """A CommonRoad XML file as a scene; ``ego`` is a dynamic obstacle id (default: the one
-    with the most states)."""
+    """A CommonRoad XML file as a scene; ``ego`` is a dynamic obstacle id (default: the
+    moving-ego rule, :func:`converters.tracks.moving_ego`)."""
     path = pathlib.Path(path)
     settings = settings or PathSettings()
     root = parse(path)
@@ -280,9 +312,13 @@ def read_scene(
     obstacles = read_obstacles(root, dt_s, where, skip_bad=skip_bad, skipped=skipped)
     if not obstacles:
         raise ConversionError(f"{path}: no dynamic obstacle to replay")
+    static = read_obstacles(
+        root, dt_s, where, skip_bad=skip_bad, skipped=skipped, tag="staticObstacle"
+    )
+    table = obstacles_table(obstacles, dt_s, static)
     ids = [o.id for o in obstacles]
     if ego is None:
-        ego_index, choice = default_ego(obstacles), "most states"
+        ego_index, choice = moving_ego(table)
     elif ego in ids:
         ego_index, choice = ids.index(ego), "--ego"
     else:
@@ -299,9 +335,11 @@ def read_scene(
         "converter_version": CONVERTER_VERSION,
         "ego_track": str(ids[ego_index]),
         "ego_choice": choice,
+        "static_obstacles": str(len(static)),
+        "traffic_lights": str(len(root.findall("trafficLight"))),
     }
     return build_scene(
-        obstacles_table(obstacles, dt_s),
+        table,
         ego_index,
         read_lane_map(root, where),
         paths=paths,

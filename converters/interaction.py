@@ -1,7 +1,8 @@
 """INTERACTION dataset (and levelX-style) track CSVs with a Lanelet2 OSM map into a scene.
 
-The CSV is read with polars, the OSM map with ``xml.etree.ElementTree`` (no ``lanelet2``
-package). Mapping (docs/recorded-data.md has the tables):
+The CSV is read with polars, the OSM map with the ``lanelet2`` package (its self-contained
+PyPI wheel: the projector, the bounds and ``follows``, measured against the hand-written
+parser it replaced in docs/recorded-data.md). Mapping (docs/recorded-data.md has the tables):
 
 - every ``track_id`` is an agent (numeric ids kept; others such as INTERACTION's
   pedestrian ids ``P1`` are numbered after the largest numeric id, see
@@ -15,34 +16,36 @@ package). Mapping (docs/recorded-data.md has the tables):
   :data:`DEFAULT_SIZES` per kind;
 - kinds: car, truck, bus, van, motorcycle -> vehicle; bicycle -> cyclist; pedestrian and
   INTERACTION's mixed ``pedestrian/bicycle`` -> pedestrian; anything else -> other;
-- ego: ``--ego ID``, default the track present in the most frames (ties: lowest id);
-- map: each ``type=lanelet`` relation is a lane; its centre line is the mean of its
-  left and right bounds, oriented like Lanelet2 does (both bounds made parallel, the
-  ``left`` member on the left); a lanelet follows another when they share the end/start
-  nodes of both bounds (Lanelet2's ``follows``); a lanelet tagged ``one_way=no`` is also
-  added reversed, with id ``-id``; node positions from ``local_x``/``local_y`` tags when
-  every node has them, else from ``lat``/``lon`` with INTERACTION's projection: UTM in the
-  zone of the origin, minus the origin's UTM position (origin default 0, 0).
+- several track CSVs of one recording (INTERACTION's ``vehicle_tracks_000.csv`` and
+  ``pedestrian_tracks_000.csv``) form one scene: their rows share the recording's
+  ``frame_id``/``timestamp_ms`` clock; a track id in two files is an error;
+- ego: ``--ego ID``, default the moving-ego rule of :func:`converters.tracks.moving_ego`
+  (the vehicle that travels farthest);
+- map: each lanelet is a lane whose centre line is the mean of its left and right
+  bounds (see :func:`read_lane_map`).
 """
 
 from __future__ import annotations
 
 import json
-import math
 import os
 import pathlib
-import xml.etree.ElementTree as ET
+import re
+from collections.abc import Sequence
+from typing import Any
 
+import lanelet2
 import numpy as np
 import polars as pl
+from lanelet2.projection import UtmProjector
 
 from converters.errors import ConversionError
 from converters.lanegraph import PathSettings, lanelet_centerline
-from converters.tracks import Skipped, TrackTable, build_scene, integer_ids
+from converters.tracks import Skipped, TrackTable, build_scene, integer_ids, moving_ego
 from risk.frame import Kind, Lane, LaneMap, Scene
 
 CONVERTER = "converters.interaction"
-CONVERTER_VERSION = "1"
+CONVERTER_VERSION = "2"
 
 REQUIRED_COLUMNS = ("track_id", "frame_id", "timestamp_ms", "agent_type", "x", "y", "vx", "vy")
 OPTIONAL_COLUMNS = ("psi_rad", "length", "width")
@@ -77,143 +80,84 @@ LANELET_KINDS: dict[str, str] = {
 }
 """Lanelet2 ``subtype`` -> lane kind; any other subtype (road, highway, ...) is vehicle."""
 
-# WGS84 ellipsoid and the UTM scale factor.
-_A_M = 6_378_137.0
-_F = 1 / 298.257223563
-_K0 = 0.9996
-
-
-# ---------------------------------------------------------------------- projection
-def utm_xy(lat_deg: np.ndarray, lon_deg: np.ndarray, zone: int) -> tuple[np.ndarray, np.ndarray]:
-    """Transverse Mercator (UTM ``zone``, northern form, no false easting/northing).
-
-    Snyder (1987), "Map projections: a working manual", eqs. 8-9 to 8-10: a series in the
-    longitude offset; sub-millimetre within a few degrees of the central meridian, which is
-    all that differences to a nearby origin need.
-    """
-    lat = np.radians(np.asarray(lat_deg, dtype=np.float64))
-    lon = np.radians(np.asarray(lon_deg, dtype=np.float64))
-    lon0 = math.radians((zone - 1) * 6 - 180 + 3)
-    e2 = _F * (2 - _F)
-    ep2 = e2 / (1 - e2)
-    sin, cos, tan = np.sin(lat), np.cos(lat), np.tan(lat)
-    n = _A_M / np.sqrt(1 - e2 * sin**2)
-    t = tan**2
-    c = ep2 * cos**2
-    a = (lon - lon0) * cos
-    m = _A_M * (
-        (1 - e2 / 4 - 3 * e2**2 / 64 - 5 * e2**3 / 256) * lat
-        - (3 * e2 / 8 + 3 * e2**2 / 32 + 45 * e2**3 / 1024) * np.sin(2 * lat)
-        + (15 * e2**2 / 256 + 45 * e2**3 / 1024) * np.sin(4 * lat)
-        - (35 * e2**3 / 3072) * np.sin(6 * lat)
-    )
-    x = (
-        _K0
-        * n
-        * (a + (1 - t + c) * a**3 / 6 + (5 - 18 * t + t**2 + 72 * c - 58 * ep2) * a**5 / 120)
-    )
-    y = _K0 * (
-        m
-        + n
-        * tan
-        * (
-            a**2 / 2
-            + (5 - t + 9 * c + 4 * c**2) * a**4 / 24
-            + (61 - 58 * t + t**2 + 600 * c - 330 * ep2) * a**6 / 720
-        )
-    )
-    return x, y
-
-
-def project(lat: np.ndarray, lon: np.ndarray, origin: tuple[float, float]) -> np.ndarray:
-    """Local metric ``(K, 2)`` positions: UTM in the origin's zone minus the origin's UTM."""
-    zone = math.floor((origin[1] + 180.0) / 6.0) + 1
-    x, y = utm_xy(lat, lon, zone)
-    x0, y0 = utm_xy(np.array([origin[0]]), np.array([origin[1]]), zone)
-    return np.stack([x - x0[0], y - y0[0]], axis=1)
+_LANELET_ERROR = re.compile(r"primitive (?:with id )?(-?\d+)")
 
 
 # ---------------------------------------------------------------------- map
 def read_lane_map(path: str | os.PathLike, origin: tuple[float, float] = (0.0, 0.0)) -> LaneMap:
-    """The lanelets of a Lanelet2 OSM file as lanes (see the module docstring)."""
+    """The lanelets of a Lanelet2 OSM file as lanes, read with the ``lanelet2`` package.
+
+    Node positions: ``local_x``/``local_y`` tags when every node has them, else
+    ``lat``/``lon`` projected by Lanelet2's ``UtmProjector`` at ``origin`` (UTM in the
+    origin's zone minus the origin's UTM position, as the INTERACTION tools do). Bounds as
+    the file gives them (Lanelet2 orients each way along the lanelet; the ``left`` member is
+    the left bound). Successors: Lanelet2's ``follows`` (A's bounds end at the points
+    where B's start). ``one_way=no`` adds the inverted lanelet as lane ``-id``. Errors
+    Lanelet2 reports about other primitives (areas, regulatory elements) are ignored; one
+    about a lanelet is an error.
+    """
     path = pathlib.Path(path)
+    with open(path, "rb") as fh:
+        head = fh.read(4096).decode("utf-8", "replace")
+    found = re.search(r"<([A-Za-z_][\w.-]*)[\s/>]", re.sub(r"<\?.*?\?>|<!--.*?-->", "", head))
+    root = found.group(1) if found else "?"
+    if root != "osm":
+        raise ConversionError(f"{path}: not an OSM map (root element <{root}>, expected <osm>)")
+    projector = UtmProjector(lanelet2.io.Origin(*origin))
     try:
-        root = ET.parse(path).getroot()
-    except ET.ParseError as exc:
-        raise ConversionError(f"{path}: not well-formed XML ({exc})") from None
-    if root.tag != "osm":
-        raise ConversionError(f"{path}: not an OSM map (root element <{root.tag}>, expected <osm>)")
-    nodes = _node_positions(root, origin, path)
-    ways = {
-        int(w.get("id", "0")): [int(nd.get("ref", "0")) for nd in w.findall("nd")]
-        for w in root.findall("way")
-    }
-    directed: list[tuple[int, list[int], list[int], str]] = []
-    for rel in root.findall("relation"):
-        tags = {t.get("k"): t.get("v") for t in rel.findall("tag")}
-        if tags.get("type") != "lanelet":
-            continue
-        lid = int(rel.get("id", "0"))
-        roles = {m.get("role"): int(m.get("ref", "0")) for m in rel.findall("member")}
-        if "left" not in roles or "right" not in roles:
-            raise ConversionError(f"{path}: lanelet {lid} lacks a left or right bound")
+        lmap, errors = lanelet2.io.loadRobust(str(path), projector)
+    except RuntimeError as exc:
+        raise ConversionError(f"{path}: Lanelet2 cannot read it ({exc})") from None
+    lanelet_ids = {ll.id for ll in lmap.laneletLayer}
+    for message in errors:
+        hit = _LANELET_ERROR.search(message)
+        if hit and int(hit.group(1)) in lanelet_ids:
+            what = message.strip(" -\t")
+            raise ConversionError(f"{path}: lanelet {hit.group(1)}: {what}")
+    local = _local_positions(lmap)
+    directed = []
+    for ll in lmap.laneletLayer:
+        attrs = dict(ll.attributes)  # a Lanelet2 AttributeMap has no .get
+        subtype = attrs.get("subtype", "road")
+        kind = LANELET_KINDS.get(subtype, "vehicle")
+        directed.append((ll.id, ll, kind))
+        if attrs.get("one_way") == "no":
+            directed.append((-ll.id, ll.invert(), kind))
+    return LaneMap(tuple(_lanes(directed, local)))
+
+
+def _local_positions(lmap: Any) -> dict[int, tuple[float, float]] | None:
+    """Point id -> (local_x, local_y) when every point carries those tags, else None."""
+    out = {}
+    for p in lmap.pointLayer:
+        a = p.attributes
+        if "local_x" not in a or "local_y" not in a:
+            return None
         try:
-            left, right = ways[roles["left"]], ways[roles["right"]]
-            left, right = _align(left, right, nodes)
-        except KeyError as exc:
-            raise ConversionError(
-                f"{path}: lanelet {lid} refers to missing way/node {exc}"
-            ) from None
-        kind = LANELET_KINDS.get(tags.get("subtype", "road"), "vehicle")
-        directed.append((lid, left, right, kind))
-        if tags.get("one_way", "yes") == "no":
-            directed.append((-lid, right[::-1], left[::-1], kind))
-    return LaneMap(tuple(_lanes(directed, nodes)))
+            out[p.id] = (float(a["local_x"]), float(a["local_y"]))
+        except ValueError:
+            return None
+    return out
 
 
-def _node_positions(root: ET.Element, origin: tuple[float, float], path: pathlib.Path):
-    elems = root.findall("node")
-    ids = [int(n.get("id", "0")) for n in elems]
-    local = [{t.get("k"): t.get("v") for t in n.findall("tag")} for n in elems]
-    try:
-        if elems and all("local_x" in t and "local_y" in t for t in local):
-            xy = np.array([(float(t["local_x"]), float(t["local_y"])) for t in local])
-        else:
-            lat = np.array([float(n.get("lat", "nan")) for n in elems])
-            lon = np.array([float(n.get("lon", "nan")) for n in elems])
-            xy = project(lat, lon, origin) if elems else np.zeros((0, 2))
-    except ValueError as exc:
-        raise ConversionError(f"{path}: a node has no numeric position ({exc})") from None
-    if not np.isfinite(xy).all():
-        raise ConversionError(f"{path}: a node has no lat/lon (and no local_x/local_y)")
-    return dict(zip(ids, xy, strict=True))
+def _xy(bound: Any, local: dict[int, tuple[float, float]] | None) -> np.ndarray:
+    if local is not None:
+        return np.array([local[p.id] for p in bound], dtype=np.float64).reshape(-1, 2)
+    return np.array([(p.x, p.y) for p in bound], dtype=np.float64).reshape(-1, 2)
 
 
-def _align(left: list[int], right: list[int], nodes: dict) -> tuple[list[int], list[int]]:
-    """Orient the bounds like Lanelet2: parallel, with ``left`` on the left of the motion."""
-    L = np.array([nodes[i] for i in left])
-    R = np.array([nodes[i] for i in right])
-    same = np.hypot(*(L[0] - R[0])) + np.hypot(*(L[-1] - R[-1]))
-    crossed = np.hypot(*(L[0] - R[-1])) + np.hypot(*(L[-1] - R[0]))
-    if crossed < same:
-        left, L = left[::-1], L[::-1]
-    direction = (L[-1] + R[-1]) - (L[0] + R[0])
-    offset = L.mean(axis=0) - R.mean(axis=0)
-    if direction[0] * offset[1] - direction[1] * offset[0] < 0:  # left bound on the right
-        left, right = right[::-1], left[::-1]
-    return left, right
-
-
-def _lanes(directed, nodes) -> list[Lane]:
-    start = {}
-    for lid, left, right, _ in directed:
-        start.setdefault((left[0], right[0]), []).append(lid)
+def _lanes(directed: list, local: dict | None) -> list[Lane]:
+    start: dict[tuple[int, int], list[int]] = {}
+    for lid, ll, _ in directed:
+        if len(ll.leftBound) and len(ll.rightBound):
+            start.setdefault((ll.leftBound[0].id, ll.rightBound[0].id), []).append(lid)
     lanes = []
-    for lid, left, right, kind in directed:
-        L = np.array([nodes[i] for i in left])
-        R = np.array([nodes[i] for i in right])
-        centre = lanelet_centerline(L, R)
-        successors = tuple(s for s in start.get((left[-1], right[-1]), ()) if s != -lid)
+    for lid, ll, kind in directed:
+        if len(ll.leftBound) < 2 or len(ll.rightBound) < 2:
+            continue
+        centre = lanelet_centerline(_xy(ll.leftBound, local), _xy(ll.rightBound, local))
+        end = (ll.leftBound[len(ll.leftBound) - 1].id, ll.rightBound[len(ll.rightBound) - 1].id)
+        successors = tuple(s for s in start.get(end, ()) if s != -lid)
         lanes.append(Lane(id=lid, centerline=centre, successors=successors, kind=kind))
     return lanes
 
@@ -355,15 +299,28 @@ def _velocity_heading(
     return np.where(source >= 0, direction[np.maximum(source, 0)], 0.0)
 
 
-def default_ego(table: TrackTable) -> int:
-    """Index of the track present in the most frames (ties: the lowest id)."""
-    counts = table.valid.sum(axis=0)
-    order = np.lexsort((table.ids, -counts))
-    return int(order[0])
+def read_track_files(
+    tracks_csv: Sequence[pathlib.Path], *, skip_bad: bool = False, skipped: Skipped | None = None
+) -> pl.DataFrame:
+    """The rows of one recording's track CSVs together (columns a file lacks are null);
+    ConversionError when a track id appears in two files."""
+    frames = []
+    owner: dict[str, pathlib.Path] = {}
+    for path in tracks_csv:
+        df = read_rows(path, skip_bad=skip_bad, skipped=skipped)
+        for track in df["track_id"].unique(maintain_order=True).to_list():
+            if track in owner:
+                raise ConversionError(
+                    f"{path}: track {track} is also in {owner[track]}; give the track files "
+                    "of one recording (e.g. vehicle_tracks_000.csv pedestrian_tracks_000.csv)"
+                )
+            owner[track] = path
+        frames.append(df.drop("line"))
+    return pl.concat(frames, how="diagonal_relaxed")
 
 
 def read_scene(
-    tracks_csv: str | os.PathLike,
+    tracks_csv: str | os.PathLike | Sequence[str | os.PathLike],
     map_osm: str | os.PathLike,
     *,
     ego: int | None = None,
@@ -374,25 +331,33 @@ def read_scene(
     skipped: Skipped | None = None,
     progress: bool = False,
 ) -> Scene:
-    """A track CSV and its Lanelet2 map as a scene; ``ego`` is a track id (default: the
-    track present in the most frames)."""
-    tracks_csv = pathlib.Path(tracks_csv)
+    """One recording's track CSV(s) and its Lanelet2 map as a scene; ``ego`` is a track id
+    (default: :func:`converters.tracks.moving_ego`)."""
+    files = (
+        [pathlib.Path(tracks_csv)]
+        if isinstance(tracks_csv, str | os.PathLike)
+        else [pathlib.Path(p) for p in tracks_csv]
+    )
+    if not files:
+        raise ConversionError("no track CSV given")
+    tracks_csv = files[0]
+    where = ", ".join(str(p) for p in files)
     settings = settings or PathSettings()
     lane_map = read_lane_map(map_osm, origin)
-    df = read_rows(tracks_csv, skip_bad=skip_bad, skipped=skipped)
-    table, names, renamed, period = rows_to_table(df, str(tracks_csv))
+    df = read_track_files(files, skip_bad=skip_bad, skipped=skipped)
+    table, names, renamed, period = rows_to_table(df, where)
     if ego is None:
-        ego_index, choice = default_ego(table), "most frames"
+        ego_index, choice = moving_ego(table)
     else:
         hits = np.flatnonzero(table.ids == ego)
         if hits.size == 0:
             listed = ", ".join(str(i) for i in sorted(table.ids.tolist())[:10])
             more = " ..." if table.n_tracks > 10 else ""
-            raise ConversionError(f"{tracks_csv}: no track with id {ego} (ids: {listed}{more})")
+            raise ConversionError(f"{where}: no track with id {ego} (ids: {listed}{more})")
         ego_index, choice = int(hits[0]), "--ego"
     metadata = {
         "dataset": "interaction",
-        "source_file": tracks_csv.name,
+        "source_file": ",".join(p.name for p in files),
         "map_file": pathlib.Path(map_osm).name,
         "scenario_id": tracks_csv.stem,
         "converter": CONVERTER,
@@ -410,6 +375,6 @@ def read_scene(
         settings=settings,
         frame_period_s=period,
         metadata=metadata,
-        source=str(tracks_csv),
+        source=where,
         progress=progress,
     )

@@ -15,14 +15,16 @@ docs/recorded-data.md):
   the joint, and the predecessor's expansion already covers it). Agents that match no lane
   get a straight path.
 - **Forward paths.** From each matched lane, routes follow successor links until they are
-  ``v * horizon_s + margin_m`` long beyond the projection point; at a fork every branch is
+  ``max(v * horizon_s + margin_m, map_path_m)`` long beyond the projection point (the
+  whole known path, capped at 300 m by default); at a fork every branch is
   a candidate, ordered straightest first (total heading change of the branch lane), and
   candidates are interleaved round-robin over the matched lanes and the forks so that the
   first ``max_candidates`` keep the nearest alternatives. A route that ends (a dead end or
   the edge of the map) is extended straight along its last segment.
 - **Shape.** A path starts at the agent's own position, joins the centre line
   ``join_m`` ahead of the projection point (a straight blend, instead of a sideways jump
-  to the centre line) and follows it to the required length. Centre lines are simplified
+  to the centre line) and follows it to the route's end, at most ``max(v * horizon_s +
+  margin_m, map_path_m)`` and at least ``v * horizon_s + margin_m``. Centre lines are simplified
   once (Ramer-Douglas-Peucker, ``simplify_m``) so that paths have few segments, which is
   what makes the O(p^2) path models cheap (paper Sec. IV-C).
 
@@ -61,10 +63,16 @@ class PathSettings:
     A path is at least ``v * horizon_s + margin_m`` long (``v`` the agent's speed, m/s):
     the distance the constant-speed prediction of the model spec (docs/models.md) covers, plus a
     margin so that a slow or stopped agent still has a path ahead of it.
+
+    A **map** path goes on along the lane graph to the graph's end or ``map_path_m``
+    beyond the agent, whichever comes first (never shorter than the above): the paper's
+    path distance uses the agents' whole map paths, which a cut at ``v * T + margin``
+    makes the same as trajectory distance. ``map_path_m = 0`` gives the short paths.
     """
 
     horizon_s: float = 12.0  # the paper's prediction horizon T
     margin_m: float = 10.0
+    map_path_m: float = 300.0  # map paths: how far the lane graph is followed (see below)
     max_lateral_m: float = 2.0  # about half a lane width (lanes are 3-4 m wide)
     max_heading_rad: float = math.pi / 4  # 45 deg: a lane change, not a crossing lane
     max_candidates: int = 3
@@ -75,6 +83,7 @@ class PathSettings:
         checks = (
             ("horizon_s", self.horizon_s >= 0),
             ("margin_m", self.margin_m >= 0),
+            ("map_path_m", self.map_path_m >= 0),
             ("max_lateral_m", self.max_lateral_m > 0),
             ("max_heading_rad", 0 < self.max_heading_rad <= math.pi),
             ("max_candidates", self.max_candidates >= 1),
@@ -292,6 +301,8 @@ class LaneGraph:
         self._route_index: dict[tuple[int, ...], int] = {}
         self._route_cache: dict[tuple[int, int], tuple[int, ...]] = {}
         self._candidate_cache: dict[tuple, tuple[tuple[int, int], ...]] = {}
+        self._route_len: dict[int, float] = {}
+        self._route_lines: dict[int, np.ndarray] = {}
 
     @property
     def n_lanes(self) -> int:
@@ -438,10 +449,24 @@ class LaneGraph:
     def route_lanes(self, route_id: int) -> tuple[int, ...]:
         return self._routes[route_id]
 
+    def _route_length(self, routes: np.ndarray) -> np.ndarray:
+        """Arc length (m) of each route's polyline, ``(R,)``; cached per route."""
+        cache = self._route_len
+        for r in np.unique(routes).tolist():
+            if r not in cache:
+                cache[r] = float(arc_length(self.route_polyline(r))[-1])
+        return np.array([cache[r] for r in routes.tolist()], dtype=np.float64)
+
     def route_polyline(self, route_id: int) -> np.ndarray:
-        """The centre line ``(K, 2)`` of a route: its lanes' simplified centre lines joined."""
-        lanes = self._routes[route_id]
-        return dedupe(np.concatenate([self._points[i] for i in lanes]))
+        """The centre line ``(K, 2)`` of a route: its lanes' simplified centre lines joined.
+        Cached per route (read-only)."""
+        line = self._route_lines.get(route_id)
+        if line is None:
+            lanes = self._routes[route_id]
+            line = dedupe(np.concatenate([self._points[i] for i in lanes]))
+            line.flags.writeable = False
+            self._route_lines[route_id] = line
+        return line
 
     # ------------------------------------------------------------------ candidates
     def candidates(self, lanes: Sequence[int], at_end: Sequence[bool], need_m: float):
@@ -501,6 +526,7 @@ class LaneGraph:
         """
         q = len(frame)
         need = self.settings.required_length_m(speed)
+        reach = np.maximum(need, self.settings.map_path_m)  # follow the graph this far
         m = self.match(xy, heading, kinds)
         matched = np.zeros(q, dtype=bool)
         matched[m.query] = True
@@ -511,25 +537,29 @@ class LaneGraph:
         mq, ml, ms = m.query[order], m.lane[order], m.s_m[order]
         at_end = ms >= self.lane_length_m[ml] - 1e-6
         bounds = np.flatnonzero(np.diff(mq)) + 1
+        first = np.concatenate(([0], bounds))
+        # Per query, vectorised: the largest required length from the start of its lanes.
+        need_from_start = (np.maximum.reduceat(ms, first) + reach[mq[first]]).tolist()
         row_q: list[int] = []
         row_route: list[int] = []
         row_s: list[float] = []
-        for lo, hi in zip(
-            np.concatenate(([0], bounds)), np.concatenate((bounds, [mq.size])), strict=True
-        ):
-            qi = int(mq[lo])
-            lanes = ml[lo:hi].tolist()
-            need_from_start = float(ms[lo:hi].max() + need[qi])
-            for i, rid in self.candidates(lanes, at_end[lo:hi].tolist(), need_from_start):
+        mq_l, ml_l, ms_l, end_l = mq.tolist(), ml.tolist(), ms.tolist(), at_end.tolist()
+        for k, (lo, hi) in enumerate(zip(first.tolist(), [*bounds.tolist(), mq.size], strict=True)):
+            qi = mq_l[lo]
+            for i, rid in self.candidates(ml_l[lo:hi], end_l[lo:hi], need_from_start[k]):
                 row_q.append(qi)
                 row_route.append(rid)
-                row_s.append(float(ms[lo + i]))
+                row_s.append(ms_l[lo + i])
         rq = np.array(row_q, dtype=np.int64)
         routes, starts = np.array(row_route, dtype=np.int64), np.array(row_s)
+        # To the route's end (the graph's end, or where the expansion stopped beyond
+        # ``reach``), at most ``reach``, at least ``need`` (straight on past a dead end).
+        remaining = self._route_length(routes) - starts
+        length = np.maximum(need[rq], np.minimum(reach[rq], remaining))
         parts = []
         for lo in range(0, rq.size, _CUT_CHUNK):  # bounds the (rows x route points) arrays
             sl = slice(lo, lo + _CUT_CHUNK)
-            points, count = self._cut(routes[sl], starts[sl], need[rq[sl]], xy[rq[sl]])
+            points, count = self._cut(routes[sl], starts[sl], length[sl], xy[rq[sl]])
             parts.append(PathRows(frame[rq[sl]], agent[rq[sl]], points, count))
         rows = PathRows.concat(parts)
         rows = PathRows(

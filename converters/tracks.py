@@ -24,8 +24,12 @@ from converters.errors import ConversionError
 from converters.hindsight import Hindsight
 from converters.lanegraph import LaneGraph, PathRows, PathSettings, straight_rows
 from risk.frame import Frame, Kind, LaneMap, Scene
+from risk.motion import MIN_TRAVEL_M, track_extents
 
 PATH_MODES: tuple[str, ...] = ("map", "hindsight")
+
+MOVING_EGO_MIN_M = MIN_TRAVEL_M
+"""A default ego must move at least this far (m; risk.motion's threshold for "moves")."""
 
 _INTEGER = re.compile(r"[+-]?\d{1,18}")
 
@@ -94,6 +98,34 @@ class TrackTable:
         return ok
 
 
+def moving_ego(table: TrackTable) -> tuple[int, str]:
+    """The default ego of a recording without one, and why it was chosen.
+
+    The rule (docs/recorded-data.md): the **vehicle that travels farthest**, measured as
+    the travel extent of :func:`risk.motion.track_extents` (the largest distance of its
+    usable positions from its first one; ties: the lowest id) — the same measure that
+    ``--ego all`` uses for "moves". The extent favours an agent that is present for long
+    (only the steps at which the ego is valid become frames) and moving, and does not grow
+    with position jitter, so a parked car, however many states it has, is never chosen
+    while some vehicle moves. When no vehicle moves :data:`MOVING_EGO_MIN_M`, the agent of
+    any kind that moves farthest; when nothing moves that far, the track with the most
+    usable states. Returns the track index and a one-line reason.
+    """
+    usable = table.usable()
+    dist = track_extents(np.where(usable[:, :, None], table.xy, 0.0), usable)
+    vehicle = table.kinds == Kind.VEHICLE
+    for pool, what in ((vehicle, "vehicle"), (np.ones_like(vehicle), "agent")):
+        candidates = np.flatnonzero(pool & (dist >= MOVING_EGO_MIN_M))
+        if candidates.size:
+            best = candidates[np.lexsort((table.ids[candidates], -dist[candidates]))[0]]
+            return int(best), f"the {what} that travels farthest ({dist[best]:.1f} m)"
+    counts = usable.sum(axis=0)
+    best = int(np.lexsort((table.ids, -counts))[0])
+    return best, (
+        f"no agent travels {MOVING_EGO_MIN_M:g} m: the one with the most states ({counts[best]})"
+    )
+
+
 def build_scene(
     table: TrackTable,
     ego: int,
@@ -139,6 +171,7 @@ def build_scene(
     }
     if paths == "map":
         facts.update(
+            map_path_m=f"{settings.map_path_m:g}",
             max_lateral_m=f"{settings.max_lateral_m:g}",
             max_heading_rad=f"{settings.max_heading_rad:g}",
             max_candidates=str(settings.max_candidates),

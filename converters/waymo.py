@@ -234,6 +234,7 @@ def scenario_to_scene(
         "converter": CONVERTER,
         "converter_version": CONVERTER_VERSION,
         "ego_track": str(int(table.ids[ego])),
+        "ego_choice": "the self-driving car (sdc_track_index)",
         "current_time_index": str(int(msg.current_time_index)),
     }
     return build_scene(

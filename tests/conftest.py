@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import pathlib
 
 import pytest
@@ -9,7 +10,11 @@ import pytest
 from risk import kernel
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-SHARED_DATA = ROOT.parent / "shared" / "data"
+# ../shared/data beside the project; RISKREPLAY_SHARED_DATA names it when the checkout
+# lives elsewhere (a git worktree, CI).
+SHARED_DATA = pathlib.Path(
+    os.environ.get("RISKREPLAY_SHARED_DATA") or ROOT.parent / "shared" / "data"
+)
 
 
 @pytest.fixture

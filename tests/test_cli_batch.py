@@ -89,7 +89,11 @@ def test_everything_failed_is_an_error(scenes: pathlib.Path, tmp_path: pathlib.P
     [
         (["missing-folder"], 1, "Error: missing-folder: no such file or folder"),
         (["SCENES", "--ray-address", "auto"], 2, "--ray-address needs --engine ray"),
-        (["SCENES", "--map", "SCENES/s0.mcap"], 2, "--map and --paths apply to --convert only"),
+        (
+            ["SCENES", "--convert", "waymo", "--map", "SCENES/s0.mcap"],
+            2,
+            "--map applies to INTERACTION track files only",
+        ),
         (["SCENES", "--workers", "0"], 2, "Invalid value for '--workers'"),
     ],
 )
@@ -121,7 +125,7 @@ def test_convert_commonroad_in_place_with_a_bad_file(shared_data: pathlib.Path, 
     result = _run(*map(str, inputs), str(bad), "-o", str(out), "--convert", "commonroad",
                   "--workers", "2", "--no-progress")  # fmt: skip
     assert result.exit_code == 0, result.output
-    assert "converted 3 commonroad file(s)" in result.output
+    assert "converted 3 commonroad input(s)" in result.output
     assert sorted(p.name for p in (out / "scenes").iterdir()) == [
         "BEL_Putte-8_2_T-1.mcap", "DEU_TestIntersectionInteract-3_1_T-1.mcap",
     ]  # fmt: skip
@@ -136,7 +140,7 @@ def test_convert_commonroad_in_place_with_a_bad_file(shared_data: pathlib.Path, 
 
     again = _run(*map(str, inputs), str(bad), "-o", str(out), "--convert", "commonroad",
                  "--workers", "1", "--no-progress")  # fmt: skip
-    assert "converted 0 commonroad file(s), skipped 3" in again.output
+    assert "converted 0 commonroad input(s), skipped 3" in again.output
     assert "replayed 0, skipped 2" in again.output
     assert [f.input for f in read_failures(out / "failures.csv")] == [str(bad)]
 
@@ -155,3 +159,28 @@ def test_convert_waymo_names_scenes_by_scenario(shared_data: pathlib.Path, tmp_p
     assert (out / "tables" / "womd_637f20cafde22ff8" / f"{scene.stem}.parquet").is_file()
     failures = read_failures(out / "failures.csv")
     assert {(f.input, f.stage) for f in failures} == {(str(truncated), "convert")}
+
+
+@pytest.mark.realdata
+def test_detects_each_files_source_in_a_mixed_folder(shared_data: pathlib.Path, tmp_path):
+    # A folder as a user has it: a CommonRoad file, an INTERACTION recording of one CSV
+    # with its map, a page that only looks like data, and notes. No --convert.
+    data = tmp_path / "data"
+    (data / "cr").mkdir(parents=True)
+    (data / "inter").mkdir()
+    src = shared_data / "commonroad" / "DEU_TestIntersectionInteract-3_1_T-1.xml"
+    (data / "cr" / src.name).symlink_to(src)
+    for name in ("vehicle_tracks_000.csv", "TestScenarioForScripts.osm"):
+        (data / "inter" / name).symlink_to(shared_data / "interaction" / name)
+    (data / "cr" / "page.xml").write_text("<html><body>not a scenario</body></html>")
+    (data / "README.md").write_text("notes")
+    out = tmp_path / "out"
+    result = _run(str(data), "-o", str(out), "--workers", "1", "--no-progress")
+    assert result.exit_code == 0, result.output
+    assert "converted 2 input(s)" in result.output
+    assert sorted(p.name for p in (out / "scenes").iterdir()) == [
+        "DEU_TestIntersectionInteract-3_1_T-1.mcap", "vehicle_tracks_000.mcap",
+    ]  # fmt: skip
+    [failure] = read_failures(out / "failures.csv")
+    assert failure.input == str(data / "cr" / "page.xml")
+    assert "no converter reads this file" in failure.reason and "\n" not in failure.reason

@@ -93,9 +93,10 @@ def test_tracks_validity_ids_sizes_and_labels(tmp_path):
     assert scene.labels == {"focal": (10,), "scored": (20,)}
     lanes = scene.map.by_id()
     assert lanes[1].successors == (2,) and lanes[3].kind == "bus" and lanes[4].kind == "bike"
-    # The AV follows lane 1 into lane 2; the bus drives west on the bus lane.
+    # The AV follows lane 1 into lane 2 to the map's end at x = 150 (the whole known path,
+    # longer than the 5 m/s * 12 s + 10 m it needs); the bus drives west on the bus lane.
     (av,) = f.agent_paths(0)
-    np.testing.assert_allclose(av[-1], (11 + 5 * 12 + 10, 0))
+    np.testing.assert_allclose(av[-1], (150, 0))
     (bus,) = g.agent_paths(2)
     np.testing.assert_allclose(bus[-1], (57 - (5 * 12 + 10), 3.5))
 

@@ -93,7 +93,9 @@ def tiny(tmp_path):
 def test_obstacles_lanelets_and_the_default_ego(tiny):
     scene = read_scene(tiny)
     assert len(scene.frames) == 5  # obstacle 7 has the most states: the ego
-    assert scene.metadata["ego_track"] == "7" and scene.metadata["ego_choice"] == "most states"
+    assert scene.metadata["ego_track"] == "7" and scene.metadata["ego_choice"].endswith(
+        "the one with the most states (5)"
+    )
     assert scene.metadata["scenario_id"] == "ZAM_Tiny-1_1_T-1"
     assert scene.frame_period_s == pytest.approx(0.1)
     f = scene.frames[2]
@@ -113,9 +115,10 @@ def test_obstacles_lanelets_and_the_default_ego(tiny):
     np.testing.assert_allclose(lanes[1].centerline, [(0, 0), (25, 0), (50, 0)])
     assert lanes[1].successors == (2,) and lanes[3].kind == "walkway"
     assert sorted(lanes) == [1, 2, 3]  # the goal's <lanelet ref> is not a lanelet
-    # The ego follows lanelet 1 into 2: 10 m/s * 12 s + 10 m beyond x = 12.
+    # The ego follows lanelet 1 into 2 to the map's end at x = 150 (more than the
+    # 10 m/s * 12 s + 10 m = 130 m it needs beyond x = 12: the whole known path).
     (path,) = f.agent_paths(0)
-    np.testing.assert_allclose(path[-1], (12 + 130, 0))
+    np.testing.assert_allclose(path[-1], (150, 0))
 
 
 def test_chosen_ego_and_unknown_ego(tiny):
@@ -209,10 +212,42 @@ def test_real_samples(shared_data, tmp_path, name):
     }
     states = {oid: len(t) for oid, t in times.items()}
     ego = int(scene.metadata["ego_track"])
-    assert states[ego] == max(states.values())
+    # The moving-ego rule, as a plain loop: the vehicle that gets farthest from where it
+    # was first seen.
+    travelled = {}
+    for o in obstacles:
+        if o.findtext("type") not in ("car", "truck", "bus", "taxi", "motorcycle"):
+            continue
+        pts = sorted(
+            (float(s.findtext("time/exact")), float(s.findtext("position/point/x")),
+             float(s.findtext("position/point/y")))
+            for s in o.iter() if s.tag in ("initialState", "state")
+        )  # fmt: skip
+        travelled[int(o.get("id"))] = max(
+            math.hypot(p[1] - pts[0][1], p[2] - pts[0][2]) for p in pts
+        )
+    assert travelled[ego] == pytest.approx(max(travelled.values()))
     assert len(scene.frames) == states[ego]
     assert scene.frames[0].n_agents == len(obstacles)
     assert len(scene.map.lanes) == len(root.findall("lanelet"))
     # Every recorded state at a time the ego is present is a valid agent in that frame.
     expected = sum(len(t & times[ego]) for t in times.values())
     assert sum(int(f.valid.sum()) for f in scene.frames) == expected
+
+
+def test_static_obstacles_stand_and_traffic_lights_are_counted(tmp_path):
+    parked = (
+        f'<staticObstacle id="50"><type>parkedVehicle</type><shape>{RECT}</shape>'
+        f"{_state(0, 20, 3.5, 0.5, tag='initialState')}</staticObstacle>"
+        '<trafficLight id="60"><cycle><cycleElement><duration>5</duration><color>red</color>'
+        "</cycleElement></cycle></trafficLight>"
+    )
+    path = tmp_path / "s.xml"
+    path.write_text(scenario_xml(parked))
+    scene = read_scene(path)
+    assert scene.metadata["static_obstacles"] == "1" and scene.metadata["traffic_lights"] == "1"
+    for f in scene.frames:  # in every frame, standing at its initial pose
+        [k] = np.flatnonzero(f.ids == 50)
+        assert f.valid[k] and f.speed[k] == 0.0 and f.kinds[k] == Kind.VEHICLE
+        np.testing.assert_allclose((*f.xy[k], f.heading[k]), (20, 3.5, 0.5))
+        assert (f.length[k], f.width[k]) == (4.0, 2.0)

@@ -8,6 +8,9 @@ import math
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from lanelet2.core import BasicPoint3d
+from lanelet2.io import Origin
+from lanelet2.projection import UtmProjector
 
 from converters.errors import ConversionError
 from converters.interaction import (
@@ -16,7 +19,6 @@ from converters.interaction import (
     read_lane_map,
     read_rows,
     read_scene,
-    utm_xy,
 )
 from converters.tracks import Skipped
 from replay.cli import main
@@ -44,11 +46,13 @@ LANELETS = {  # id: (left way, right way, tags)
 }
 
 
-def osm_text(local: bool = True) -> str:
+def osm_text() -> str:
+    # lat/lon of the local positions: the inverse of the projection at origin (0, 0).
+    projector = UtmProjector(Origin(0.0, 0.0))
     nodes = []
     for nid, (x, y) in NODES.items():
-        tags = f'<tag k="local_x" v="{x}"/><tag k="local_y" v="{y}"/>' if local else ""
-        nodes.append(f'<node id="{nid}" lat="0" lon="0">{tags}</node>')
+        gps = projector.reverse(BasicPoint3d(x, y, 0.0))
+        nodes.append(f'<node id="{nid}" lat="{gps.lat!r}" lon="{gps.lon!r}"/>')
     ways = []
     for wid, refs in WAYS.items():
         nds = "".join(f'<nd ref="{n}"/>' for n in refs)
@@ -87,6 +91,8 @@ def files(tmp_path):
 
 def test_lanelets_orientation_successors_two_way_and_kinds(files):
     lanes = read_lane_map(files[1]).by_id()
+    for lane in lanes.values():  # the lat/lon round trip is exact to far below a millimetre
+        lane.centerline[:] = np.round(lane.centerline, 6)
     assert sorted(lanes) == [-13, 10, 11, 12, 13, 14]
     np.testing.assert_allclose(lanes[10].centerline, [(0, 0), (50, 0)])
     np.testing.assert_allclose(lanes[12].centerline, [(100, 0), (150, 0)])  # left way flipped
@@ -101,7 +107,9 @@ def test_lanelets_orientation_successors_two_way_and_kinds(files):
 def test_tracks_ego_period_and_paths(files):
     csv, osm = files
     scene = read_scene(csv, osm)
-    assert scene.metadata["ego_track"] == "1" and scene.metadata["ego_choice"] == "most frames"
+    # Car 1 travels 4 m, truck 2 1.6 m: nobody moves 5 m, so the most states decide.
+    assert scene.metadata["ego_track"] == "1"
+    assert scene.metadata["ego_choice"] == "no agent travels 5 m: the one with the most states (5)"
     assert len(scene.frames) == 5 and scene.frame_period_s == pytest.approx(0.1)
     f = scene.frames[1]
     assert f.t == pytest.approx(0.2)
@@ -111,7 +119,7 @@ def test_tracks_ego_period_and_paths(files):
     assert f.heading[1] == pytest.approx(math.pi)
     assert (f.length[1], f.width[1]) == pytest.approx((8, 2.5))
     (car,) = f.agent_paths(0)
-    np.testing.assert_allclose(car[-1], (12 + 130, 0))  # lanelets 10 -> 11 -> 12, then straight
+    np.testing.assert_allclose(car[-1], (150, 0), atol=1e-6)  # lanelets 10 -> 11 -> 12, to the end
     (truck,) = f.agent_paths(1)  # west on the reversed copy of the two-way lanelet
     assert truck[-1][0] < 0 and truck[1][1] == pytest.approx(10)
     scene = read_scene(csv, osm, ego=2, paths="hindsight")
@@ -169,14 +177,8 @@ def test_map_errors(tmp_path):
     with pytest.raises(ConversionError, match=r"not an OSM map \(root element <commonRoad>"):
         read_lane_map(bad)
     bad.write_text(osm_text().replace('<way id="101">', '<way id="1001">'))
-    with pytest.raises(ConversionError, match="lanelet 10 refers to missing way/node 101"):
+    with pytest.raises(ConversionError, match=r"lanelet 10: .*nonexistent member 101"):
         read_lane_map(bad)
-
-
-def test_projection_matches_the_utm_reference():
-    # 0 N, 0 E lies 3 degrees west of zone 31's central meridian: UTM easting 166021.443 m.
-    x, y = utm_xy(np.array([0.0]), np.array([0.0]), 31)
-    assert x[0] + 500_000 == pytest.approx(166_021.443, abs=1e-3) and y[0] == 0
 
 
 def test_cli(files, tmp_path):
@@ -190,8 +192,19 @@ def test_cli(files, tmp_path):
     written = out / "vehicle_tracks_007.mcap"
     assert result.stdout.strip() == str(written)
     assert read_mcap(written).metadata["map_file"] == "map.osm"
+    # Without --map: the only .osm beside the CSV; with none there, an error says --map.
     result = runner.invoke(main, ["convert", "interaction", str(csv), "-o", str(out)])
-    assert result.exit_code == 2 and "--map" in result.output
+    assert result.exit_code == 0, result.output
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    (alone / csv.name).write_text(csv.read_text())
+    result = runner.invoke(main, ["convert", "interaction", str(alone / csv.name), "-o", str(out)])
+    assert result.exit_code == 1
+    assert (
+        result.output.strip()
+        .splitlines()[-1]
+        .endswith("no .osm map beside it (nor in ../maps/); name the map with --map MAP.osm")
+    )
     result = runner.invoke(
         main,
         ["convert", "interaction", str(csv), "--map", str(osm), "-o", str(out), "--origin", "x"],

@@ -59,13 +59,35 @@ def paths_of(rows, agent: int) -> list[np.ndarray]:
 
 
 # ---------------------------------------------------------------------- map paths
+SHORT = PathSettings(map_path_m=0.0)  # paths of exactly v * T + margin
+
+
 def test_straight_lane_path_joins_the_centre_line_and_has_the_required_length():
-    graph = LaneGraph(STRAIGHT)  # defaults: T = 12 s, margin 10 m, join 2 m
+    graph = LaneGraph(STRAIGHT, SHORT)  # T = 12 s, margin 10 m, join 2 m
     rows, unmatched = rows_for(graph, [(10, 0.5)], [0.0], [5.0], [V])
     assert not unmatched.any()
     (path,) = paths_of(rows, 0)
     # agent, centre line 2 m ahead of the projection (x = 10), end at 10 + 5 * 12 + 10.
     np.testing.assert_allclose(path, [(10, 0.5), (12, 0), (80, 0)])
+
+
+def test_map_path_runs_to_the_end_of_the_lane_graph():
+    # Defaults: the whole known path (the lane ends at x = 100), not just v * T + margin.
+    (path,) = paths_of(rows_for(LaneGraph(STRAIGHT), [(10, 0.5)], [0.0], [5.0], [V])[0], 0)
+    np.testing.assert_allclose(path, [(10, 0.5), (12, 0), (100, 0)])
+
+
+def test_map_path_is_capped_at_map_path_m_but_never_shorter_than_v_t_plus_margin():
+    long = lanes((1, [(0, 0), (1000, 0)], ()))
+    graph = LaneGraph(long)  # map_path_m = 300
+    rows, _ = rows_for(graph, [(10, 0), (10, 0)], [0.0, 0.0], [5.0, 30.0], [V, V])
+    (slow,) = paths_of(rows, 0)
+    (fast,) = paths_of(rows, 1)
+    np.testing.assert_allclose(slow[-1], (10 + 300, 0))  # capped at 300 m
+    np.testing.assert_allclose(fast[-1], (10 + 30 * 12 + 10, 0))  # v * T + margin = 370 m
+    (mid,) = paths_of(rows_for(LaneGraph(long, PathSettings(map_path_m=120.0)),
+                               [(10, 0)], [0.0], [5.0], [V])[0], 0)  # fmt: skip
+    np.testing.assert_allclose(mid[-1], (130, 0))
 
 
 def test_route_shorter_than_needed_continues_straight_past_a_dead_end():
@@ -77,13 +99,18 @@ def test_route_shorter_than_needed_continues_straight_past_a_dead_end():
 
 
 def test_fork_gives_one_candidate_per_branch_straightest_first():
-    graph = LaneGraph(FORK)
+    graph = LaneGraph(FORK, SHORT)
     rows, _ = rows_for(graph, [(10, 0)], [0.0], [5.0], [V])  # needs s = 10 + 70 = 80 m
     straight, left = paths_of(rows, 0)
     np.testing.assert_allclose(straight, [(10, 0), (12, 0), (50, 0), (80, 0)])
     assert left[-1][1] > 10  # turned left
     np.testing.assert_allclose(arc_length(left)[-1], 70.0, atol=1e-6)  # on the centre line
-    one = LaneGraph(FORK, PathSettings(max_candidates=1))
+    # Whole paths: each branch to its end (the arc ends at (70, 20); it is 71.3 m from
+    # the agent, longer than the 70 m needed, so it is not extended).
+    whole, left = paths_of(rows_for(LaneGraph(FORK), [(10, 0)], [0.0], [5.0], [V])[0], 0)
+    np.testing.assert_allclose(whole[-1], (150, 0))
+    np.testing.assert_allclose(left[-1], (70, 20), atol=1e-9)
+    one = LaneGraph(FORK, PathSettings(max_candidates=1, map_path_m=0.0))
     (only,) = paths_of(rows_for(one, [(10, 0)], [0.0], [5.0], [V])[0], 0)
     np.testing.assert_allclose(only, straight)
 
@@ -124,7 +151,7 @@ def test_overlapping_lanes_give_candidates_in_order_of_fit():
 
 def test_agent_at_a_lane_joint_gets_no_duplicate_route():
     m = lanes((1, [(0, 0), (50, 0)], (2,)), (2, [(50, 0), (150, 0)], ()))
-    graph = LaneGraph(m)
+    graph = LaneGraph(m, SHORT)
     rows, _ = rows_for(graph, [(49.9, 0.1), (50.5, 0)], [0.0, 0.0], [5.0, 5.0], [V, V])
     assert len(paths_of(rows, 0)) == 1 and len(paths_of(rows, 1)) == 1
     np.testing.assert_allclose(paths_of(rows, 0)[0][-1], (49.9 + 70, 0))
@@ -207,7 +234,7 @@ def test_vectorised_matching_equals_a_plain_loop(seed):
     join=st.floats(0.0, 5.0),
 )
 def test_map_path_follows_the_centre_line_for_exactly_the_needed_length(speed, start, offset, join):
-    s = PathSettings(join_m=join)
+    s = PathSettings(join_m=join, map_path_m=0.0)
     graph = LaneGraph(FORK, s)
     rows, unmatched = rows_for(graph, [(start, offset)], [0.0], [speed], [V])
     assert not unmatched.any()

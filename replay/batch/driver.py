@@ -4,6 +4,7 @@ the run's tables and the dataset statistics."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import hashlib
 import io
 import json
@@ -21,6 +22,7 @@ import polars as pl
 from tqdm import tqdm
 
 from base.atomic import safe_name, write_text
+from converters import sources
 from replay import __version__
 from replay.batch.engines import Engine, make_engine
 from replay.batch.markers import (
@@ -43,15 +45,7 @@ SCENE_COLUMNS: tuple[str, ...] = (
     "recording",
 )  # fmt: skip
 
-# Files each converter reads, when a folder is given (searched recursively).
-_PATTERNS: dict[str | None, tuple[str, ...]] = {
-    None: ("*.mcap",),
-    "waymo": ("*.tfrecord", "*.tfrecord-*", "*.tfrecords"),
-    "av2": ("scenario_*.parquet",),
-    "commonroad": ("*.xml",),
-    "interaction": ("*.csv",),
-}
-_KNOWN_SUFFIX = re.compile(r"\.(mcap|parquet|xml|csv|tfrecords?)$", re.IGNORECASE)
+_KNOWN_SUFFIX = re.compile(r"\.(mcap|parquet|xml|csv|feather|tfrecords?)$", re.IGNORECASE)
 
 
 @dataclass(frozen=True)
@@ -60,7 +54,7 @@ class BatchSettings:
 
     cascade: CascadeConfig
     rrd: bool = False  # also write a Rerun recording per scene
-    convert: str | None = None  # raw dataset kind of the inputs; None: MCAP scenes
+    convert: str | None = None  # source of every input; None: detected per file
     paths: str = "map"  # converters' path mode (map or hindsight)
     map_osm: pathlib.Path | None = None  # the Lanelet2 map of INTERACTION inputs
     ego: int | str | None = None  # None: each scene's recorded ego; "all": every mover
@@ -162,10 +156,18 @@ class Layout:
 
 @dataclass(frozen=True)
 class InputFile:
-    """One input file and the unique name its outputs get."""
+    """One input and the unique name its outputs get.
 
-    path: pathlib.Path  # absolute
+    ``source`` is the converter (a key of converters.sources.SOURCES) or None for an
+    MCAP scene; ``extra`` more track files of the same scene, ``map`` a map found for it;
+    ``problem`` says why no converter reads the file (it then becomes a failure)."""
+
+    path: pathlib.Path  # absolute: a file, or an Argoverse 2 Sensor log folder
     name: str
+    source: str | None = None
+    extra: tuple[pathlib.Path, ...] = ()
+    map: pathlib.Path | None = None
+    problem: str | None = None
 
 
 def discover(
@@ -174,8 +176,14 @@ def discover(
     convert: str | None = None,
     exclude: pathlib.Path | None = None,
 ) -> list[InputFile]:
-    """The input files named by ``inputs`` (files, or folders searched recursively for
-    ``*.mcap``, or for the raw files of ``convert``), each with a unique output name.
+    """The inputs named by ``inputs`` (files, log folders, or folders searched
+    recursively), each with a unique output name.
+
+    Without ``convert`` every file's source is detected (converters.sources.discover):
+    MCAP scenes, raw files of every registered source (grouped into inputs, e.g. one
+    recording's track CSVs), and data files no source reads (returned with a
+    ``problem``). With ``convert`` every file matching that source's patterns is an input
+    of it, unchecked (a file that is not one fails in its conversion).
 
     A name is the file name without its known suffix, restricted to letters, digits and
     ``._-``; names that collide (same file name in two folders) get ``-`` and 8 hex
@@ -183,23 +191,49 @@ def discover(
     names. Files under ``exclude`` (the output folder) are ignored. Raises ReplayError
     for a missing input or when nothing is found.
     """
-    patterns = _PATTERNS[convert]
-    found: dict[pathlib.Path, None] = {}
+    try:
+        if convert is None:
+            found = sources.discover(inputs, exclude=exclude)
+        else:
+            found = _forced(inputs, sources.spec(convert), exclude)
+    except FileNotFoundError as exc:
+        raise ReplayError(f"{exc.filename}: no such file or folder") from None
+    items = [InputFile(p, "") for p in found.scenes]
+    items += [InputFile(i.path, "", i.source, i.extra, i.map) for i in found.inputs]
+    items += [InputFile(p, "", problem=sources.unreadable_reason(p)) for p in found.unreadable]
+    if not found.scenes and not found.inputs:
+        patterns = (
+            sources.SOURCES[convert].patterns
+            if convert
+            else sorted({p for s in sources.SOURCES.values() for p in s.patterns} | {"*.mcap"})
+        )
+        shown = ", ".join(str(i) for i in inputs[:3]) + (", ..." if len(inputs) > 3 else "")
+        bad = f"; {len(found.unreadable)} file(s) no converter reads" if found.unreadable else ""
+        raise ReplayError(f"no input files ({', '.join(patterns)}) found in {shown}{bad}")
+    items.sort(key=lambda f: f.path)
+    names = _unique_names([f.path for f in items])
+    return [dataclasses.replace(f, name=n.name) for f, n in zip(items, names, strict=True)]
+
+
+def _forced(
+    inputs: Sequence[str | os.PathLike[str]], spec: sources.SourceSpec, exclude: pathlib.Path | None
+) -> sources.Discovery:
+    """Every file of ``inputs`` (folders: those matching ``spec.patterns``) as inputs of
+    ``spec``."""
+    files: dict[pathlib.Path, None] = {}
     for raw in inputs:
         path = pathlib.Path(raw).expanduser().absolute()
         if path.is_file():
-            found[path] = None
+            files[path] = None
         elif path.is_dir():
-            for f in _walk(path, patterns, exclude):
-                found[f] = None
+            for f in _walk(path, spec.patterns, exclude):
+                files[f] = None
         else:
-            raise ReplayError(f"{raw}: no such file or folder")
-    if not found:
-        what = ", ".join(patterns)
-        shown = ", ".join(str(i) for i in inputs[:3]) + (", ..." if len(inputs) > 3 else "")
-        hint = "" if convert else " (raw dataset files need --convert KIND)"
-        raise ReplayError(f"no input files ({what}) found in {shown}{hint}")
-    return _unique_names(list(found))
+            raise FileNotFoundError(2, "no such file or folder", str(raw))
+    chosen = list(files)
+    if spec.group is not None:  # e.g. a log's pose file stands for its folder
+        return sources.Discovery(inputs=spec.inputs(chosen))
+    return sources.Discovery(inputs=[sources.SourceInput(source=spec.name, path=f) for f in chosen])
 
 
 def _walk(
@@ -261,7 +295,7 @@ class _Run:
         self.layout = layout
         self.settings = settings
         self.replay_digest = settings.replay_digest()
-        self.convert_digest = settings.convert_digest() if settings.convert else ""
+        self.convert_digest = settings.convert_digest()
         self.done: list[SceneDone] = []
         self.failures: list[Failure] = []
         self.replay_todo: list[ReplayTask] = []
@@ -271,7 +305,12 @@ class _Run:
     def plan(self, files: Sequence[InputFile]) -> None:
         """Sort every input into complete (skipped) and to-do."""
         for f in files:
-            if self.settings.convert is None:
+            if f.problem is not None:
+                self.failures.append(
+                    Failure(str(f.path), "", "convert", "ConversionError", one_line(f.problem))
+                )
+                continue
+            if f.source is None:
                 self.plan_scene(f.name, str(f.path), f.path)
                 continue
             marker = self.layout.convert_marker(f.name)
@@ -311,15 +350,17 @@ class _Run:
 
     def convert_task(self, f: InputFile, marker: pathlib.Path) -> ConvertTask:
         s = self.settings
+        map_osm = s.map_osm or f.map
         return ConvertTask(
             input=str(f.path),
             name=f.name,
-            kind=str(s.convert),
+            kind=str(f.source),
             paths=s.paths,
-            map_osm=None if s.map_osm is None else str(s.map_osm),
+            map_osm=None if map_osm is None else str(map_osm),
             scenes_dir=str(self.layout.scenes),
             marker=str(marker),
             digest=self.convert_digest,
+            extra=tuple(str(e) for e in f.extra),
         )
 
 

@@ -68,7 +68,9 @@ class ReplayOutcome:
 
 @dataclass(frozen=True)
 class ConvertTask:
-    """Convert one raw dataset file into MCAP scenes under ``scenes_dir``."""
+    """Convert one raw input (a file, a log folder, or several track files of one
+    recording: ``input`` and ``extra``) of source ``kind`` (a key of
+    converters.sources.SOURCES) into MCAP scenes under ``scenes_dir``."""
 
     input: str
     name: str
@@ -78,6 +80,7 @@ class ConvertTask:
     scenes_dir: str
     marker: str
     digest: str
+    extra: tuple[str, ...] = ()  # more track files of the same scene (INTERACTION)
 
 
 @dataclass(frozen=True)

@@ -12,9 +12,11 @@ import pathlib
 import time
 import traceback
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from base.atomic import safe_name
+from converters.sources import SOURCES, ReadOptions, SourceInput, SourceSpec
+from converters.tracks import Skipped
 from replay.batch.markers import write_convert_marker, write_parquet, write_replay_marker
 from replay.batch.records import (
     ConvertOutcome,
@@ -25,7 +27,7 @@ from replay.batch.records import (
     SceneDone,
 )
 from replay.egos import ALL_EGOS
-from replay.errors import ReplayError, SceneFormatError
+from replay.errors import SceneFormatError
 from replay.reader import open_scene
 from replay.user_errors import user_errors
 from replay.worker import replay_scene
@@ -33,7 +35,7 @@ from replay.worker import replay_scene
 if TYPE_CHECKING:
     from risk.frame import Scene
 
-CONVERT_KINDS: tuple[str, ...] = ("waymo", "av2", "commonroad", "interaction")
+CONVERT_KINDS: tuple[str, ...] = tuple(SOURCES)
 _TRANSIENT = (OSError, MemoryError)
 
 
@@ -82,7 +84,6 @@ def convert_one(task: ConvertTask) -> ConvertOutcome:
     start = time.perf_counter()
     try:
         from converters.mcap_io import write_scene
-        from converters.tracks import Skipped
     except Exception as exc:
         failure = failure_from(task.input, "", "setup", exc)
         return ConvertOutcome(task, (), (failure,), time.perf_counter() - start)
@@ -119,76 +120,49 @@ def convert_one(task: ConvertTask) -> ConvertOutcome:
     return ConvertOutcome(task, tuple(scenes), tuple(failures), time.perf_counter() - start)
 
 
-def _scene_builders(task: ConvertTask, skipped: Any) -> Iterator[tuple[str, Callable[[], Scene]]]:
-    """(label, build) per scene of the file; ``build()`` converts that one scene.
+def _source(task: ConvertTask) -> tuple[SourceSpec, SourceInput]:
+    spec = SOURCES[task.kind]
+    source = SourceInput(
+        source=task.kind,
+        path=pathlib.Path(task.input),
+        extra=tuple(pathlib.Path(e) for e in task.extra),
+        map=None if task.map_osm is None else pathlib.Path(task.map_osm),
+    )
+    return spec, source
+
+
+def _scene_builders(
+    task: ConvertTask, skipped: Skipped
+) -> Iterator[tuple[str, Callable[[], Scene]]]:
+    """(label, build) per scene of the input; ``build()`` converts that one scene.
 
     A label names the scene in failures before it is built: the input's name for
-    one-scene formats, ``NAME/record-K`` for the records of a Waymo file.
+    one-scene sources, ``NAME/LABEL`` (e.g. ``NAME/record-K`` of a Waymo file) for
+    sources whose inputs hold several scenes. Records of a multi-scene input that cannot
+    be read fail alone (``skip_bad``); a one-scene input fails whole.
     """
-    path = pathlib.Path(task.input)
-    if task.kind == "waymo":
-        from converters import waymo
-
-        for item in waymo.read_scenarios(path, skip_bad=True, skipped=skipped):
-
-            def build(item: Any = item) -> Scene:
-                return waymo.scenario_to_scene(
-                    item.scenario, source=path, record=item.index, paths=task.paths
-                )
-
-            yield f"{task.name}/record-{item.index}", build
-    elif task.kind == "av2":
-        from converters import av2
-
-        yield task.name, lambda: av2.parquet_to_scene(path, paths=task.paths)
-    elif task.kind == "commonroad":
-        from converters import commonroad
-
-        yield task.name, lambda: commonroad.read_scene(path, paths=task.paths)
-    elif task.kind == "interaction":
-        from converters import interaction
-
-        map_osm = _interaction_map(path, task.map_osm)
-        yield task.name, lambda: interaction.read_scene(path, map_osm, paths=task.paths)
-    else:  # pragma: no cover - the CLI offers only CONVERT_KINDS
-        raise ReplayError(f"unknown --convert kind {task.kind!r}; valid: {CONVERT_KINDS}")
+    spec, source = _source(task)
+    options = ReadOptions(paths=task.paths, skip_bad=spec.multi_scene)
+    for label, build in spec.scenes(source, options, skipped):
+        yield (f"{task.name}/{label}" if spec.multi_scene else task.name), build
 
 
 def _also_read(task: ConvertTask) -> list[pathlib.Path]:
-    """The files a conversion reads besides its input: the map JSONs beside an
-    Argoverse 2 parquet, the Lanelet2 map of an INTERACTION CSV."""
-    path = pathlib.Path(task.input)
-    if task.kind == "av2":
-        return sorted(path.parent.glob("log_map_archive_*.json"))
-    if task.kind == "interaction":
-        with contextlib.suppress(Exception):  # no map: the conversion failed already
-            return [_interaction_map(path, task.map_osm)]
-    return []
-
-
-def _interaction_map(csv_path: pathlib.Path, given: str | None) -> pathlib.Path:
-    """The Lanelet2 map of an INTERACTION track file: ``--map``, else the only ``*.osm``
-    beside the CSV (the dataset keeps maps apart: then ``--map`` is needed)."""
-    if given is not None:
-        return pathlib.Path(given)
-    found = sorted(csv_path.parent.glob("*.osm"))
-    if len(found) != 1:
-        from converters.errors import ConversionError
-
-        what = "no" if not found else f"{len(found)}"
-        raise ConversionError(
-            f"{csv_path}: {what} .osm map beside it; name the map with --map MAP.osm"
-        )
-    return found[0]
+    """The files a conversion reads besides its input (maps, other track files, the
+    other files of a log), so that a change to any of them converts it again."""
+    spec, source = _source(task)
+    return [pathlib.Path(p) for p in spec.companions(source)]
 
 
 def _scene_name(task: ConvertTask, scene: Scene, label: str, used: set[str]) -> str:
-    """A converted scene's name: the input's name for one-scene formats; for a Waymo
-    file ``NAME/SCENARIO_ID`` (record index added when an id repeats)."""
-    if task.kind != "waymo":
+    """A converted scene's name: the input's name for one-scene sources; for sources whose
+    inputs hold several scenes ``NAME/SCENARIO_ID`` (the label's last part added when an
+    id repeats); an input that is itself the scenario (an Argoverse 2 Sensor log folder
+    named by its log id) keeps ``NAME``."""
+    if not SOURCES[task.kind].multi_scene:
         return task.name
     scenario = safe_name(scene.metadata.get("scenario_id", ""), label.rsplit("/", 1)[-1])
-    name = f"{task.name}/{scenario}"
+    name = task.name if scenario == task.name else f"{task.name}/{scenario}"
     if name in used:
         name = f"{name}-{label.rsplit('-', 1)[-1]}"
     used.add(name)

@@ -43,21 +43,22 @@ _FAILURES_SHOWN = 5
 )  # fmt: skip
 @click.option(
     "--convert", type=click.Choice(CONVERT_KINDS), default=None,
-    help="INPUTS are raw dataset files of this kind (folders are searched for "
-    "*.tfrecord*, scenario_*.parquet, *.xml or *.csv); each is converted to MCAP scenes "
-    "in OUT/scenes/ first. A Waymo file gives one scene per scenario. Default: INPUTS are "
-    "MCAP scenes (folders are searched for *.mcap).",
+    help="Treat every input as this source (folders are searched for its files, e.g. "
+    "*.xml for commonroad) without checking their content. Default: the source of each "
+    "file is detected (MCAP scenes are replayed as they are; raw files of every source "
+    "are converted to MCAP scenes in OUT/scenes/ first; data files no converter reads are "
+    "listed in failures.csv).",
 )  # fmt: skip
 @click.option(
     "--paths", "path_mode", type=click.Choice(("map", "hindsight")), default="map",
     show_default=True,
-    help="With --convert: agent paths from the lane graph ('map') or from each agent's "
+    help="For raw inputs: agent paths from the lane graph ('map') or from each agent's "
     "own recorded future ('hindsight').",
 )  # fmt: skip
 @click.option(
     "--map", "map_osm", type=click.Path(exists=True, dir_okay=False, path_type=pathlib.Path),
     default=None,
-    help="With --convert interaction: the Lanelet2 OSM map of the track files. "
+    help="The Lanelet2 OSM map of INTERACTION track files. "
     "[default: the only *.osm file beside each CSV]",
 )  # fmt: skip
 @click.option(
@@ -99,8 +100,9 @@ def batch(
 ) -> None:
     """Replay every scene of a dataset and compute its statistics, in parallel.
 
-    INPUTS are MCAP scenes or folders of them (searched recursively), or raw dataset
-    files with --convert. Every scene is replayed through the nine risk models and the
+    INPUTS are files or folders (searched recursively) of MCAP scenes and raw recordings
+    of any source 'replay convert' knows; each file's source is detected and raw inputs
+    are converted first (OUT/scenes/). Every scene is replayed through the nine risk models and the
     cascade into its own table (OUT/tables/NAME.parquet, OUT/frames/NAME.parquet; with
     --rrd also OUT/recordings/NAME.rrd); then the tables are merged and the statistics
     of 'replay stats' are computed over all of them (OUT/stats/).
@@ -112,15 +114,14 @@ def batch(
     \b
     Examples:
       replay batch scenes/ -o out/
+      replay batch ../shared/data/recorded -o corpus-out/
       replay batch womd/training/ --convert waymo -o womd-out/ --workers 8
       replay batch /shared/scenes/ -o /shared/out/ --engine ray --ray-address auto
     """
     if ray_address and engine != "ray":
         raise click.UsageError("--ray-address needs --engine ray")
-    if convert is None and (map_osm is not None or path_mode != "map"):
-        raise click.UsageError("--map and --paths apply to --convert only")
-    if map_osm is not None and convert != "interaction":
-        raise click.UsageError("--map applies to --convert interaction only")
+    if map_osm is not None and convert not in (None, "interaction"):
+        raise click.UsageError("--map applies to INTERACTION track files only")
     if ego == ALL_EGOS and rrd:
         raise click.UsageError(
             "--rrd writes one recording per scene, which shows one ego's view; it cannot go "
@@ -166,9 +167,10 @@ def format_report(r: BatchReport, settings: BatchSettings) -> str:
         f"  scenes: replayed {r.replayed}{rate}, skipped {r.skipped} (complete from an "
         f"earlier run); failures: {len(r.failures)}",
     ]
-    if settings.convert:
+    if r.conversions or r.conversions_skipped or settings.convert:
+        what = f"{settings.convert} " if settings.convert else ""
         lines.append(
-            f"  converted {r.conversions} {settings.convert} file(s), skipped "
+            f"  converted {r.conversions} {what}input(s), skipped "
             f"{r.conversions_skipped} (converted by an earlier run)"
         )
     if r.failures:
@@ -180,7 +182,7 @@ def format_report(r: BatchReport, settings: BatchSettings) -> str:
             lines.append(f"  ... and {len(r.failures) - _FAILURES_SHOWN} more")
     lines.append("Wrote:")
     root = r.out_dir
-    if settings.convert:
+    if r.conversions or r.conversions_skipped or settings.convert:
         lines.append(f"  {root / 'scenes'}/  (converted MCAP scenes)")
     if r.scenes:
         lines.append(f"  {root / 'tables'}/  ({len(r.scenes)} per-scene agents tables)")

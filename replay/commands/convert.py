@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 
 import click
 
+from converters.sources import SOURCES as RECORDED
 from replay.cli import LazyGroup
 
 if TYPE_CHECKING:
@@ -20,12 +21,11 @@ if TYPE_CHECKING:
 
 SOURCES: dict[str, str] = {
     "synthetic": "replay.commands.convert:synthetic",
-    "waymo": "replay.commands.convert_waymo:waymo",
-    "av2": "replay.commands.convert_av2:av2",
-    "commonroad": "replay.commands.convert_commonroad:commonroad",
-    "interaction": "replay.commands.convert_interaction:interaction",
+    **{name: f"replay.commands.convert_source:{name}" for name in RECORDED},
     "foxglove": "replay.commands.convert_foxglove:foxglove",
 }
+"""``synthetic`` here; one command per recorded source of converters.sources.SOURCES;
+``foxglove`` (an existing scene's Foxglove channels)."""
 
 
 @click.group("convert", cls=LazyGroup, lazy_commands=SOURCES)

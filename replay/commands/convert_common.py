@@ -17,7 +17,7 @@ MCAP_SUFFIX = ".mcap"
 
 
 def path_options(default: str = "map") -> Callable:
-    """``--paths``, ``--horizon-s``, ``--margin-m``, ``--max-candidates``."""
+    """``--paths``, ``--horizon-s``, ``--margin-m``, ``--map-path-m``, ``--max-candidates``."""
 
     def decorate(f: Callable) -> Callable:
         options = [
@@ -45,6 +45,14 @@ def path_options(default: str = "map") -> Callable:
                 default=PathSettings.margin_m,
                 show_default=True,
                 help="Path length beyond v*T (what a stopped agent gets).",
+            ),
+            click.option(
+                "--map-path-m",
+                type=click.FloatRange(min=0.0),
+                default=PathSettings.map_path_m,
+                show_default=True,
+                help="Map paths follow the lane graph this far beyond the agent, or to the "
+                "graph's end (never shorter than v*T + margin); 0: v*T + margin only.",
             ),
             click.option(
                 "--max-candidates",
@@ -84,10 +92,15 @@ def skip_bad_option(what: str) -> Callable:
     return decorate
 
 
-def settings_from(horizon_s: float, margin_m: float, max_candidates: int) -> PathSettings:
-    if not (math.isfinite(horizon_s) and math.isfinite(margin_m)):
-        raise click.BadParameter("--horizon-s and --margin-m must be finite")
-    return PathSettings(horizon_s=horizon_s, margin_m=margin_m, max_candidates=max_candidates)
+def settings_from(
+    horizon_s: float, margin_m: float, max_candidates: int, map_path_m: float = 300.0
+) -> PathSettings:
+    if not all(math.isfinite(v) for v in (horizon_s, margin_m, map_path_m)):
+        raise click.BadParameter("--horizon-s, --margin-m and --map-path-m must be finite")
+    return PathSettings(
+        horizon_s=horizon_s, margin_m=margin_m, max_candidates=max_candidates,
+        map_path_m=map_path_m,
+    )  # fmt: skip
 
 
 class Outputs:

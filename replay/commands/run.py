@@ -11,6 +11,7 @@ from replay.commands.ego_options import ego_option, every_option
 from replay.commands.settings_option import load_cascade, set_option
 from replay.egos import ALL_EGOS, EgosSummary, pooled, run_every_ego
 from replay.engine import ReplayWarning, RunSummary, Sink, Stride, run_scene
+from replay.reader import open_scene
 
 
 @click.command("run")
@@ -82,10 +83,21 @@ def run(
         click.echo(format_egos_summary(egos))
         return
     sinks = make_sinks(None if no_rrd else (output or scene.with_suffix(".rrd")), table)
+    reader = open_scene(scene)
+    if ego is None:  # the scene's own ego: say which agent it is and why
+        click.echo(ego_note(reader.metadata), err=True)
     summary = run_with_warnings(
-        scene, sinks=sinks, cascade=cascade, ego=ego, progress=progress, every=every
+        reader, sinks=sinks, cascade=cascade, ego=ego, progress=progress, every=every
     )
     click.echo(format_summary(summary))
+
+
+def ego_note(metadata: dict[str, str]) -> str:
+    """Which agent the scene's own ego is, and why (the converter's choice, which it
+    records in the scene metadata as ``ego_track`` and ``ego_choice``)."""
+    track = metadata.get("ego_track") or metadata.get("ego_id", "?")
+    why = metadata.get("ego_choice") or "the scene's ego"
+    return f"Ego: agent {metadata.get('ego_id', '?')} (source track {track}): {why}"
 
 
 def format_egos_summary(egos: EgosSummary) -> str:
