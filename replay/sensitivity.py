@@ -11,6 +11,8 @@ other variant replays the scenes evaluating only the models its keys change
 from __future__ import annotations
 
 import math
+import pathlib
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -19,6 +21,7 @@ import numpy as np
 import polars as pl
 from scipy import stats as scipy_stats
 
+from base.atomic import atomic_output
 from replay.evaluation import (
     REFERENCES,
     EvaluationError,
@@ -26,6 +29,7 @@ from replay.evaluation import (
     collect_agents,
     evaluate_agents,
 )
+from replay.evaluation_plots import plot_sensitivity
 from risk.cascade import CascadeConfig
 from risk.hindsight import HindsightSettings
 from risk.registry import BASELINE_MODEL, MODELS
@@ -267,8 +271,6 @@ def run_sweep(
 
     ``default_agents`` (with ``datasets``): the defaults' agents table when the caller
     already has it (``replay evaluate`` does), else the scenes are replayed once."""
-    import time
-
     cascade = cascade or CascadeConfig.default()
     settings = settings or EvaluationSettings()
     variants = list(default_variants() if variants is None else variants)
@@ -319,11 +321,6 @@ def write_sweep(result: SweepResult, out_dir: Any, *, plots: bool = True) -> dic
     """``sensitivity.parquet/.csv`` (AUC rows), ``sensitivity_ranking.parquet/.csv``
     (rank correlation and flips per variant), ``sensitivity_findings.parquet/.csv`` and
     ``sensitivity.png``, each atomically. Returns name -> path."""
-    import pathlib
-
-    from base.atomic import atomic_output
-    from replay.evaluation_plots import plot_sensitivity
-
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written: dict[str, Any] = {}
@@ -370,8 +367,6 @@ def format_sweep(result: SweepResult) -> str:
 def sweep_subset(scenes: Sequence[Any], every_kth: int) -> list[Any]:
     """Every ``every_kth`` scene of each folder (the first, then every k-th after it, in
     sorted order): a spread subset that keeps every dataset in the sweep."""
-    import pathlib
-
     by_dir: dict[Any, list[Any]] = {}
     for s in sorted(pathlib.Path(p) for p in scenes):
         by_dir.setdefault(s.parent, []).append(s)
