@@ -365,5 +365,5 @@ def write_scene(
         foxglove=foxglove,
     ) as writer:
         for frame in frames:
-            writer.add_frame(frame)
+            writer.add_frame(frame, ego_id=scene.ego_id)
     return writer.path

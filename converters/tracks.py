@@ -6,9 +6,11 @@ adds the agent paths (``map`` or ``hindsight``) and cuts the frames.
 Frame layout (documented in docs/recorded-data.md): every frame holds **every track of
 the scene** in the same order, with ``valid`` saying whether the track was observed at
 that step, so that agent indices are stable over the scene and every agent that is valid
-in a frame gets a risk value there. Only the steps at which the ego is valid become
-frames (a :class:`risk.Frame` needs a valid ego); the number of steps dropped for that is
-recorded in the metadata as ``steps_without_ego``.
+in a frame gets a risk value there. Every step at which any track is valid becomes a
+frame; where the scene's ego is not valid the frame is seen from the first valid track
+(a :class:`risk.Frame` needs a valid ego) and the scene's ``ego_id`` still names the real
+ego, so a replay from it skips those frames while ``--ego all`` and the hindsight truth
+use them. Their number is recorded in the metadata as ``steps_without_ego``.
 """
 
 from __future__ import annotations
@@ -139,7 +141,12 @@ def build_scene(
     source: str = "input",
     progress: bool = False,
 ) -> Scene:
-    """Frames with paths for every step at which track index ``ego`` is valid.
+    """Frames with paths for every step at which any track is valid; the scene's ego is
+    track index ``ego``.
+
+    A step where the ego is not valid is kept (other agents' motion there matters to
+    ``--ego all`` and to the hindsight truth), seen from the first valid track; the
+    scene's ``ego_id`` names the real ego, so a replay from it skips such frames.
 
     ``paths`` is ``map`` (lane graph of ``lane_map``) or ``hindsight`` (recorded future).
     ``source`` names the input in error messages. Raises ConversionError when the ego is
@@ -151,11 +158,11 @@ def build_scene(
         raise ConversionError(f"{source}: a track id appears more than once")
     valid = table.usable()
     dropped = int((table.valid & ~valid).sum())
-    steps = np.flatnonzero(valid[:, ego])
-    if steps.size == 0:
+    if not valid[:, ego].any():
         raise ConversionError(
             f"{source}: the ego (track {int(table.ids[ego])}) is valid at no time step"
         )
+    steps = np.flatnonzero(valid.any(axis=1))
     frame_of_step = np.full(table.n_steps, -1, dtype=np.int64)
     frame_of_step[steps] = np.arange(steps.size)
     rows = _path_rows(table, valid, steps, frame_of_step, lane_map, paths, settings)
@@ -166,7 +173,8 @@ def build_scene(
         "horizon_s": f"{settings.horizon_s:g}",
         "margin_m": f"{settings.margin_m:g}",
         "frame_period_s": f"{frame_period_s:g}",
-        "steps_without_ego": str(table.n_steps - steps.size),
+        "steps_without_ego": str(int((~valid[steps, ego]).sum())),
+        "steps_without_agents": str(table.n_steps - steps.size),
         "invalid_states_dropped": str(dropped),
     }
     if paths == "map":
@@ -182,6 +190,7 @@ def build_scene(
         frame_period_s=float(frame_period_s),
         metadata=facts,
         labels=dict(labels or {}),
+        ego_id=int(table.ids[ego]),
     )
 
 
@@ -273,7 +282,7 @@ def _frames(
                 paths=rows.points[lo:hi, : int(count.max())],
                 path_points=count,
                 path_agent=rows.agent[lo:hi],
-                ego=ego,
+                ego=ego if ok[ego] else int(np.argmax(ok)),
                 t=float(table.t_s[step]),
             )
         )

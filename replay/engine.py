@@ -102,6 +102,11 @@ class InMemoryScene:
     def n_frames(self) -> int:
         return len(self.scene.frames)
 
+    @property
+    def ego_id(self) -> int | None:
+        """The scene's ego (None: the frames' own, see :class:`risk.Scene`)."""
+        return self.scene.ego_id
+
     def frames(self) -> Iterator[Frame]:
         return iter(self.scene.frames)
 

@@ -317,15 +317,36 @@ class SceneReader:
         )
 
     def read(self, *, skip_missing_ego: bool = False) -> Scene:
-        """The whole scene in memory (see :meth:`frames` for frames without their ego)."""
+        """The whole scene in memory.
+
+        A scene file with one ego (``ego_id`` in its metadata) may hold frames where that
+        ego is not observed (recorded scenes keep them, see ``converters.tracks``): they
+        are kept, seen from their first valid agent, and the Scene's ``ego_id`` names the
+        real ego, so the scene writes back unchanged. With ``skip_missing_ego`` they are
+        left out. Without a scene ego, such a frame raises as in :meth:`frames`.
+        """
         meta = {k: v for k, v in self.metadata.items() if k not in _STRUCTURAL_KEYS}
+        ego_id = self.ego_id
+        if ego_id is None or skip_missing_ego:
+            frames = tuple(self.frames(skip_missing_ego=skip_missing_ego))
+        else:
+            frames = tuple(self._frames_any_ego())
         return Scene(
             map=self.map,
-            frames=tuple(self.frames(skip_missing_ego=skip_missing_ego)),
+            frames=frames,
             frame_period_s=self.frame_period_s,
             metadata=meta,
             labels=dict(self.labels),
+            ego_id=ego_id,
         )
+
+    def _frames_any_ego(self) -> Iterator[Frame]:
+        for entry in self.entries(any_ego=True):
+            if entry.frame is None:
+                raise SceneFormatError(
+                    f"{self.path}: frame {entry.index} (t={entry.t_s:g} s) has no valid agent"
+                )
+            yield entry.frame
 
     # ------------------------------------------------------------------ decoding
     def _decode(self, agents: Any, paths: Any, *, any_ego: bool = False) -> FrameEntry:

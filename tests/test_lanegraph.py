@@ -341,7 +341,7 @@ def _table(valid: np.ndarray, kinds=(V, V, P)) -> TrackTable:
 
 
 @pytest.mark.parametrize("mode", ["map", "hindsight"])
-def test_build_scene_keeps_every_track_and_drops_steps_without_ego(mode):
+def test_build_scene_keeps_every_track_and_every_step(mode):
     valid = np.ones((5, 3), bool)
     valid[0, 0] = False  # the ego is missing at step 0
     valid[2, 1] = False  # another agent vanishes for one step
@@ -350,11 +350,13 @@ def test_build_scene_keeps_every_track_and_drops_steps_without_ego(mode):
         table, 0, STRAIGHT, paths=mode, settings=PathSettings(), frame_period_s=0.1,
         metadata={"dataset": "test"}, labels={"x": (8,)},
     )  # fmt: skip
-    assert len(scene.frames) == 4
+    assert len(scene.frames) == 5 and scene.ego_id == 7
     assert scene.metadata["steps_without_ego"] == "1"
+    # Step 0 has no ego: it is kept, seen from the first valid agent.
+    assert scene.frames[0].ego_id == 8 and not scene.frames[0].valid[0]
     assert scene.metadata["paths"] == mode
     assert scene.labels == {"x": (8,)}
-    f = scene.frames[1]  # step 2
+    f = scene.frames[2]  # step 2
     assert f.t == pytest.approx(0.2)
     assert f.ids.tolist() == [7, 8, 9] and f.valid.tolist() == [True, False, True]
     assert f.ego_id == 7

@@ -46,7 +46,7 @@ def ego_line(name: str, scene: Any) -> str:
     """``NAME: ego TRACK (why)``: the agent a conversion made the ego, and the reason."""
     meta = scene.metadata
     why = meta.get("ego_choice") or "the recording's own ego"
-    return f"{name}: ego {meta.get('ego_track', '?')} (id {scene.frames[0].ego_id}): {why}"
+    return f"{name}: ego {meta.get('ego_track', '?')} (id {scene.ego_id if scene.ego_id is not None else scene.frames[0].ego_id}): {why}"
 
 
 def source_command(spec: SourceSpec) -> click.Command:
