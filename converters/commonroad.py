@@ -26,6 +26,7 @@ Mapping (docs/recorded-data.md has the tables):
 
 from __future__ import annotations
 
+import math
 import os
 import pathlib
 import xml.etree.ElementTree as ET
@@ -34,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from converters.errors import ConversionError
+from converters.finite import MAX_STEPS, check_grid
 from converters.lanegraph import PathSettings, dedupe, lanelet_centerline
 from converters.tracks import Skipped, TrackTable, build_scene
 from risk.frame import Kind, Lane, LaneMap, Scene
@@ -148,9 +150,12 @@ def parse_obstacle(elem: ET.Element, dt_s: float) -> Obstacle:
             raise ValueError("a state has no <position><point>")
         vx = _optional(state.find("velocity"), "velocity")
         vy = _optional(state.find("velocityY"), "velocityY")
+        time_step = _value(state.find("time"), "time")
+        if not (math.isfinite(time_step) and 0 <= time_step <= MAX_STEPS):
+            raise ValueError(f"<time> must be a time step in 0..{MAX_STEPS}, got {time_step:g}")
         rows.append(
             (
-                round(_value(state.find("time"), "time")),
+                round(time_step),
                 *_point(point),
                 _optional(state.find("orientation"), "orientation"),
                 np.hypot(vx, 0.0 if np.isnan(vy) else vy),
@@ -176,7 +181,8 @@ def _fill_motion(
         vel = np.stack([np.gradient(xy[:, 0], t), np.gradient(xy[:, 1], t)], axis=1)
         speed = np.where(np.isnan(speed), np.hypot(*vel.T), speed)
         heading = np.where(np.isnan(heading), np.arctan2(vel[:, 1], vel[:, 0]), heading)
-    return np.nan_to_num(heading), np.nan_to_num(speed)
+    # Missing values (NaN) of a lone state become 0; infinities stay, for converters.finite.
+    return np.where(np.isnan(heading), 0.0, heading), np.where(np.isnan(speed), 0.0, speed)
 
 
 def read_lane_map(root: ET.Element, where: str) -> LaneMap:
@@ -216,10 +222,11 @@ def read_obstacles(
     return obstacles
 
 
-def obstacles_table(obstacles: list[Obstacle], dt_s: float) -> TrackTable:
+def obstacles_table(obstacles: list[Obstacle], dt_s: float, where: str = "input") -> TrackTable:
     """The obstacles on a common grid of time steps (from the earliest state's step)."""
     first = min(int(o.steps[0]) for o in obstacles)
     n_steps = max(int(o.steps[-1]) for o in obstacles) - first + 1
+    check_grid(n_steps, len(obstacles), source=where)
     shape = (n_steps, len(obstacles))
     xy = np.zeros((*shape, 2))
     heading = np.zeros(shape)
@@ -296,7 +303,7 @@ def read_scene(
         "ego_choice": choice,
     }
     return build_scene(
-        obstacles_table(obstacles, dt_s),
+        obstacles_table(obstacles, dt_s, where),
         ego_index,
         read_lane_map(root, where),
         paths=paths,
@@ -305,4 +312,6 @@ def read_scene(
         metadata=metadata,
         source=where,
         progress=progress,
+        skip_bad=skip_bad,
+        skipped=skipped,
     )

@@ -48,7 +48,7 @@ from mcap.writer import Writer as McapWriter
 
 from converters import scene_format as sf
 from converters.errors import ConversionError
-from replay.atomic import temp_path_beside
+from replay.atomic import commit, temp_path_beside
 from risk.frame import Frame, LaneMap, Scene
 
 CHUNK_SIZE_BYTES = 1024 * 1024
@@ -255,7 +255,7 @@ class SceneWriter:
             self._writer.add_metadata(sf.METADATA_NAME, self._final_metadata())
             self._writer.finish()
             self._file.close()
-            os.replace(self._tmp, self.path)
+            commit(self._tmp, self.path)
         except BaseException:
             self.abort()
             raise

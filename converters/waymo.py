@@ -211,6 +211,8 @@ def scenario_to_scene(
     paths: str = "map",
     settings: PathSettings | None = None,
     progress: bool = False,
+    skip_bad: bool = False,
+    skipped: Skipped | None = None,
 ) -> Scene:
     """One ``Scenario`` message as a scene (``source`` and ``record`` name it in errors)."""
     settings = settings or PathSettings()
@@ -246,6 +248,8 @@ def scenario_to_scene(
         labels=scenario_labels(msg, where),
         source=where,
         progress=progress,
+        skip_bad=skip_bad,
+        skipped=skipped,
     )
 
 
@@ -268,6 +272,8 @@ def read_scenes(
                 paths=paths,
                 settings=settings,
                 progress=progress,
+                skip_bad=skip_bad,
+                skipped=skipped,
             )
         except ConversionError as exc:
             if not skip_bad:

@@ -30,7 +30,8 @@ from recordings import columns as C
 from recordings import layout as L
 from recordings.errors import RecordingError
 from recordings.summary import recording_name, summary_markdown
-from replay.atomic import temp_path_beside
+from replay.atomic import commit, temp_path_beside
+from replay.guard import run_with_stall_timeout
 
 if TYPE_CHECKING:
     from replay.engine import FrameResult, SceneInfo
@@ -140,8 +141,10 @@ class SceneRecorder:
         assert self._info is not None
         self._tmp = temp_path_beside(self.output)
         try:
-            self._write(self._tmp)
-            os.replace(self._tmp, self.output)
+            tmp = self._tmp
+            # A save that stops making progress (full disk) fails instead of hanging.
+            run_with_stall_timeout(lambda: self._write(tmp), watch=tmp, target=self.output)
+            commit(self._tmp, self.output)
         except BaseException:
             self._discard()
             self._state = "aborted"

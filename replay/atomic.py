@@ -12,7 +12,10 @@ import contextlib
 import os
 import pathlib
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+
+CommitHook = Callable[[pathlib.Path, pathlib.Path], None]
+_commit_hook: CommitHook | None = None  # set by replay.guard.OutputGuard while it is active
 
 
 def temp_path_beside(path: str | os.PathLike[str]) -> pathlib.Path:
@@ -28,6 +31,24 @@ def temp_path_beside(path: str | os.PathLike[str]) -> pathlib.Path:
     return tmp
 
 
+def set_commit_hook(hook: CommitHook | None) -> CommitHook | None:
+    """Route :func:`commit` through ``hook`` (None: rename at once); returns the old hook.
+
+    ``replay.guard.OutputGuard`` uses it to commit a command's outputs all together."""
+    global _commit_hook
+    previous, _commit_hook = _commit_hook, hook
+    return previous
+
+
+def commit(tmp: str | os.PathLike[str], target: str | os.PathLike[str]) -> None:
+    """Move a finished temporary file onto its target: at once, or, inside an
+    ``OutputGuard``, together with the command's other outputs when it succeeds."""
+    if _commit_hook is not None:
+        _commit_hook(pathlib.Path(tmp), pathlib.Path(target))
+    else:
+        os.replace(tmp, target)
+
+
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike[str]) -> Iterator[pathlib.Path]:
     """Yield a temporary path to write to; on success it replaces ``path`` atomically.
@@ -39,7 +60,7 @@ def atomic_output(path: str | os.PathLike[str]) -> Iterator[pathlib.Path]:
     tmp = temp_path_beside(target)
     try:
         yield tmp
-        os.replace(tmp, target)
+        commit(tmp, target)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

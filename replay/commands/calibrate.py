@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from replay.atomic import write_text
 from replay.errors import ReplayError
+from replay.guard import OutputGuard
 from risk.calibration import (
     Calibration,
     calibrate_thresholds,
@@ -303,16 +304,18 @@ def calibrate(
     if not output.parent.is_dir():
         raise ReplayError(f"{output}: the folder {output.parent} does not exist")
 
-    data = collect(scenes, models, progress=progress)
-    config, cal = calibrated_config(data, models, max_fn_rate=max_fn_rate, tiers=tiers,
-                                    tier_counts=counts)  # fmt: skip
-    means = tier_means(config, data)
-    command = _command_line(scenes, output, max_fn_rate, models, counts, base)
-    config = CascadeConfig(
-        stages=config.stages, tiers=config.tiers, baseline_threshold=config.baseline_threshold,
-        provenance=provenance(config, cal, data, means, command, counts, note=note),
-    )  # fmt: skip
-    write_text(output, config.to_toml_string())
+    with OutputGuard(inputs=(*scenes, base), files=(output,)):  # before any work
+        data = collect(scenes, models, progress=progress)
+        config, cal = calibrated_config(data, models, max_fn_rate=max_fn_rate, tiers=tiers,
+                                        tier_counts=counts)  # fmt: skip
+        means = tier_means(config, data)
+        command = _command_line(scenes, output, max_fn_rate, models, counts, base)
+        config = CascadeConfig(
+            stages=config.stages, tiers=config.tiers,
+            baseline_threshold=config.baseline_threshold,
+            provenance=provenance(config, cal, data, means, command, counts, note=note),
+        )  # fmt: skip
+        write_text(output, config.to_toml_string())
     click.echo(_report(config, cal, data, means))
     click.echo(f"Wrote {output}")
 

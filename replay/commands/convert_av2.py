@@ -56,7 +56,10 @@ def av2(
     outputs = Outputs(output, len(parquets))
     for parquet in tqdm(parquets, desc="scenarios", unit="scenario", disable=len(parquets) < 2):
         try:
-            scene = parquet_to_scene(parquet, paths=path_mode, settings=settings, progress=True)
+            scene = parquet_to_scene(
+                parquet, paths=path_mode, settings=settings, progress=True,
+                skip_bad=skip_bad, skipped=skipped,
+            )  # fmt: skip
         except ConversionError as exc:
             if not skip_bad:
                 raise

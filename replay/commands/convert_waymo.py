@@ -77,6 +77,8 @@ def waymo(
                     paths=path_mode,
                     settings=settings,
                     progress=True,
+                    skip_bad=skip_bad,
+                    skipped=skipped,
                 )
             except ConversionError as exc:
                 if not skip_bad:

@@ -8,6 +8,7 @@ import warnings
 import click
 
 from replay.engine import ReplayWarning, RunSummary, Sink, run_scene
+from replay.guard import OutputGuard
 from risk.cascade import CascadeConfig
 
 
@@ -58,8 +59,13 @@ def run(
     cascade = CascadeConfig.from_toml(cascade_file) if cascade_file else CascadeConfig.default()
     if no_rrd and output is not None:
         raise click.UsageError("--output names the recording; it cannot go with --no-rrd")
-    sinks = make_sinks(None if no_rrd else (output or scene.with_suffix(".rrd")), table)
-    summary = run_with_warnings(scene, sinks=sinks, cascade=cascade, ego=ego, progress=progress)
+    rrd = None if no_rrd else (output or scene.with_suffix(".rrd"))
+    inputs = (scene, cascade_file)
+    with OutputGuard(inputs=inputs, files=(rrd, table)):  # checked before the replay
+        sinks = make_sinks(rrd, table)
+        summary = run_with_warnings(
+            scene, sinks=sinks, cascade=cascade, ego=ego, progress=progress
+        )
     click.echo(format_summary(summary))
 
 
