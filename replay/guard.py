@@ -211,7 +211,8 @@ class OutputGuard:
             parent = path.parent
             if parent.exists() and not parent.is_dir():
                 raise OutputError(f"{path}: {parent} is not a folder")
-            if not parent.exists() and not self.create_folders:
+            created = any(parent == d or d in parent.parents for d in self.folders)
+            if not parent.exists() and not (self.create_folders or created):
                 raise OutputError(
                     f"cannot write {path}: folder {parent} does not exist; create it first"
                 )
@@ -342,6 +343,8 @@ class OutputGuard:
         roots = [*self.folders]
         if self.create_folders:
             roots += [p.parent for p in self.files]
+        else:
+            roots += [p.parent for p in self.files if p.parent in self.folders]
         for root in roots:
             missing = []
             p = root

@@ -9,6 +9,7 @@ import click
 
 from replay.batch import CONVERT_KINDS, ENGINES, BatchReport, BatchSettings, run_batch
 from replay.errors import ReplayError
+from replay.limits import WORKERS
 
 _FAILURES_SHOWN = 5
 
@@ -27,7 +28,7 @@ _FAILURES_SHOWN = 5
     "instance or on the cluster at --ray-address (needs: pip install 'riskreplay[ray]').",
 )  # fmt: skip
 @click.option(
-    "--workers", type=click.IntRange(min=1), default=None,
+    "--workers", type=WORKERS, default=None,
     help="Worker processes (local) or CPUs of the local Ray instance.  "
     "[default: the CPUs this process may use; on a Ray cluster: the cluster's]",
 )  # fmt: skip

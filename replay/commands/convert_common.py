@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import functools
 import math
+import os
 import pathlib
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import click
 
 from converters.errors import ConversionError
 from converters.lanegraph import PathSettings
 from converters.tracks import PATH_MODES, Skipped
+from replay.guard import OutputGuard
 
 MCAP_SUFFIX = ".mcap"
 
@@ -70,6 +73,42 @@ def output_option(f: Callable) -> Callable:
         help="A folder (one NAME.mcap per scenario, created if needed) or, for a single "
         "scenario, a file path ending in .mcap.",
     )(f)
+
+
+def guard_outputs(*input_params: str) -> Callable:
+    """Run a converter command inside an :class:`~replay.guard.OutputGuard`: its ``output``
+    (a ``.mcap`` file or a folder) is checked against the inputs named by
+    ``input_params`` (files, or folders: every file inside) and locked before any work,
+    and the scenes it writes appear together when it succeeds, or not at all."""
+
+    def decorate(f: Callable) -> Callable:
+        @functools.wraps(f)
+        def wrapper(**kwargs):
+            out = kwargs["output"]
+            inputs = [p for name in input_params for p in _files(kwargs.get(name))]
+            single = out.suffix.lower() == MCAP_SUFFIX and not out.is_dir()
+            guard = OutputGuard(
+                inputs=inputs,
+                files=(out,) if single else (),
+                folders=() if single else (out,),
+                create_folders=True,
+            )
+            with guard:
+                return f(**kwargs)
+
+        return wrapper
+
+    return decorate
+
+
+def _files(path: pathlib.Path | None) -> Iterator[pathlib.Path]:
+    if path is None:
+        return
+    if path.is_dir():
+        for root, _dirs, names in os.walk(path):
+            yield from (pathlib.Path(root, n) for n in names)
+    else:
+        yield path
 
 
 def skip_bad_option(what: str) -> Callable:

@@ -10,6 +10,7 @@ from converters.tracks import Skipped
 from replay.commands.convert_common import (
     Outputs,
     finish,
+    guard_outputs,
     output_option,
     path_options,
     safe_name,
@@ -30,6 +31,7 @@ from replay.commands.convert_common import (
 )
 @path_options()
 @skip_bad_option("dynamic obstacles")
+@guard_outputs("xml_file")
 def commonroad(
     xml_file: pathlib.Path,
     output: pathlib.Path,

@@ -10,6 +10,7 @@ from converters.tracks import Skipped
 from replay.commands.convert_common import (
     Outputs,
     finish,
+    guard_outputs,
     output_option,
     path_options,
     safe_name,
@@ -54,6 +55,7 @@ def _origin(ctx: click.Context, param: click.Parameter, value: str) -> tuple[flo
 )
 @path_options()
 @skip_bad_option("CSV rows")
+@guard_outputs("tracks_csv", "map_osm")
 def interaction(
     tracks_csv: pathlib.Path,
     map_osm: pathlib.Path,

@@ -12,6 +12,7 @@ from converters.tracks import Skipped
 from replay.commands.convert_common import (
     Outputs,
     finish,
+    guard_outputs,
     output_option,
     path_options,
     safe_name,
@@ -25,6 +26,7 @@ from replay.commands.convert_common import (
 @output_option
 @path_options()
 @skip_bad_option("records")
+@guard_outputs("tfrecord")
 def waymo(
     tfrecord: pathlib.Path,
     output: pathlib.Path,

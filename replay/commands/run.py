@@ -63,9 +63,7 @@ def run(
     inputs = (scene, cascade_file)
     with OutputGuard(inputs=inputs, files=(rrd, table)):  # checked before the replay
         sinks = make_sinks(rrd, table)
-        summary = run_with_warnings(
-            scene, sinks=sinks, cascade=cascade, ego=ego, progress=progress
-        )
+        summary = run_with_warnings(scene, sinks=sinks, cascade=cascade, ego=ego, progress=progress)
     click.echo(format_summary(summary))
 
 
