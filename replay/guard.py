@@ -84,6 +84,14 @@ def free_bytes(folder: str | os.PathLike[str]) -> int | None:
     return st.f_bavail * st.f_frsize
 
 
+def target_of_temp(path: str | os.PathLike[str]) -> str | os.PathLike[str]:
+    """The target a temporary file of :mod:`replay.atomic` stands for (else ``path``)."""
+    m = TEMP_NAME.match(os.path.basename(os.fspath(path)))
+    if m is None:
+        return path
+    return os.path.join(os.path.dirname(os.fspath(path)), m.group("target"))
+
+
 def lock_path(target: pathlib.Path) -> pathlib.Path:
     """The lock file of an output file or folder: ``.NAME.lock`` beside it."""
     return target.with_name(f".{target.name}{LOCK_SUFFIX}")

@@ -63,6 +63,7 @@ import polars as pl
 from replay.atomic import atomic_output
 from replay.engine import FrameResult, SceneInfo
 from replay.errors import ReplayError
+from replay.tablecheck import check_agents_table
 from replay.tables import TableSink
 from risk.cascade import CascadeResult
 from risk.metrics import confusion_counts
@@ -956,6 +957,7 @@ def read_agents_table(path: str | os.PathLike[str], scene: str | None = None) ->
     if missing or not model_names_of(df):
         what = ", ".join(missing) or "risk_<model>"
         raise StatsError(f"{path}: not a 'replay run --table' table (no {what} column)")
+    check_agents_table(df, path)  # empty, non-numeric or out-of-range risks
     if df.schema["baseline"] != pl.Boolean:
         df = df.with_columns(pl.col("baseline").cast(pl.String).str.to_lowercase() == "true")
     if "scene" not in df.columns:
@@ -1012,8 +1014,12 @@ def _write_table(df: pl.DataFrame, tmp: str, suffix: str) -> None:
 def atomic_write(path: str | os.PathLike[str], write: Callable[[str], Any]) -> pathlib.Path:
     """``write(tmp)`` to a temporary file beside ``path``, which then replaces ``path``
     atomically (see :mod:`replay.atomic`)."""
-    with atomic_output(path) as tmp:
-        write(str(tmp))
+    try:
+        with atomic_output(path) as tmp:
+            write(str(tmp))
+    except pl.exceptions.PolarsError as exc:  # e.g. a full disk ("os error 28")
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise StatsError(f"could not write {path}: {first}") from None
     return pathlib.Path(path)
 
 

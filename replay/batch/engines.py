@@ -14,6 +14,7 @@ from typing import Any, Protocol
 
 from replay.batch.tasks import init_worker, one_line
 from replay.errors import ReplayError
+from replay.lifeline import exit_with_parent
 
 ENGINES: tuple[str, ...] = ("local", "ray")
 RAY_MISSING = "Ray is not installed; install it with: pip install 'riskreplay[ray]'"
@@ -66,6 +67,7 @@ def _quiet_worker() -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    exit_with_parent()  # a killed driver leaves no orphan workers
     init_worker()
 
 

@@ -9,6 +9,8 @@ import click
 
 from replay.batch import CONVERT_KINDS, ENGINES, BatchReport, BatchSettings, run_batch
 from replay.errors import ReplayError
+from replay.guard import OutputGuard
+from replay.lifeline import sigterm_as_interrupt
 from replay.limits import WORKERS
 
 _FAILURES_SHOWN = 5
@@ -122,11 +124,17 @@ def batch(
         paths=path_mode,
         map_osm=None if map_osm is None else map_osm.absolute(),
     )
+    sigterm_as_interrupt()  # SIGTERM stops like Ctrl-C; killed workers' outputs are atomic
+    # Locked and checked at once; scenes are committed one by one (resumable), so no
+    # deferred transaction here. Stale temporary files of a killed run are removed.
+    guard = OutputGuard(inputs=[*inputs, cascade_file, map_osm], folders=(out_dir,),
+                        transaction=False)  # fmt: skip
     try:
-        report = run_batch(
-            inputs, out_dir, settings, engine=engine, workers=workers,
-            ray_address=ray_address, progress=progress,
-        )  # fmt: skip
+        with guard:
+            report = run_batch(
+                inputs, out_dir, settings, engine=engine, workers=workers,
+                ray_address=ray_address, progress=progress,
+            )  # fmt: skip
     except KeyboardInterrupt:
         # Running scenes finished and are complete; the same command resumes.
         click.echo("Interrupted. Run the same command again to resume: complete scenes "
