@@ -108,7 +108,12 @@ def _value(elem: ET.Element | None, what: str) -> float:
 
 
 def _optional(elem: ET.Element | None, what: str) -> float:
-    return np.nan if elem is None else _value(elem, what)
+    """NaN when the element is absent (filled in later); an explicit NaN in the file is a
+    bad value, not a missing one, so it becomes inf for converters.finite's rule."""
+    if elem is None:
+        return np.nan
+    value = _value(elem, what)
+    return np.inf if np.isnan(value) else value
 
 
 def _point(elem: ET.Element) -> tuple[float, float]:

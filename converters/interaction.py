@@ -242,7 +242,11 @@ def read_rows(
     ).with_row_index("line", offset=2)  # line 1 is the header
     required = [c for c in REQUIRED_COLUMNS if c in numeric]
     bad = parsed.filter(
-        pl.any_horizontal([pl.col(c).is_null() | ~pl.col(c).is_finite() for c in required])
+        # Unparseable values are bad rows; NaN/inf in a state's values (x, y, vx, ...)
+        # follow converters.finite's rule later, but the time columns must be finite.
+        pl.any_horizontal([pl.col(c).is_null() for c in required])
+        | ~pl.col("frame_id").is_finite()
+        | ~pl.col("timestamp_ms").is_finite()
         | pl.col("track_id").is_null()
         | (pl.col("track_id") == "")
     )

@@ -281,16 +281,27 @@ class OutputGuard:
     ) -> None:
         if self.transaction:
             atomic.set_commit_hook(self._previous_hook)
+        failed = exc_type is not None
         try:
-            if exc_type is None:
-                self._commit_all()
-            else:
+            if failed:
                 self._rollback()
+            else:
+                self._commit_all()
         except BaseException:
+            failed = True
             self._rollback()
             raise
         finally:
-            self._release()
+            self._release()  # the lock files first: they sit in folders we may remove
+            if failed:
+                self._remove_created()
+        if isinstance(exc, OSError) and not exc.filename and exc.strerror:
+            # e.g. ENOSPC from a writer that holds only a file object: name the outputs
+            names = ", ".join(str(p) for p in [*self.files, *self.folders])
+            raise OutputError(
+                f"could not write {names}: {exc.strerror}; nothing was written (free some"
+                " space or choose another output and run again)"
+            ) from None
 
     # ------------------------------------------------------------------ transaction
     def _defer(self, tmp: pathlib.Path, target: pathlib.Path) -> None:
@@ -343,7 +354,6 @@ class OutputGuard:
                 else:
                     os.replace(backup, target)
         self._backups.clear()
-        self._remove_created()
 
     # ------------------------------------------------------------------ housekeeping
     def _folders_to_create(self) -> list[pathlib.Path]:

@@ -18,9 +18,15 @@ import time
 CHECK_EVERY_S = 0.5
 
 
-def exit_with_parent(interval_s: float = CHECK_EVERY_S) -> threading.Thread:
-    """Start watching the parent; the calling process exits (status 1) when it is gone."""
-    parent = os.getppid()
+def exit_with_parent(
+    parent: int | None = None, interval_s: float = CHECK_EVERY_S
+) -> threading.Thread:
+    """Start watching the parent (``parent``: the pid the caller was started by, passed
+    from there, so that a driver that died while this process was still starting is
+    noticed too); the calling process exits (status 1) when it is gone."""
+    parent = os.getppid() if parent is None else parent
+    if os.getppid() != parent:
+        os._exit(1)
 
     def watch() -> None:
         while True:

@@ -51,6 +51,7 @@ from risk.errors import FrameError
 from risk.frame import Frame, Lane, LaneMap, Scene
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+_MAX_EXACT_MM = 2**53  # coordinates are exact integers of mm up to here
 
 # What the mcap library raises on damaged input (it has no single base class for it).
 _DAMAGE = (
@@ -293,6 +294,8 @@ class SceneReader:
             if values.size != n:
                 raise self._bad_length(index, f"/agents {name}", values.size, n)
             fields[name] = values
+        for name in ("x_mm", "y_mm"):
+            self._check_exact(index, f"/agents {name}", fields[name])
         valid = fields["valid"]
         ego_hits = np.flatnonzero((ids == agents.ego_id) & valid)
         entry = {
@@ -343,6 +346,8 @@ class SceneReader:
         x = np.array(paths.x_mm, dtype=np.int64)
         y = np.array(paths.y_mm, dtype=np.int64)
         total = int(points.sum())
+        self._check_exact(index, "/paths x_mm", x)
+        self._check_exact(index, "/paths y_mm", y)
         if x.size != total or y.size != total:
             raise self._bad_length(index, "/paths x_mm/y_mm", min(x.size, y.size), total)
         # Gather every candidate into (M, P) slots; slots past a candidate's end repeat its
@@ -362,6 +367,14 @@ class SceneReader:
                 f"{self.path}: a {topic} message does not decode as {cls.DESCRIPTOR.full_name}"
                 f" ({exc}); the file is damaged, convert the source again"
             ) from None
+
+    def _check_exact(self, index: int, what: str, values: np.ndarray) -> None:
+        """Coordinates beyond 2**53 mm cannot come from a converter (docs/scene-format.md)."""
+        if values.size and np.abs(values).max() > _MAX_EXACT_MM:
+            raise SceneFormatError(
+                f"{self.path}: frame {index}: {what} holds a value beyond the format's"
+                " 2**53 mm limit; the file is damaged, convert the source again"
+            )
 
     def _bad_length(self, index: int, what: str, got: int, expected: int) -> SceneFormatError:
         return SceneFormatError(

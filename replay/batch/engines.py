@@ -61,13 +61,13 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _quiet_worker() -> None:
+def _quiet_worker(driver: int) -> None:
     """Initializer of local workers: leave Ctrl-C to the driver, which stops queueing and
     lets running tasks finish (their outputs are atomic), and set thread counts."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    exit_with_parent()  # a killed driver leaves no orphan workers
+    exit_with_parent(driver)  # a killed driver leaves no orphan workers
     init_worker()
 
 
@@ -99,6 +99,7 @@ class LocalEngine:
             max_workers=self.workers,
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_quiet_worker,
+            initargs=(os.getpid(),),
         )
 
     def _replace_pool(self) -> None:
