@@ -37,13 +37,15 @@ from replay.cli import main
 from replay.guard import OutputError, OutputGuard, run_with_stall_timeout, same_file
 from replay.reader import read_scene
 
-SLOW_KINDS = {"corrupted"}  # calibrate and stats start slower; the rest stays fast
-
 
 def _params() -> list:
-    params = []
+    """Every case; the first of each (kind, command) runs by default, the rest are slow
+    (each is a fresh CLI process: seconds apiece on a loaded machine)."""
+    params, seen = [], set()
     for case in cases():
-        slow = case.kind in SLOW_KINDS and "calibrate" in case.name
+        group = (case.kind, case.name.split("-")[1])
+        slow = group in seen
+        seen.add(group)
         params.append(pytest.param(case, id=case.name, marks=[pytest.mark.slow] if slow else []))
     return params
 
@@ -284,6 +286,30 @@ def tiny_disk(tmp_path):
         yield mount
     finally:
         subprocess.run(["umount", "-l", str(mount)], check=False)
+
+
+def test_unwritable_output_folder_fails_before_the_replay(tmp_path):
+    """A read-only file system (root ignores permission bits, not ``ro`` mounts)."""
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    if shutil.which("mount") is None or os.geteuid() != 0:
+        pytest.skip("mounting a read-only tmpfs needs root and mount(8)")
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(ro)],
+                          capture_output=True)  # fmt: skip
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip()}")
+    try:
+        s = scene(tmp_path)
+        result = CliRunner().invoke(
+            main, ["run", str(s), "--table", str(ro / "t.parquet"), "-o", str(tmp_path / "o.rrd"),
+                   "--no-progress"],
+        )  # fmt: skip
+    finally:
+        subprocess.run(["umount", "-l", str(ro)], check=False)
+    assert result.exit_code == 1
+    assert result.output.startswith(f"Error: {ro / 't.parquet'}: cannot write in folder {ro}")
+    assert "Read-only file system" in result.output
+    assert not (tmp_path / "o.rrd").exists()
 
 
 def _assert_clean_failure(code, err, disk: pathlib.Path, seconds: float) -> None:

@@ -116,8 +116,10 @@ def skip_bad_option(what: str) -> Callable:
         return click.option(
             "--skip-bad",
             is_flag=True,
-            help=f"Skip {what} that cannot be read, convert the rest and list what was "
-            "skipped (default: stop at the first one with an error).",
+            help=f"Skip {what} that cannot be read, and drop states with NaN, infinite or "
+            "out-of-range values (counted in the scene's metadata as bad_states_dropped); "
+            "convert the rest and list what was skipped or dropped (default: stop at the "
+            "first bad record with an error naming it).",
         )(f)
 
     return decorate
