@@ -487,3 +487,33 @@ def run_case(case: Case, folder: pathlib.Path, time_limit_s: float = TIME_LIMIT_
         hung=code is None, traceback="Traceback (most recent call last)" in err,
         error_lines=errors, inputs_changed=changed, leftovers=leftovers, survivors=survivors,
     )  # fmt: skip
+
+
+def run_case_in_process(case: Case, folder: pathlib.Path) -> Outcome:
+    """:func:`run_case` through click's ``CliRunner`` in this process (no interpreter start:
+    fast). An exception other than ``SystemExit`` counts as a traceback; hangs and
+    surviving processes are not observable here (the subprocess runner sees them)."""
+    from click.testing import CliRunner
+
+    from replay.cli import main
+
+    folder.mkdir(parents=True, exist_ok=True)
+    args, inputs = case.make(folder)
+    sums = {p: sha256(p) for p in inputs}
+    before = _snapshot(folder)
+    cwd = os.getcwd()
+    start = time.monotonic()
+    try:
+        os.chdir(folder)
+        result = CliRunner().invoke(main, args)
+    finally:
+        os.chdir(cwd)
+    err = result.stderr if result.stderr_bytes is not None else result.output
+    crashed = result.exception is not None and not isinstance(result.exception, SystemExit)
+    return Outcome(
+        case=case.name, kind=case.kind, returncode=result.exit_code, stderr=err,
+        seconds=time.monotonic() - start, hung=False, traceback=crashed,
+        error_lines=[line for line in err.splitlines() if line.startswith("Error:")],
+        inputs_changed=[str(p) for p, s in sums.items() if not p.exists() or sha256(p) != s],
+        leftovers=sorted(_snapshot(folder) - before),
+    )  # fmt: skip
