@@ -439,7 +439,7 @@ def _truncated_message(path: pathlib.Path, f: IO[bytes]) -> str:
     frames = 0
     try:
         topics = {}
-        for _, channel, _ in NonSeekingReader(f, validate_crcs=True).iter_messages(log_time_order=False):
+        for _, channel, _ in NonSeekingReader(f).iter_messages(log_time_order=False):
             topics[channel.topic] = topics.get(channel.topic, 0) + 1
             frames = min(topics.get(sf.TOPIC_AGENTS, 0), topics.get(sf.TOPIC_PATHS, 0))
     except (*_DAMAGE, OSError):
@@ -464,8 +464,7 @@ def _check_section_crcs(path: pathlib.Path, f: IO[bytes]) -> None:
     f.seek(footer_at)
     _, _, summary_start, _, summary_crc = _FOOTER.unpack(f.read(_FOOTER.size))
     damaged = SceneFormatError(
-        f"{path}: damaged MCAP file (a section checksum does not match); copy or convert"
-        " it again"
+        f"{path}: damaged MCAP file (a section checksum does not match); copy or convert it again"
     )
     if summary_start and summary_crc:
         f.seek(summary_start)
