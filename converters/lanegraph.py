@@ -42,6 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from risk import geometry
 from risk.frame import Kind, LaneMap
 
 VEHICLE_LANE_KINDS = frozenset({"vehicle", "bus"})
@@ -58,7 +59,7 @@ class PathSettings:
     """How agent paths are built (both ``map`` and ``hindsight`` modes).
 
     A path is at least ``v * horizon_s + margin_m`` long (``v`` the agent's speed, m/s):
-    the distance the constant-speed prediction of docs/risk-models.md covers, plus a
+    the distance the constant-speed prediction of the model spec (docs/models.md) covers, plus a
     margin so that a slow or stopped agent still has a path ahead of it.
     """
 
@@ -119,7 +120,8 @@ def simplify(points: np.ndarray, tol_m: float) -> np.ndarray:
         if j - i < 2:
             continue
         inner = points[i + 1 : j]
-        dist = _point_segment_distance(inner, points[i], points[j])
+        (ax, ay), (bx, by) = points[i], points[j]
+        dist = geometry.point_segment_distance(inner[:, 0], inner[:, 1], ax, ay, bx, by)
         k = int(np.argmax(dist))
         if dist[k] > tol_m:
             k += i + 1
@@ -129,17 +131,10 @@ def simplify(points: np.ndarray, tol_m: float) -> np.ndarray:
     return np.flatnonzero(keep)
 
 
-def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distances ``(K,)`` of points ``p`` ``(K, 2)`` to the segment ``a``-``b``."""
-    ab = b - a
-    denom = float(ab @ ab)
-    t = np.zeros(len(p)) if denom == 0 else np.clip((p - a) @ ab / denom, 0.0, 1.0)
-    return np.hypot(*(p - a - t[:, None] * ab).T)
-
-
 def arc_length(points: np.ndarray) -> np.ndarray:
-    """Cumulative arc length ``(P,)`` of a ``(P, 2)`` polyline, starting at 0."""
-    return np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(points, axis=0).T))))
+    """Cumulative arc length ``(P,)`` of a ``(P, 2)`` polyline, starting at 0
+    (:func:`risk.geometry.cumulative_lengths` of one path)."""
+    return geometry.cumulative_lengths(np.asarray(points, dtype=np.float64)[None])[0]
 
 
 def lanelet_centerline(left: np.ndarray, right: np.ndarray) -> np.ndarray:

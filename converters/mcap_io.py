@@ -45,10 +45,11 @@ import numpy as np
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
+from tqdm import tqdm
 
+from base.atomic import commit, temp_path_beside
 from converters import scene_format as sf
 from converters.errors import ConversionError
-from replay.atomic import commit, temp_path_beside
 from risk.frame import Frame, LaneMap, Scene
 
 CHUNK_SIZE_BYTES = 1024 * 1024
@@ -318,8 +319,6 @@ def write_scene(
         raise ConversionError(f"{path}: a scene needs at least one frame; got none")
     frames: Iterable[Frame] = scene.frames
     if progress:
-        from tqdm import tqdm
-
         frames = tqdm(frames, total=len(scene.frames), desc="writing", unit="frame", leave=False)
     with SceneWriter(
         path,

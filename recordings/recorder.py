@@ -1,10 +1,10 @@
-"""The Rerun recording of a replay: a :class:`replay.engine.Sink` that writes one ``.rrd``.
+"""The Rerun recording of a replay: a :class:`base.sinks.Sink` that writes one ``.rrd``.
 
 ``add()`` keeps only the arrays the recording needs (valid agents, the cascade outcome,
 every model's risk, the paths to draw); ``close()`` writes everything at once, batched:
 one ``send_columns`` call per scene layer for the whole scene (all agents of all frames,
 partitioned by frame) and one per timeline entity. Measured with rerun-sdk 0.41 (see
-``docs/architecture.md``), this is 20-60x faster than one ``log`` call per agent or
+``docs/recording.md``, "Writing: batched, atomic"), this is 20-60x faster than one ``log`` call per agent or
 frame. The file appears atomically: it is written to a temporary file beside the output
 and renamed at the end; ``abort()`` (or any error) leaves nothing behind.
 
@@ -20,21 +20,21 @@ import os
 import pathlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 import numpy as np
 import pyarrow as pa
 import rerun as rr
 
+from base.atomic import commit, temp_path_beside
+from base.guard import run_with_stall_timeout
+from base.sinks import FrameResult, SceneInfo
 from recordings import columns as C
 from recordings import layout as L
 from recordings.errors import RecordingError
 from recordings.summary import recording_name, summary_markdown
-from replay.atomic import commit, temp_path_beside
-from replay.guard import run_with_stall_timeout
-
-if TYPE_CHECKING:
-    from replay.engine import FrameResult, SceneInfo
+from risk.cascade import SURVIVAL_MODEL
+from risk.registry import MODELS
 
 LabelMode = Literal["kept", "all", "none"]
 LABEL_MODES: tuple[str, ...] = ("kept", "all", "none")
@@ -659,15 +659,11 @@ def _log_cascade_series(rec, info: SceneInfo, scene: _Scene) -> None:
 # ---------------------------------------------------------------------- helpers
 def _baseline_model(models: Sequence[str]) -> str | None:
     """The model whose tab opens first: the survival baseline the cascade is judged by."""
-    from risk.cascade import SURVIVAL_MODEL
-
     return SURVIVAL_MODEL if SURVIVAL_MODEL in models else (models[0] if models else None)
 
 
 def _units(models: Sequence[str]) -> dict[str, str]:
     """Each model's unit from the registry ("" when dimensionless or not registered)."""
-    from risk import MODELS
-
     return {m: MODELS[m].unit for m in models if m in MODELS}
 
 

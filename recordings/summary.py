@@ -12,11 +12,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from base.sinks import SceneInfo
 from recordings import layout as L
 
 if TYPE_CHECKING:
     from recordings.recorder import _Scene
-    from replay.engine import SceneInfo
 
 
 def recording_name(info: SceneInfo) -> str:

@@ -15,8 +15,9 @@ import sys
 
 import click
 
+from base.guard import target_of_temp
 from replay import __version__
-from replay.guard import target_of_temp
+from replay.user_errors import user_errors
 
 # name -> "module:attribute"; the order is the order of ``replay --help``.
 COMMANDS: dict[str, str] = {
@@ -30,16 +31,6 @@ COMMANDS: dict[str, str] = {
     "batch": "replay.commands.batch:batch",
     "models": "replay.commands.models:models",
 }
-
-
-def user_errors() -> tuple[type[BaseException], ...]:
-    """Exception types whose message is meant for the user (no traceback)."""
-    from converters.errors import ConversionError
-    from recordings.errors import RecordingError
-    from replay.errors import ReplayError
-    from risk.errors import RiskError
-
-    return (RiskError, ConversionError, ReplayError, RecordingError, OSError)
 
 
 class LazyGroup(click.Group):
@@ -68,26 +59,19 @@ class LazyGroup(click.Group):
             return super().invoke(ctx)
         except OSError as exc:
             if exc.errno != errno.EPIPE and not isinstance(exc, BrokenPipeError):
-                if isinstance(exc, user_errors()):
-                    raise click.ClickException(_os_message(exc)) from None
-                raise
+                raise click.ClickException(_os_message(exc)) from None
             quiet_broken_pipe()
         except user_errors() as exc:
-            message = str(exc) or type(exc).__name__
-            if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in message:
-                message = f"{message}: {exc.filename}"
-            raise click.ClickException(message) from None
+            raise click.ClickException(str(exc) or type(exc).__name__) from None
 
 
 def _os_message(exc: OSError) -> str:
     """The error's message, naming the target file rather than its temporary file."""
     if exc.strerror and exc.filename:
         name = target_of_temp(exc.filename)
-        return (
-            f"cannot write {name}: {exc.strerror}"
-            if name != exc.filename
-            else (f"{exc.strerror}: {exc.filename}")
-        )
+        if name != exc.filename:
+            return f"cannot write {name}: {exc.strerror}"
+        return f"{exc.strerror}: {exc.filename}"
     message = str(exc) or type(exc).__name__
     if exc.filename and str(exc.filename) not in message:
         message = f"{message}: {target_of_temp(exc.filename)}"

@@ -19,52 +19,18 @@ import time
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol
 
 import numpy as np
 from tqdm import tqdm
 
+import risk
+from base.sinks import FrameResult, SceneInfo, Sink  # also importable from here, as before
 from replay.errors import ReplayError
+from replay.reader import open_scene
 from risk.cascade import SURVIVAL_MODEL, CascadeConfig, CascadeResult, Evaluator, run_cascade
 from risk.frame import Frame, LaneMap, Scene
-
-
-@dataclass(frozen=True, eq=False)
-class SceneInfo:
-    """What a sink needs to know about a scene before its first frame."""
-
-    map: LaneMap
-    metadata: dict[str, str]
-    labels: dict[str, tuple[int, ...]]
-    frame_period_s: float
-    ego_id: int
-    cascade: CascadeConfig
-    model_names: tuple[str, ...]  # the keys of FrameResult.risks, in registry order
-    source: pathlib.Path | None  # the scene file, None for an in-memory scene
-    n_frames: int  # frames in the scene (some may be skipped: ego missing)
-
-
-@dataclass(frozen=True, eq=False)
-class FrameResult:
-    """One frame's results. ``N = frame.n_agents``."""
-
-    index: int  # frame index in the scene
-    frame: Frame
-    risks: dict[str, np.ndarray]  # model name -> (N,) risk on ALL agents (NaN: ego/invalid)
-    cascade: CascadeResult
-
-
-@runtime_checkable
-class Sink(Protocol):
-    """A consumer of per-frame results (recording, table, statistics)."""
-
-    def begin(self, info: SceneInfo) -> None: ...
-
-    def add(self, result: FrameResult) -> None: ...
-
-    def close(self) -> None: ...  # finalise atomically
-
-    def abort(self) -> None: ...  # discard partial output
+from risk.registry import resolve_models
 
 
 @dataclass(frozen=True)
@@ -199,9 +165,7 @@ def run_scene(
     reader, path = _open(source)
     cascade = CascadeConfig.default() if cascade is None else cascade
     if evaluate is None:
-        from risk import evaluate as default_evaluate
-
-        evaluate = default_evaluate
+        evaluate = risk.evaluate  # looked up per call: tests and notebooks may replace it
     if prediction is not None:
         evaluate = functools.partial(evaluate, prediction=prediction)
     model_names = _model_names(models)
@@ -284,8 +248,6 @@ def _open(source: str | os.PathLike[str] | SceneSource | Scene) -> tuple[Any, pa
     if isinstance(source, Scene):
         return InMemoryScene(source), None
     if isinstance(source, (str, os.PathLike)):
-        from replay.reader import open_scene
-
         path = pathlib.Path(source)
         return open_scene(path), path
     path = getattr(source, "path", None)
@@ -293,8 +255,6 @@ def _open(source: str | os.PathLike[str] | SceneSource | Scene) -> tuple[Any, pa
 
 
 def _model_names(models: Sequence[str] | None) -> tuple[str, ...]:
-    from risk.registry import resolve_models
-
     return tuple(resolve_models(models))  # validated, unique, in the order given
 
 

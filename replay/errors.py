@@ -9,3 +9,7 @@ class ReplayError(RuntimeError):
 
 class SceneFormatError(ReplayError):
     """A file is not a readable scene: not MCAP, truncated, or missing our channels."""
+
+
+class StatsError(ReplayError):
+    """Statistics that cannot be computed from the given input (the message says why)."""

@@ -6,7 +6,7 @@ a risk value). Columns, in order:
 - ``frame`` (frame index in the scene), ``t_s`` (s), ``ego_id``, ``agent_id``, ``kind``;
 - ``x_m``, ``y_m``, ``speed_mps``: the agent's state;
 - ``risk_<model>``: every model's risk on all agents (units per model, see
-  ``docs/risk-models.md``);
+  ``docs/models.md`` or ``replay models``);
 - ``kept_<model>``: kept after that cascade stage (stages in cascade order);
 - ``dropped_by``: the stage model that dropped the agent, null if it survived;
 - ``tier``: deepest planner tier reached, by name, null if none;
@@ -24,8 +24,8 @@ import pathlib
 import numpy as np
 import polars as pl
 
-from replay.atomic import atomic_output
-from replay.engine import FrameResult, SceneInfo
+from base.atomic import atomic_output
+from base.sinks import FrameResult, SceneInfo
 from replay.errors import ReplayError
 from risk.frame import KIND_NAMES
 

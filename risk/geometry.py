@@ -291,7 +291,7 @@ def _orient(ax, ay, bx, by, cx, cy):
     return np.sign((bx - ax) * (cy - ay) - (by - ay) * (cx - ax))
 
 
-def _point_segment_distance(px, py, ax, ay, bx, by):
+def point_segment_distance(px, py, ax, ay, bx, by):
     """Distance from points to segments (all broadcastable); zero-length segments are points."""
     abx = bx - ax
     aby = by - ay
@@ -328,18 +328,18 @@ def segment_distances(p1, q1, p2, q2) -> np.ndarray:
     """
     d = np.minimum(
         np.minimum(
-            _point_segment_distance(
+            point_segment_distance(
                 p1[..., 0], p1[..., 1], p2[..., 0], p2[..., 1], q2[..., 0], q2[..., 1]
             ),
-            _point_segment_distance(
+            point_segment_distance(
                 q1[..., 0], q1[..., 1], p2[..., 0], p2[..., 1], q2[..., 0], q2[..., 1]
             ),
         ),
         np.minimum(
-            _point_segment_distance(
+            point_segment_distance(
                 p2[..., 0], p2[..., 1], p1[..., 0], p1[..., 1], q1[..., 0], q1[..., 1]
             ),
-            _point_segment_distance(
+            point_segment_distance(
                 q2[..., 0], q2[..., 1], p1[..., 0], p1[..., 1], q1[..., 0], q1[..., 1]
             ),
         ),

@@ -6,23 +6,29 @@ important. A threshold keeps the agents whose score is ``>=`` it; then
 situations where they are defined; a situation without positives has no TPR, one
 without negatives has no FPR, and both are counted and reported, never averaged as 0.
 
-Arrays first, options keyword-only. Scores are ``(N_i,)`` per situation with NaN for
-entries that are not agents (the ego, invalid agents); those are ignored.
+- :func:`exact_sweep`: the mean ROC curve of one model over many situations, exact at
+  every distinct score, in O(A log A) for ``A`` agent-frames (the one sweep of the
+  project: ``replay stats`` and ``replay experiment`` use it);
+- :func:`confusion_counts`: TP, FP, FN, TN of one situation at given thresholds;
+- :func:`threshold_for_tpr`: the operating point of a sweep for a target mean TPR.
+
+The tests check :func:`exact_sweep` against a plain per-situation loop
+(``tests/roc_oracle.py``). Scores use NaN for entries that are not agents (the ego,
+invalid agents); those are ignored.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
 from risk.errors import RiskError
 
-#: Above this many distinct observed scores, default thresholds use a grid (see
-#: :func:`default_thresholds`).
-MAX_DEFAULT_THRESHOLDS = 2048
+#: Variances of TPR below this are rounding (see :func:`exact_sweep`); std < 3e-7.
+VAR_ROUNDING = 1e-13
 
 
 class ConfusionCounts(NamedTuple):
@@ -32,36 +38,6 @@ class ConfusionCounts(NamedTuple):
     fp: np.ndarray
     fn: np.ndarray
     tn: np.ndarray
-
-
-@dataclass(frozen=True, eq=False)
-class RocResult:
-    """A threshold sweep over ``S`` situations and ``K`` thresholds.
-
-    - ``thresholds`` ``(K,)`` ascending; ``tpr``, ``fpr`` ``(S, K)`` with NaN where
-      undefined (no positives / no negatives in that situation); ``kept`` ``(S, K)``
-      the number of agents kept;
-    - ``mean_tpr``, ``mean_fpr``, ``std_tpr`` ``(K,)`` over the situations where each is
-      defined (``std_tpr`` is the population standard deviation, ddof = 0: the spread of
-      this set of situations, the paper's robustness measure); NaN when none is;
-    - ``auc``: trapezoidal area under the mean curve, closed with (0, 0) (a threshold
-      above every score keeps nothing) and (1, 1) (at or below the lowest score everything
-      is kept); NaN when the mean curve is undefined;
-    - ``n_situations``, ``n_no_positive`` (TPR undefined), ``n_no_negative`` (FPR
-      undefined).
-    """
-
-    thresholds: np.ndarray
-    tpr: np.ndarray
-    fpr: np.ndarray
-    kept: np.ndarray
-    mean_tpr: np.ndarray
-    mean_fpr: np.ndarray
-    std_tpr: np.ndarray
-    auc: float
-    n_situations: int
-    n_no_positive: int
-    n_no_negative: int
 
 
 def _situation(scores: np.ndarray, baseline: np.ndarray, i: int | None = None) -> tuple:
@@ -104,110 +80,148 @@ def confusion_counts(
     )
 
 
-def default_thresholds(
-    scores: Sequence[np.ndarray], *, max_count: int = MAX_DEFAULT_THRESHOLDS
-) -> np.ndarray:
-    """Thresholds ``(K,)`` ascending for a sweep over these situations' scores.
+@dataclass(frozen=True, eq=False)
+class Sweep:
+    """A model's mean ROC curve over ``S`` situations, exact at every distinct score.
 
-    The union of all observed score values, so the sweep visits every operating point
-    exactly. When there are more than ``max_count`` distinct values: a log-spaced grid
-    from the smallest positive to the largest score (plus 0 when a score is 0), which
-    suits risks spanning many decades (survival: 1e-300 to 1); a linear grid when scores
-    are negative. The grid always includes the smallest and largest observed value.
+    - ``thresholds (K,)`` ascending: every distinct non-NaN score;
+    - ``mean_tpr``, ``mean_fpr (K,)``: over the situations where each rate is defined
+      (a positive / a negative present); ``std_tpr (K,)``: population std (ddof = 0) of
+      the TPR over the same situations as ``mean_tpr`` (the paper's robustness measure);
+      ``mean_kept (K,)``: agents with ``score >= threshold``, mean over all situations;
+    - ``auc``: trapezoids under the mean curve, closed with (0, 0) (a threshold above every
+      score keeps nothing) and (1, 1) (at or below the lowest score everything is kept);
+      NaN when the mean curve is undefined;
+    - ``n_situations``, ``n_no_positive`` (TPR undefined), ``n_no_negative`` (FPR
+      undefined).
     """
-    finite = [np.asarray(s, dtype=np.float64) for s in scores]
-    values = np.unique(np.concatenate([s[np.isfinite(s)] for s in finite] or [np.empty(0)]))
-    if values.size == 0:
-        raise RiskError("no scores to sweep: every situation is empty or all NaN")
-    if values.size <= max_count:
-        return values
-    lo, hi = values[0], values[-1]
-    if lo < 0:
-        return np.linspace(lo, hi, max_count)
-    positive = values[values > 0]
-    grid = np.geomspace(positive[0], hi, max_count - (1 if lo == 0 else 0))
-    grid[0], grid[-1] = positive[0], hi  # exact ends despite rounding
-    return np.r_[0.0, grid] if lo == 0 else grid
+
+    thresholds: np.ndarray
+    mean_tpr: np.ndarray
+    mean_fpr: np.ndarray
+    std_tpr: np.ndarray
+    mean_kept: np.ndarray
+    auc: float
+    n_situations: int
+    n_no_positive: int
+    n_no_negative: int
 
 
-def _nanmean_rows(a: np.ndarray) -> np.ndarray:
-    """Column means ``(K,)`` of ``(S, K)`` over non-NaN rows; NaN when none."""
-    defined = ~np.isnan(a)
-    count = defined.sum(axis=0)
-    total = np.where(defined, a, 0.0).sum(axis=0)
-    return np.where(count > 0, total / np.maximum(count, 1), np.nan)
-
-
-def roc_curve(
-    scores: Sequence[np.ndarray],
-    baselines: Sequence[np.ndarray],
+def exact_sweep(
+    scores: np.ndarray,
+    situation: np.ndarray,
+    baseline: np.ndarray,
     *,
-    thresholds: np.ndarray | None = None,
-) -> RocResult:
-    """The ROC sweep of one model over situations (paper Fig. 4).
+    n_situations: int | None = None,
+) -> Sweep:
+    """The mean ROC curve of ``scores (A,)`` at every distinct score, in O(A log A).
 
-    ``scores``: per situation ``(N_i,)`` risks (NaN = not an agent); ``baselines``: per
-    situation ``(N_i,)`` bool, the baseline's important agents. ``thresholds``: ``(K,)``
-    (sorted ascending here); default :func:`default_thresholds`.
+    ``situation (A,)``: each agent-frame's situation, integers in ``[0, S)``;
+    ``baseline (A,)`` bool: the baseline's important agents; ``n_situations``: ``S``
+    (default ``situation.max() + 1``; situations without any agent-frame count in
+    ``mean_kept`` only).
+
+    Why it is exact without an ``(S, K)`` matrix: lowering the threshold past an agent's
+    score adds ``1 / P_s`` to its situation's TPR, so the mean TPR is a cumulative sum
+    of per-agent weights ``1 / (P_s S_P)`` over the agents sorted by score (``S_P``
+    situations with a positive). For the std, TPR_s^2 rises from ``(k/P_s)^2`` to
+    ``((k+1)/P_s)^2`` when the ``(k+1)``-th positive of situation ``s`` (by descending
+    score) enters; tied agents enter together, so any order among them gives the same
+    sum. NaN scores (not an agent) are ignored.
     """
-    if len(scores) != len(baselines):
+    s = np.asarray(scores, dtype=np.float64)
+    sit_all = np.asarray(situation)
+    base_all = np.asarray(baseline)
+    if s.ndim != 1 or sit_all.shape != s.shape or base_all.shape != s.shape:
         raise RiskError(
-            f"got {len(scores)} score arrays but {len(baselines)} baseline masks; "
-            "need one of each per situation"
+            "scores, situation and baseline must all have shape (A,), got "
+            f"{s.shape}, {sit_all.shape} and {base_all.shape}"
         )
-    if len(scores) == 0:
-        raise RiskError("no situations to evaluate")
-    pairs = [_situation(s, b, i) for i, (s, b) in enumerate(zip(scores, baselines, strict=True))]
-    t = (
-        default_thresholds([s for s, _ in pairs])
-        if thresholds is None
-        else np.sort(np.asarray(thresholds, dtype=np.float64))
-    )
-    if t.ndim != 1 or t.size == 0:
-        raise RiskError(f"thresholds must be a non-empty 1-D array, got shape {t.shape}")
-    n_s, n_k = len(pairs), t.size
-    tpr = np.full((n_s, n_k), np.nan)
-    fpr = np.full((n_s, n_k), np.nan)
-    kept = np.zeros((n_s, n_k), dtype=np.int64)
-    for i, (s, b) in enumerate(pairs):  # a loop over situations, each vectorised over K
-        c = confusion_counts(s, b, t)
-        kept[i] = c.tp + c.fp
-        if c.tp[0] + c.fn[0] > 0:
-            tpr[i] = c.tp / (c.tp + c.fn)
-        if c.fp[0] + c.tn[0] > 0:
-            fpr[i] = c.fp / (c.fp + c.tn)
-    no_pos = np.isnan(tpr[:, 0])
-    no_neg = np.isnan(fpr[:, 0])
-    mean_tpr = _nanmean_rows(tpr)
-    mean_fpr = _nanmean_rows(fpr)
-    std_tpr = np.full(n_k, np.nan) if no_pos.all() else tpr[~no_pos].std(axis=0)
-    return RocResult(
-        thresholds=t,
-        tpr=tpr,
-        fpr=fpr,
-        kept=kept,
-        mean_tpr=mean_tpr,
-        mean_fpr=mean_fpr,
-        std_tpr=std_tpr,
+    if base_all.dtype != bool:
+        raise RiskError(f"baseline must be a boolean mask, got dtype {base_all.dtype}")
+    if sit_all.size and (not np.issubdtype(sit_all.dtype, np.integer) or sit_all.min() < 0):
+        raise RiskError("situation must hold integer situation indices >= 0")
+    n_sit = int(sit_all.max()) + 1 if n_situations is None and sit_all.size else n_situations
+    ok = ~np.isnan(s)
+    s, base, sit = s[ok], base_all[ok], sit_all[ok].astype(np.int64)
+    if s.size == 0 or not n_sit:
+        raise RiskError("no agent has a risk value (every score is NaN)")
+    pos = np.bincount(sit[base], minlength=n_sit)
+    neg = np.bincount(sit[~base], minlength=n_sit)
+    n_pos_sits, n_neg_sits = int((pos > 0).sum()), int((neg > 0).sum())
+    order = np.argsort(-s, kind="stable")  # riskiest first
+    s_desc, b_desc, sit_desc = s[order], base[order], sit[order]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w_tpr = np.where(b_desc, 1.0 / pos[sit_desc], 0.0)
+        w_fpr = np.where(~b_desc, 1.0 / neg[sit_desc], 0.0)
+        w_sq = np.where(b_desc, (2.0 * _rank_in_situation(sit_desc, b_desc) + 1.0)
+                        / pos[sit_desc] ** 2, 0.0)  # fmt: skip
+    # The last agent of each run of equal scores closes that threshold.
+    last = np.flatnonzero(np.r_[s_desc[1:] != s_desc[:-1], True])
+    cum_tpr, cum_fpr, cum_sq = (np.cumsum(w)[last] for w in (w_tpr, w_fpr, w_sq))
+    mean_tpr = _normalised(cum_tpr, n_pos_sits)
+    mean_fpr = _normalised(cum_fpr, n_neg_sits)
+    # E[TPR^2] is 1 when everyone is kept, like the mean: normalise it the same way.
+    mean_sq = _normalised(cum_sq, n_pos_sits)
+    var = mean_sq - mean_tpr**2
+    # E[x^2] - E[x]^2 leaves rounding of a few eps where the spread is 0; sqrt would
+    # blow that up to ~1e-8, so variances below VAR_ROUNDING count as 0.
+    std = np.sqrt(np.where(var < VAR_ROUNDING, 0.0, var))
+    kept = (last + 1) / n_sit
+    rev = slice(None, None, -1)  # descending -> ascending thresholds
+    return Sweep(
+        thresholds=s_desc[last][rev],
+        mean_tpr=mean_tpr[rev],
+        mean_fpr=mean_fpr[rev],
+        std_tpr=std[rev],
+        mean_kept=kept[rev],
         auc=_auc(mean_fpr, mean_tpr),
-        n_situations=n_s,
-        n_no_positive=int(no_pos.sum()),
-        n_no_negative=int(no_neg.sum()),
+        n_situations=n_sit,
+        n_no_positive=n_sit - n_pos_sits,
+        n_no_negative=n_sit - n_neg_sits,
     )
 
 
-def _auc(mean_fpr: np.ndarray, mean_tpr: np.ndarray) -> float:
-    """Area under the mean curve, closed with (0, 0) and (1, 1)."""
-    if np.isnan(mean_fpr).any() or np.isnan(mean_tpr).any():
-        return float("nan")
-    # Thresholds ascend, so both rates descend; walk from the strictest threshold.
-    x = np.r_[0.0, mean_fpr[::-1], 1.0]
-    y = np.r_[0.0, mean_tpr[::-1], 1.0]
+def _rank_in_situation(sit: np.ndarray, positive: np.ndarray) -> np.ndarray:
+    """For agents sorted by descending score: how many positives of the same situation
+    come before each agent (``(A,)``; only meaningful for positives)."""
+    order = np.argsort(sit, kind="stable")  # by situation, keeping the score order
+    pos_sorted = positive[order].astype(np.int64)
+    before = np.cumsum(pos_sorted) - pos_sorted  # positives before, over all situations
+    s_sorted = sit[order]
+    first = np.r_[0, np.flatnonzero(s_sorted[1:] != s_sorted[:-1]) + 1]
+    group_start = np.repeat(before[first], np.diff(np.r_[first, s_sorted.size]))
+    rank = np.empty(sit.size, dtype=np.int64)
+    rank[order] = before - group_start
+    return rank
+
+
+def _normalised(cum: np.ndarray, n_sits: int) -> np.ndarray:
+    """Mean rates from cumulative weights; the last entry (everyone kept) is exactly 1,
+    so that rounding never hides the TPR = 1 operating point."""
+    if n_sits == 0 or cum.size == 0 or cum[-1] <= 0:
+        return np.full(cum.size, np.nan)
+    return np.minimum(cum / cum[-1], 1.0)
+
+
+def _auc(fpr_desc: np.ndarray, tpr_desc: np.ndarray) -> float:
+    """Trapezoids under the curve from the strictest threshold, closed with (0, 0) and
+    (1, 1); NaN when the curve is undefined."""
+    if np.isnan(fpr_desc).any() or np.isnan(tpr_desc).any():
+        return math.nan
+    x = np.r_[0.0, fpr_desc, 1.0]
+    y = np.r_[0.0, tpr_desc, 1.0]
     return float(np.sum(np.diff(x) * (y[1:] + y[:-1]) / 2.0))
 
 
-def threshold_for_tpr(result: RocResult, target: float) -> float:
-    """The highest threshold at which the mean TPR reaches ``target`` (in [0, 1]).
+class _Curve(Protocol):
+    thresholds: np.ndarray
+    mean_tpr: np.ndarray
+
+
+def threshold_for_tpr(result: _Curve, target: float) -> float:
+    """The highest threshold of a sweep at which the mean TPR reaches ``target`` (in
+    [0, 1]).
 
     Mean TPR never grows with the threshold, so every lower threshold reaches it too. A
     tolerance of 1e-12 absorbs rounding in the mean. Raises RiskError when TPR is

@@ -1,6 +1,6 @@
 """Prediction settings, the uncertainty model, and the shared per-frame context.
 
-Prediction (docs/risk-models.md, "Common set-up"): constant speed along the path,
+Prediction (the model spec, "Common set-up"; docs/models.md): constant speed along the path,
 ``x_i(s) = p_i(v_i * s)`` for ``s = 0, dt, ..., T``. A path shorter than ``v_i * T`` is
 extended straight along its last segment, and every model sees the same extended path.
 

@@ -1,6 +1,6 @@
 """A slow, plain-Python reference of the nine models: the oracle for the fast ones.
 
-Written straight from docs/risk-models.md with loops over agents, candidates, steps and
+Written straight from the model spec (docs/models.md) with loops over agents, candidates, steps and
 segments, ``math`` instead of numpy in the inner loops, no pruning, no caching, and no
 code shared with the vectorised modules (only the frame, the parameter dataclasses and
 the settings). Tests compare :func:`reference_evaluate` with :func:`risk.evaluate` on

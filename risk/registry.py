@@ -5,7 +5,8 @@ Code that uses models (replay, cascade, calibration, ROC, recordings) iterates o
 
 Paper references count equations and sections as the paper source
 (``../shared/paper/*.tex``) compiles: the TPR/FPR pair is eq. 1-2 and the models are in
-Sec. III. (docs/risk-models.md numbers some of them differently.)
+Sec. III. (The model spec, ``../shared/docs/risk-models.md``, numbers some of them
+differently.)
 """
 
 from __future__ import annotations

@@ -225,6 +225,7 @@ def _double_or_die(x: int) -> int:
     return 2 * x
 
 
+@pytest.mark.slow
 def test_local_engine_isolates_a_task_that_kills_its_worker():
     engine = B.LocalEngine(workers=2)
     try:
@@ -240,6 +241,7 @@ def test_local_engine_isolates_a_task_that_kills_its_worker():
     assert results == {1: 2, 2: 4, 3: 6, 4: 8}
 
 
+@pytest.mark.slow
 def test_local_engine_replaces_a_pool_whose_idle_worker_was_killed():
     import multiprocessing
     import signal
@@ -285,6 +287,7 @@ def test_engine_argument_errors():
 
 
 # ---------------------------------------------------------------------- whole runs
+@pytest.mark.slow
 def test_local_run_isolates_the_bad_scenes(local_run):
     out, report, _ = local_run
     assert report.engine == "local" and report.workers == 2
@@ -299,6 +302,7 @@ def test_local_run_isolates_the_bad_scenes(local_run):
     assert scenes["status"].to_list() == ["failed", "failed"] + ["replayed"] * N_GOOD
 
 
+@pytest.mark.slow
 def test_local_run_statistics_cover_every_good_scene(local_run):
     out, _, _ = local_run
     tables = sorted((out / "tables").glob("*.parquet"))
@@ -313,6 +317,7 @@ def test_local_run_statistics_cover_every_good_scene(local_run):
     assert (out / "stats" / "roc.parquet").is_file()
 
 
+@pytest.mark.slow
 def test_resumed_run_recomputes_nothing_but_the_failures(local_run, dataset, settings):
     out, _, summary = local_run
     before = {p: p.stat().st_mtime_ns for p in (out / "tables").glob("*.parquet")}
@@ -327,6 +332,7 @@ def test_resumed_run_recomputes_nothing_but_the_failures(local_run, dataset, set
     assert _summary_without_times(out) == summary
 
 
+@pytest.mark.slow
 def test_a_changed_input_is_replayed_again(dataset, settings, tmp_path):
     inputs = tmp_path / "in"
     inputs.mkdir()

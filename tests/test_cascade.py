@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from frames import scattered_frame
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -254,31 +255,13 @@ def test_default_config_loads_and_is_the_paper_cascade():
 
 
 # ---------------------------------------------------------------------- with the real models
-def random_frame(seed: int, n: int = 40) -> Frame:
-    """Agents scattered over a 120 m square, straight paths of 40 m to 120 m."""
-    rng = np.random.default_rng(seed)
-    xy = rng.uniform(-60, 60, (n, 2))
-    heading = rng.uniform(-np.pi, np.pi, n)
-    reach = rng.uniform(40, 120, n)
-    steps = np.linspace(0, 1, 12)[None, :, None]
-    direction = np.c_[np.cos(heading), np.sin(heading)][:, None, :]
-    paths = xy[:, None, :] + steps * reach[:, None, None] * direction
-    kinds = rng.choice(["vehicle", "pedestrian", "cyclist"], n, p=[0.7, 0.2, 0.1])
-    valid = rng.random(n) > 0.1
-    valid[0] = True
-    return Frame.from_arrays(
-        xy, heading, rng.uniform(0, 12, n), np.full(n, 4.5), np.full(n, 1.8), list(paths), 0,
-        kinds=kinds, valid=valid,
-    )  # fmt: skip
-
-
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_sub_frame_risks_equal_whole_frame_risks(seed):
     """Every model is a function of the ego and one agent, so a stage on a sub-frame must
     decide exactly as the same threshold on the whole frame (what calibration assumes)."""
     import risk
 
-    frame = random_frame(seed)
+    frame = scattered_frame(seed)
     whole = risk.evaluate(
         frame, models=["path_distance", "trajectory_distance", "gaussian", "survival"]
     )
@@ -308,7 +291,7 @@ def test_sub_frame_risks_equal_whole_frame_risks(seed):
 def test_prediction_settings_reach_every_evaluation():
     import risk
 
-    frame = random_frame(4)
+    frame = scattered_frame(4)
     short = risk.PredictionSettings(horizon_s=3.0)
     config = CascadeConfig(stages=(Stage("gaussian", 0.0),), tiers=TIERS)
     res = run_cascade(frame, config, prediction=short)

@@ -40,6 +40,7 @@ def test_help_explains_engines_and_resuming():
         assert phrase in result.output
 
 
+@pytest.mark.slow
 def test_batch_runs_reports_and_resumes(scenes: pathlib.Path, tmp_path: pathlib.Path):
     out = tmp_path / "out"
     result = _run(str(scenes), "-o", str(out), "--workers", "2", "--no-progress")
@@ -62,6 +63,7 @@ def test_batch_runs_reports_and_resumes(scenes: pathlib.Path, tmp_path: pathlib.
     assert "Traceback" not in strict.output
 
 
+@pytest.mark.slow
 def test_rrd_adds_recordings_to_complete_scenes(scenes: pathlib.Path, tmp_path: pathlib.Path):
     out = tmp_path / "out"
     first = _run(str(scenes / "s0.mcap"), "-o", str(out), "--workers", "1", "--no-progress")
@@ -108,6 +110,7 @@ def test_ray_missing_says_how_to_install(scenes, tmp_path, monkeypatch: pytest.M
     )
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_convert_commonroad_in_place_with_a_bad_file(shared_data: pathlib.Path, tmp_path):
     bad = tmp_path / "not_commonroad.xml"
@@ -138,6 +141,7 @@ def test_convert_commonroad_in_place_with_a_bad_file(shared_data: pathlib.Path, 
     assert [f.input for f in read_failures(out / "failures.csv")] == [str(bad)]
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_convert_waymo_names_scenes_by_scenario(shared_data: pathlib.Path, tmp_path):
     tfrecord = shared_data / "waymo" / "womd_637f20cafde22ff8.tfrecord"

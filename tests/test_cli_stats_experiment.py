@@ -25,6 +25,7 @@ def experiment_dir(tmp_path_factory):
     return out, result.output
 
 
+@pytest.mark.slow
 def test_experiment_writes_report_tables_and_plots(experiment_dir):
     out, output = experiment_dir
     for name in (
@@ -84,6 +85,7 @@ def test_experiment_summary_is_consistent(experiment_dir):
     assert funnel["step"][0] == "all other agents" and funnel.height == 1 + 3 + 3
 
 
+@pytest.mark.slow
 def test_experiment_uses_worker_processes(tmp_path):
     result = run(
         [
@@ -130,6 +132,7 @@ def scenes(tmp_path_factory):
     return folder, paths, tables
 
 
+@pytest.mark.slow
 def test_stats_on_a_folder_of_scenes(scenes, tmp_path):
     folder, paths, _ = scenes
     result = run(
@@ -214,6 +217,7 @@ def test_help_texts_explain():
         assert "summary.json" in result.output and "--output" in result.output
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_stats_on_a_real_argoverse_scene(shared_data, tmp_path):
     (source,) = sorted((shared_data / "av2").glob("scenario_*.parquet"))

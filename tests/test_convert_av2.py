@@ -181,6 +181,7 @@ def test_real_sample(shared_data, tmp_path):
     assert sum(int(fr.valid.sum()) for fr in scene.frames) == 2434
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_real_sample_replays_with_every_valid_agent_scored(shared_data, tmp_path):
     out, table = tmp_path / "av2.mcap", tmp_path / "risks.parquet"

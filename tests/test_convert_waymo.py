@@ -346,6 +346,7 @@ def assert_run_covers_every_valid_agent(scene_path: pathlib.Path, tmp_path: path
     assert rows.select(pl.all_horizontal([pl.col(c).is_finite() for c in risks])).to_series().all()
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_real_sample_replays_with_every_valid_agent_scored(shared_data, sample_mcap, tmp_path):
     assert_run_covers_every_valid_agent(sample_mcap, tmp_path)

@@ -150,6 +150,7 @@ polylines = st.integers(1, 25).flatmap(
 )
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None)
 @given(polylines, st.lists(polylines, min_size=1, max_size=5))
 def test_polyline_distances_equal_brute_force(a, bs):

@@ -8,14 +8,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from roc_oracle import roc_curve
 
 from risk import RiskError
-from risk.metrics import (
-    confusion_counts,
-    default_thresholds,
-    roc_curve,
-    threshold_for_tpr,
-)
+from risk.metrics import confusion_counts, exact_sweep, threshold_for_tpr
 
 NAN = math.nan
 
@@ -87,17 +83,31 @@ def test_threshold_for_tpr_errors():
         threshold_for_tpr(r, 1.5)
 
 
-def test_default_thresholds_grid_when_there_are_too_many_values():
-    rng = np.random.default_rng(1)
-    values = [10.0 ** rng.uniform(-300, 0, 5000), np.array([0.0, NAN])]
-    t = default_thresholds(values, max_count=100)
-    assert t.size == 100 and t[0] == 0.0
-    assert t[1] == values[0].min() and t[-1] == values[0].max()
-    assert np.all(np.diff(t) > 0)
-    ratios = t[2:] / t[1:-1]
-    np.testing.assert_allclose(ratios, ratios[0], rtol=1e-9)  # log-spaced
-    neg = default_thresholds([np.linspace(-1, 1, 50)], max_count=10)
-    np.testing.assert_allclose(neg, np.linspace(-1, 1, 10))
+def test_exact_sweep_by_hand():
+    """The by-hand case above, through the product's sweep (agent-frames of both
+    situations in one array)."""
+    scores = np.array([NAN, 0.9, 0.5, 0.1, 0.3, NAN, 0.8, 0.6])
+    situation = np.array([0, 0, 0, 0, 1, 1, 1, 1])
+    base = np.array([False, True, False, False, False, False, True, False])
+    sw = exact_sweep(scores, situation, base)
+    np.testing.assert_array_equal(sw.thresholds, [0.1, 0.3, 0.5, 0.6, 0.8, 0.9])
+    np.testing.assert_allclose(sw.mean_tpr, [1, 1, 1, 1, 1, 0.5])
+    np.testing.assert_allclose(sw.mean_fpr, [1, 0.75, 0.5, 0.25, 0, 0])
+    np.testing.assert_allclose(sw.std_tpr, [0, 0, 0, 0, 0, 0.5])
+    np.testing.assert_allclose(sw.mean_kept, [3, 2.5, 2, 1.5, 1, 0.5])
+    assert sw.auc == pytest.approx(1.0)
+    assert (sw.n_situations, sw.n_no_positive, sw.n_no_negative) == (2, 0, 0)
+    assert threshold_for_tpr(sw, 1.0) == 0.8
+    assert threshold_for_tpr(sw, 0.5) == 0.9
+
+
+def test_exact_sweep_bad_inputs():
+    with pytest.raises(RiskError, match="shape"):
+        exact_sweep(np.array([0.1, 0.2]), np.array([0]), np.array([True, False]))
+    with pytest.raises(RiskError, match="boolean"):
+        exact_sweep(np.array([0.1]), np.array([0]), np.array([1]))
+    with pytest.raises(RiskError, match="every score is NaN"):
+        exact_sweep(np.array([NAN]), np.array([0]), np.array([False]))
 
 
 def test_bad_inputs():

@@ -1,12 +1,14 @@
-"""Property tests (hypothesis) for the invariants of docs/risk-models.md."""
+"""Property tests (hypothesis) for the invariants of the model spec (docs/models.md)."""
 
 from __future__ import annotations
 
 import math
 
 import numpy as np
+from frames import random_frame, wander
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from roc_oracle import roc_curve
 
 from risk import (
     BASELINE_MODEL,
@@ -19,41 +21,13 @@ from risk import (
     evaluate,
 )
 from risk.distance import current_distances, path_distances, trajectory_distances
-from risk.metrics import confusion_counts, roc_curve, threshold_for_tpr
+from risk.metrics import confusion_counts, threshold_for_tpr
 from risk.stochastic import overlap_rows, survival_function
 from risk.temporal import closest_encounter_distances
 
-KINDS = ("vehicle", "pedestrian", "cyclist", "other")
 # A shorter horizon keeps the examples fast; the invariants do not depend on it.
 FAST = PredictionSettings(horizon_s=6.0, dt_s=0.2)
 seeds = st.integers(0, 2**32 - 1)
-
-
-def random_paths(rng, start, heading, max_points=8):
-    """A wandering polyline from ``start`` with 1..max_points points, 0.5-15 m steps."""
-    pts = [np.asarray(start, float)]
-    h = heading
-    for _ in range(int(rng.integers(0, max_points))):
-        h += rng.normal(0.0, 0.5)
-        pts.append(pts[-1] + rng.uniform(0.5, 15.0) * np.array([math.cos(h), math.sin(h)]))
-    return np.array(pts)
-
-
-def random_frame(rng, n=None, *, bodies=True, candidates=True) -> Frame:
-    n = int(rng.integers(2, 7)) if n is None else n
-    xy = rng.uniform(-40, 40, (n, 2))
-    heading = rng.uniform(-math.pi, math.pi, n)
-    paths = []
-    for i in range(n):
-        k = int(rng.integers(1, 3)) if candidates and rng.random() < 0.25 else 1
-        cands = [random_paths(rng, xy[i], heading[i]) for _ in range(k)]
-        paths.append(cands[0] if k == 1 else cands)
-    speed = rng.uniform(0, 15, n)
-    speed[rng.random(n) < 0.2] = 0.0
-    length = rng.uniform(0, 6, n) if bodies else np.zeros(n)
-    width = rng.uniform(0, 2.5, n) if bodies else np.zeros(n)
-    kinds = [KINDS[j] for j in rng.integers(0, 4, n)]
-    return Frame.from_arrays(xy, heading, speed, length, width, paths, ego=0, kinds=kinds)
 
 
 def transformed(f: Frame, theta: float, shift: np.ndarray) -> Frame:
@@ -238,7 +212,7 @@ def test_the_baseline_has_tpr_one_and_fpr_zero_against_itself(frame_seeds):
 @given(seeds, st.floats(0.0, 1.0), st.floats(-1.7, 1.7), st.floats(0.0, 20.0), st.floats(0.0, 20.0))
 def test_headway_2d_equals_headway_on_the_ego_path(seed, where, lateral, v_ego, v_other):
     rng = np.random.default_rng(seed)
-    ego_path = random_paths(rng, [0.0, 0.0], 0.0, max_points=10)
+    ego_path = wander(rng, [0.0, 0.0], 0.0, max_points=10)
     if len(ego_path) < 2:
         ego_path = np.array([[0.0, 0.0], [50.0, 0.0]])
     seg = np.diff(ego_path, axis=0)
@@ -247,7 +221,7 @@ def test_headway_2d_equals_headway_on_the_ego_path(seed, where, lateral, v_ego, 
     j = min(int(np.searchsorted(cum, s, side="right")) - 1, len(seg) - 1)
     u = seg[j] / np.hypot(*seg[j])
     on_path = ego_path[j] + (s - cum[j]) * u + lateral * np.array([-u[1], u[0]])
-    other_path = random_paths(rng, on_path, rng.uniform(-math.pi, math.pi))
+    other_path = wander(rng, on_path, rng.uniform(-math.pi, math.pi))
     f = Frame.from_arrays(
         np.array([[0.0, 0.0], on_path]),
         np.array([0.0, 0.0]),

@@ -38,6 +38,7 @@ def risk_timelines(rrd: pathlib.Path) -> dict[tuple[str, int], dict[int, float]]
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("source", "relative", "extra"),
     [

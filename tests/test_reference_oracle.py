@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 import pytest
+from frames import mixed_frame
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -18,8 +19,6 @@ from risk import MODELS, Frame, PredictionSettings, evaluate
 from risk.reference import reference_evaluate
 from risk.stochastic import CirclesParams, SurvivalParams
 from risk.temporal import ClosestEncounterParams, Headway2DParams, HeadwayParams
-
-KINDS = ("vehicle", "pedestrian", "cyclist", "other")
 
 
 def assert_agree(frame: Frame, params=None, prediction=None) -> dict[str, np.ndarray]:
@@ -31,67 +30,10 @@ def assert_agree(frame: Frame, params=None, prediction=None) -> dict[str, np.nda
     return fast
 
 
-def wander(rng, start, heading, n_max=7):
-    pts = [np.asarray(start, float)]
-    h = heading
-    for _ in range(int(rng.integers(0, n_max))):
-        h += rng.normal(0, 0.6)
-        pts.append(pts[-1] + rng.uniform(0.3, 12) * np.array([math.cos(h), math.sin(h)]))
-    return np.array(pts)
-
-
-def random_frame(rng) -> Frame:
-    """Mixed situations: wandering paths, leaders on the ego path, crossing agents,
-    standing agents, forks, invalid tracks, all kinds."""
-    n = int(rng.integers(2, 7))
-    ego_path = wander(rng, [0.0, 0.0], 0.0, 6)
-    if len(ego_path) < 2:
-        ego_path = np.array([[0.0, 0.0], [40.0, 5.0]])
-    xy, heading, paths = [np.zeros(2)], [0.0], [ego_path]
-    for _ in range(n - 1):
-        kind = rng.integers(0, 3)
-        if kind == 0:  # anywhere
-            start = rng.uniform(-30, 30, 2)
-            h = rng.uniform(-math.pi, math.pi)
-        elif kind == 1:  # on (or near) the ego path
-            j = int(rng.integers(0, len(ego_path) - 1))
-            f = rng.random()
-            start = ego_path[j] + f * (ego_path[j + 1] - ego_path[j]) + rng.normal(0, 0.8, 2)
-            d = ego_path[j + 1] - ego_path[j]
-            h = math.atan2(d[1], d[0]) + rng.choice([0.0, math.pi])
-        else:  # heading across the ego path
-            j = int(rng.integers(0, len(ego_path)))
-            h = rng.uniform(-math.pi, math.pi)
-            start = ego_path[j] - rng.uniform(3, 25) * np.array([math.cos(h), math.sin(h)])
-        cands = [wander(rng, start, h)]
-        if rng.random() < 0.2:
-            cands.append(wander(rng, start, h + rng.normal(0, 1)))
-        xy.append(start)
-        heading.append(h)
-        paths.append(cands[0] if len(cands) == 1 else cands)
-    speed = rng.uniform(0, 14, n)
-    speed[rng.random(n) < 0.25] = 0.0
-    valid = rng.random(n) > 0.1
-    valid[0] = True
-    return Frame.from_arrays(
-        np.array(xy),
-        np.array(heading),
-        speed,
-        rng.uniform(0, 6, n),
-        rng.uniform(0, 2.5, n),
-        paths,
-        ego=0,
-        kinds=[KINDS[k] for k in rng.integers(0, 4, n)],
-        valid=valid,
-    )
-
-
 @settings(max_examples=120, deadline=None)
 @given(st.integers(0, 2**32 - 1))
 def test_random_frames_agree(seed):
-    assert_agree(
-        random_frame(np.random.default_rng(seed)), prediction=PredictionSettings(3.0, 0.25)
-    )
+    assert_agree(mixed_frame(np.random.default_rng(seed)), prediction=PredictionSettings(3.0, 0.25))
 
 
 @settings(max_examples=10, deadline=None)
@@ -104,14 +46,14 @@ def test_random_frames_with_other_parameters_agree(seed):
         "circles": CirclesParams(n_circles=5, sigma_scale=1.0, epsilon_m=2.0),
         "survival": SurvivalParams(escape_time_s=1.1),
     }
-    assert_agree(random_frame(np.random.default_rng(seed)), params, PredictionSettings(4.0, 0.5))
+    assert_agree(mixed_frame(np.random.default_rng(seed)), params, PredictionSettings(4.0, 0.5))
 
 
 def test_default_prediction_settings_agree():
     """T = 12 s, dt = 0.1 s on a few frames (the reference is slow at 121 steps)."""
     rng = np.random.default_rng(2024)
     for _ in range(3):
-        assert_agree(random_frame(rng))
+        assert_agree(mixed_frame(rng))
 
 
 def test_lane_like_frame_with_merges_and_shared_vertices():

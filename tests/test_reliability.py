@@ -31,11 +31,11 @@ from reliability_cases import (
     session_members,
 )
 
+from base import atomic
+from base.guard import OutputError, OutputGuard, run_with_stall_timeout, same_file
 from converters import scene_format as sf
 from converters.mcap_io import SceneWriter, encode_frame
-from replay import atomic
 from replay.cli import main
-from replay.guard import OutputError, OutputGuard, run_with_stall_timeout, same_file
 from replay.reader import read_scene
 
 

@@ -1,5 +1,5 @@
 """Dataset statistics (replay.stats): hand-computed ROC, FN/FP and cascade answers, the
-exact sweep against risk.metrics, degenerate situations, tables from the engine."""
+exact sweep against its oracle (tests/roc_oracle.py), degenerate situations, tables from the engine."""
 
 from __future__ import annotations
 
@@ -11,16 +11,17 @@ import polars as pl
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from roc_oracle import roc_curve
 
 from replay.engine import run_scene
 from replay.stats import (
+    Situations,
     StatsError,
     StatsSink,
     bootstrap_std_difference,
     cascade_summary,
     compute_stats,
     errors_over_threshold,
-    exact_sweep,
     frames_from_agents,
     model_stats,
     per_situation_rates,
@@ -31,7 +32,12 @@ from replay.stats import (
 )
 from replay.tables import TableSink
 from risk.cascade import CascadeConfig, Stage, Tier
-from risk.metrics import roc_curve
+from risk.metrics import exact_sweep
+
+
+def sweep(scores: np.ndarray, sits: Situations):
+    """:func:`risk.metrics.exact_sweep` over the situations of an agents table."""
+    return exact_sweep(scores, sits.situation, sits.baseline, n_situations=sits.n)
 
 
 def table(rows: list[tuple[str, int, float, bool]], model: str = "gaussian") -> pl.DataFrame:
@@ -63,7 +69,7 @@ HAND = table(
 # ---------------------------------------------------------------------- hand-computed ROC
 def test_exact_sweep_matches_hand_computed_curve():
     sits = situations_of(HAND)
-    sw = exact_sweep(HAND["risk_gaussian"].to_numpy(), sits)
+    sw = sweep(HAND["risk_gaussian"].to_numpy(), sits)
     np.testing.assert_allclose(sw.thresholds, [0.1, 0.3, 0.5, 0.8, 0.9])
     # t=0.9: A keeps its 0.9 (TPR 1/2, FPR 0), B nothing; t=0.8: B keeps its negative.
     np.testing.assert_allclose(sw.mean_tpr, [1.0, 0.75, 0.25, 0.25, 0.25])
@@ -121,7 +127,7 @@ def test_degenerate_situations_are_counted_not_averaged_in():
         ]  # full baseline: FPR undefined
     )
     sits = situations_of(df)
-    sw = exact_sweep(df["risk_gaussian"].to_numpy(), sits)
+    sw = sweep(df["risk_gaussian"].to_numpy(), sits)
     assert (sw.n_no_positive, sw.n_no_negative) == (1, 1)
     # At threshold 0.9 only situation 0 keeps an important agent: TPR 1/1 there, 0/2 in
     # situation 2; situation 1 has no TPR. Averaged in as 0 it would read 1/3.
@@ -172,7 +178,7 @@ def test_exact_sweep_equals_risk_metrics(situations):
     if np.isnan(scores).all():
         return
     sits = situations_of(df)
-    sw = exact_sweep(scores, sits)
+    sw = sweep(scores, sits)
     ref = roc_curve(sits.split(scores), sits.split(sits.baseline), thresholds=sw.thresholds)
     np.testing.assert_allclose(sw.mean_tpr, ref.mean_tpr, atol=1e-12)
     np.testing.assert_allclose(sw.mean_fpr, ref.mean_fpr, atol=1e-12)
@@ -193,7 +199,7 @@ def test_raising_the_threshold_never_keeps_more(situations):
     scores = df["risk_gaussian"].to_numpy()
     if np.isnan(scores).all():
         return
-    sw = exact_sweep(scores, situations_of(df))
+    sw = sweep(scores, situations_of(df))
     for curve in (sw.mean_tpr, sw.mean_fpr, sw.mean_kept):
         c = curve[np.isfinite(curve)]
         assert np.all(np.diff(c) <= 1e-12)  # thresholds ascend, rates descend

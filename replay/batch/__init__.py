@@ -74,16 +74,7 @@ from replay.batch.driver import (
     write_failures,
     write_scenes,
 )
-from replay.batch.engines import (
-    ENGINES,
-    RAY_MISSING,
-    Engine,
-    LocalEngine,
-    RayEngine,
-    WorkerDied,
-    default_workers,
-    make_engine,
-)
+from replay.batch.engines import ENGINES, RAY_MISSING, Engine, RayEngine, make_engine
 from replay.batch.markers import MARKER_FORMAT, completed_conversion, completed_scene
 from replay.batch.records import (
     STAGES,
@@ -95,6 +86,7 @@ from replay.batch.records import (
     SceneDone,
 )
 from replay.batch.tasks import CONVERT_KINDS, convert_one, replay_one
+from replay.pool import LocalEngine, WorkerDied, default_workers
 
 __all__ = [
     "CONVERT_KINDS",

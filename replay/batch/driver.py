@@ -17,18 +17,24 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import astuple, dataclass, field
 from typing import Any
 
+import polars as pl
+from tqdm import tqdm
+
+from base.atomic import safe_name, write_text
+from replay import __version__
 from replay.batch.engines import Engine, make_engine
 from replay.batch.markers import (
     MARKER_FORMAT,
-    atomic_write,
     completed_conversion,
     completed_scene,
     fingerprint,
 )
 from replay.batch.records import ConvertTask, Failure, ReplayTask, SceneDone
-from replay.batch.tasks import convert_one, one_line, replay_one, safe_name
+from replay.batch.tasks import convert_one, one_line, replay_one
 from replay.errors import ReplayError
+from replay.stats import DEFAULT_ERRORS_MODEL, concat_agents
 from risk.cascade import CascadeConfig
+from risk.registry import MODELS
 
 FAILURE_COLUMNS: tuple[str, ...] = ("input", "scene", "stage", "error_type", "reason")
 SCENE_COLUMNS: tuple[str, ...] = (
@@ -60,8 +66,6 @@ class BatchSettings:
     def replay_digest(self) -> str:
         """Hash of everything that decides a per-scene table: the cascade, the models, the
         package version. (``rrd`` is not in it: a marker lists the files it has.)"""
-        from risk import MODELS
-
         return _digest(
             {
                 "format": MARKER_FORMAT,
@@ -91,8 +95,6 @@ def _digest(data: dict[str, Any]) -> str:
 
 
 def _package_version() -> str:
-    from replay import __version__
-
     return __version__
 
 
@@ -378,8 +380,6 @@ def _execute(
         return (engine if isinstance(engine, str) else engine.name), 0
     own = isinstance(engine, str)
     eng = make_engine(engine, workers=workers, address=ray_address) if own else engine
-    from tqdm import tqdm
-
     bar = tqdm(
         total=len(run.replay_todo), unit="scene", desc=f"batch ({eng.name}, {eng.workers} workers)",
         file=sys.stderr, disable=not progress, dynamic_ncols=True, smoothing=0.05,
@@ -459,7 +459,8 @@ def _worker_failure(input_: str, scene: str, exc: BaseException) -> Failure:
 def write_failures(path: pathlib.Path, failures: Iterable[Failure]) -> None:
     """``failures.csv``: one row per failure (a header only when nothing failed)."""
     rows = [astuple(f) for f in failures]
-    atomic_write(path, _csv_text(FAILURE_COLUMNS, rows))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_text(path, _csv_text(FAILURE_COLUMNS, rows))
 
 
 def write_scenes(
@@ -474,7 +475,8 @@ def write_scenes(
     ]  # fmt: skip
     rows += [(f.scene, f.input, "failed", "", "", "", "", "", "") for f in failures if f.scene]
     rows.sort(key=lambda r: r[0])
-    atomic_write(path, _csv_text(SCENE_COLUMNS, rows))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_text(path, _csv_text(SCENE_COLUMNS, rows))
 
 
 def _csv_text(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
@@ -500,10 +502,10 @@ def dataset_stats(
     Scenes are merged in the order given (the driver sorts them by name), so the result
     does not depend on the order in which workers finished.
     """
-    import polars as pl
-
-    from replay.commands.stats import run_stats  # the tail shared with ``replay stats``
-    from replay.stats import DEFAULT_ERRORS_MODEL, concat_agents
+    # Imported here, not at the top: replay.stats.run loads matplotlib (about 1 s with
+    # ``python -X importtime``), and every spawned worker imports this package to run
+    # replay_one; only the driver ever gets here.
+    from replay.stats.run import run_stats  # the tail shared with ``replay stats``
 
     agents = concat_agents([pl.read_parquet(d.table) for d in done])
     frames = pl.concat([pl.read_parquet(d.frames_table) for d in done], how="vertical_relaxed")

@@ -1,33 +1,21 @@
 """Engines: where the tasks run. One small interface (:class:`Engine`), two engines:
-worker processes on this machine (:class:`LocalEngine`) and Ray (:class:`RayEngine`)."""
+worker processes on this machine (:class:`replay.pool.LocalEngine`, the project's one
+process pool) and Ray (:class:`RayEngine`)."""
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import contextlib
-import multiprocessing
-import os
+import logging
 import socket
-from collections import deque
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from replay.batch.tasks import init_worker, one_line
+from replay.batch.tasks import one_line
 from replay.errors import ReplayError
-from replay.lifeline import exit_with_parent
+from replay.pool import LocalEngine, default_workers
 
 ENGINES: tuple[str, ...] = ("local", "ray")
 RAY_MISSING = "Ray is not installed; install it with: pip install 'riskreplay[ray]'"
-
-
-class WorkerDied(ReplayError):
-    """The worker process running a task died (a crash in native code, out of memory)."""
-
-    def __init__(self) -> None:
-        super().__init__(
-            "the worker process died while running this task (a crash in native code or "
-            "out of memory)"
-        )
 
 
 class Engine(Protocol):
@@ -53,126 +41,6 @@ class Engine(Protocol):
     def close(self, *, cancel: bool = False) -> None: ...
 
 
-def default_workers() -> int:
-    """The CPUs this process may run on (the affinity mask, where the OS has one)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # macOS, Windows
-        return max(1, os.cpu_count() or 1)
-
-
-def _quiet_worker(driver: int) -> None:
-    """Initializer of local workers: leave Ctrl-C to the driver, which stops queueing and
-    lets running tasks finish (their outputs are atomic), and set thread counts."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    exit_with_parent(driver)  # a killed driver leaves no orphan workers
-    init_worker()
-
-
-class LocalEngine:
-    """Worker processes on this machine (``ProcessPoolExecutor``, ``spawn`` start).
-
-    When a worker dies, its pool is broken and every task running there fails with it;
-    the engine starts a fresh pool and runs those tasks again one at a time, alone, so
-    that only the task that kills its worker is reported (as :class:`WorkerDied`), while
-    the other tasks wait. A pool found broken when submitting (a worker killed while
-    idle) is replaced at once.
-    """
-
-    name = "local"
-
-    def __init__(self, workers: int | None = None) -> None:
-        self.workers = default_workers() if workers is None else int(workers)
-        if self.workers < 1:
-            raise ReplayError(f"--workers must be >= 1, got {self.workers}")
-        self._pool = self._new_pool()
-        # future -> (function, task, the pool it runs in)
-        self._running: dict[cf.Future, tuple[Callable, Any, cf.ProcessPoolExecutor]] = {}
-        self._suspects: deque[tuple[Callable, Any]] = deque()  # lost with a dead pool
-        self._held: deque[tuple[Callable, Any]] = deque()  # waiting while suspects run
-        self._alone = False  # one suspect is running alone
-
-    def _new_pool(self) -> cf.ProcessPoolExecutor:
-        return cf.ProcessPoolExecutor(
-            max_workers=self.workers,
-            mp_context=multiprocessing.get_context("spawn"),
-            initializer=_quiet_worker,
-            initargs=(os.getpid(),),
-        )
-
-    def _replace_pool(self) -> None:
-        self._pool.shutdown(wait=False)
-        self._pool = self._new_pool()
-
-    @property
-    def pending(self) -> int:
-        return len(self._running) + len(self._suspects) + len(self._held)
-
-    def submit(self, fn: Callable[[Any], Any], task: Any) -> None:
-        if self._suspects or self._alone:
-            self._held.append((fn, task))
-        else:
-            self._start(fn, task)
-
-    def _start(self, fn: Callable[[Any], Any], task: Any) -> None:
-        try:
-            future = self._pool.submit(fn, task)
-        except cf.process.BrokenProcessPool:
-            self._replace_pool()
-            future = self._pool.submit(fn, task)
-        self._running[future] = (fn, task, self._pool)
-
-    def results(self) -> list[tuple[Any, Any]]:
-        out: list[tuple[Any, Any]] = []
-        self._schedule()
-        while not out and self._running:
-            done, _ = cf.wait(self._running, return_when=cf.FIRST_COMPLETED)
-            dead = {self._running[f][2] for f in done if _lost(f)}
-            if dead:  # every call in a dead pool is lost with it: collect them all
-                lost = [f for f, (_, _, pool) in self._running.items() if pool in dead]
-                done = set(done) | cf.wait(lost)[0]
-            broken: list[tuple[Callable, Any]] = []
-            for f in done:
-                fn, task, _ = self._running.pop(f)
-                if _lost(f):
-                    broken.append((fn, task))
-                else:
-                    exc = f.exception()
-                    out.append((task, f.result() if exc is None else exc))
-            if broken and self._alone:  # it ran alone, so it is the culprit
-                out += [(task, WorkerDied()) for _, task in broken]
-            else:
-                self._suspects.extend(broken)
-            if self._pool in dead:
-                self._replace_pool()
-            self._alone = self._alone and bool(self._running)
-            self._schedule()
-        return out
-
-    def _schedule(self) -> None:
-        if self._running:
-            return
-        if self._suspects:
-            self._start(*self._suspects.popleft())
-            self._alone = True
-        else:
-            while self._held:
-                self._start(*self._held.popleft())
-
-    def close(self, *, cancel: bool = False) -> None:
-        if cancel:
-            self._held.clear()
-            self._suspects.clear()
-        self._pool.shutdown(wait=True, cancel_futures=cancel)
-
-
-def _lost(future: cf.Future) -> bool:
-    """True when the call was lost with its pool (a worker process died)."""
-    return isinstance(future.exception(), cf.process.BrokenProcessPool)
-
-
 class RayEngine:
     """Ray tasks on the cluster at ``address`` (``auto``, ``ray://host:10001``, ...) or,
     without an address, on a local Ray instance with ``workers`` CPUs. A Ray instance
@@ -191,8 +59,6 @@ class RayEngine:
         if address:
             _check_reachable(address)
         if not ray.is_initialized():
-            import logging
-
             kwargs: dict[str, Any] = {"logging_level": logging.WARNING, "log_to_driver": False}
             try:
                 if address:

@@ -14,7 +14,7 @@ import os
 import pathlib
 from typing import Any
 
-from replay.atomic import atomic_output, write_text
+from base.atomic import atomic_output, write_text
 from replay.batch.records import ConvertTask, Failure, ReplayTask, SceneDone
 
 MARKER_FORMAT = 1
@@ -103,13 +103,9 @@ def completed_conversion(
 
 
 def write_json(path: pathlib.Path, data: dict[str, Any]) -> None:
-    atomic_write(path, json.dumps(data, indent=1, sort_keys=True) + "\n")
-
-
-def atomic_write(path: pathlib.Path, text: str) -> None:
-    """Write ``text`` to ``path`` via a temporary file in the same folder + os.replace."""
+    """``data`` as JSON to ``path`` atomically (its folder created if needed)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_text(path, text)
+    write_text(path, json.dumps(data, indent=1, sort_keys=True) + "\n")
 
 
 def write_parquet(path: pathlib.Path, df: Any) -> None:

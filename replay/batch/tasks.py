@@ -8,15 +8,13 @@ pickle them; both never raise for a bad input: every exception becomes a
 from __future__ import annotations
 
 import contextlib
-import os
 import pathlib
-import re
 import time
 import traceback
-import warnings
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
+from base.atomic import safe_name
 from replay.batch.markers import write_convert_marker, write_parquet, write_replay_marker
 from replay.batch.records import (
     ConvertOutcome,
@@ -26,7 +24,10 @@ from replay.batch.records import (
     ReplayTask,
     SceneDone,
 )
-from replay.errors import ReplayError
+from replay.errors import ReplayError, SceneFormatError
+from replay.reader import open_scene
+from replay.user_errors import user_errors
+from replay.worker import replay_scene
 
 if TYPE_CHECKING:
     from risk.frame import Scene
@@ -35,44 +36,24 @@ CONVERT_KINDS: tuple[str, ...] = ("waymo", "av2", "commonroad", "interaction")
 _TRANSIENT = (OSError, MemoryError)
 
 
-def init_worker() -> None:
-    """Process-pool initializer: one thread per worker for the libraries that would
-    otherwise start one per core each (parallelism comes from the processes). Runs
-    before polars is imported in a spawned worker, which reads it at import."""
-    for var in ("POLARS_MAX_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
-
-
 def replay_one(task: ReplayTask) -> ReplayOutcome:
     """Replay one scene into its tables (and recording), then write its done-marker.
 
     Never raises for a bad scene: every exception becomes the outcome's Failure.
     """
     start = time.perf_counter()
-    stage = "setup"
+    stage = "read"
     try:
-        from replay.engine import ReplayWarning, run_scene
-        from replay.reader import open_scene
-        from replay.stats import StatsSink
-
-        stage = "read"
         reader = open_scene(task.scene)
         stage = "replay"
-        collect = StatsSink(task.name)
-        sinks: list[Any] = [collect]
-        if task.recording is not None:
-            from recordings import SceneRecorder
-
-            pathlib.Path(task.recording).parent.mkdir(parents=True, exist_ok=True)
-            sinks.append(SceneRecorder(task.recording))
-        # Warnings (frames without the ego) are counted in scenes.csv, not printed by
-        # every worker over the progress bar.
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ReplayWarning)
-            summary = run_scene(reader, sinks=sinks, cascade=task.cascade, progress=False)
+        # Frames without the ego are counted in scenes.csv, not warned about.
+        tables = replay_scene(
+            reader, name=task.name, cascade=task.cascade, recording=task.recording
+        )
+        summary = tables.summary
         stage = "write"
-        write_parquet(pathlib.Path(task.table), collect.agents())
-        write_parquet(pathlib.Path(task.frames_table), collect.frames())
+        write_parquet(pathlib.Path(task.table), tables.agents)
+        write_parquet(pathlib.Path(task.frames_table), tables.frames)
         done = SceneDone(
             name=task.name,
             input=task.input,
@@ -215,9 +196,9 @@ def _scene_name(task: ConvertTask, scene: Scene, label: str, used: set[str]) -> 
 def failure_from(input_: str, scene: str, stage: str, exc: BaseException) -> Failure:
     """A Failure from an exception; the stage follows the exception type where it says
     more than the step we were in (a damaged MCAP found mid-replay is a read error)."""
+    # Imported on a failure only: the recordings package loads rerun (about 1 s with
+    # ``python -X importtime``), which a worker that writes no recording need not pay.
     from recordings.errors import RecordingError
-    from replay.cli import user_errors
-    from replay.errors import SceneFormatError
 
     if isinstance(exc, SceneFormatError):
         stage = "read"
@@ -242,8 +223,3 @@ def _where(exc: BaseException) -> str:
         return ""
     last = frames[-1]
     return f" (at {pathlib.Path(last.filename).name}:{last.lineno} in {last.name})"
-
-
-def safe_name(name: str, fallback: str = "scene") -> str:
-    cleaned = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._")
-    return cleaned or fallback

@@ -7,11 +7,12 @@ import sys
 
 import click
 
+from base.guard import OutputGuard
 from replay.batch import CONVERT_KINDS, ENGINES, BatchReport, BatchSettings, run_batch
 from replay.errors import ReplayError
-from replay.guard import OutputGuard
 from replay.lifeline import sigterm_as_interrupt
 from replay.limits import WORKERS
+from risk.cascade import CascadeConfig
 
 _FAILURES_SHOWN = 5
 
@@ -108,8 +109,6 @@ def batch(
       replay batch womd/training/ --convert waymo -o womd-out/ --workers 8
       replay batch /shared/scenes/ -o /shared/out/ --engine ray --ray-address auto
     """
-    from risk.cascade import CascadeConfig
-
     if ray_address and engine != "ray":
         raise click.UsageError("--ray-address needs --engine ray")
     if convert is None and (map_osm is not None or path_mode != "map"):

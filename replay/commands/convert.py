@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING
 
 import click
 
+from base.guard import OutputGuard
 from replay.cli import LazyGroup
-from replay.guard import OutputGuard
 from replay.limits import AGENTS, ARM_LENGTHS, DURATIONS, PERIODS, SEEDS, SITUATIONS, check_frames
 
 if TYPE_CHECKING:

@@ -6,15 +6,15 @@ import functools
 import math
 import os
 import pathlib
-import re
 from collections.abc import Callable, Iterator, Sequence
 
 import click
 
+from base.atomic import safe_name as safe_name  # re-exported for the convert_* commands
+from base.guard import OutputGuard
 from converters.errors import ConversionError
 from converters.lanegraph import PathSettings
 from converters.tracks import PATH_MODES, Skipped
-from replay.guard import OutputGuard
 
 MCAP_SUFFIX = ".mcap"
 
@@ -76,7 +76,7 @@ def output_option(f: Callable) -> Callable:
 
 
 def guard_outputs(*input_params: str) -> Callable:
-    """Run a converter command inside an :class:`~replay.guard.OutputGuard`: its ``output``
+    """Run a converter command inside an :class:`~base.guard.OutputGuard`: its ``output``
     (a ``.mcap`` file or a folder) is checked against the inputs named by
     ``input_params`` (files, or folders: every file inside) and locked before any work,
     and the scenes it writes appear together when it succeeds, or not at all."""
@@ -129,12 +129,6 @@ def settings_from(horizon_s: float, margin_m: float, max_candidates: int) -> Pat
     if not (math.isfinite(horizon_s) and math.isfinite(margin_m)):
         raise click.BadParameter("--horizon-s and --margin-m must be finite")
     return PathSettings(horizon_s=horizon_s, margin_m=margin_m, max_candidates=max_candidates)
-
-
-def safe_name(name: str, fallback: str) -> str:
-    """A file name stem from a scenario id: letters, digits, ``-``, ``_``, ``.`` only."""
-    cleaned = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._")
-    return cleaned or fallback
 
 
 class Outputs:

@@ -6,6 +6,10 @@ import pathlib
 
 import click
 
+from base.guard import OutputGuard
+from converters.mcap_io import write_scene
+from converters.synthetic import SyntheticSettings, generate_scene
+from replay.commands.run import format_summary, make_sinks, run_with_warnings
 from replay.limits import SEEDS
 from risk.frame import Scene
 
@@ -24,8 +28,6 @@ def demo_scene(
 ) -> Scene:
     """The demo's synthetic four-way intersection: ``n_agents`` vehicles (ego included)
     for ``duration_s`` at ``1 / frame_period_s`` Hz (shorter if the ego leaves the map)."""
-    from converters.synthetic import SyntheticSettings, generate_scene
-
     settings = SyntheticSettings(
         n_agents=n_agents, duration_s=duration_s, frame_period_s=frame_period_s
     )
@@ -54,10 +56,6 @@ def demo(output_dir: pathlib.Path, seed: int, agents: int, progress: bool) -> No
       intersection.rrd      the recording: open it with 'rerun intersection.rrd'
       intersection.parquet  every agent's risks and the cascade decisions, per frame
     """
-    from converters.mcap_io import write_scene
-    from replay.commands.run import format_summary, make_sinks, run_with_warnings
-    from replay.guard import OutputGuard
-
     scene_path = output_dir / "intersection.mcap"
     rrd, table = scene_path.with_suffix(".rrd"), scene_path.with_suffix(".parquet")
     # All three files appear together or not at all; the folder is removed again on failure.

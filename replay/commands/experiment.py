@@ -8,9 +8,22 @@ import time
 
 import click
 
-from replay.guard import OutputGuard
+from base.guard import OutputGuard
+from replay.commands.stats import format_stats
+from replay.experiment import (
+    ExperimentResult,
+    ExperimentSettings,
+    findings,
+    lane_width,
+    model_times_ms,
+    run_experiment,
+    write_experiment,
+)
 from replay.limits import SEEDS, SITUATIONS, WORKERS
+from replay.pool import default_workers
 from replay.stats import DEFAULT_ERRORS_MODEL
+from risk.cascade import CascadeConfig
+from risk.registry import resolve_models
 
 
 @click.command("experiment")
@@ -97,15 +110,6 @@ def experiment(
       roc.png, robustness.png, errors.png, cascade_funnel*.png
       summary.json, roc / errors / funnel / per_frame / per_scene (.parquet and .csv)
     """
-    from replay.experiment import (
-        ExperimentSettings,
-        default_workers,
-        run_experiment,
-        write_experiment,
-    )
-    from risk.cascade import CascadeConfig
-    from risk.registry import resolve_models
-
     resolve_models([errors_model])
     cascade = CascadeConfig.from_toml(cascade_file) if cascade_file else CascadeConfig.default()
     settings = ExperimentSettings(
@@ -135,7 +139,7 @@ def experiment(
 
 
 def _command(
-    settings,
+    settings: ExperimentSettings,
     cascade_file: pathlib.Path | None,
     out_dir: pathlib.Path,
     report_copy: pathlib.Path | None,
@@ -158,10 +162,7 @@ def _command(
     return " ".join(parts)
 
 
-def _summary(result, total_s: float) -> str:
-    from replay.commands.stats import format_stats
-    from replay.experiment import findings, lane_width, model_times_ms
-
+def _summary(result: ExperimentResult, total_s: float) -> str:
     items = findings(
         result.stats,
         model_times_ms(result),

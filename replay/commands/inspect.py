@@ -10,6 +10,8 @@ from typing import Any
 import click
 import numpy as np
 
+from replay.reader import open_scene
+
 VALUE_WIDTH = 70  # long metadata values (e.g. settings JSON) are cut in the table
 
 
@@ -41,8 +43,6 @@ def inspect_cmd(scene: pathlib.Path, as_json: bool) -> None:
 
 def describe(path: pathlib.Path) -> dict[str, Any]:
     """Everything ``inspect`` reports, as plain JSON-able values."""
-    from replay.reader import open_scene
-
     reader = open_scene(path)
     stats = reader.frame_stats()
     n_checked = sum(1 for _ in reader.entries())  # decodes every frame, as `replay run` does

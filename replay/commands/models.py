@@ -8,6 +8,8 @@ from typing import Any
 
 import click
 
+from risk import BASELINE_MODEL, BASELINE_THRESHOLD, MODELS, PredictionSettings
+
 
 def _fmt(value: Any) -> str:
     if value is None:
@@ -23,8 +25,6 @@ def _pair(lon: float, lat: float) -> str:
 
 def models_document() -> dict[str, Any]:
     """Everything ``replay models --json`` prints: models, baseline, prediction settings."""
-    from risk import BASELINE_MODEL, BASELINE_THRESHOLD, MODELS, PredictionSettings
-
     return {
         "models": [
             {

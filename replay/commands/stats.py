@@ -11,10 +11,23 @@ from dataclasses import dataclass
 import click
 import polars as pl
 
+from base.guard import OutputGuard
 from replay.errors import ReplayError
-from replay.guard import OutputGuard
 from replay.limits import WORKERS
-from replay.stats import DEFAULT_ERRORS_MODEL, DatasetStats
+from replay.pool import default_workers, parallel_map
+from replay.stats import (
+    DEFAULT_ERRORS_MODEL,
+    DatasetStats,
+    concat_agents,
+    frames_from_agents,
+    read_agents_table,
+    stage_names_of,
+    tier_names_of,
+)
+from replay.stats.run import run_stats
+from replay.worker import SceneJob, replay_job
+from risk.cascade import CascadeConfig
+from risk.registry import resolve_models
 
 SCENE_SUFFIXES = (".mcap",)
 TABLE_SUFFIXES = (".parquet", ".csv")
@@ -63,46 +76,15 @@ def scene_names(paths: Sequence[pathlib.Path]) -> list[str]:
     return [s if stems.count(s) == 1 else str(p) for s, p in zip(stems, paths, strict=True)]
 
 
-@dataclass(frozen=True)
-class SceneTask:
-    path: pathlib.Path
-    name: str
-    cascade: object  # CascadeConfig
-    models: tuple[str, ...] | None
-
-
-def replay_scene(task: SceneTask) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """The agents and frames tables of one scene (runs in a worker process)."""
-    import warnings
-
-    from replay.engine import run_scene
-    from replay.stats import StatsSink
-
-    sink = StatsSink(task.name)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # skipped frames (no ego) are simply absent
-        run_scene(task.path, sinks=[sink], cascade=task.cascade, models=task.models, progress=False)
-    return sink.agents(), sink.frames()
-
-
 def collect(
     inputs: Inputs,
-    cascade,
+    cascade: CascadeConfig,
     *,
     models: Sequence[str] | None,
     workers: int,
     progress: bool,
 ) -> tuple[pl.DataFrame, pl.DataFrame, list[str], list[str]]:
     """Agents and frames tables of every input, with the stage and tier names."""
-    from replay.experiment import parallel_map
-    from replay.stats import (
-        concat_agents,
-        frames_from_agents,
-        read_agents_table,
-        stage_names_of,
-        tier_names_of,
-    )
-
     stage_names = list(cascade.stage_names)
     cascade_tiers = [t.name for t in cascade.tiers]
     tier_names = cascade_tiers
@@ -111,11 +93,11 @@ def collect(
     names = scene_names([*inputs.scenes, *inputs.tables])
     if inputs.scenes:
         tasks = [
-            SceneTask(p, n, cascade, None if models is None else tuple(models))
+            SceneJob(p, n, cascade, None if models is None else tuple(models))
             for p, n in zip(inputs.scenes, names[: len(inputs.scenes)], strict=True)
         ]
         for a, f in parallel_map(
-            replay_scene,
+            replay_job,
             tasks,
             workers=min(workers, len(tasks)),
             progress=progress,
@@ -208,10 +190,6 @@ def stats(
       summary.json            AUC, std of TPR at TPR 0.95 and 1, kept agents, counts
       roc.png, errors.png, cascade_funnel.png
     """
-    from replay.experiment import default_workers
-    from risk.cascade import CascadeConfig
-    from risk.registry import resolve_models
-
     chosen = resolve_models([m.strip() for m in models.split(",") if m.strip()]) if models else None
     resolve_models([errors_model])
     cascade = CascadeConfig.from_toml(cascade_file) if cascade_file else CascadeConfig.default()
@@ -248,53 +226,6 @@ def stats(
     click.echo("Wrote:")
     for path in result.files.values():
         click.echo(f"  {path}")
-
-
-@dataclass(frozen=True, eq=False)
-class StatsRun:
-    stats: DatasetStats
-    files: dict[str, pathlib.Path]
-
-
-def run_stats(
-    agents: pl.DataFrame,
-    frames: pl.DataFrame,
-    out_dir: pathlib.Path,
-    *,
-    models: Sequence[str] | None,
-    errors_model: str,
-    stage_names: Sequence[str],
-    tier_names: Sequence[str],
-    cascade,
-    inputs: Sequence[str],
-    plots: bool,
-    times: dict[str, float],
-) -> StatsRun:
-    """Compute, write and plot (the shared tail of ``stats`` and ``batch``)."""
-    from replay.stats import compute_stats, write_stats
-
-    start = time.perf_counter()
-    stats = compute_stats(
-        agents,
-        frames,
-        models=models,
-        errors_model=errors_model,
-        stage_names=stage_names,
-        tier_names=tier_names,
-        baseline_threshold=cascade.baseline_threshold,
-        inputs=inputs,
-    )
-    times["statistics"] = time.perf_counter() - start
-    start = time.perf_counter()
-    files = write_stats(stats, out_dir)
-    times["write tables"] = time.perf_counter() - start
-    if plots:
-        from replay.plots import plot_all
-
-        start = time.perf_counter()
-        files.update(plot_all(stats, out_dir))
-        times["plots"] = time.perf_counter() - start
-    return StatsRun(stats, files)
 
 
 def format_stats(stats: DatasetStats, times: dict[str, float] | None = None) -> str:
@@ -336,7 +267,7 @@ def format_stats(stats: DatasetStats, times: dict[str, float] | None = None) -> 
     return "\n".join(lines)
 
 
-def _f(value, fmt: str) -> str:
+def _f(value: float | None, fmt: str) -> str:
     return "n/a" if value is None or value != value else format(value, fmt)
 
 

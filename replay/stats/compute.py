@@ -8,23 +8,25 @@ Everything here works on two polars tables (see ``docs/statistics.md``):
   ``(scene, frame)``;
 - the **frames** table, one row per situation: agent and baseline counts, the cascade's
   agents after each stage, its cumulative false negatives, its tier sizes and (when the
-  frames were replayed, not read from tables) its compute times. :class:`StatsSink`
-  builds both while the engine runs; :func:`frames_from_agents` derives the frames table
-  from an agents table read from disk (without times: tables do not store them).
+  frames were replayed, not read from tables) its compute times.
+  :class:`replay.stats.sink.StatsSink` builds both while the engine runs;
+  :func:`replay.stats.files.frames_from_agents` derives the frames table from an agents
+  table read from disk (without times: tables do not store them).
 
 :func:`compute_stats` turns them into the ROC curves of every model (the paper's Fig. 4),
 the false negatives and false positives over the threshold of one model (Fig. 5), the
-cascade funnel (Fig. 6) and per-scene and per-frame tables; :func:`write_stats` writes
-them (Parquet + CSV, ``summary.json``). Plots are in :mod:`replay.plots`.
+cascade funnel (Fig. 6) and per-scene and per-frame tables;
+:func:`replay.stats.files.write_stats` writes them (Parquet + CSV, ``summary.json``).
+Plots are in :mod:`replay.stats.plots`.
 
 Choices the spec leaves open (documented here and in ``docs/statistics.md``):
 
 - **Sweep**: exact. The thresholds of a model's curve are every distinct score it gives
   in the data, so each situation's TPR and FPR are evaluated at every point where they
-  change. :func:`exact_sweep` gets the mean curves and the std of TPR from cumulative
-  sums over the agents sorted once by score (O(A log A), no situations x thresholds
-  matrix); the tests check it against :func:`risk.metrics.roc_curve` with the same
-  thresholds (whose own default switches to a 2048-point grid above 2048 scores).
+  change. :func:`risk.metrics.exact_sweep` gets the mean curves and the std of TPR from
+  cumulative sums over the agents sorted once by score (O(A log A), no situations x
+  thresholds matrix); the tests check it against a plain loop over situations
+  (``tests/roc_oracle.py``) with the same thresholds.
 - **Undefined rates**: a situation whose baseline set is empty has no TPR, one whose
   baseline set holds every agent has no FPR; each mean is taken over the situations where
   the rate is defined and the excluded situations are counted (``situations`` in
@@ -49,25 +51,18 @@ Choices the spec leaves open (documented here and in ``docs/statistics.md``):
 
 from __future__ import annotations
 
-import json
 import math
-import os
-import pathlib
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import polars as pl
 
-from replay.atomic import atomic_output
-from replay.engine import FrameResult, SceneInfo
-from replay.errors import ReplayError
-from replay.tablecheck import check_agents_table
-from replay.tables import TableSink
-from risk.cascade import CascadeResult
-from risk.metrics import confusion_counts
-from risk.registry import BASELINE_MODEL, MODELS
+from replay.errors import StatsError
+from replay.stats.sink import SITUATION_KEY, model_names_of, stage_names_of, time_columns
+from risk.metrics import Sweep, confusion_counts, exact_sweep
+from risk.registry import BASELINE_MODEL
 
 #: The model of the FN/FP-over-threshold export by default (the paper's Fig. 5).
 DEFAULT_ERRORS_MODEL = "headway_2d"
@@ -77,192 +72,6 @@ TPR_TARGETS = (0.9, 0.95, 1.0)
 TPR_TOLERANCE = 1e-9
 #: Mean TPRs over which the std of TPR is reported as a range (the filtering region).
 HIGH_TPR_RANGE = (0.8, 1.0)
-SITUATION_KEY = ("scene", "frame")
-#: Variances of TPR below this are rounding (see :func:`exact_sweep`); std < 3e-7.
-VAR_ROUNDING = 1e-13
-
-
-class StatsError(ReplayError):
-    """Statistics that cannot be computed from the given input (the message says why)."""
-
-
-# ---------------------------------------------------------------------- collecting
-class StatsSink:
-    """A :class:`replay.engine.Sink` that collects the agents and frames tables of one
-    scene, named ``scene`` in the ``scene`` column of both."""
-
-    def __init__(self, scene: str):
-        self.scene = scene
-        self._table = TableSink(None)
-        self._frames: list[dict[str, Any]] = []
-        self._info: SceneInfo | None = None
-
-    def begin(self, info: SceneInfo) -> None:
-        self._info = info
-        self._table.begin(info)
-        self._frames = []
-
-    def add(self, result: FrameResult) -> None:
-        info = self._require_info()
-        self._table.add(result)
-        row = cascade_frame_row(result.cascade, [t.name for t in info.cascade.tiers])
-        self._frames.append(
-            {"scene": self.scene, "frame": result.index, "t_s": result.frame.t, **row}
-        )
-
-    def close(self) -> None:
-        pass  # everything stays in memory until agents() / frames() are asked for
-
-    def abort(self) -> None:
-        self._frames = []
-        self._table.abort()
-
-    def agents(self) -> pl.DataFrame:
-        """The agents table (TableSink columns with ``scene`` first)."""
-        df = self._table.dataframe()
-        return df.select(pl.lit(self.scene).alias("scene"), pl.all())
-
-    def frames(self) -> pl.DataFrame:
-        """The frames table (one row per processed frame, times included)."""
-        info = self._require_info()
-        return frames_table(
-            self._frames, info.cascade.stage_names, [t.name for t in info.cascade.tiers], timed=True
-        )
-
-    def _require_info(self) -> SceneInfo:
-        if self._info is None:
-            raise StatsError("StatsSink: begin() must be called before add()")
-        return self._info
-
-
-def cascade_frame_row(res: CascadeResult, tier_names: Sequence[str]) -> dict[str, Any]:
-    """One frames-table row (without scene, frame and time) from a cascade result."""
-    row: dict[str, Any] = {
-        "n_others": int(res.others.sum()),
-        "n_baseline": int(res.baseline.sum()),
-    }
-    for name, kept in zip(res.stage_names, res.n_kept, strict=True):
-        row[f"kept_{name}"] = int(kept)
-    for name, fn in zip(res.stage_names, res.false_negatives, strict=True):
-        row[f"fn_{name}"] = int(fn)
-    for name, count in zip(tier_names, res.tier_counts(len(tier_names)), strict=True):
-        row[f"tier_{name}"] = int(count)
-    for name, t in zip(res.stage_names, res.stage_time_s, strict=True):
-        row[f"time_{name}_s"] = float(t)
-    row["sort_time_s"] = float(res.sort_time_s)
-    row["survival_all_time_s"] = float(res.survival_all_time_s)
-    return row
-
-
-def frames_table(
-    rows: Sequence[Mapping[str, Any]],
-    stage_names: Sequence[str],
-    tier_names: Sequence[str],
-    *,
-    timed: bool,
-) -> pl.DataFrame:
-    """The frames table from rows of :func:`cascade_frame_row` plus scene, frame, t_s.
-
-    ``timed=False`` (tables read from disk) gives null time columns.
-    """
-    columns = frame_columns(stage_names, tier_names)
-    schema = {
-        c: _FRAME_DTYPES.get(c, pl.Int64 if not c.endswith("_s") else pl.Float64) for c in columns
-    }
-    df = pl.DataFrame([{c: r.get(c) for c in columns} for r in rows], schema=schema, orient="row")
-    if not timed:
-        df = df.with_columns(
-            pl.lit(None, dtype=pl.Float64).alias(c) for c in _time_columns(stage_names)
-        )
-    return df
-
-
-_FRAME_DTYPES = {"scene": pl.String, "frame": pl.Int64, "t_s": pl.Float64}
-
-
-def frame_columns(stage_names: Sequence[str], tier_names: Sequence[str]) -> list[str]:
-    """The frames-table columns, in order."""
-    return [
-        "scene",
-        "frame",
-        "t_s",
-        "n_others",
-        "n_baseline",
-        *(f"kept_{s}" for s in stage_names),
-        *(f"fn_{s}" for s in stage_names),
-        *(f"tier_{t}" for t in tier_names),
-        *_time_columns(stage_names),
-    ]
-
-
-def _time_columns(stage_names: Sequence[str]) -> list[str]:
-    return [*(f"time_{s}_s" for s in stage_names), "sort_time_s", "survival_all_time_s"]
-
-
-# ---------------------------------------------------------------------- tables from disk
-def stage_names_of(agents: pl.DataFrame) -> list[str]:
-    """The cascade stages recorded in an agents table (``kept_<stage>`` columns, in order)."""
-    return [c.removeprefix("kept_") for c in agents.columns if c.startswith("kept_")]
-
-
-def model_names_of(agents: pl.DataFrame) -> list[str]:
-    """The models whose risks an agents table holds, in registry order."""
-    present = {c.removeprefix("risk_") for c in agents.columns if c.startswith("risk_")}
-    return [m for m in MODELS if m in present]
-
-
-def tier_names_of(agents: pl.DataFrame, fallback: Sequence[str] = ()) -> list[str]:
-    """Tier names in cascade order: the Enum order of a Parquet table's ``tier`` column,
-    else ``fallback`` (the cascade config's tiers), which must name every tier seen."""
-    dtype = agents.schema.get("tier")
-    if isinstance(dtype, pl.Enum):
-        return list(dtype.categories)
-    seen = (
-        set(agents["tier"].drop_nulls().unique().to_list()) if "tier" in agents.columns else set()
-    )
-    missing = sorted(seen - set(fallback))
-    if missing:
-        raise StatsError(
-            f"the table names tiers {missing} that the cascade configuration does not have "
-            f"({', '.join(fallback) or 'none'}); a CSV table does not store the tier order: "
-            "pass the cascade TOML it was made with (--cascade)"
-        )
-    return list(fallback)
-
-
-def frames_from_agents(
-    agents: pl.DataFrame, stage_names: Sequence[str], tier_names: Sequence[str]
-) -> pl.DataFrame:
-    """The frames table of an agents table (no times; frames without agents are absent,
-    because a table has no row for them)."""
-    tier_index = {name: k for k, name in enumerate(tier_names)}
-    tier_code = (
-        agents["tier"].cast(pl.String).replace_strict(tier_index, default=-1, return_dtype=pl.Int64)
-        if "tier" in agents.columns
-        else pl.Series([-1] * agents.height, dtype=pl.Int64)
-    )
-    base = pl.col("baseline")
-    aggs = [
-        pl.col("t_s").first().alias("t_s"),
-        pl.len().cast(pl.Int64).alias("n_others"),
-        base.sum().cast(pl.Int64).alias("n_baseline"),
-        *(pl.col(f"kept_{s}").sum().cast(pl.Int64).alias(f"kept_{s}") for s in stage_names),
-        *((base & ~pl.col(f"kept_{s}")).sum().cast(pl.Int64).alias(f"fn_{s}") for s in stage_names),
-        *(
-            (pl.col("_tier") >= k).sum().cast(pl.Int64).alias(f"tier_{t}")
-            for k, t in enumerate(tier_names)
-        ),
-    ]
-    df = (
-        agents.with_columns(tier_code.alias("_tier"))
-        .group_by(SITUATION_KEY, maintain_order=True)
-        .agg(aggs)
-        .sort(SITUATION_KEY)
-    )
-    df = df.with_columns(
-        pl.lit(None, dtype=pl.Float64).alias(c) for c in _time_columns(stage_names)
-    )
-    return df.select(frame_columns(stage_names, tier_names))
 
 
 # ---------------------------------------------------------------------- situations
@@ -352,112 +161,6 @@ def per_situation_rates(
     return {"tpr": tpr, "fpr": fpr, "kept": np.bincount(s, weights=keep, minlength=sits.n)}
 
 
-# ---------------------------------------------------------------------- exact sweep
-@dataclass(frozen=True, eq=False)
-class Sweep:
-    """A model's mean ROC curve over situations, exact at every distinct score.
-
-    ``thresholds (K,)`` ascending (every distinct finite score); ``mean_tpr``,
-    ``mean_fpr``, ``std_tpr``, ``mean_kept`` ``(K,)``; the fields mean what they mean in
-    :class:`risk.metrics.Sweep` (which the tests use as the oracle).
-    """
-
-    thresholds: np.ndarray
-    mean_tpr: np.ndarray  # over situations with a baseline agent
-    mean_fpr: np.ndarray  # over situations with an agent outside the baseline
-    std_tpr: np.ndarray  # population std (ddof = 0) over the same situations as mean_tpr
-    mean_kept: np.ndarray  # agents with score >= threshold, mean over all situations
-    auc: float  # trapezoids under the mean curve closed with (0, 0) and (1, 1)
-    n_situations: int
-    n_no_positive: int
-    n_no_negative: int
-
-
-def exact_sweep(scores: np.ndarray, sits: Situations) -> Sweep:
-    """The mean ROC curve of ``scores (A,)`` at every distinct score, in O(A log A).
-
-    Why it is exact without an ``(S, K)`` matrix: lowering the threshold past an agent's
-    score adds ``1 / P_s`` to its situation's TPR, so the mean TPR is a cumulative sum
-    of per-agent weights ``1 / (P_s S_P)`` over the agents sorted by score (``S_P``
-    situations with a positive). For the std, TPR_s^2 rises from ``(k/P_s)^2`` to
-    ``((k+1)/P_s)^2`` when the ``(k+1)``-th positive of situation ``s`` (by descending
-    score) enters; tied agents enter together, so any order among them gives the same
-    sum. NaN scores (not an agent) are ignored, as in :mod:`risk.metrics`.
-    """
-    s = np.asarray(scores, dtype=np.float64)
-    ok = ~np.isnan(s)
-    s, base, sit = s[ok], sits.baseline[ok], sits.situation[ok]
-    if s.size == 0:
-        raise StatsError("no agent has a risk value (every score is NaN)")
-    n_sit = sits.n
-    pos = np.bincount(sit[base], minlength=n_sit)
-    neg = np.bincount(sit[~base], minlength=n_sit)
-    n_pos_sits, n_neg_sits = int((pos > 0).sum()), int((neg > 0).sum())
-    order = np.argsort(-s, kind="stable")  # riskiest first
-    s_desc, b_desc, sit_desc = s[order], base[order], sit[order]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        w_tpr = np.where(b_desc, 1.0 / pos[sit_desc], 0.0)
-        w_fpr = np.where(~b_desc, 1.0 / neg[sit_desc], 0.0)
-        w_sq = np.where(b_desc, (2.0 * _rank_in_situation(sit_desc, b_desc) + 1.0)
-                        / pos[sit_desc] ** 2, 0.0)  # fmt: skip
-    # The last agent of each run of equal scores closes that threshold.
-    last = np.flatnonzero(np.r_[s_desc[1:] != s_desc[:-1], True])
-    cum_tpr, cum_fpr, cum_sq = (np.cumsum(w)[last] for w in (w_tpr, w_fpr, w_sq))
-    mean_tpr = _normalised(cum_tpr, n_pos_sits)
-    mean_fpr = _normalised(cum_fpr, n_neg_sits)
-    # E[TPR^2] is 1 when everyone is kept, like the mean: normalise it the same way.
-    mean_sq = _normalised(cum_sq, n_pos_sits)
-    var = mean_sq - mean_tpr**2
-    # E[x^2] - E[x]^2 leaves rounding of a few eps where the spread is 0; sqrt would
-    # blow that up to ~1e-8, so variances below VAR_ROUNDING count as 0.
-    std = np.sqrt(np.where(var < VAR_ROUNDING, 0.0, var))
-    kept = (last + 1) / n_sit
-    rev = slice(None, None, -1)  # descending -> ascending thresholds
-    return Sweep(
-        thresholds=s_desc[last][rev],
-        mean_tpr=mean_tpr[rev],
-        mean_fpr=mean_fpr[rev],
-        std_tpr=std[rev],
-        mean_kept=kept[rev],
-        auc=_auc(mean_fpr, mean_tpr),
-        n_situations=n_sit,
-        n_no_positive=n_sit - n_pos_sits,
-        n_no_negative=n_sit - n_neg_sits,
-    )
-
-
-def _rank_in_situation(sit: np.ndarray, positive: np.ndarray) -> np.ndarray:
-    """For agents sorted by descending score: how many positives of the same situation
-    come before each agent (``(A,)``; only meaningful for positives)."""
-    order = np.argsort(sit, kind="stable")  # by situation, keeping the score order
-    pos_sorted = positive[order].astype(np.int64)
-    before = np.cumsum(pos_sorted) - pos_sorted  # positives before, over all situations
-    s_sorted = sit[order]
-    first = np.r_[0, np.flatnonzero(s_sorted[1:] != s_sorted[:-1]) + 1]
-    group_start = np.repeat(before[first], np.diff(np.r_[first, s_sorted.size]))
-    rank = np.empty(sit.size, dtype=np.int64)
-    rank[order] = before - group_start
-    return rank
-
-
-def _normalised(cum: np.ndarray, n_sits: int) -> np.ndarray:
-    """Mean rates from cumulative weights; the last entry (everyone kept) is exactly 1,
-    so that rounding never hides the TPR = 1 operating point."""
-    if n_sits == 0 or cum.size == 0 or cum[-1] <= 0:
-        return np.full(cum.size, np.nan)
-    return np.minimum(cum / cum[-1], 1.0)
-
-
-def _auc(fpr_desc: np.ndarray, tpr_desc: np.ndarray) -> float:
-    """Trapezoids under the curve, from the strictest threshold; closed with (0, 0) and
-    (1, 1) as :mod:`risk.metrics` does."""
-    if np.isnan(fpr_desc).any() or np.isnan(tpr_desc).any():
-        return math.nan
-    x = np.r_[0.0, fpr_desc, 1.0]
-    y = np.r_[0.0, tpr_desc, 1.0]
-    return float(np.sum(np.diff(x) * (y[1:] + y[:-1]) / 2.0))
-
-
 # ---------------------------------------------------------------------- per model
 @dataclass(frozen=True)
 class OperatingPoint:
@@ -504,7 +207,7 @@ class ModelStats:
 def model_stats(scores: np.ndarray, sits: Situations, model: str) -> ModelStats:
     """ROC curve, AUC and operating points of one model; ``scores (A,)`` in table order."""
     scores = np.asarray(scores, dtype=np.float64)
-    roc = exact_sweep(scores, sits)
+    roc = exact_sweep(scores, sits.situation, sits.baseline, n_situations=sits.n)
     thresholds = {f"tpr_{_fmt(t)}": _threshold_for(roc, t) for t in TPR_TARGETS}
     thresholds["youden"] = _youden_threshold(roc)
     points: dict[str, OperatingPoint] = {}
@@ -911,7 +614,7 @@ def _per_scene(
 ) -> pl.DataFrame:
     """One row per scene: frame counts, mean agents, degenerate frames, the cascade."""
     d = pl.col("degenerate")
-    timed = [c for c in _time_columns(stage_names)]
+    timed = time_columns(stage_names)
     return (
         per_frame.group_by("scene", maintain_order=True)
         .agg(
@@ -933,106 +636,3 @@ def _per_scene(
         )
         .sort("scene")
     )
-
-
-# ---------------------------------------------------------------------- reading, writing
-def read_agents_table(path: str | os.PathLike[str], scene: str | None = None) -> pl.DataFrame:
-    """An agents table written by ``replay run --table`` (.parquet or .csv), with a
-    ``scene`` column (kept when the table has one, else ``scene`` or the file name)."""
-    path = pathlib.Path(path)
-    suffix = path.suffix.lower()
-    try:
-        if suffix == ".parquet":
-            df = pl.read_parquet(path)
-        elif suffix == ".csv":
-            df = pl.read_csv(path, infer_schema_length=None)
-        else:
-            raise StatsError(f"{path}: a table must end in .parquet or .csv")
-    except (pl.exceptions.PolarsError, OSError) as exc:
-        if isinstance(exc, FileNotFoundError):
-            raise
-        raise StatsError(f"{path}: not a readable table ({type(exc).__name__}: {exc})") from None
-    required = {"frame", "t_s", "agent_id", "baseline"}
-    missing = sorted(required - set(df.columns))
-    if missing or not model_names_of(df):
-        what = ", ".join(missing) or "risk_<model>"
-        raise StatsError(f"{path}: not a 'replay run --table' table (no {what} column)")
-    check_agents_table(df, path)  # empty, non-numeric or out-of-range risks
-    if df.schema["baseline"] != pl.Boolean:
-        df = df.with_columns(pl.col("baseline").cast(pl.String).str.to_lowercase() == "true")
-    if "scene" not in df.columns:
-        df = df.select(pl.lit(scene or path.stem).alias("scene"), pl.all())
-    return df.with_columns(pl.col("scene").cast(pl.String), pl.col("frame").cast(pl.Int64))
-
-
-def concat_agents(tables: Sequence[pl.DataFrame]) -> pl.DataFrame:
-    """Agents tables of several scenes as one (tier columns as strings when they differ)."""
-    if not tables:
-        raise StatsError("no tables to combine")
-    dtypes = {str(t.schema.get("tier")) for t in tables}
-    if len(dtypes) > 1:
-        tables = [t.with_columns(pl.col("tier").cast(pl.String)) for t in tables]
-    try:
-        return pl.concat(tables, how="diagonal_relaxed")
-    except pl.exceptions.PolarsError as exc:
-        raise StatsError(f"the tables do not fit together: {exc}") from None
-
-
-def write_stats(stats: DatasetStats, out_dir: str | os.PathLike[str]) -> dict[str, pathlib.Path]:
-    """Write every table as Parquet and CSV and the summary as JSON into ``out_dir``
-    (created if needed); each file atomically. Returns name -> path."""
-    out = pathlib.Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    written: dict[str, pathlib.Path] = {}
-    tables = {
-        "roc": stats.roc,
-        "errors": stats.errors,
-        "funnel": stats.funnel,
-        "per_frame": stats.per_frame,
-        "per_scene": stats.per_scene,
-    }
-    for name, df in tables.items():
-        for suffix in (".parquet", ".csv"):
-            path = out / f"{name}{suffix}"
-            atomic_write(path, lambda tmp, df=df, suffix=suffix: _write_table(df, tmp, suffix))
-            written[f"{name}{suffix}"] = path
-    summary = {**stats.summary, "files": sorted(p.name for p in written.values())}
-    path = out / "summary.json"
-    text = json.dumps(_jsonable(summary), indent=2, allow_nan=False)
-    atomic_write(path, lambda tmp: pathlib.Path(tmp).write_text(text + "\n", encoding="utf-8"))
-    written["summary.json"] = path
-    return written
-
-
-def _write_table(df: pl.DataFrame, tmp: str, suffix: str) -> None:
-    if suffix == ".csv":
-        df.write_csv(tmp)
-    else:
-        df.write_parquet(tmp, compression="zstd")
-
-
-def atomic_write(path: str | os.PathLike[str], write: Callable[[str], Any]) -> pathlib.Path:
-    """``write(tmp)`` to a temporary file beside ``path``, which then replaces ``path``
-    atomically (see :mod:`replay.atomic`)."""
-    try:
-        with atomic_output(path) as tmp:
-            write(str(tmp))
-    except pl.exceptions.PolarsError as exc:  # e.g. a full disk ("os error 28")
-        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise StatsError(f"could not write {path}: {first}") from None
-    return pathlib.Path(path)
-
-
-def _jsonable(value: Any) -> Any:
-    """JSON-safe: NaN and infinities become null (JSON has neither), numpy scalars plain."""
-    if isinstance(value, Mapping):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, (np.integer,)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.bool_):
-        return bool(value)
-    return value

@@ -1,9 +1,10 @@
 """Atomic file output: write beside the target, rename into place only on success.
 
 Every writer of the project (MCAP scenes, tables, recordings, cascade files, statistics,
-plots) goes through here, so that an interrupted run never leaves a half-written file
-and every output gets the permissions of an ordinary new file (``mkstemp`` would make it
-0600). Standard library only, so converters and recordings can use it too.
+plots) goes through here (:func:`atomic_output`, :func:`atomic_write`, :func:`write_text`),
+so that an interrupted run never leaves a half-written file and every output gets the
+permissions of an ordinary new file (``mkstemp`` would make it 0600). Standard library
+only, so every layer can use it (see :mod:`base`).
 """
 
 from __future__ import annotations
@@ -11,11 +12,13 @@ from __future__ import annotations
 import contextlib
 import os
 import pathlib
+import re
 import uuid
 from collections.abc import Callable, Iterator
+from typing import Any
 
 CommitHook = Callable[[pathlib.Path, pathlib.Path], None]
-_commit_hook: CommitHook | None = None  # set by replay.guard.OutputGuard while it is active
+_commit_hook: CommitHook | None = None  # set by base.guard.OutputGuard while it is active
 
 
 def temp_path_beside(path: str | os.PathLike[str]) -> pathlib.Path:
@@ -34,7 +37,7 @@ def temp_path_beside(path: str | os.PathLike[str]) -> pathlib.Path:
 def set_commit_hook(hook: CommitHook | None) -> CommitHook | None:
     """Route :func:`commit` through ``hook`` (None: rename at once); returns the old hook.
 
-    ``replay.guard.OutputGuard`` uses it to commit a command's outputs all together."""
+    ``base.guard.OutputGuard`` uses it to commit a command's outputs all together."""
     global _commit_hook
     previous, _commit_hook = _commit_hook, hook
     return previous
@@ -76,3 +79,20 @@ def write_bytes(path: str | os.PathLike[str], data: bytes) -> pathlib.Path:
 def write_text(path: str | os.PathLike[str], text: str) -> pathlib.Path:
     """Write UTF-8 ``text`` to ``path`` atomically; returns the path."""
     return write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write(path: str | os.PathLike[str], write: Callable[[str], Any]) -> pathlib.Path:
+    """Call ``write(tmp)`` with a temporary file beside ``path`` (for writers that take a
+    file name: polars, matplotlib), which then replaces ``path`` atomically; returns the
+    path."""
+    with atomic_output(path) as tmp:
+        write(str(tmp))
+    return pathlib.Path(path)
+
+
+def safe_name(name: str, fallback: str = "scene") -> str:
+    """A file name stem from data (a scenario id, a file name): letters, digits, ``-``,
+    ``_`` and ``.`` only, every other run of characters one ``_``; ``fallback`` when
+    nothing is left."""
+    cleaned = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._")
+    return cleaned or fallback

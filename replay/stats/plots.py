@@ -10,7 +10,7 @@
 - :func:`plot_funnel`: the cascade funnel with tier sizes (the paper's Fig. 6) beside the
   compute time of each stage and of survival analysis on all agents.
 
-Each function takes the :class:`replay.stats.DatasetStats` (or its parts) and a path,
+Each function takes the :class:`replay.stats.compute.DatasetStats` (or its parts) and a path,
 writes one PNG atomically and returns the path.
 """
 
@@ -30,6 +30,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 import polars as pl
 
+from base.atomic import atomic_write
+from replay.stats.compute import DatasetStats
 from risk.registry import MODELS
 
 #: The paper's colours (Sec. V): blue current distance, orange path distance, green
@@ -354,8 +356,6 @@ def _num(value: Any, fmt: str) -> str:
 
 
 def _save(fig: Any, path: str | os.PathLike[str]) -> pathlib.Path:
-    from replay.stats import atomic_write
-
     try:
         return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png"))
     finally:
@@ -363,9 +363,12 @@ def _save(fig: Any, path: str | os.PathLike[str]) -> pathlib.Path:
 
 
 def plot_all(
-    stats: Any, out_dir: str | os.PathLike[str], *, paper_sigma: Mapping[str, float] | None = None
+    stats: DatasetStats,
+    out_dir: str | os.PathLike[str],
+    *,
+    paper_sigma: Mapping[str, float] | None = None,
 ) -> dict[str, pathlib.Path]:
-    """The standard plots of a :class:`replay.stats.DatasetStats` into ``out_dir``."""
+    """The standard plots of a :class:`replay.stats.compute.DatasetStats` into ``out_dir``."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     summary = stats.summary

@@ -3,7 +3,7 @@
 Every command that writes files runs inside one :class:`OutputGuard`::
 
     with OutputGuard(inputs=[scene], files=[rrd, table], folders=[]) as guard:
-        ...  # the command's work; writers go through replay.atomic as always
+        ...  # the command's work; writers go through base.atomic as always
 
 Entering the guard, before any work starts:
 
@@ -17,11 +17,11 @@ Entering the guard, before any work starts:
    its files with the first one's. Creating the lock file also proves the folder is
    writable, at once rather than after the replay.
 4. **Stale temporary files.** Temporary files of the atomic writers
-   (``.NAME.<12 hex>.tmp``, see :mod:`replay.atomic`) for these outputs can only be
+   (``.NAME.<12 hex>.tmp``, see :mod:`base.atomic`) for these outputs can only be
    left over from an earlier run that was killed (a live writer would hold the lock), so
    they are named on stderr and removed.
 
-While the guard is active, :func:`replay.atomic.commit` does not rename temporary files
+While the guard is active, :func:`base.atomic.commit` does not rename temporary files
 into place; it hands them to the guard. Leaving the guard without an error renames
 them all at once (after checking once more that no target is an input); leaving with any
 error (``KeyboardInterrupt`` and ``SystemExit`` included) removes them, so a command's
@@ -52,17 +52,18 @@ import uuid
 from collections.abc import Callable, Iterable
 from types import TracebackType
 
-from replay import atomic
-from replay.errors import ReplayError
+from base import atomic
 
 TEMP_NAME = re.compile(r"^\.(?P<target>.+)\.[0-9a-f]{12}\.tmp$")
-"""Names of :func:`replay.atomic.temp_path_beside` files (``.NAME.<12 hex>.tmp``)."""
+"""Names of :func:`base.atomic.temp_path_beside` files (``.NAME.<12 hex>.tmp``)."""
 
 LOCK_SUFFIX = ".lock"
 
 
-class OutputError(ReplayError):
-    """An output path cannot be used: it is an input, used twice, locked or unwritable."""
+class OutputError(RuntimeError):
+    """An output path cannot be used: it is an input, used twice, locked or unwritable,
+    or a save stalled. The message is meant for the user (``replay.cli`` prints it as one
+    ``Error:`` line)."""
 
 
 def same_file(a: str | os.PathLike[str], b: str | os.PathLike[str]) -> bool:
@@ -85,7 +86,7 @@ def free_bytes(folder: str | os.PathLike[str]) -> int | None:
 
 
 def target_of_temp(path: str | os.PathLike[str]) -> str | os.PathLike[str]:
-    """The target a temporary file of :mod:`replay.atomic` stands for (else ``path``)."""
+    """The target a temporary file of :mod:`base.atomic` stands for (else ``path``)."""
     m = TEMP_NAME.match(os.path.basename(os.fspath(path)))
     if m is None:
         return path

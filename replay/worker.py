@@ -1,0 +1,77 @@
+"""The one per-scene worker: a scene replayed into its statistics tables (and recording).
+
+``replay stats``, ``replay batch`` and ``replay experiment`` all replay scenes through
+:func:`replay_scene`: the engine with a :class:`~replay.stats.sink.StatsSink` (and a
+:class:`recordings.SceneRecorder` when a recording is asked for), without a progress bar,
+with frames that lack the ego counted in the tables instead of warned about by every
+worker over the driver's progress bar. Other warnings pass through.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import warnings
+from dataclasses import dataclass
+
+import polars as pl
+
+from base.sinks import Sink
+from replay.engine import ReplayWarning, RunSummary, SceneSource, run_scene
+from replay.stats.sink import StatsSink
+from risk.cascade import CascadeConfig
+from risk.frame import Scene
+
+
+@dataclass(frozen=True, eq=False)
+class SceneTables:
+    """One replayed scene: its agents and frames tables and the engine's summary."""
+
+    agents: pl.DataFrame
+    frames: pl.DataFrame
+    summary: RunSummary
+
+
+def replay_scene(
+    source: str | os.PathLike[str] | SceneSource | Scene,
+    *,
+    name: str,
+    cascade: CascadeConfig,
+    models: tuple[str, ...] | None = None,
+    recording: str | os.PathLike[str] | None = None,
+) -> SceneTables:
+    """Replay ``source`` (a scene file, an open reader or an in-memory scene) into its
+    tables, named ``name`` in their ``scene`` column; also write its ``.rrd`` to
+    ``recording`` (its folder is created). Every output is aborted on an error."""
+    collect = StatsSink(name)
+    sinks: list[Sink] = [collect]
+    if recording is not None:
+        # Imported here: rerun adds about a second to every worker's start, and most
+        # workers (statistics, the experiment) write no recording.
+        from recordings import SceneRecorder
+
+        pathlib.Path(recording).parent.mkdir(parents=True, exist_ok=True)
+        sinks.append(SceneRecorder(recording))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ReplayWarning)  # skipped frames: absent from tables
+        summary = run_scene(source, sinks=sinks, cascade=cascade, models=models, progress=False)
+    return SceneTables(collect.agents(), collect.frames(), summary)
+
+
+@dataclass(frozen=True)
+class SceneJob:
+    """A scene file for :func:`replay_job` in a worker process (picklable)."""
+
+    path: pathlib.Path
+    name: str
+    cascade: CascadeConfig
+    models: tuple[str, ...] | None = None
+
+
+def replay_job(job: SceneJob) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """The agents and frames tables of one scene file (runs in a worker process)."""
+    tables = replay_scene(job.path, name=job.name, cascade=job.cascade, models=job.models)
+    return tables.agents, tables.frames
+
+
+__all__ = ["SceneJob", "SceneTables", "replay_job", "replay_scene"]

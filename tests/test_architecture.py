@@ -1,0 +1,169 @@
+"""The import rules of docs/architecture.md that import-linter does not cover: no
+module-level import cycles, and imports at the top of library modules.
+
+(The layers and the forbidden imports are import-linter contracts in pyproject.toml,
+checked by ``lint-imports`` in ``.ci/run``.)
+"""
+
+from __future__ import annotations
+
+import ast
+import pathlib
+
+from conftest import ROOT
+
+PACKAGES = ("risk", "base", "converters", "replay", "recordings")
+
+#: Imports inside functions, each kept for a reason measured or stated at the import
+#: (start-up cost, an optional dependency, an import cycle inside ``risk``). New ones
+#: need a reason too: add them here with it.
+ALLOWED_INNER_IMPORTS = {
+    # risk/cascade.py loads alone (the registry imports the model modules); tomli_w only
+    # to write a cascade file
+    ("risk/cascade.py", "risk"),
+    ("risk/cascade.py", "tomli_w"),
+    # the per-source dispatch of batch conversions, each converter loaded when its
+    # dataset is converted (a failure to load is the task's "setup" failure)
+    ("replay/batch/tasks.py", "converters"),
+    ("replay/batch/tasks.py", "converters.errors"),
+    ("replay/batch/tasks.py", "converters.mcap_io"),
+    ("replay/batch/tasks.py", "converters.tracks"),
+    # optional dependency, installed with the 'ray' extra
+    ("replay/batch/engines.py", "ray"),
+    # rerun (about 1 s) only for workers that write a recording / on a failure
+    ("replay/worker.py", "recordings"),
+    ("replay/batch/tasks.py", "recordings.errors"),
+    # matplotlib (about 1 s) only in the driver, not in every spawned worker
+    ("replay/batch/driver.py", "replay.stats.run"),
+    ("replay/experiment/report.py", "replay.stats.plots"),
+    # `replay --help` stays fast: the error types load numpy, the models and rerun
+    ("replay/user_errors.py", "converters.errors"),
+    ("replay/user_errors.py", "recordings.errors"),
+    ("replay/user_errors.py", "replay.errors"),
+    ("replay/user_errors.py", "risk.errors"),
+}
+
+
+def _modules() -> dict[str, pathlib.Path]:
+    out = {}
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            if path.name.endswith("_pb2.py"):
+                continue
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+            out[name] = path
+    return out
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    test = node.test
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
+
+
+def _top_level_imports(tree: ast.Module) -> list[ast.Import | ast.ImportFrom]:
+    """Imports run when the module loads: module body, ``if``/``try`` blocks in it, but
+    not ``if TYPE_CHECKING:``."""
+    found: list[ast.Import | ast.ImportFrom] = []
+    stack: list[ast.stmt] = list(tree.body)
+    while stack:
+        node = stack.pop()
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            found.append(node)
+        elif isinstance(node, ast.If) and not _is_type_checking(node):
+            stack += node.body + node.orelse
+        elif isinstance(node, ast.Try):
+            stack += node.body + node.orelse + node.finalbody
+            for handler in node.handlers:
+                stack += handler.body
+    return found
+
+
+def _targets(node: ast.Import | ast.ImportFrom, modules: dict[str, pathlib.Path]) -> set[str]:
+    """The project modules an import statement loads (explicitly named)."""
+    if isinstance(node, ast.Import):
+        names = [alias.name for alias in node.names]
+    else:
+        base = node.module or ""
+        names = [f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base for a in node.names]
+    return {n for n in names if n in modules}
+
+
+def _graph() -> dict[str, set[str]]:
+    modules = _modules()
+    graph = {}
+    for name, path in modules.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        graph[name] = set().union(*(_targets(n, modules) for n in _top_level_imports(tree))) - {
+            name
+        }
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                out.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_cycle_finder_finds_a_cycle():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert _cycles(graph) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_module_level_import_cycles():
+    graph = _graph()
+    assert {m.split(".")[0] for m in graph} == set(PACKAGES)
+    assert len(graph) > 60
+    assert _cycles(graph) == []
+
+
+def test_imports_inside_functions_are_the_listed_ones():
+    modules = _modules()
+    found = set()
+    for path in modules.values():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        rel = path.relative_to(ROOT).as_posix()
+        if rel.startswith("replay/commands/") or rel == "replay/cli.py":
+            continue  # the CLI loads each command's module on first use (replay/cli.py)
+        for func in ast.walk(tree):
+            if not isinstance(func, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for node in ast.walk(func):
+                if isinstance(node, ast.Import):
+                    found |= {(rel, a.name) for a in node.names}
+                elif isinstance(node, ast.ImportFrom):
+                    found.add((rel, node.module or ""))
+    assert found - ALLOWED_INNER_IMPORTS == set()
