@@ -150,6 +150,7 @@ def run_scene(
     prediction: Any = None,
     progress: bool = True,
     evaluate: Evaluator | None = None,
+    every: int | Stride = 1,
 ) -> RunSummary:
     """Replay a scene through every model and the cascade, feeding ``sinks``.
 
@@ -159,9 +160,13 @@ def run_scene(
     timelines (default: every registered model). ``params`` (model name -> parameters)
     and ``prediction`` (``risk.PredictionSettings``) go to every model evaluation, the
     cascade's included. Frames where the ego is absent or
-    invalid are skipped and counted (one :class:`ReplayWarning` at the end). On any error
-    every sink is aborted, so no partial output stays behind.
+    invalid are skipped and counted (one :class:`ReplayWarning` at the end). ``every``: a
+    :class:`Stride` (or a whole number of frames); only frames whose index is a multiple
+    of it are replayed, which keeps dataset-wide runs affordable (the others are neither
+    processed nor counted as skipped). On any error every sink is aborted, so no partial
+    output stays behind.
     """
+    stride = Stride.of(every)
     reader, path = _open(source)
     cascade = CascadeConfig.default() if cascade is None else cascade
     if evaluate is None:
@@ -170,7 +175,10 @@ def run_scene(
         evaluate = functools.partial(evaluate, prediction=prediction)
     model_names = _model_names(models)
     try:
-        return _run(reader, path, sinks, cascade, ego, model_names, params, progress, evaluate)
+        return _run(
+            reader, path, sinks, cascade, ego, model_names, params, progress, evaluate,
+            stride.frames_at(float(reader.frame_period_s)),
+        )  # fmt: skip
     finally:
         close = getattr(reader, "close", None)
         if reader is not source and callable(close):
@@ -187,6 +195,7 @@ def _run(
     params: Mapping[str, Any] | None,
     progress: bool,
     evaluate: Evaluator,
+    every: int = 1,
 ) -> RunSummary:
     entries = _entries(reader)
     start = time.perf_counter()
@@ -220,6 +229,8 @@ def _run(
         with bar:
             for index, frame in _timed(totals, itertools.chain([first], entries)):
                 bar.update()
+                if index % every:
+                    continue
                 seen = None if frame is None else _seen_from(frame, ego_id)
                 if seen is None:
                     totals.skipped.append(index)
@@ -241,6 +252,61 @@ def _run(
     if totals.skipped:
         warnings.warn(_skipped_message(ego_id, totals.skipped), ReplayWarning, stacklevel=3)
     return _summary(totals, info, sinks)
+
+
+@dataclass(frozen=True)
+class Stride:
+    """Which frames to replay: every ``frames``-th, or one per ``seconds`` of scene time.
+
+    A stride in seconds becomes ``max(1, round(seconds / frame_period_s))`` frames for each
+    scene, so datasets recorded at 5, 10 or 25 Hz are sampled alike.
+    """
+
+    frames: int = 1
+    seconds: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.seconds is not None:
+            if not (isinstance(self.seconds, (int, float)) and 0 < self.seconds < 1e6):
+                raise ReplayError(f"a stride in seconds must be in (0, 1e6), got {self.seconds!r}")
+        elif (
+            isinstance(self.frames, bool)
+            or not isinstance(self.frames, (int, np.integer))
+            or not 1 <= self.frames <= 1_000_000
+        ):
+            raise ReplayError(f"a frame stride must be a whole number >= 1, got {self.frames!r}")
+
+    @classmethod
+    def of(cls, value: int | Stride) -> Stride:
+        return value if isinstance(value, Stride) else cls(frames=value)
+
+    @classmethod
+    def parse(cls, text: str) -> Stride:
+        """``"10"``: every 10th frame; ``"1s"`` or ``"0.5s"``: one frame per that time."""
+        text = str(text).strip().lower()
+        try:
+            if text.endswith("s"):
+                return cls(seconds=float(text[:-1]))
+            return cls(frames=int(text))
+        except ValueError:
+            raise ReplayError(
+                f"{text!r} is not a stride: give a whole number of frames (10) or seconds (1s)"
+            ) from None
+
+    def frames_at(self, frame_period_s: float) -> int:
+        """The stride in frames for a scene with this frame period."""
+        if self.seconds is None:
+            return int(self.frames)
+        return max(1, round(self.seconds / frame_period_s))
+
+    def __str__(self) -> str:
+        if self.seconds is not None:
+            return f"one frame per {self.seconds:g} s"
+        return "every frame" if self.frames == 1 else f"every {self.frames}th frame"
+
+
+#: The default stride: every frame.
+EVERY_FRAME = Stride()
 
 
 # ---------------------------------------------------------------------- helpers
@@ -310,7 +376,7 @@ def _timed(
 def _timed_sink(totals: _Totals, sink: Sink, method: str, *args: Any) -> None:
     start = time.perf_counter()
     getattr(sink, method)(*args)
-    name = type(sink).__name__
+    name = getattr(sink, "timing_name", type(sink).__name__)
     totals.sink_time_s[name] = totals.sink_time_s.get(name, 0.0) + time.perf_counter() - start
 
 

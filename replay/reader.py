@@ -203,8 +203,13 @@ class SceneReader:
             except _DAMAGE as exc:
                 raise self._damaged(exc) from None
 
-    def entries(self) -> Iterator[FrameEntry]:
-        """Every stored frame in time order, ``frame=None`` where the ego is missing."""
+    def entries(self, *, any_ego: bool = False) -> Iterator[FrameEntry]:
+        """Every stored frame in time order, ``frame=None`` where the ego is missing.
+
+        With ``any_ego`` a frame whose recorded ego is missing is still decoded when any
+        agent is valid, seen from the first valid agent (for replays that choose their own
+        ego per frame, such as ``--ego all``); ``FrameEntry.ego_id`` stays the recorded one.
+        """
         pending: dict[str, dict[int, Any]] = {sf.TOPIC_AGENTS: {}, sf.TOPIC_PATHS: {}}
         classes = {sf.TOPIC_AGENTS: sf.Agents, sf.TOPIC_PATHS: sf.Paths}
         for topic, data in self._messages([sf.TOPIC_AGENTS, sf.TOPIC_PATHS]):
@@ -217,7 +222,7 @@ class SceneReader:
             if index in other:
                 agents = pending[sf.TOPIC_AGENTS].pop(index)
                 paths = pending[sf.TOPIC_PATHS].pop(index)
-                yield self._decode(agents, paths)
+                yield self._decode(agents, paths, any_ego=any_ego)
         for topic, left in pending.items():
             if left:
                 index = min(left)
@@ -275,7 +280,7 @@ class SceneReader:
         )
 
     # ------------------------------------------------------------------ decoding
-    def _decode(self, agents: Any, paths: Any) -> FrameEntry:
+    def _decode(self, agents: Any, paths: Any, *, any_ego: bool = False) -> FrameEntry:
         index = int(agents.frame_index)
         ids = np.array(agents.ids, dtype=np.int64)
         n = ids.size
@@ -298,6 +303,8 @@ class SceneReader:
             self._check_exact(index, f"/agents {name}", fields[name])
         valid = fields["valid"]
         ego_hits = np.flatnonzero((ids == agents.ego_id) & valid)
+        if ego_hits.size == 0 and any_ego:
+            ego_hits = np.flatnonzero(valid)
         entry = {
             "index": index,
             "t_s": float(agents.t_s),

@@ -54,8 +54,8 @@ class TableSink:
             raise ReplayError(f"{self.path}: the folder {self.path.parent} does not exist")
 
     def begin(self, info: SceneInfo) -> None:
+        # Rows accumulate over begin() calls (one per ego with ``--ego all``) until close().
         self._info = info
-        self._chunks = []
 
     def add(self, result: FrameResult) -> None:
         info = self._require_info()

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import polars as pl
 
 from base.sinks import Sink
-from replay.engine import ReplayWarning, RunSummary, SceneSource, run_scene
+from replay.egos import ALL_EGOS, pooled, run_every_ego
+from replay.engine import EVERY_FRAME, ReplayWarning, RunSummary, SceneSource, Stride, run_scene
 from replay.stats.sink import StatsSink
 from risk.cascade import CascadeConfig
 from risk.frame import Scene
@@ -39,10 +40,26 @@ def replay_scene(
     cascade: CascadeConfig,
     models: tuple[str, ...] | None = None,
     recording: str | os.PathLike[str] | None = None,
+    ego: int | str | None = None,
+    every: int | Stride = 1,
 ) -> SceneTables:
     """Replay ``source`` (a scene file, an open reader or an in-memory scene) into its
     tables, named ``name`` in their ``scene`` column; also write its ``.rrd`` to
-    ``recording`` (its folder is created). Every output is aborted on an error."""
+    ``recording`` (its folder is created). Every output is aborted on an error.
+
+    ``ego``: an agent id, None for the recording's ego, or ``"all"`` for every moving
+    agent in turn (:mod:`replay.egos`; a scene file only, and no recording). ``every``:
+    the frame stride."""
+    if ego == ALL_EGOS:
+        if recording is not None:
+            raise ValueError("a recording shows one ego's view; it cannot go with ego='all'")
+        if not isinstance(source, (str, os.PathLike)):
+            raise TypeError("ego='all' replays a scene file")
+        collect = StatsSink(name)
+        egos = run_every_ego(
+            source, sinks=[collect], cascade=cascade, models=models, every=every, progress=False
+        )
+        return SceneTables(collect.agents(), collect.frames(), pooled(egos))
     collect = StatsSink(name)
     sinks: list[Sink] = [collect]
     if recording is not None:
@@ -54,7 +71,10 @@ def replay_scene(
         sinks.append(SceneRecorder(recording))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ReplayWarning)  # skipped frames: absent from tables
-        summary = run_scene(source, sinks=sinks, cascade=cascade, models=models, progress=False)
+        summary = run_scene(
+            source, sinks=sinks, cascade=cascade, models=models, progress=False,
+            ego=None if ego is None else int(ego), every=every,
+        )  # fmt: skip
     return SceneTables(collect.agents(), collect.frames(), summary)
 
 
@@ -66,11 +86,16 @@ class SceneJob:
     name: str
     cascade: CascadeConfig
     models: tuple[str, ...] | None = None
+    ego: int | str | None = None
+    every: Stride = EVERY_FRAME
 
 
 def replay_job(job: SceneJob) -> tuple[pl.DataFrame, pl.DataFrame]:
     """The agents and frames tables of one scene file (runs in a worker process)."""
-    tables = replay_scene(job.path, name=job.name, cascade=job.cascade, models=job.models)
+    tables = replay_scene(
+        job.path, name=job.name, cascade=job.cascade, models=job.models, ego=job.ego,
+        every=job.every,
+    )  # fmt: skip
     return tables.agents, tables.frames
 
 

@@ -31,6 +31,7 @@ from replay.batch.markers import (
 )
 from replay.batch.records import ConvertTask, Failure, ReplayTask, SceneDone
 from replay.batch.tasks import convert_one, one_line, replay_one
+from replay.engine import EVERY_FRAME, Stride
 from replay.errors import ReplayError
 from replay.stats import DEFAULT_ERRORS_MODEL, concat_agents
 from risk.cascade import CascadeConfig
@@ -62,6 +63,8 @@ class BatchSettings:
     convert: str | None = None  # raw dataset kind of the inputs; None: MCAP scenes
     paths: str = "map"  # converters' path mode (map or hindsight)
     map_osm: pathlib.Path | None = None  # the Lanelet2 map of INTERACTION inputs
+    ego: int | str | None = None  # None: each scene's recorded ego; "all": every mover
+    every: Stride = EVERY_FRAME  # frame stride of the replays
 
     def replay_digest(self) -> str:
         """Hash of everything that decides a per-scene table: the cascade, the models, the
@@ -72,6 +75,8 @@ class BatchSettings:
                 "version": _package_version(),
                 "cascade": self.cascade.to_dict(),
                 "models": list(MODELS),
+                "ego": self.ego,
+                "every": [self.every.frames, self.every.seconds],
             }
         )
 
@@ -300,6 +305,8 @@ class _Run:
             marker=str(lay.replay_marker(name)),
             digest=self.replay_digest,
             cascade=self.settings.cascade,
+            ego=self.settings.ego,
+            every=self.settings.every,
         )
 
     def convert_task(self, f: InputFile, marker: pathlib.Path) -> ConvertTask:

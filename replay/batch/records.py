@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from replay.engine import EVERY_FRAME, Stride
 from risk.cascade import CascadeConfig
 
 STAGES: tuple[str, ...] = ("setup", "convert", "read", "replay", "record", "write", "worker")
@@ -38,6 +39,8 @@ class ReplayTask:
     marker: str
     digest: str
     cascade: CascadeConfig
+    ego: int | str | None = None  # None: the recording's ego; "all": every moving agent
+    every: Stride = EVERY_FRAME
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,7 @@ from replay.batch.records import (
     ReplayTask,
     SceneDone,
 )
+from replay.egos import ALL_EGOS
 from replay.errors import ReplayError, SceneFormatError
 from replay.reader import open_scene
 from replay.user_errors import user_errors
@@ -48,8 +49,9 @@ def replay_one(task: ReplayTask) -> ReplayOutcome:
         stage = "replay"
         # Frames without the ego are counted in scenes.csv, not warned about.
         tables = replay_scene(
-            reader, name=task.name, cascade=task.cascade, recording=task.recording
-        )
+            reader if task.ego != ALL_EGOS else task.scene, name=task.name,
+            cascade=task.cascade, recording=task.recording, ego=task.ego, every=task.every,
+        )  # fmt: skip
         summary = tables.summary
         stage = "write"
         write_parquet(pathlib.Path(task.table), tables.agents)

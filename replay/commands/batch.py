@@ -9,6 +9,9 @@ import click
 
 from base.guard import OutputGuard
 from replay.batch import CONVERT_KINDS, ENGINES, BatchReport, BatchSettings, run_batch
+from replay.commands.ego_options import ego_option, every_option
+from replay.egos import ALL_EGOS
+from replay.engine import Stride
 from replay.errors import ReplayError
 from replay.lifeline import sigterm_as_interrupt
 from replay.limits import WORKERS
@@ -69,6 +72,8 @@ _FAILURES_SHOWN = 5
     help="Cascade TOML (stages, thresholds, tiers), e.g. from 'replay calibrate'. "
     "Default: the calibrated cascade shipped with riskreplay.",
 )  # fmt: skip
+@ego_option("Default: each scene's recorded ego. 'all' cannot go with --rrd.")
+@every_option
 @click.option(
     "--strict", is_flag=True,
     help="Exit with an error when any scene failed. Default: only when every scene failed.",
@@ -88,6 +93,8 @@ def batch(
     map_osm: pathlib.Path | None,
     rrd: bool,
     cascade_file: pathlib.Path | None,
+    ego: int | str | None,
+    every: Stride,
     strict: bool,
     progress: bool,
 ) -> None:
@@ -115,6 +122,11 @@ def batch(
         raise click.UsageError("--map and --paths apply to --convert only")
     if map_osm is not None and convert != "interaction":
         raise click.UsageError("--map applies to --convert interaction only")
+    if ego == ALL_EGOS and rrd:
+        raise click.UsageError(
+            "--rrd writes one recording per scene, which shows one ego's view; it cannot go "
+            "with --ego all"
+        )
     cascade = CascadeConfig.from_toml(cascade_file) if cascade_file else CascadeConfig.default()
     settings = BatchSettings(
         cascade=cascade,
@@ -122,6 +134,8 @@ def batch(
         convert=convert,
         paths=path_mode,
         map_osm=None if map_osm is None else map_osm.absolute(),
+        ego=ego,
+        every=every,
     )
     sigterm_as_interrupt()  # SIGTERM stops like Ctrl-C; killed workers' outputs are atomic
     # Locked and checked at once; scenes are committed one by one (resumable), so no

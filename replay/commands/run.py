@@ -8,7 +8,9 @@ import warnings
 import click
 
 from base.guard import OutputGuard
-from replay.engine import ReplayWarning, RunSummary, Sink, run_scene
+from replay.commands.ego_options import ego_option, every_option
+from replay.egos import ALL_EGOS, EgosSummary, pooled, run_every_ego
+from replay.engine import ReplayWarning, RunSummary, Sink, Stride, run_scene
 from risk.cascade import CascadeConfig
 
 
@@ -18,11 +20,12 @@ from risk.cascade import CascadeConfig
     "-o", "--output", type=click.Path(dir_okay=False, path_type=pathlib.Path),
     help="The Rerun recording to write. Default: beside the scene, with suffix .rrd.",
 )  # fmt: skip
-@click.option(
-    "--ego", type=int, default=None,
-    help="Agent id to see the scene from. Default: the recording's ego. Frames where "
-    "this agent is missing are skipped (with a warning).",
-)  # fmt: skip
+@ego_option(
+    "Default: the recording's ego. Frames where the ego is missing are skipped (with a "
+    "warning). With 'all' no recording is written (it shows one ego's view) and the table "
+    "defaults to SCENE.egos.parquet."
+)
+@every_option
 @click.option(
     "--cascade", "cascade_file", type=click.Path(exists=True, dir_okay=False, path_type=pathlib.Path),
     help="Cascade TOML (stages, thresholds, tiers), e.g. from 'replay calibrate'. "
@@ -41,7 +44,8 @@ from risk.cascade import CascadeConfig
 def run(
     scene: pathlib.Path,
     output: pathlib.Path | None,
-    ego: int | None,
+    ego: int | str | None,
+    every: Stride,
     cascade_file: pathlib.Path | None,
     table: pathlib.Path | None,
     no_rrd: bool,
@@ -59,12 +63,45 @@ def run(
     cascade = CascadeConfig.from_toml(cascade_file) if cascade_file else CascadeConfig.default()
     if no_rrd and output is not None:
         raise click.UsageError("--output names the recording; it cannot go with --no-rrd")
-    rrd = None if no_rrd else (output or scene.with_suffix(".rrd"))
     inputs = (scene, cascade_file)
+    if ego == ALL_EGOS:
+        if output is not None:
+            raise click.UsageError(
+                "--output names a recording, which shows one ego's view; --ego all writes "
+                "the table only (--table)"
+            )
+        table = table or scene.with_name(scene.stem + ".egos.parquet")
+        click.echo(
+            "Note: --ego all writes no Rerun recording (it shows one ego's view); replay "
+            "one ego with --ego ID to look at it.",
+            err=True,
+        )
+        with OutputGuard(inputs=inputs, files=(table,)):  # checked before the replay
+            egos = run_every_ego(
+                scene, sinks=make_sinks(None, table), cascade=cascade, every=every,
+                progress=progress,
+            )  # fmt: skip
+        click.echo(format_egos_summary(egos))
+        return
+    rrd = None if no_rrd else (output or scene.with_suffix(".rrd"))
     with OutputGuard(inputs=inputs, files=(rrd, table)):  # checked before the replay
         sinks = make_sinks(rrd, table)
-        summary = run_with_warnings(scene, sinks=sinks, cascade=cascade, ego=ego, progress=progress)
+        summary = run_with_warnings(
+            scene, sinks=sinks, cascade=cascade, ego=ego, progress=progress, every=every
+        )
     click.echo(format_summary(summary))
+
+
+def format_egos_summary(egos: EgosSummary) -> str:
+    """The end-of-run summary of an every-ego replay: the egos, then the pooled funnel."""
+    shown = ", ".join(str(e) for e in egos.egos[:12]) + (", ..." if len(egos.egos) > 12 else "")
+    stride = f", {egos.every}" if egos.every != Stride() else ""
+    head = (
+        f"Egos: {len(egos.egos)} agents that move {egos.min_travel_m:g} m or more ({shown});"
+        f" {egos.ego_frames} ego-frames{stride}"
+    )
+    body = format_summary(pooled(egos)).replace(", ego id -1,", ", every ego,")
+    return head + "\n" + body.replace("frames", "ego-frames", 1)
 
 
 def make_sinks(rrd: pathlib.Path | None, table: pathlib.Path | None) -> list[Sink]:

@@ -12,6 +12,8 @@ import click
 import polars as pl
 
 from base.guard import OutputGuard
+from replay.commands.ego_options import ego_option, every_option
+from replay.engine import EVERY_FRAME, Stride
 from replay.errors import ReplayError
 from replay.limits import WORKERS
 from replay.pool import default_workers, parallel_map
@@ -83,6 +85,8 @@ def collect(
     models: Sequence[str] | None,
     workers: int,
     progress: bool,
+    ego: int | str | None = None,
+    every: Stride = EVERY_FRAME,
 ) -> tuple[pl.DataFrame, pl.DataFrame, list[str], list[str]]:
     """Agents and frames tables of every input, with the stage and tier names."""
     stage_names = list(cascade.stage_names)
@@ -93,7 +97,7 @@ def collect(
     names = scene_names([*inputs.scenes, *inputs.tables])
     if inputs.scenes:
         tasks = [
-            SceneJob(p, n, cascade, None if models is None else tuple(models))
+            SceneJob(p, n, cascade, None if models is None else tuple(models), ego, every)
             for p, n in zip(inputs.scenes, names[: len(inputs.scenes)], strict=True)
         ]
         for a, f in parallel_map(
@@ -160,6 +164,8 @@ def collect(
     default=None,
     help="Processes replaying scenes in parallel. Default: the number of CPUs.",
 )
+@ego_option("Default: each scene's recorded ego. Applies to scenes, not to tables.")
+@every_option
 @click.option("--plots/--no-plots", default=True, show_default=True, help="Write the PNG plots.")
 @click.option(
     "--progress/--no-progress", default=True, show_default=True, help="Progress bar on stderr."
@@ -171,6 +177,8 @@ def stats(
     errors_model: str,
     cascade_file: pathlib.Path | None,
     workers: int | None,
+    ego: int | str | None,
+    every: Stride,
     plots: bool,
     progress: bool,
 ) -> None:
@@ -179,7 +187,7 @@ def stats(
     INPUTS are MCAP scenes, tables written by 'replay run --table' (.parquet or .csv),
     or folders of them. Scenes are replayed (every model on every agent, and the
     cascade; no .rrd); tables are read as they are. A situation is one frame of one
-    scene.
+    scene seen by one ego (with --ego all, every moving agent is an ego in turn).
 
     \b
     Writes into OUTPUT:
@@ -207,6 +215,8 @@ def stats(
             models=engine_models,
             workers=workers or default_workers(),
             progress=progress,
+            ego=ego,
+            every=every,
         )
         times["replay / read"] = time.perf_counter() - start
         result = run_stats(

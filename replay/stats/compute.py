@@ -60,7 +60,13 @@ import numpy as np
 import polars as pl
 
 from replay.errors import StatsError
-from replay.stats.sink import SITUATION_KEY, model_names_of, stage_names_of, time_columns
+from replay.stats.sink import (
+    SITUATION_KEY,
+    model_names_of,
+    stage_names_of,
+    time_columns,
+    with_ego_column,
+)
 from risk.metrics import Sweep, confusion_counts, exact_sweep
 from risk.registry import BASELINE_MODEL
 
@@ -115,6 +121,7 @@ class Situations:
 
 def situations_of(agents: pl.DataFrame) -> Situations:
     """Group an agents table, sorted by scene and frame (:func:`sort_agents`), by situation."""
+    agents = with_ego_column(agents)
     if agents.height == 0:
         raise StatsError("no agent-frames: every frame is empty (no agent besides the ego)")
     for col in (*SITUATION_KEY, "baseline"):
@@ -141,7 +148,7 @@ def situations_of(agents: pl.DataFrame) -> Situations:
 
 def sort_agents(agents: pl.DataFrame) -> pl.DataFrame:
     """The agents table sorted by situation (stable within a situation)."""
-    return agents.sort(SITUATION_KEY, maintain_order=True)
+    return with_ego_column(agents).sort(SITUATION_KEY, maintain_order=True)
 
 
 def per_situation_rates(
@@ -281,8 +288,8 @@ def _std_range(roc: Sweep, tpr_range: tuple[float, float]) -> tuple[float, float
 
 def _tpr_above_min(roc: Sweep) -> float:
     """The highest mean TPR at a threshold above the lowest score (which keeps everyone)."""
-    sel = roc.thresholds > np.min(roc.thresholds)
-    return float(np.nanmax(roc.mean_tpr[sel])) if sel.any() else math.nan
+    sel = (roc.thresholds > np.min(roc.thresholds)) & np.isfinite(roc.mean_tpr)
+    return float(np.max(roc.mean_tpr[sel])) if sel.any() else math.nan
 
 
 def _nanmean(x: np.ndarray) -> float:

@@ -17,7 +17,13 @@ from base.atomic import atomic_write, write_text
 from base.guard import target_of_temp
 from replay.errors import StatsError
 from replay.stats.compute import DatasetStats
-from replay.stats.sink import SITUATION_KEY, frame_columns, model_names_of, time_columns
+from replay.stats.sink import (
+    SITUATION_KEY,
+    frame_columns,
+    model_names_of,
+    time_columns,
+    with_ego_column,
+)
 from replay.tablecheck import check_agents_table
 
 
@@ -27,6 +33,7 @@ def frames_from_agents(
 ) -> pl.DataFrame:
     """The frames table of an agents table (no times; frames without agents are absent,
     because a table has no row for them)."""
+    agents = with_ego_column(agents)
     tier_index = {name: k for k, name in enumerate(tier_names)}
     tier_code = (
         agents["tier"].cast(pl.String).replace_strict(tier_index, default=-1, return_dtype=pl.Int64)
@@ -82,7 +89,11 @@ def read_agents_table(path: str | os.PathLike[str], scene: str | None = None) ->
         df = df.with_columns(pl.col("baseline").cast(pl.String).str.to_lowercase() == "true")
     if "scene" not in df.columns:
         df = df.select(pl.lit(scene or path.stem).alias("scene"), pl.all())
-    return df.with_columns(pl.col("scene").cast(pl.String), pl.col("frame").cast(pl.Int64))
+    return with_ego_column(df).with_columns(
+        pl.col("scene").cast(pl.String),
+        pl.col("ego_id").cast(pl.Int64),
+        pl.col("frame").cast(pl.Int64),
+    )
 
 
 def concat_agents(tables: Sequence[pl.DataFrame]) -> pl.DataFrame:

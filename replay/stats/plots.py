@@ -222,7 +222,9 @@ def plot_robustness(
             lw=1.5,
             label=f"paper: σ {value:g}, {_title(name)}",
         )
-    top = float(np.nanmax(curves["std_tpr"].to_numpy())) if curves.height else 0.1
+    std = curves["std_tpr"].to_numpy() if curves.height else np.zeros(0)
+    # No defined std at all (every situation degenerate, or one situation): a fixed axis.
+    top = float(np.nanmax(std)) if np.isfinite(std).any() and np.nanmax(std) > 0 else 0.1
     ax.set(
         xlim=(0, 1.01),
         ylim=(0, 1.6 * top),  # headroom for the legend above the curves

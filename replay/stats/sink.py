@@ -20,7 +20,7 @@ from risk.cascade import CascadeResult
 from risk.registry import MODELS
 
 #: A situation is one frame of one scene.
-SITUATION_KEY = ("scene", "frame")
+SITUATION_KEY = ("scene", "ego_id", "frame")  # one situation: a frame seen by one ego
 
 
 class StatsSink:
@@ -35,15 +35,20 @@ class StatsSink:
 
     def begin(self, info: SceneInfo) -> None:
         self._info = info
-        self._table.begin(info)
-        self._frames = []
+        self._table.begin(info)  # rows accumulate over begin() calls: one per ego
 
     def add(self, result: FrameResult) -> None:
         info = self._require_info()
         self._table.add(result)
         row = cascade_frame_row(result.cascade, [t.name for t in info.cascade.tiers])
         self._frames.append(
-            {"scene": self.scene, "frame": result.index, "t_s": result.frame.t, **row}
+            {
+                "scene": self.scene,
+                "ego_id": result.frame.ego_id,
+                "frame": result.index,
+                "t_s": result.frame.t,
+                **row,
+            }
         )
 
     def close(self) -> None:
@@ -113,13 +118,14 @@ def frames_table(
     return df
 
 
-_FRAME_DTYPES = {"scene": pl.String, "frame": pl.Int64, "t_s": pl.Float64}
+_FRAME_DTYPES = {"scene": pl.String, "ego_id": pl.Int64, "frame": pl.Int64, "t_s": pl.Float64}
 
 
 def frame_columns(stage_names: Sequence[str], tier_names: Sequence[str]) -> list[str]:
     """The frames-table columns, in order."""
     return [
         "scene",
+        "ego_id",
         "frame",
         "t_s",
         "n_others",
@@ -163,3 +169,10 @@ def tier_names_of(agents: pl.DataFrame, fallback: Sequence[str] = ()) -> list[st
             "pass the cascade TOML it was made with (--cascade)"
         )
     return list(fallback)
+
+
+def with_ego_column(agents: pl.DataFrame) -> pl.DataFrame:
+    """The table with an ``ego_id`` column: hand-made tables without one have a single ego."""
+    if "ego_id" in agents.columns:
+        return agents
+    return agents.with_columns(pl.lit(0, dtype=pl.Int64).alias("ego_id"))
