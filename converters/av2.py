@@ -32,6 +32,7 @@ import polars as pl
 from converters.errors import ConversionError
 from converters.finite import check_grid
 from converters.lanegraph import PathSettings
+from converters.map_lines import av2_lines
 from converters.tracks import Skipped, TrackTable, build_scene, integer_ids
 from risk.frame import Kind, Lane, LaneMap, Scene
 
@@ -199,11 +200,12 @@ def read_lane_map(path: pathlib.Path | None) -> LaneMap:
                     kind=LANE_KINDS.get(str(seg.get("lane_type", "VEHICLE")).upper(), "vehicle"),
                 )
             )
+        lines = av2_lines(data)
     except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise ConversionError(
             f"{path}: not an Argoverse 2 map ({type(exc).__name__}: {exc})"
         ) from None
-    return LaneMap(tuple(sorted(lanes, key=lambda lane: lane.id)))
+    return LaneMap(tuple(sorted(lanes, key=lambda lane: lane.id)), lines=lines)
 
 
 def parquet_to_scene(

@@ -37,6 +37,7 @@ import numpy as np
 from converters.errors import ConversionError
 from converters.finite import MAX_STEPS, check_grid
 from converters.lanegraph import PathSettings, dedupe, lanelet_centerline
+from converters.map_lines import commonroad_lines
 from converters.tracks import Skipped, TrackTable, build_scene
 from risk.frame import Kind, Lane, LaneMap, Scene
 
@@ -208,7 +209,11 @@ def read_lane_map(root: ET.Element, where: str) -> LaneMap:
         kind = next((k for name, k in LANELET_KINDS if name in types), "vehicle")
         successors = tuple(int(s.get("ref", "")) for s in elem.findall("successor"))
         lanes.append(Lane(id=lid, centerline=line, successors=successors, kind=kind))
-    return LaneMap(tuple(lanes))
+    try:
+        lines = commonroad_lines(root)
+    except ValueError as exc:
+        raise ConversionError(f"{where}: lanelet bounds: {exc}") from None
+    return LaneMap(tuple(lanes), lines=lines)
 
 
 def read_obstacles(

@@ -48,6 +48,7 @@ from mcap.writer import Writer as McapWriter
 from tqdm import tqdm
 
 from base.atomic import commit, temp_path_beside
+from converters import foxglove_scene as fg
 from converters import scene_format as sf
 from converters.errors import ConversionError
 from risk.frame import Frame, LaneMap, Scene
@@ -120,7 +121,8 @@ def encode_frame(
 
 
 def encode_map(lane_map: LaneMap) -> sf.Map:
-    """The ``/map`` message: every lane's centre line (mm) and successor ids."""
+    """The ``/map`` message: every lane's centre line (mm) and successor ids, and the
+    other map lines (lane boundaries, road edges, crosswalks; format version 2)."""
     message = sf.Map()
     for lane in lane_map.lanes:
         line = np.asarray(lane.centerline, dtype=np.float64).reshape(-1, 2)
@@ -133,6 +135,23 @@ def encode_map(lane_map: LaneMap) -> sf.Map:
             x_mm=mm[:, 0].tolist(),
             y_mm=mm[:, 1].tolist(),
             successors=[int(s) for s in lane.successors],
+        )
+    for line in lane_map.lines:
+        pts = np.asarray(line.points, dtype=np.float64).reshape(-1, 2)
+        if not np.isfinite(pts).all():
+            raise ConversionError(f"map line {line.id}: a non-finite point")
+        if line.kind not in sf.MAP_LINE_KINDS:
+            raise ConversionError(
+                f"map line {line.id}: kind {line.kind!r} is not one of {', '.join(sf.MAP_LINE_KINDS)}"
+            )
+        mm = quantise(pts, sf.MM_PER_M, f"map line {line.id}")
+        message.lines.add(
+            id=int(line.id),
+            kind=line.kind,
+            style=str(line.style),
+            x_mm=mm[:, 0].tolist(),
+            y_mm=mm[:, 1].tolist(),
+            closed=bool(line.closed),
         )
     return message
 
@@ -177,6 +196,7 @@ class SceneWriter:
         frame_period_s: float,
         metadata: Mapping[str, str] | None = None,
         labels: Mapping[str, Iterable[int]] | None = None,
+        foxglove: bool = False,
     ) -> None:
         if not (math.isfinite(frame_period_s) and frame_period_s > 0):
             raise ConversionError(
@@ -207,9 +227,20 @@ class SceneWriter:
                 self._channels[topic] = self._writer.register_channel(
                     topic=topic, message_encoding=MessageEncoding.Protobuf, schema_id=schema_id
                 )
+            if foxglove:
+                fox_schema = self._writer.register_schema(
+                    name=fg.SCHEMA_NAME, encoding=SchemaEncoding.Protobuf, data=fg.schema_data()
+                )
+                for topic in (fg.TOPIC_FOXGLOVE_MAP, fg.TOPIC_FOXGLOVE_SCENE):
+                    self._channels[topic] = self._writer.register_channel(
+                        topic=topic, message_encoding=MessageEncoding.Protobuf, schema_id=fox_schema
+                    )
+            self._foxglove = foxglove
             self._write(sf.TOPIC_MAP, encode_map(lane_map), 0)
             if labels:
                 self._write(sf.TOPIC_LABELS, encode_labels(labels), 0)
+            if foxglove:
+                self._write(fg.TOPIC_FOXGLOVE_MAP, fg.map_update(lane_map), 0)
         except BaseException:
             self.abort()
             raise
@@ -242,6 +273,8 @@ class SceneWriter:
         log_time = time_ns(frame.t)
         self._write(sf.TOPIC_AGENTS, agents, log_time)
         self._write(sf.TOPIC_PATHS, paths, log_time)
+        if self._foxglove:
+            self._write(fg.TOPIC_FOXGLOVE_SCENE, fg.frame_update(frame, log_time), log_time)
         self._ego_ids.add(int(agents.ego_id))
         self._last_t = frame.t
         self._n_frames += 1
@@ -307,9 +340,12 @@ def _check_metadata(metadata: Mapping[str, str]) -> dict[str, str]:
 
 
 def write_scene(
-    path: str | os.PathLike[str], scene: Scene, *, progress: bool = False
+    path: str | os.PathLike[str], scene: Scene, *, progress: bool = False, foxglove: bool = False
 ) -> pathlib.Path:
     """Write ``scene`` to ``path`` atomically; returns the path.
+
+    ``foxglove``: also write the ``foxglove.SceneUpdate`` channels
+    (:mod:`converters.foxglove_scene`) so that Foxglove draws the traffic.
 
     Raises :class:`~converters.errors.ConversionError` for a scene the format cannot hold
     (no frames, frames out of time order, non-string metadata) and ``OSError`` for file
@@ -326,6 +362,7 @@ def write_scene(
         frame_period_s=scene.frame_period_s,
         metadata=scene.metadata,
         labels=scene.labels,
+        foxglove=foxglove,
     ) as writer:
         for frame in frames:
             writer.add_frame(frame)

@@ -20,8 +20,12 @@ from typing import Any
 
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
-FORMAT_VERSION = 1
-"""Integer version of the format; readers refuse files with a newer major version."""
+FORMAT_VERSION = 2
+"""Integer version of the format; readers refuse files with a newer version and read
+every older one (version 1 lacks ``Map.lines``, which then reads as empty)."""
+
+MAP_LINE_KINDS: tuple[str, ...] = ("lane_boundary", "road_edge", "crosswalk", "stop_line", "other")
+"""The values of ``MapLine.kind`` (version 2). Readers treat an unknown kind as ``other``."""
 
 PROTO_PATH = pathlib.Path(__file__).with_name("scene.proto")
 
@@ -182,6 +186,7 @@ Agents = _CLASSES["Agents"]
 Paths = _CLASSES["Paths"]
 Lane = _CLASSES["Lane"]
 Map = _CLASSES["Map"]
+MapLine = _CLASSES["MapLine"]
 Label = _CLASSES["Label"]
 Labels = _CLASSES["Labels"]
 

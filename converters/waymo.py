@@ -34,6 +34,7 @@ from google.protobuf.message import DecodeError
 
 from converters.errors import ConversionError
 from converters.lanegraph import PathSettings
+from converters.map_lines import waymo_lines
 from converters.scene_format import parse_proto
 from converters.tfrecord import Record, RecordError, read_records
 from converters.tracks import Skipped, TrackTable, build_scene
@@ -184,7 +185,7 @@ def scenario_lane_map(msg: Any) -> LaneMap:
                 kind="bike" if lane.type == BIKE_LANE_TYPE else "vehicle",
             )
         )
-    return LaneMap(tuple(lanes))
+    return LaneMap(tuple(lanes), lines=waymo_lines(msg.map_features))
 
 
 def scenario_labels(msg: Any, where: str) -> dict[str, tuple[int, ...]]:

@@ -12,6 +12,7 @@ instances).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,6 +27,21 @@ class Component:
     component_type: str  # "rerun.components.LineStrip2D"
     archetype: str  # "rerun.archetypes.LineStrips2D"
     item: pa.DataType
+
+    @functools.cached_property
+    def list_type(self) -> pa.DataType:
+        """The column type: a list of ``item`` per row."""
+        return pa.list_(self.item)
+
+    @functools.cached_property
+    def metadata(self) -> dict[str, str]:
+        """The column metadata Rerun reads, except the entity path."""
+        return {
+            "rerun:component": self.name,
+            "rerun:component_type": self.component_type,
+            "rerun:archetype": self.archetype,
+            "rerun:kind": "data",
+        }
 
 
 _POINT2D = pa.list_(pa.field("item", pa.float32(), nullable=False), 2)
@@ -48,6 +64,28 @@ SCALARS = Component(
 )
 SERIES_COLORS = Component(
     "SeriesLines:colors", "rerun.components.Color", "rerun.archetypes.SeriesLines", pa.uint32()
+)
+SERIES_WIDTHS = Component(
+    "SeriesLines:widths", "rerun.components.StrokeWidth", "rerun.archetypes.SeriesLines",
+    pa.float32(),
+)  # fmt: skip
+SERIES_NAMES = Component(
+    "SeriesLines:names", "rerun.components.Name", "rerun.archetypes.SeriesLines", pa.utf8()
+)
+DRAW_ORDER = Component(
+    "LineStrips2D:draw_order", "rerun.components.DrawOrder", "rerun.archetypes.LineStrips2D",
+    pa.float32(),
+)  # fmt: skip
+SHOW_LABELS = Component(
+    "LineStrips2D:show_labels", "rerun.components.ShowLabels", "rerun.archetypes.LineStrips2D",
+    pa.bool_(),
+)  # fmt: skip
+LOG_TEXT = Component("TextLog:text", "rerun.components.Text", "rerun.archetypes.TextLog", pa.utf8())
+LOG_LEVEL = Component(
+    "TextLog:level", "rerun.components.TextLogLevel", "rerun.archetypes.TextLog", pa.utf8()
+)
+LOG_COLOR = Component(
+    "TextLog:color", "rerun.components.Color", "rerun.archetypes.TextLog", pa.uint32()
 )
 
 
@@ -80,11 +118,23 @@ def rows(values: pa.Array | np.ndarray, lengths: np.ndarray, item: pa.DataType) 
     return pa.ListArray.from_arrays(pa.array(offsets), values)
 
 
-def one_per_row(values: np.ndarray, item: pa.DataType, missing: np.ndarray | None = None):
-    """A column of one value per row; rows where ``missing`` is True hold nothing (null)."""
-    offsets = pa.array(np.arange(len(values) + 1, dtype=np.int32))
-    mask = None if missing is None else pa.array(missing)
-    return pa.ListArray.from_arrays(offsets, pa.array(values, item), mask=mask)
+def one_per_row(values, item: pa.DataType, missing: np.ndarray | None = None) -> pa.Array:
+    """A column of one value per row; rows where ``missing`` is True hold nothing (null).
+
+    Built from buffers (validity bitmap + offsets): ``ListArray.from_arrays(mask=...)``
+    would pull in ``pyarrow.compute``, a third of a second to import.
+    """
+    values = values if isinstance(values, pa.Array) else pa.array(values, item)
+    n = len(values)
+    offsets = pa.py_buffer(np.arange(n + 1, dtype=np.int32).tobytes())
+    validity = None
+    if missing is not None:
+        valid = ~np.asarray(missing, dtype=bool)
+        validity = pa.py_buffer(np.packbits(valid, bitorder="little").tobytes())
+    return pa.Array.from_buffers(
+        pa.list_(item), n, [validity, offsets], children=[values],
+        null_count=-1 if missing is not None else 0,
+    )  # fmt: skip
 
 
 @dataclass
@@ -99,17 +149,12 @@ class Batch:
     _arrays: list[pa.Array] = field(default_factory=list)
 
     def add(self, entity: str, component: Component, column: pa.Array) -> None:
-        meta = {
-            "rerun:entity_path": entity,
-            "rerun:component": component.name,
-            "rerun:component_type": component.component_type,
-            "rerun:archetype": component.archetype,
-            "rerun:kind": "data",
-        }
-        name = f"{entity}:{component.name}"
-        self._fields.append(pa.field(name, pa.list_(component.item), metadata=meta))
-        target = pa.list_(component.item)
-        self._arrays.append(column if column.type == target else column.cast(target))
+        target = component.list_type
+        if column.type != target:
+            raise TypeError(f"{entity}:{component.name}: column type {column.type} is not {target}")
+        meta = {"rerun:entity_path": entity, **component.metadata}
+        self._fields.append(pa.field(f"{entity}:{component.name}", target, metadata=meta))
+        self._arrays.append(column)
 
     def __len__(self) -> int:
         return len(self._arrays)

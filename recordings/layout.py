@@ -23,20 +23,28 @@ TIMELINE = "time"  # duration timeline, seconds of the log (Frame.t)
 FRAME_TIMELINE = "frame"  # sequence timeline, frame index in the scene
 
 SCENE = "/scene"
-MAP_LANES = "/scene/map/lanes"
-EGO_BODY = "/scene/ego/body"
+MAP = "/scene/map"
+MAP_LANES = "/scene/map/lanes"  # lane centre lines
+# Map lines of format version 2, one entity per kind (MapLine.kind -> entity).
+MAP_LINES = {
+    "lane_boundary": "/scene/map/lane_boundaries",
+    "road_edge": "/scene/map/road_edges",
+    "crosswalk": "/scene/map/crosswalks",
+    "stop_line": "/scene/map/stop_lines",
+    "other": "/scene/map/other_lines",
+}
+EGO_BODY = "/scene/ego/body"  # capsule + heading nose, label "ego <id>"
 EGO_PATH = "/scene/ego/path"
-AGENTS = "/scene/agents"
-KEPT_BODIES = "/scene/agents/kept"  # survivors of every stage, red by survival risk
-DROPPED_BODIES = "/scene/agents/dropped"  # dropped by a stage, grey
-TIER_OUTLINES = "/scene/agents/tier"  # outline of each survivor in its tier's colour
-MISSED_OUTLINES = "/scene/agents/missed"  # dropped although baseline-important (FN)
-HEADINGS = "/scene/agents/heading"  # a short nose line from the centre to the front
-PREDICTED_PATHS = "/scene/agents/paths"  # forward path candidates of the survivors
-LINKS = "/scene/links"  # one child per stage: ego -> every agent kept after it
+AGENTS = "/scene/agents"  # one subtree per other agent: /scene/agents/<id>/...
+LINKS = "/scene/links"  # optional: one child per stage, ego -> every agent kept after it
 
-RISK = "/risk"  # /risk/<model>/<agent id>: raw risk in the model's units
-RISK_LOG10 = "/risk_log10"  # same, log10, for models whose values span many decades
+# Children of an agent's subtree.
+BODY = "body"  # capsule, heading nose and marker (tier outline / miss ring); miss log rows
+PATH = "path"  # forward path candidates (deeper-tier survivors only)
+RISK = "risk"  # risk/<model>: raw risk in the model's units
+RISK_LOG10 = "risk_log10"  # risk_log10/<model>, for models whose values span many decades
+THRESHOLDS = "/thresholds"  # /thresholds/<model>: a stage threshold in its model's view
+THRESHOLDS_LOG10 = "/thresholds_log10"
 FUNNEL = "/funnel"  # agents left after each step of the cascade
 FALSE_NEGATIVES = "/false_negatives"  # cumulative baseline agents dropped up to a stage
 TIMING = "/timing_ms"  # compute time per stage, milliseconds
@@ -54,23 +62,53 @@ def link_path(index: int, model: str) -> str:
     return f"{LINKS}/{stage_key(index, model)}"
 
 
+def agent_path(agent_id: int) -> str:
+    """The root of one agent's subtree: body, path and risk timelines together."""
+    return f"{AGENTS}/{agent_id}"
+
+
+def body_path(agent_id: int) -> str:
+    return f"{AGENTS}/{agent_id}/{BODY}"
+
+
+def agent_paths_path(agent_id: int) -> str:
+    return f"{AGENTS}/{agent_id}/{PATH}"
+
+
 def risk_path(model: str, agent_id: int, *, log10: bool = False) -> str:
-    return f"{RISK_LOG10 if log10 else RISK}/{model}/{agent_id}"
+    return f"{AGENTS}/{agent_id}/{RISK_LOG10 if log10 else RISK}/{model}"
 
 
-def risk_root(model: str, *, log10: bool = False) -> str:
-    return f"{RISK_LOG10 if log10 else RISK}/{model}"
+def threshold_path(model: str, *, log10: bool = False) -> str:
+    return f"{THRESHOLDS_LOG10 if log10 else THRESHOLDS}/{model}"
 
 
 # ---------------------------------------------------------------------- colours (RGB)
 BACKGROUND = (18, 18, 20)
-LANE = (105, 105, 110)
+LANE = (88, 88, 94)
 LANE_OTHER = (70, 90, 110)  # lanes whose kind is not "vehicle" (crosswalks, bike lanes)
+# Map lines (version 2): muted, below the lanes' contrast, so that agents stay on top.
+MAP_LINE_COLORS = {
+    "lane_boundary": (62, 62, 68),
+    "road_edge": (120, 110, 90),
+    "crosswalk": (70, 95, 120),
+    "stop_line": (110, 70, 70),
+    "other": (60, 60, 60),
+}
+MAP_LINE_WIDTHS_UI = {
+    "lane_boundary": 0.7,
+    "road_edge": 1.3,
+    "crosswalk": 1.0,
+    "stop_line": 1.0,
+    "other": 0.7,
+}
 EGO = (40, 200, 90)
-DROPPED = (95, 95, 100)
+DROPPED = (150, 150, 158)  # lighter than every map line: agents stay on top
 RISK_LOW = (255, 200, 200)  # survivor with the lowest survival risk on the scale
 RISK_HIGH = (215, 25, 25)  # survivor with survival risk >= 1
-MISSED = (255, 225, 0)  # false negative: dropped but baseline-important
+MISSED = (255, 225, 0)  # a miss: dropped although the baseline or hindsight marks it important
+HINDSIGHT = (255, 140, 0)  # ring around a kept agent that really came close (hindsight)
+NOSE = (20, 20, 20)  # heading mark on every body
 OTHERS_SERIES = (230, 230, 230)
 QUIET_SERIES = (75, 75, 80)  # risk lines of agents the cascade never kept
 
@@ -89,15 +127,20 @@ PATH_ALPHA = 140
 LANE_WIDTH_UI = 1.0
 PATH_WIDTH_UI = 1.2
 OUTLINE_WIDTH_UI = 1.5
+NOSE_WIDTH_UI = 1.5
+LABEL_SPACING_M = 7.0
+"""Two labels closer than this (map metres) would overlap at the opening zoom (~10 px/m):
+the less important one gives way (its id still shows on hover)."""
+FOCUS_AGENTS_MAX = 12
+"""At most this many agents open in the risk views (misses first, then deeper tiers): more
+lines than that no longer read as separate agents."""
 
 # Draw order in the 2D view (higher on top).
+ORDER_MAP_LINES = 0.5
 ORDER_MAP = 1.0
 ORDER_LINKS = 5.0
 ORDER_PATHS = 6.0
-ORDER_DROPPED = 10.0
-ORDER_KEPT = 11.0
-ORDER_OUTLINES = 12.0
-ORDER_HEADINGS = 13.0
+ORDER_AGENTS = 11.0  # every agent's body (capsule, nose, marker)
 ORDER_EGO = 14.0
 
 
@@ -196,6 +239,18 @@ def outlines(
     return np.stack([x, y], axis=-1) + xy[:, None, :]
 
 
+def rings(xy: np.ndarray, length: np.ndarray, width: np.ndarray, margin_m: float) -> np.ndarray:
+    """Circles around agents (the miss marker), ``margin_m`` outside the body's corners.
+
+    A round marker stands apart from the rectangular tier outlines at any zoom.
+    Shapes: ``(K, 2)``, ``(K,)`` x2 -> ``(K, 17, 2)`` m (closed).
+    """
+    radius = np.hypot(np.maximum(length, 0.2), np.maximum(width, 0.2)) / 2.0 + margin_m
+    angle = np.linspace(0.0, 2.0 * math.pi, 17)
+    unit = np.stack([np.cos(angle), np.sin(angle)], axis=-1)
+    return xy[:, None, :] + radius[:, None, None] * unit[None, :, :]
+
+
 def noses(xy: np.ndarray, heading: np.ndarray, length: np.ndarray) -> np.ndarray:
     """Heading marks: a strip from the body centre to its front, ``(K, 2, 2)`` m."""
     front = np.stack([np.cos(heading), np.sin(heading)], axis=-1) * (length / 2.0)[:, None]
@@ -243,6 +298,31 @@ def scene_bounds(
     return x_range, y_range
 
 
+def ego_bounds(
+    ego_xy: np.ndarray,
+    *,
+    size_m: float = 120.0,
+    margin_m: float = 20.0,
+    aspect: float = SCENE_ASPECT,
+):
+    """Visual bounds that open the scene view on the ego: ``size_m`` wide around its drive.
+
+    The box is centred on the ego's positions over the scene (``(K, 2)`` map metres), is
+    ``size_m`` wide (``size_m / aspect`` tall), or larger when the ego's drive plus
+    ``margin_m`` on each side needs more, and has the scene view's ``aspect``. Returns
+    ``(x_range, y_range)`` in view coordinates (y flipped).
+    """
+    pts = _finite(ego_xy)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    centre = (lo + hi) / 2.0
+    need = (hi - lo) / 2.0 + margin_m
+    half_x = max(size_m / 2.0, need[0], aspect * need[1])
+    half_y = half_x / aspect
+    x_range = (float(centre[0] - half_x), float(centre[0] + half_x))
+    y_range = (float(-centre[1] - half_y), float(-centre[1] + half_y))
+    return x_range, y_range
+
+
 def _finite(points: np.ndarray) -> np.ndarray:
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     pts = pts[np.isfinite(pts).all(axis=1)]
@@ -257,13 +337,17 @@ def blueprint(
     stage_models: Sequence[str],
     active_model: str | None,
     bounds: tuple[tuple[float, float], tuple[float, float]],
+    focus_agents: Sequence[int] = (),
+    has_misses: bool = False,
     units: dict[str, str] | None = None,
 ) -> rrb.Blueprint:
     """The layout that opens with the recording.
 
     Left (large): the scene from above; below it the funnel, false negatives and compute
-    time. Right: one tab per model with every agent's risk over time (``log10_ranges``:
-    the models plotted as log10, with their y range), and the summary.
+    time. Right: one tab per model with the risk over time of the ``focus_agents`` (the
+    agents that matter: tiers and misses; more can be added in the viewer;
+    ``log10_ranges``: the models plotted as log10, with their y range), and below it the
+    misses list (a text log: clicking a row selects the agent) and the summary.
     """
     x_range, y_range = bounds
     scene = rrb.Spatial2DView(
@@ -272,6 +356,9 @@ def blueprint(
         contents=f"{SCENE}/**",
         background=BACKGROUND,
         visual_bounds=rrb.VisualBounds2D(x_range=x_range, y_range=y_range),
+        # The agents' bodies (one entity each) take these; the map, the ego and the
+        # paths log their own draw order.
+        defaults=[rr.LineStrips2D.from_fields(draw_order=ORDER_AGENTS, show_labels=True)],
     )
     legend = rrb.PlotLegend(corner=rrb.Corner2D.LeftTop, visible=True)
     funnel = rrb.TimeSeriesView(name="Funnel: agents left", origin=FUNNEL, plot_legend=legend)
@@ -280,16 +367,20 @@ def blueprint(
     )
     timing = rrb.TimeSeriesView(name="Compute time (ms)", origin=TIMING, plot_legend=legend)
     risk_tabs = [
-        _risk_view(m, log10_ranges.get(m), m in stage_models, (units or {}).get(m, ""))
+        _risk_view(
+            m, log10_ranges.get(m), m in stage_models, (units or {}).get(m, ""), focus_agents
+        )
         for m in model_names
     ]
+    misses_view = rrb.TextLogView(name="Misses (click a row: select the agent)", origin=AGENTS)
+    summary_view = rrb.TextDocumentView(name="Summary", origin=SUMMARY)
     active = list(model_names).index(active_model) if active_model in model_names else 0
     left = rrb.Vertical(
         scene, rrb.Horizontal(funnel, missed, timing), row_shares=[2.4, 1.3], name="Scene"
     )
     right = rrb.Vertical(
         rrb.Tabs(*risk_tabs, active_tab=active, name="Risk per agent"),
-        rrb.TextDocumentView(name="Summary", origin=SUMMARY),
+        rrb.Tabs(misses_view, summary_view, active_tab=0 if has_misses else 1),
         row_shares=[1.4, 1.0],
     )
     return rrb.Blueprint(
@@ -302,9 +393,17 @@ def blueprint(
 
 
 def _risk_view(
-    model: str, log10_range: tuple[float, float] | None, is_stage: bool, unit: str
+    model: str,
+    log10_range: tuple[float, float] | None,
+    is_stage: bool,
+    unit: str,
+    agents: Sequence[int],
 ) -> rrb.TimeSeriesView:
-    """One model's tab: every agent's risk over time (log10 when a range is given)."""
+    """One model's tab: the risk over time of ``agents`` (log10 when a range is given)."""
+    is_log = log10_range is not None
+    contents = [f"+ {risk_path(model, int(a), log10=is_log)}" for a in agents]
+    if is_stage:
+        contents.append(f"+ {threshold_path(model, log10=is_log)}")
     title = model + (f" [{unit}]" if unit else "")
     if log10_range is not None:
         title = f"log10 {title}"
@@ -312,8 +411,9 @@ def _risk_view(
         title += " · stage"
     return rrb.TimeSeriesView(
         name=title,
-        origin=risk_root(model, log10=log10_range is not None),
-        plot_legend=rrb.PlotLegend(visible=False),  # a hundred agents: a legend is noise
+        origin="/",
+        contents=contents or ["- /**"],
+        plot_legend=rrb.PlotLegend(visible=False),  # the agent id shows on hover
         # Series without their own style (agents the cascade never kept) are quiet grey.
         defaults=[rr.SeriesLines(colors=QUIET_SERIES, widths=1.0)],
         axis_y=None if log10_range is None else rrb.ScalarAxis(range=log10_range),

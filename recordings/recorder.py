@@ -58,14 +58,16 @@ class _FrameRows:
     tier: np.ndarray  # (n,) int, deepest tier, -1 none
     survival: np.ndarray  # (n,) R_S of the survivors, NaN otherwise
     baseline: np.ndarray  # (n,) bool, baseline-important (others only)
+    truth: np.ndarray  # (n,) float, hindsight label: 1 came close, 0 did not, NaN unknown
     risks: dict[str, np.ndarray]  # model -> (n,)
     false_negatives: np.ndarray  # (S,) int
     stage_time_s: np.ndarray  # (S,) s
     sort_time_s: float
     survival_all_time_s: float
     ego_paths: list[np.ndarray]  # the ego's path candidates, each (P, 2) m
-    survivor_paths: np.ndarray  # (R, P, 2) m, survivors' candidates (padded)
+    survivor_paths: np.ndarray  # (R, P, 2) m, deeper-tier survivors' candidates (padded)
     survivor_path_risk: np.ndarray  # (R,) R_S of each candidate's owner (colour)
+    survivor_path_owner: np.ndarray  # (R,) id of each candidate's owner
 
 
 @dataclass
@@ -80,15 +82,25 @@ class _Scene:
     sort_time_ms: np.ndarray  # (F,) ms
     survival_all_time_ms: np.ndarray  # (F,) ms
     rows: dict[str, np.ndarray] = field(default_factory=dict)  # name -> (K, ...) or (S, K)
+    grid: tuple[np.ndarray, ...] | None = None  # _agent_grid's result, computed once
+
+
+@dataclass(frozen=True)
+class _Options:
+    labels: str
+    links: bool
 
 
 class SceneRecorder:
     """Writes the replay of one scene to a Rerun ``.rrd`` file (a replay :class:`Sink`).
 
     ``output``: the ``.rrd`` path (its folder must exist). ``labels``: which agents carry
-    their id as a label in the scene view: ``"kept"`` (survivors and false negatives, the
-    default: readable with 100 agents), ``"all"`` or ``"none"``. ``paths``: draw the
-    survivors' forward path candidates. ``log10_decades``: a model's risk view plots
+    their id as a label in the scene view: ``"kept"`` (the default: the ego, the tier
+    agents and the misses, decluttered so that labels never overlap; every id shows on
+    hover), ``"all"`` or ``"none"``. ``paths``: draw the deeper-tier survivors' forward
+    path candidates. ``links``: draw the paper's Fig. 2 lines from the ego to every agent
+    kept after each stage (off by default: in dense traffic they cover the agents).
+    ``log10_decades``: a model's risk view plots
     log10(risk) when its positive values in the scene span more than this many decades
     (the raw values are always recorded under ``/risk``).
     """
@@ -99,6 +111,7 @@ class SceneRecorder:
         *,
         labels: LabelMode = "kept",
         paths: bool = True,
+        links: bool = False,
         log10_decades: float = 4.0,
         application_id: str = APPLICATION_ID,
     ) -> None:
@@ -107,6 +120,7 @@ class SceneRecorder:
         self.output = pathlib.Path(output)
         self.labels = labels
         self.paths = paths
+        self.links = links
         self.log10_decades = float(log10_decades)
         self.application_id = application_id
         self._info: SceneInfo | None = None
@@ -175,13 +189,16 @@ class SceneRecorder:
             for m in models
             if _decades(scene.rows[f"risk:{m}"]) > self.log10_decades
         }
+        focus = focus_agents(scene)
         bp = L.blueprint(
             model_names=models,
             log10_ranges=log10_ranges,
             stage_models=info.cascade.stage_names,
             units=_units(models),
             active_model=_baseline_model(models),
-            bounds=L.scene_bounds(*_focus_points(scene, info)),
+            bounds=L.ego_bounds(_ego_points(scene, info)),
+            focus_agents=focus,
+            has_misses=bool(scene.rows["miss"].any()),
         )
         rec = rr.RecordingStream(application_id=self.application_id)
         try:
@@ -189,8 +206,9 @@ class SceneRecorder:
             rec.send_recording_name(recording_name(info))
             _log_static(rec, info, scene)
             if frames:
-                _log_scene_layers(rec, info, scene, frames, labels=self.labels)
-                _log_timelines(rec, info, scene, set(log10_ranges))
+                options = _Options(labels=self.labels, links=self.links)
+                _log_scene_layers(rec, info, scene, frames, options=options)
+                _log_timelines(rec, info, scene, set(log10_ranges), focus)
                 _log_cascade_series(rec, info, scene)
             rec.flush()
         except (OSError, RuntimeError) as exc:  # I/O and rerun's native errors; bugs propagate
@@ -229,7 +247,8 @@ def _collect(result: FrameResult, info: SceneInfo, *, keep_paths: bool) -> _Fram
     others = casc.others[idx]
     survivors = others & (casc.dropped_at[idx] < 0)
     ego_paths = frame.agent_paths(frame.ego) if keep_paths else []
-    paths, path_risk = _survivor_paths(frame, casc.survival, idx[survivors], keep_paths)
+    deep = survivors & (casc.tier[idx] >= 1)
+    paths, path_risk = _survivor_paths(frame, casc.survival, idx[deep], keep_paths)
     return _FrameRows(
         index=int(result.index),
         t=float(frame.t),
@@ -244,6 +263,7 @@ def _collect(result: FrameResult, info: SceneInfo, *, keep_paths: bool) -> _Fram
         tier=np.where(survivors, casc.tier[idx], -1).astype(np.int64),
         survival=np.where(survivors, casc.survival[idx], np.nan),
         baseline=np.asarray(casc.baseline[idx], dtype=bool) & others,
+        truth=_truth(result, n)[idx],
         risks={m: np.asarray(result.risks[m][idx], dtype=np.float64) for m in info.model_names},
         false_negatives=np.asarray(casc.false_negatives, dtype=np.int64).reshape(len(stages)),
         stage_time_s=np.asarray(casc.stage_time_s, dtype=np.float64).reshape(len(stages)),
@@ -252,7 +272,38 @@ def _collect(result: FrameResult, info: SceneInfo, *, keep_paths: bool) -> _Fram
         ego_paths=ego_paths,
         survivor_paths=paths,
         survivor_path_risk=path_risk,
+        survivor_path_owner=np.asarray(frame.ids, dtype=np.int64)[
+            _path_owner_rows(frame, idx[deep], keep_paths)
+        ],
     )
+
+
+def _truth(result: FrameResult, n: int) -> np.ndarray:
+    """The hindsight label of every agent as float: 1 came close, 0 did not, NaN unknown.
+
+    Read from ``result.truth_label`` when the run provides it (``(N,)`` of True / False /
+    None-or-NaN for censored); all NaN otherwise.
+    """
+    labels = getattr(result, "truth_label", None)
+    if labels is None:
+        return np.full(n, np.nan)
+    raw = np.asarray(labels, dtype=object).reshape(-1)
+    if raw.size != n:
+        raise RecordingError(
+            f"frame {result.index}: truth_label has {raw.size} values, expected {n}"
+        )
+    unknown = np.equal(raw, None)
+    values = np.where(unknown, np.nan, raw).astype(np.float64)
+    return np.where(np.isnan(values), np.nan, (values != 0).astype(np.float64))
+
+
+def _path_owner_rows(frame, survivor_idx: np.ndarray, keep: bool) -> np.ndarray:
+    """The agent index owning each row of :func:`_survivor_paths`' output."""
+    if not keep or survivor_idx.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    is_survivor = np.zeros(frame.n_agents, dtype=bool)
+    is_survivor[survivor_idx] = True
+    return np.asarray(frame.path_agent)[np.flatnonzero(is_survivor[frame.path_agent])]
 
 
 def _survivor_paths(
@@ -283,7 +334,7 @@ def _concatenate(frames: Sequence[_FrameRows], info: SceneInfo) -> _Scene:
     )
     dtypes = {"ids": np.int64, "xy": np.float64, "heading": np.float64, "length": np.float64}
     dtypes |= {"width": np.float64, "is_ego": bool, "dropped_at": np.int64, "tier": np.int64}
-    dtypes |= {"survival": np.float64, "baseline": bool}
+    dtypes |= {"survival": np.float64, "baseline": bool, "truth": np.float64}
     for name, dtype in dtypes.items():
         parts = [getattr(f, name) for f in frames]
         shape = (0, 2) if name == "xy" else (0,)
@@ -296,6 +347,8 @@ def _concatenate(frames: Sequence[_FrameRows], info: SceneInfo) -> _Scene:
     for m in info.model_names:
         parts = [f.risks[m] for f in frames]
         scene.rows[f"risk:{m}"] = np.concatenate(parts) if parts else np.zeros(0)
+    r = scene.rows
+    r["miss"] = (r["dropped_at"] >= 0) & (r["baseline"] | (r["truth"] == 1.0))
     return scene
 
 
@@ -316,12 +369,36 @@ def _log_static(rec: rr.RecordingStream, info: SceneInfo, scene: _Scene) -> None
             static=True,
             strict=True,
         )
+    _log_map_lines(rec, info)
     rec.log(
         L.SUMMARY,
         rr.TextDocument(summary_markdown(info, scene), media_type="text/markdown"),
         static=True,
         strict=True,
     )
+
+
+def _log_map_lines(rec: rr.RecordingStream, info: SceneInfo) -> None:
+    """Lane boundaries, road edges, crosswalks, ...: one static entity per kind, muted,
+    below the lanes (format version 2 maps; older scenes have none)."""
+    lines = [ln for ln in info.map.lines if len(ln.points) >= 2]
+    for kind, path in L.MAP_LINES.items():
+        strips = [
+            np.vstack([ln.points, ln.points[:1]]) if ln.closed else np.asarray(ln.points)
+            for ln in lines
+            if ln.kind == kind
+        ]
+        if not strips:
+            continue
+        rec.log(
+            path,
+            rr.LineStrips2D(
+                strips, colors=L.MAP_LINE_COLORS[kind], radii=-L.MAP_LINE_WIDTHS_UI[kind],
+                draw_order=L.ORDER_MAP_LINES,
+            ),
+            static=True,
+            strict=True,
+        )  # fmt: skip
 
 
 # ---------------------------------------------------------------------- scene layers
@@ -343,165 +420,261 @@ def _timed_batch(scene: _Scene) -> C.Batch:
     )
 
 
-def _counts(scene: _Scene, mask: np.ndarray) -> np.ndarray:
-    """Rows of ``mask`` per frame: the partition lengths of a layer, ``(F,)``."""
-    return np.bincount(scene.frame_of[mask], minlength=scene.times_s.size)
-
-
-def _add_layer(
-    rec,
-    batch: C.Batch,
-    path: str,
-    lengths: np.ndarray,
-    order: float,
-    *,
-    strips: pa.Array,
-    colors: np.ndarray,
-    radii: np.ndarray,
-    labels: np.ndarray | None = None,
-    show_labels: bool | None = None,
-) -> None:
-    """One line-strip layer for the whole scene: frame ``f``'s instances in row ``f``.
-
-    ``lengths``: ``(F,)`` instances per frame (0 clears the layer in that frame); the
-    other arguments hold the instances of all frames, concatenated: ``colors (K, 3|4)``
-    uint8, ``radii (K,)`` (m; negative: UI points), ``labels (K,)``. The draw order and
-    the label switch hold for the whole layer, so they are logged once, static.
-    """
-    rec.log(
-        path,
-        rr.LineStrips2D.from_fields(draw_order=order, show_labels=show_labels),
-        static=True,
-        strict=True,
-    )
-    batch.add(path, C.STRIPS, C.rows(strips, lengths, C.STRIPS.item))
-    batch.add(path, C.STRIP_COLORS, C.rows(C.pack_colors(colors), lengths, pa.uint32()))
-    batch.add(path, C.STRIP_RADII, C.rows(np.asarray(radii, np.float32), lengths, pa.float32()))
-    if labels is not None:
-        batch.add(path, C.STRIP_LABELS, C.rows(pa.array(labels, pa.utf8()), lengths, pa.utf8()))
-
-
 def _tile(color: tuple[int, ...], k: int) -> np.ndarray:
     return np.tile(np.array(color, dtype=np.uint8), (k, 1))
 
 
-def _log_scene_layers(rec, info: SceneInfo, scene: _Scene, frames, *, labels: str) -> None:
-    """Every layer of the scene view, all frames, in one record batch."""
-    batch = _timed_batch(scene)
-    _add_bodies(rec, batch, info, scene, labels)
-    _add_outlines(rec, batch, info, scene)
-    _add_links(rec, batch, info, scene)
-    _add_paths(rec, batch, info, scene, frames)
+@dataclass
+class _Parts:
+    """Line strips of many cells (a cell = one entity in one frame), built part by part.
+
+    Each :meth:`add` is one strip per member: ``cell (m,)``, ``points (m, P, 2)`` m,
+    ``colors (m, 3|4)`` uint8, ``radii (m,)`` and optional ``labels (m,)``.
+    :meth:`columns` orders the strips by cell, then by part (the order within an
+    entity), and returns list columns with one row per cell: entity ``e``'s column over
+    ``F`` frames is then the zero-copy slice ``[e * F, (e + 1) * F)``.
+    """
+
+    cells: list[np.ndarray] = field(default_factory=list)
+    points: list[np.ndarray] = field(default_factory=list)
+    colors: list[np.ndarray] = field(default_factory=list)
+    radii: list[np.ndarray] = field(default_factory=list)
+    labels: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, cell, points, colors, radii, labels=None) -> None:
+        m = int(cell.size)
+        if m == 0:
+            return
+        colors = np.asarray(colors, dtype=np.uint8)
+        if colors.shape[1] == 3:
+            colors = np.column_stack([colors, np.full(m, 255, np.uint8)])
+        self.cells.append(np.asarray(cell, dtype=np.int64))
+        self.points.append(np.asarray(points, dtype=np.float64))
+        self.colors.append(colors)
+        self.radii.append(np.asarray(radii, dtype=np.float32))
+        self.labels.append(
+            np.full(m, "", dtype="<U1") if labels is None else np.asarray(labels, str)
+        )
+
+    def columns(self, n_cells: int) -> tuple[pa.Array, pa.Array, pa.Array, pa.Array]:
+        if not self.cells:
+            cell = np.zeros(0, np.int64)
+            points, n_points = np.zeros((0, 2)), np.zeros(0, np.int64)
+            colors, radii, labels = (
+                np.zeros(0, np.uint32),
+                np.zeros(0, np.float32),
+                np.zeros(0, str),
+            )
+            order = np.zeros(0, np.int64)
+        else:
+            cell = np.concatenate(self.cells)
+            part = np.repeat(np.arange(len(self.cells)), [c.size for c in self.cells])
+            order = np.lexsort((part, cell))
+            n_points = np.concatenate(
+                [np.full(c.size, p.shape[1]) for c, p in zip(self.cells, self.points, strict=True)]
+            )
+            # Reorder points strip by strip: each point goes where its strip went.
+            strip_of_point = np.repeat(np.arange(n_points.size), n_points)
+            rank = np.empty(n_points.size, dtype=np.int64)
+            rank[order] = np.arange(n_points.size)
+            flat = np.concatenate([p.reshape(-1, 2) for p in self.points])
+            points = flat[np.argsort(rank[strip_of_point], kind="stable")]
+            n_points = n_points[order]
+            colors = C.pack_colors(np.concatenate(self.colors)[order])
+            radii = np.concatenate(self.radii)[order]
+            labels = np.concatenate(self.labels)[order]
+        lengths = np.bincount(cell, minlength=n_cells)
+        return (
+            C.rows(C.strips(points, n_points), lengths, C.STRIPS.item),
+            C.rows(colors, lengths, pa.uint32()),
+            C.rows(radii, lengths, pa.float32()),
+            C.rows(pa.array(labels, pa.utf8()), lengths, pa.utf8()),
+        )
+
+
+def _add_entities(
+    batch: C.Batch,
+    static: C.Batch,
+    paths: Sequence[str],
+    n_frames: int,
+    columns: tuple[pa.Array, pa.Array, pa.Array, pa.Array],
+    order: float | None,
+    *,
+    labels: bool,
+) -> None:
+    """Line-strip entities ``paths[e]`` whose frame-``f`` instances are row ``e*F + f``.
+
+    ``order``: the entities' draw order, logged static with ``show_labels``; None leaves
+    both to the scene view's defaults (the agents' bodies: one entity each, so per-entity
+    static values would cost two columns per agent for the same value).
+    """
+    strips, colors, radii, texts = columns
+    for e, path in enumerate(paths):
+        start = e * n_frames
+        if order is not None:
+            static.add(path, C.DRAW_ORDER, C.one_per_row(np.array([order]), pa.float32()))
+        batch.add(path, C.STRIPS, strips.slice(start, n_frames))
+        batch.add(path, C.STRIP_COLORS, colors.slice(start, n_frames))
+        batch.add(path, C.STRIP_RADII, radii.slice(start, n_frames))
+        if labels:
+            if order is not None:
+                static.add(path, C.SHOW_LABELS, C.one_per_row(np.array([True]), pa.bool_()))
+            batch.add(path, C.STRIP_LABELS, texts.slice(start, n_frames))
+
+
+def _log_scene_layers(rec, info: SceneInfo, scene: _Scene, frames, *, options: _Options) -> None:
+    """Every layer of the scene view, all frames: one timed and one static record batch."""
+    batch, static = _timed_batch(scene), C.Batch()
+    labels = _label_texts(info, scene, options.labels)
+    _add_ego(batch, static, scene, labels)
+    _add_agents(batch, static, info, scene, labels, show=options.labels != "none")
+    if options.links:
+        _add_links(batch, static, info, scene)
+    _add_paths(batch, static, info, scene, frames)
+    static.send(rec)
     batch.send(rec)
+    _log_misses(rec, info, scene)
 
 
-def _add_bodies(rec, batch: C.Batch, info: SceneInfo, scene: _Scene, labels: str) -> None:
-    """Capsules: the ego (green), survivors (red by survival risk), dropped (grey)."""
+def _add_ego(batch: C.Batch, static: C.Batch, scene: _Scene, labels: np.ndarray) -> None:
+    """The ego: a green capsule with a dark heading nose and the label ``ego <id>``."""
     r = scene.rows
-    survivors = ~r["is_ego"] & (r["dropped_at"] < 0)
-    dropped = r["dropped_at"] >= 0
-    missed = dropped & r["baseline"]
-    ids = r["ids"].astype(str)
-    tags = _tier_tags(tuple(t.name for t in info.cascade.tiers))
-    for path, mask, order, text in (
-        (L.EGO_BODY, r["is_ego"], L.ORDER_EGO, np.char.add("ego ", ids)),
-        (L.KEPT_BODIES, survivors, L.ORDER_KEPT, _survivor_labels(ids, r["tier"], tags)),
-        (L.DROPPED_BODIES, dropped, L.ORDER_DROPPED, _dropped_labels(ids, r, missed)),
+    ego = r["is_ego"]
+    cell, k = scene.frame_of[ego], int(ego.sum())
+    parts = _Parts()
+    caps, radius = L.capsules(r["xy"][ego], r["heading"][ego], r["length"][ego], r["width"][ego])
+    parts.add(cell, caps, _tile(L.EGO, k), radius, labels[ego])
+    parts.add(
+        cell, L.noses(r["xy"][ego], r["heading"][ego], r["length"][ego]), _tile(L.NOSE, k),
+        np.full(k, -L.NOSE_WIDTH_UI),
+    )  # fmt: skip
+    columns = parts.columns(scene.times_s.size)
+    _add_entities(
+        batch, static, [L.EGO_BODY], scene.times_s.size, columns, L.ORDER_EGO, labels=True
+    )
+
+
+def _add_agents(
+    batch: C.Batch,
+    static: C.Batch,
+    info: SceneInfo,
+    scene: _Scene,
+    labels: np.ndarray,
+    *,
+    show: bool,
+) -> None:
+    """``/scene/agents/<id>/body`` for every other agent: capsule, nose and marker.
+
+    The capsule is red by survival risk for a survivor, grey when dropped, and yellow
+    when dropped although the baseline or hindsight marks it important (a miss). The
+    marker: a survivor's tier outline, a yellow ring around a miss, an orange ring
+    around a kept agent that really came close (hindsight positive).
+    """
+    r = scene.rows
+    agent_ids, column, _, _ = _agent_grid(scene)
+    n_frames = scene.times_s.size
+    others = column >= 0
+    cell = column[others] * n_frames + scene.frame_of[others]
+    xy, heading = r["xy"][others], r["heading"][others]
+    length, width = r["length"][others], r["width"][others]
+    dropped, tier, miss = r["dropped_at"][others] >= 0, r["tier"][others], r["miss"][others]
+    came_close_kept = ~dropped & (r["truth"][others] == 1.0)
+    rgb = L.risk_colors(r["survival"][others], info.cascade.baseline_threshold)
+    rgb[dropped] = L.DROPPED
+    rgb[miss] = L.MISSED
+    # A label takes the colour of the strip it sits on: it goes on the agent's marker
+    # (white / cyan / magenta tier outline, yellow miss ring, orange hindsight ring) when
+    # it has one, so that the text never reads red on a red body.
+    text = labels[others]
+    tiered = ~dropped & (tier >= 0)
+    ringed = came_close_kept & ~tiered
+    parts = _Parts()
+    caps, radius = L.capsules(xy, heading, length, width)
+    parts.add(cell, caps, rgb, radius, np.where(tiered | miss | ringed, "", text))
+    parts.add(
+        cell, L.noses(xy, heading, length), _tile(L.NOSE, cell.size),
+        np.full(cell.size, -L.NOSE_WIDTH_UI),
+    )  # fmt: skip
+    tier_rgb = np.array([L.tier_color(k) for k in range(max(len(info.cascade.tiers), 1))], np.uint8)
+    parts.add(
+        cell[tiered], L.outlines(xy[tiered], heading[tiered], length[tiered], width[tiered], 0.35),
+        tier_rgb[tier[tiered]], -L.outline_width_ui(tier[tiered]), text[tiered],
+    )  # fmt: skip
+    for mask, label_mask, color, ui, margin in (
+        (miss, miss, L.MISSED, 2.5, 1.2),
+        (came_close_kept, ringed, L.HINDSIGHT, 1.5, 0.8),
     ):
         k = int(mask.sum())
-        caps, radii = L.capsules(
-            r["xy"][mask], r["heading"][mask], r["length"][mask], r["width"][mask]
-        )
-        if path == L.KEPT_BODIES:
-            rgb = L.risk_colors(r["survival"][mask], info.cascade.baseline_threshold)
-        else:
-            rgb = _tile(L.EGO if path == L.EGO_BODY else L.DROPPED, k)
-        show = _label_mask(labels, path, missed[mask])
-        _add_layer(
-            rec, batch, path, _counts(scene, mask), order,
-            strips=C.uniform_strips(caps), colors=rgb, radii=radii,
-            labels=np.where(show, text[mask], ""), show_labels=labels != "none",
+        parts.add(
+            cell[mask], L.rings(xy[mask], length[mask], width[mask], margin), _tile(color, k),
+            np.full(k, -ui), np.where(label_mask, text, "")[mask],
         )  # fmt: skip
-    everyone = np.ones(r["ids"].size, dtype=bool)
-    _add_layer(
-        rec, batch, L.HEADINGS, _counts(scene, everyone), L.ORDER_HEADINGS,
-        strips=C.uniform_strips(L.noses(r["xy"], r["heading"], r["length"])),
-        colors=_tile((20, 20, 20), everyone.size), radii=np.full(everyone.size, -1.5),
-    )  # fmt: skip
+    paths = [L.body_path(int(a)) for a in agent_ids]
+    columns = parts.columns(agent_ids.size * n_frames)
+    # Draw order and show_labels: the scene view's defaults (layout.blueprint).
+    _add_entities(batch, static, paths, n_frames, columns, None, labels=show)
 
 
-def _add_outlines(rec, batch: C.Batch, info: SceneInfo, scene: _Scene) -> None:
-    """Tier outlines around survivors that reached a tier; yellow ones around FNs."""
-    r = scene.rows
-    tiered = ~r["is_ego"] & (r["dropped_at"] < 0) & (r["tier"] >= 0)
-    missed = (r["dropped_at"] >= 0) & r["baseline"]
-    n_tiers = max(len(info.cascade.tiers), 1)
-    tier_rgb = np.array([L.tier_color(k) for k in range(n_tiers)], np.uint8)
-    tiers = r["tier"][tiered]
-    for path, mask, rgb, width, margin in (
-        (L.TIER_OUTLINES, tiered, tier_rgb[tiers], L.outline_width_ui(tiers), 0.35),
-        (L.MISSED_OUTLINES, missed, _tile(L.MISSED, int(missed.sum())), np.full(int(missed.sum()), 2.0), 0.5),
-    ):  # fmt: skip
-        boxes = L.outlines(
-            r["xy"][mask], r["heading"][mask], r["length"][mask], r["width"][mask], margin
-        )
-        _add_layer(
-            rec, batch, path, _counts(scene, mask), L.ORDER_OUTLINES,
-            strips=C.uniform_strips(boxes), colors=rgb, radii=-width,
-        )  # fmt: skip
-
-
-def _add_links(rec, batch: C.Batch, info: SceneInfo, scene: _Scene) -> None:
-    """Fig. 2 overlay: per stage, a line from the ego to every agent kept after it."""
-    r = scene.rows
-    ego_xy = np.zeros((scene.times_s.size, 2))
+def _add_links(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: _Scene) -> None:
+    """Fig. 2 overlay (option ``links``): per stage, ego -> every agent kept after it."""
+    r, n_frames = scene.rows, scene.times_s.size
+    ego_xy = np.zeros((n_frames, 2))
     ego_xy[scene.frame_of[r["is_ego"]]] = r["xy"][r["is_ego"]]
     for s, stage in enumerate(info.cascade.stages):
         mask = r["kept"][s]
         k = int(mask.sum())
-        lines = np.stack([ego_xy[scene.frame_of[mask]], r["xy"][mask]], axis=1)
-        _add_layer(
-            rec, batch, L.link_path(s, stage.model), _counts(scene, mask), L.ORDER_LINKS + 0.1 * s,
-            strips=C.uniform_strips(lines), radii=np.full(k, -L.link_width_ui(s)),
-            colors=_tile((*L.stage_color(s), L.LINK_ALPHA), k),
+        parts = _Parts()
+        parts.add(
+            scene.frame_of[mask], np.stack([ego_xy[scene.frame_of[mask]], r["xy"][mask]], axis=1),
+            _tile((*L.stage_color(s), L.LINK_ALPHA), k), np.full(k, -L.link_width_ui(s)),
+        )  # fmt: skip
+        path = L.link_path(s, stage.model)
+        _add_entities(
+            batch, static, [path], n_frames, parts.columns(n_frames), L.ORDER_LINKS + 0.1 * s,
+            labels=False,
         )  # fmt: skip
 
 
-def _add_paths(rec, batch: C.Batch, info: SceneInfo, scene: _Scene, frames) -> None:
-    """The ego's path candidates and the deeper-tier survivors' forward paths."""
+def _add_paths(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: _Scene, frames) -> None:
+    """The ego's path candidates; each deeper-tier survivor's under its own subtree."""
+    n_frames = scene.times_s.size
     ego = [p for f in frames for p in f.ego_paths]
     if ego:
-        n = len(ego)
-        _add_layer(
-            rec, batch, L.EGO_PATH, np.array([len(f.ego_paths) for f in frames]), L.ORDER_PATHS,
-            strips=C.strips(np.concatenate(ego), np.array([len(p) for p in ego])),
-            radii=np.full(n, -L.PATH_WIDTH_UI * 1.5), colors=_tile((*L.EGO, 200), n),
-        )  # fmt: skip
-    lengths = np.array([f.survivor_paths.shape[0] for f in frames])
-    if lengths.sum() == 0:
+        parts = _Parts()
+        cell = np.repeat(np.arange(n_frames), [len(f.ego_paths) for f in frames])
+        for p_len in sorted({len(p) for p in ego}):  # strips of equal length, one part each
+            same = np.array([len(p) == p_len for p in ego])
+            pts = np.stack([p for p in ego if len(p) == p_len])
+            k = int(same.sum())
+            parts.add(cell[same], pts, _tile((*L.EGO, 200), k), np.full(k, -L.PATH_WIDTH_UI * 1.5))
+        cols = parts.columns(n_frames)
+        _add_entities(batch, static, [L.EGO_PATH], n_frames, cols, L.ORDER_PATHS, labels=False)
+    owners = np.concatenate([f.survivor_path_owner for f in frames]) if frames else np.zeros(0)
+    if owners.size == 0:
         return
-    points = np.concatenate([f.survivor_paths.reshape(-1, 2) for f in frames])
-    per_strip = np.repeat([f.survivor_paths.shape[1] for f in frames], lengths)
+    agent_ids, _, _, _ = _agent_grid(scene)
+    frame_of = np.repeat(np.arange(n_frames), [f.survivor_paths.shape[0] for f in frames])
+    col = np.searchsorted(agent_ids, owners)
+    with_paths = np.unique(col)
+    # Only agents that ever have a path get an entity: cells index into that subset.
+    sub = np.searchsorted(with_paths, col)
     risk = np.concatenate([f.survivor_path_risk for f in frames])
     rgb = L.risk_colors(risk, info.cascade.baseline_threshold)
-    rgba = np.concatenate([rgb, np.full((rgb.shape[0], 1), L.PATH_ALPHA, np.uint8)], axis=1)
-    _add_layer(
-        rec, batch, L.PREDICTED_PATHS, lengths, L.ORDER_PATHS,
-        strips=C.strips(points, per_strip), radii=np.full(risk.size, -L.PATH_WIDTH_UI), colors=rgba,
-    )  # fmt: skip
+    rgba = np.column_stack([rgb, np.full(risk.size, L.PATH_ALPHA, np.uint8)])
+    parts = _Parts()
+    for f, frame in enumerate(frames):  # frames, not agents: one part per frame
+        rows = frame_of == f
+        if rows.any():
+            parts.add(
+                sub[rows] * n_frames + f, frame.survivor_paths, rgba[rows],
+                np.full(int(rows.sum()), -L.PATH_WIDTH_UI),
+            )  # fmt: skip
+    paths = [L.agent_paths_path(int(agent_ids[c])) for c in with_paths]
+    cols = parts.columns(with_paths.size * n_frames)
+    _add_entities(batch, static, paths, n_frames, cols, L.ORDER_PATHS, labels=False)
 
 
-def _label_mask(mode: str, path: str, missed: np.ndarray) -> np.ndarray:
-    """Which instances of a body layer show their label (``missed``: (k,) FN flags)."""
-    if mode == "all":
-        return np.ones(missed.size, dtype=bool)
-    if mode == "none":
-        return np.zeros(missed.size, dtype=bool)
-    if path == L.DROPPED_BODIES:
-        return missed  # "kept": a dropped agent is labelled only when it is a false negative
-    return np.ones(missed.size, dtype=bool)
-
-
+# ---------------------------------------------------------------------- labels and misses
 def _tier_tags(names: tuple[str, ...]) -> np.ndarray:
     """Short tier marks for labels: initials (B, I, C) when unique, else 1, 2, 3."""
     initials = [n[:1].upper() for n in names]
@@ -511,15 +684,156 @@ def _tier_tags(names: tuple[str, ...]) -> np.ndarray:
     return np.array([*tags, ""])  # index -1 (no tier) -> ""
 
 
-def _survivor_labels(ids: np.ndarray, tier: np.ndarray, tags: np.ndarray) -> np.ndarray:
-    return np.char.rstrip(np.char.add(np.char.add(ids, " "), tags[tier]))
+def _references(rows: dict[str, np.ndarray]) -> np.ndarray:
+    """Which reference marks each row important: ``baseline``, ``hindsight``, both or ``""``."""
+    b, h = rows["baseline"], rows["truth"] == 1.0
+    return np.where(
+        b & h, "baseline+hindsight", np.where(b, "baseline", np.where(h, "hindsight", ""))
+    )
 
 
-def _dropped_labels(ids: np.ndarray, rows: dict[str, np.ndarray], missed: np.ndarray) -> np.ndarray:
-    """``"17 ✗2"``: dropped by stage 2; ``"17 FN ✗2"`` when it was baseline-important."""
-    stage = (rows["dropped_at"] + 1).astype(str)
-    mark = np.where(missed, " FN ✗", " ✗")
-    return np.char.add(np.char.add(ids, mark), stage)
+def _label_texts(info: SceneInfo, scene: _Scene, mode: str) -> np.ndarray:
+    """The label of every row (``""``: none; the id still shows on hover).
+
+    ``"kept"`` (default): the ego, the tier agents (``17 I``) and the misses
+    (``17 MISS ✗2``), decluttered: per frame, a label gives way to a more important
+    one within :data:`recordings.layout.LABEL_SPACING_M` (ego, then misses, then deeper
+    tiers), so that no two labels overlap at the opening zoom. ``"all"``: every agent,
+    not decluttered. ``"none"``: no labels.
+    """
+    r = scene.rows
+    n = r["ids"].size
+    if mode == "none":
+        return np.full(n, "", dtype="<U1")
+    if mode == "all":
+        shown = np.ones(n, dtype=bool)
+    else:
+        survivor_tier = np.where(r["dropped_at"] < 0, r["tier"], -1)
+        wanted = r["is_ego"] | r["miss"] | (survivor_tier >= 0)
+        priority = np.where(r["is_ego"], 1000, np.where(r["miss"], 100, survivor_tier + 1))
+        shown = _declutter(scene, wanted, priority, L.LABEL_SPACING_M)
+    # Texts only for the labelled rows (string operations are slow in numpy).
+    rows = np.flatnonzero(shown)
+    ids = r["ids"][rows].astype(str)
+    tags = _tier_tags(tuple(t.name for t in info.cascade.tiers))
+    stage = (r["dropped_at"][rows] + 1).astype(str)
+    text = np.where(
+        r["is_ego"][rows], np.char.add("ego ", ids),
+        np.where(
+            r["miss"][rows], np.char.add(np.char.add(ids, " MISS ✗"), stage),
+            np.where(
+                r["dropped_at"][rows] >= 0, np.char.add(np.char.add(ids, " ✗"), stage),
+                np.char.rstrip(np.char.add(np.char.add(ids, " "), tags[r["tier"][rows]])),
+            ),
+        ),
+    )  # fmt: skip
+    out = np.full(n, "", dtype=text.dtype if text.size else "<U1")
+    out[rows] = text
+    return out
+
+
+def _declutter(
+    scene: _Scene, wanted: np.ndarray, priority: np.ndarray, spacing_m: float
+) -> np.ndarray:
+    """``wanted`` rows minus those within ``spacing_m`` of a more important wanted row.
+
+    Per frame (a loop over frames, vectorised over agents): a row gives way to any wanted
+    row of higher priority (ties: the earlier row) closer than ``spacing_m``. Of any two
+    rows that keep their label, neither gives way, so they are at least ``spacing_m``
+    apart.
+    """
+    shown = wanted.copy()
+    rows = np.flatnonzero(wanted)
+    bounds = np.searchsorted(scene.frame_of[rows], np.arange(scene.times_s.size + 1))
+    for f in range(scene.times_s.size):
+        idx = rows[bounds[f] : bounds[f + 1]]
+        if idx.size < 2:
+            continue
+        xy, p = scene.rows["xy"][idx], priority[idx]
+        near = np.linalg.norm(xy[:, None, :] - xy[None, :, :], axis=-1) < spacing_m
+        order = np.arange(idx.size)
+        above = (p[None, :] > p[:, None]) | (
+            (p[None, :] == p[:, None]) & (order[None, :] < order[:, None])
+        )
+        shown[idx[(near & above).any(axis=1)]] = False
+    return shown
+
+
+def miss_episodes(scene: _Scene, info: SceneInfo) -> list[dict[str, object]]:
+    """The misses, one entry per episode: an agent dropped although important, over
+    consecutive recorded frames with the same stage and reference.
+
+    Each entry: ``agent``, ``stage`` (1-based), ``model``, ``reference``, ``first``
+    and ``last`` (positions in the recorded frames), ``t_start_s``, ``t_end_s``.
+    """
+    r = scene.rows
+    rows = np.flatnonzero(r["miss"])
+    if rows.size == 0:
+        return []
+    ids, frame, stage = r["ids"][rows], scene.frame_of[rows], r["dropped_at"][rows]
+    ref = _references(r)[rows]
+    order = np.lexsort((frame, ids))
+    ids, frame, stage, ref = ids[order], frame[order], stage[order], ref[order]
+    new = np.ones(ids.size, dtype=bool)
+    new[1:] = (
+        (ids[1:] != ids[:-1]) | (frame[1:] != frame[:-1] + 1)
+        | (stage[1:] != stage[:-1]) | (ref[1:] != ref[:-1])
+    )  # fmt: skip
+    starts = np.flatnonzero(new)
+    ends = np.append(starts[1:], ids.size) - 1
+    names = info.cascade.stage_names
+    return [
+        {
+            "agent": int(ids[s]),
+            "stage": int(stage[s]) + 1,
+            "model": names[int(stage[s])],
+            "reference": str(ref[s]),
+            "first": int(frame[s]),
+            "last": int(frame[e]),
+            "t_start_s": float(scene.times_s[frame[s]]),
+            "t_end_s": float(scene.times_s[frame[e]]),
+        }
+        for s, e in zip(starts, ends, strict=True)
+    ]
+
+
+def _log_misses(rec, info: SceneInfo, scene: _Scene) -> None:
+    """The misses list: a text log row per episode on the agent's body entity.
+
+    A row at the episode's first frame reads ``agent 17 · dropped by stage 2
+    (trajectory_distance) · important by baseline · 1.2 s (12 frames)``; clicking it
+    in the viewer selects ``/scene/agents/17/body`` (highlighted in the scene) and
+    moves the time cursor to the row's time.
+    """
+    episodes = miss_episodes(scene, info)
+    if not episodes:
+        return
+    n_frames = scene.times_s.size
+    agents = sorted({int(e["agent"]) for e in episodes})
+    slot = {a: i for i, a in enumerate(agents)}
+    text = np.full(len(agents) * n_frames, "", dtype=object)
+    missing = np.ones(len(agents) * n_frames, dtype=bool)
+    for e in episodes:  # one per episode (a few), not per agent-frame
+        cell = slot[int(e["agent"])] * n_frames + int(e["first"])
+        frames = int(e["last"]) - int(e["first"]) + 1
+        duration = float(e["t_end_s"]) - float(e["t_start_s"])
+        text[cell] = (
+            f"agent {e['agent']} · dropped by stage {e['stage']} ({e['model']}) · important by "
+            f"{e['reference']} · {duration:.1f} s ({frames} frame{'s' if frames > 1 else ''})"
+        )  # the row's time is the episode's start
+        missing[cell] = False
+    batch = _timed_batch(scene)
+    texts = C.one_per_row(text.tolist(), pa.utf8(), missing)
+    levels = C.one_per_row(np.full(text.size, "WARN").tolist(), pa.utf8(), missing)
+    colors = C.one_per_row(
+        np.full(text.size, C.pack_colors(np.array([L.MISSED]))[0]), pa.uint32(), missing
+    )
+    for i, agent in enumerate(agents):
+        path, start = L.body_path(agent), i * n_frames
+        batch.add(path, C.LOG_TEXT, texts.slice(start, n_frames))
+        batch.add(path, C.LOG_LEVEL, levels.slice(start, n_frames))
+        batch.add(path, C.LOG_COLOR, colors.slice(start, n_frames))
+    batch.send(rec)
 
 
 # ---------------------------------------------------------------------- timelines
@@ -543,6 +857,12 @@ def _log10_range(values: np.ndarray, window_decades: float = 30.0) -> tuple[floa
 
 
 def _agent_grid(scene: _Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    if scene.grid is None:
+        scene.grid = _compute_agent_grid(scene)
+    return scene.grid
+
+
+def _compute_agent_grid(scene: _Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The other agents as columns of a frame x agent grid.
 
     Returns ``agent_ids (A,)``, ``column (K,)`` (-1 for the ego rows), and each agent's
@@ -560,23 +880,29 @@ def _agent_grid(scene: _Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
     return agent_ids, column, first, last
 
 
-def _log_timelines(rec, info: SceneInfo, scene: _Scene, log10_models: set[str]) -> None:
-    """``/risk/<model>/<id>``: each agent's risk from its first to its last frame.
+def _log_timelines(
+    rec, info: SceneInfo, scene: _Scene, log10_models: set[str], focus: Sequence[int]
+) -> None:
+    """``/scene/agents/<id>/risk/<model>``: each agent's risk from its first to its last
+    frame, in the agent's own subtree (beside its body and path).
 
     Frames in between where the agent is absent (or invalid) hold NaN, which the viewer
-    draws as a gap. Agents the cascade kept to the end in some frame carry their own
-    colour; the others take the view's default, a quiet grey, so that the agents that
-    matter stand out among a hundred. Each model is one record batch with a column per
-    agent (null outside the agent's span), not one ``send_columns`` call per agent.
+    draws as a gap. Every agent has its own colour and its id as the series name (static);
+    the model views start on the agents that matter (:func:`focus_agents`). Each model is
+    one record batch with a column per agent (null outside the agent's span), not one
+    ``send_columns`` call per agent.
     """
     r = scene.rows
     agent_ids, column, first, last = _agent_grid(scene)
     n_frames, others = scene.times_s.size, column >= 0
-    ever_kept = np.zeros(agent_ids.size, dtype=bool)
-    ever_kept[column[others & (r["dropped_at"] < 0)]] = True
     frame_pos = np.arange(n_frames)
     outside = (frame_pos[None, :] < first[:, None]) | (frame_pos[None, :] > last[:, None])
-    colors = C.pack_colors(L.agent_series_colors(agent_ids))
+    colors = C.one_per_row(C.pack_colors(L.agent_series_colors(agent_ids)), pa.uint32())
+    # Own colours (the same in every model's view) for the agents the views open on; an
+    # agent added in the viewer takes the view's quiet grey. The series name is the
+    # entity path, which holds the agent id.
+    coloured = np.isin(agent_ids, np.asarray(focus, dtype=np.int64))
+    static, batch = C.Batch(), _timed_batch(scene)  # every model in one record batch
     thresholds = {s.model: s.threshold for s in info.cascade.stages}
     for model in info.model_names:
         grid = np.full((agent_ids.size, n_frames), np.nan)  # (A, F): one row per agent
@@ -586,18 +912,17 @@ def _log_timelines(rec, info: SceneInfo, scene: _Scene, log10_models: set[str]) 
             with np.errstate(divide="ignore", invalid="ignore"):
                 variants.append((True, np.where(grid > 0, np.log10(grid), np.nan)))
         for is_log, values in variants:
-            batch = _timed_batch(scene)
             # All agents' cells in one array; each agent's column is a zero-copy slice.
             cells = C.one_per_row(values.reshape(-1), pa.float64(), outside.reshape(-1))
-            own = C.one_per_row(np.repeat(colors, n_frames), pa.uint32(), outside.reshape(-1))
             for a, agent in enumerate(agent_ids):
                 path = L.risk_path(model, int(agent), log10=is_log)
                 batch.add(path, C.SCALARS, cells.slice(a * n_frames, n_frames))
-                if ever_kept[a]:
-                    batch.add(path, C.SERIES_COLORS, own.slice(a * n_frames, n_frames))
-            batch.send(rec)
+                if coloured[a]:
+                    static.add(path, C.SERIES_COLORS, colors.slice(a, 1))
             if model in thresholds:
                 _log_threshold(rec, scene, model, thresholds[model], is_log)
+    batch.send(rec)
+    static.send(rec)
 
 
 def _log_threshold(rec, scene: _Scene, model: str, threshold: float, is_log: bool) -> None:
@@ -605,7 +930,7 @@ def _log_threshold(rec, scene: _Scene, model: str, threshold: float, is_log: boo
     if is_log and threshold <= 0:
         return
     value = math.log10(threshold) if is_log else threshold
-    path = f"{L.risk_root(model, log10=is_log)}/{L.THRESHOLD_SERIES}"
+    path = L.threshold_path(model, log10=is_log)
     rec.log(
         path,
         rr.SeriesLines(colors=(255, 255, 255), widths=2.5, names="stage threshold"),
@@ -645,15 +970,16 @@ def _log_cascade_series(rec, info: SceneInfo, scene: _Scene) -> None:
         (f"{L.TIMING}/cascade_total", "cascade total", L.OTHERS_SERIES, total_ms),
         (f"{L.TIMING}/survival_all", "survival (all)", L.MISSED, scene.survival_all_time_ms),
     ]
-    for path, name, color, values in series:
-        style = rr.SeriesLines(colors=color, names=name, widths=2.0)
-        rec.log(path, style, static=True, strict=True)
-        rec.send_columns(
-            path,
-            indexes=_time_columns(scene),
-            columns=rr.Scalars.columns(scalars=np.asarray(values, dtype=np.float64)),
-            strict=True,
-        )
+    # Two record batches (styles, static; values, one row per frame) for all series.
+    static, batch = C.Batch(), _timed_batch(scene)
+    colors = C.pack_colors(np.array([c for _, _, c, _ in series], dtype=np.uint8))
+    for k, (path, name, _, values) in enumerate(series):
+        static.add(path, C.SERIES_COLORS, C.one_per_row(colors[k : k + 1], pa.uint32()))
+        static.add(path, C.SERIES_NAMES, C.one_per_row([name], pa.utf8()))
+        static.add(path, C.SERIES_WIDTHS, C.one_per_row(np.array([2.0]), pa.float32()))
+        batch.add(path, C.SCALARS, C.one_per_row(np.asarray(values, np.float64), pa.float64()))
+    static.send(rec)
+    batch.send(rec)
 
 
 # ---------------------------------------------------------------------- helpers
@@ -667,17 +993,41 @@ def _units(models: Sequence[str]) -> dict[str, str]:
     return {m: MODELS[m].unit for m in models if m in MODELS}
 
 
-def _focus_points(scene: _Scene, info: SceneInfo) -> tuple[np.ndarray, np.ndarray | None]:
-    """Points the scene view frames, and its anchor: the ego and the final survivors.
-
-    Agents a stage dropped are usually far away; framing them would shrink the action.
-    Without frames, the whole map.
-    """
+def _ego_points(scene: _Scene, info: SceneInfo) -> np.ndarray:
+    """Where the scene view opens: the ego's positions (without frames, the map)."""
     r = scene.rows
-    if r["ids"].size:
-        near = r["is_ego"] | (r["dropped_at"] < 0)
-        return r["xy"][near], r["xy"][r["is_ego"]]
+    if r["is_ego"].any():
+        return r["xy"][r["is_ego"]]
     lanes = [
         np.asarray(lane.centerline, dtype=np.float64).reshape(-1, 2) for lane in info.map.lanes
     ]
-    return (np.concatenate(lanes) if lanes else np.zeros((1, 2))), None
+    return np.concatenate(lanes) if lanes else np.zeros((1, 2))
+
+
+def focus_agents(scene: _Scene, limit: int = L.FOCUS_AGENTS_MAX) -> list[int]:
+    """The agents the risk views open on: misses, hindsight positives and tier agents.
+
+    Ordered by importance (missed at least once, then came close, then the deepest tier
+    reached, then the highest survival risk), at most ``limit``; the others are one
+    click away in the viewer (each agent's subtree holds all nine timelines).
+    """
+    r = scene.rows
+    agent_ids, column, _, _ = _agent_grid(scene)
+    if agent_ids.size == 0:
+        return []
+    others = column >= 0
+    col = column[others]
+
+    def per_agent(values: np.ndarray, fill: float) -> np.ndarray:
+        out = np.full(agent_ids.size, fill)
+        np.maximum.at(out, col, values[others])
+        return out
+
+    missed = per_agent(r["miss"].astype(float), 0.0)
+    close = per_agent((r["truth"] == 1.0).astype(float), 0.0)
+    tier = per_agent(np.where(r["dropped_at"] < 0, r["tier"], -1).astype(float), -1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        risk = per_agent(np.nan_to_num(np.log10(r["survival"]), nan=-np.inf), -np.inf)
+    matter = (missed > 0) | (close > 0) | (tier >= 0)
+    order = np.lexsort((-risk, -tier, -close, -missed))
+    return [int(agent_ids[a]) for a in order if matter[a]][:limit]

@@ -137,10 +137,6 @@ def _cascade_section(info: SceneInfo, scene: _Scene) -> list[str]:
 
 def _legend_section(info: SceneInfo) -> list[str]:
     casc = info.cascade
-    stages = ", ".join(
-        f"{L.stage_color_name(s)} = kept by stage {s + 1} ({st.model})"
-        for s, st in enumerate(casc.stages)
-    )
     tiers = ", ".join(f"{L.tier_color_name(k)} = {t.name}" for k, t in enumerate(casc.tiers))
     return [
         "## Reading the views",
@@ -153,16 +149,22 @@ def _legend_section(info: SceneInfo) -> list[str]:
         "forward paths of the agents in the second tier and deeper.",
         f"- **Outline**: the deepest planner tier reached ({tiers}); the label is the id "
         "and the tier's initial (none: kept, but below the first tier).",
-        "- **Grey**: dropped by a stage (label `id ✗k` with labels=all: dropped by stage k).",
-        "- **Yellow outline**, `id FN ✗k`: dropped by stage k although the survival baseline "
-        "rates it important (a false negative).",
-        f"- **Lines from the ego** (the paper's Fig. 2): {stages}; nested bands, each "
-        "narrower, so a band that stops early marks the stage that dropped the agent.",
-        "- Dark nose: heading.",
+        "- **Grey**: dropped by a stage (hover for its id; label `id ✗k` with labels=all).",
+        "- **Yellow with a yellow ring**, `id MISS ✗k`: a miss, dropped by stage k although "
+        "the survival baseline or the hindsight truth (it really came close) marks it "
+        "important. Every miss is a row of the **Misses** tab (time, agent, stage, "
+        "reference): click a row to select the agent and jump to the time.",
+        "- **Orange ring**: a kept agent that really came close (hindsight positive).",
+        "- Muted lines: lane boundaries (dark grey), road edges (brown), crosswalks "
+        "(blue-grey) where the source has them. Dark nose: heading.",
+        "- Labels: the ego, the tier agents and the misses; a label gives way to a more "
+        f"important one within {L.LABEL_SPACING_M:g} m. Hover any agent for its id.",
         "",
-        "Risk per agent: one tab per model, a line per agent (`log10` tabs: the values span "
-        "many decades; zero risk is a gap). Coloured: agents kept to the end in some "
-        "frame; grey: never kept. White: the stage threshold. Gaps: the agent is absent.",
+        "Risk per agent: one tab per model, opening on the agents that matter (misses, "
+        "hindsight positives, the deepest tiers); each agent's nine timelines live in its "
+        "own subtree `/scene/agents/<id>/risk*` (drag one into a view, or right-click it "
+        "in the streams panel, to add it). `log10` tabs: the values span many decades; "
+        "zero risk is a gap. White: the stage threshold. Gaps: the agent is absent.",
         "Funnel: agents left after each stage and per tier. False negatives: cumulative "
         "per stage. Compute time: per stage, against survival analysis on all agents.",
         "",

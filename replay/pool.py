@@ -27,6 +27,7 @@ from tqdm import tqdm
 
 from replay.errors import ReplayError
 from replay.lifeline import exit_with_parent
+from risk import kernel
 
 
 class WorkerDied(ReplayError):
@@ -80,6 +81,7 @@ class LocalEngine:
         self._alone = False  # one suspect is running alone
 
     def _new_pool(self) -> cf.ProcessPoolExecutor:
+        kernel.warm_up()  # compile once here; the workers load the cached kernels
         return cf.ProcessPoolExecutor(
             max_workers=self.workers,
             mp_context=multiprocessing.get_context("spawn"),

@@ -48,7 +48,7 @@ from mcap.records import Channel, Schema
 from converters import scene_format as sf
 from replay.errors import SceneFormatError
 from risk.errors import FrameError
-from risk.frame import Frame, Lane, LaneMap, Scene
+from risk.frame import Frame, Lane, LaneMap, MapLine, Scene
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _MAX_EXACT_MM = 2**53  # coordinates are exact integers of mm up to here
@@ -170,7 +170,30 @@ class SceneReader:
                     kind=lane.kind,
                 )
             )
-        return LaneMap(lanes=tuple(lanes))
+        return LaneMap(lanes=tuple(lanes), lines=self._map_lines(message))
+
+    def _map_lines(self, message: Any) -> tuple[MapLine, ...]:
+        """``Map.lines`` (format version 2; a version 1 map has none)."""
+        lines = []
+        for line in message.lines:
+            if len(line.x_mm) != len(line.y_mm):
+                raise SceneFormatError(
+                    f"{self.path}: /map line {line.id}: x_mm and y_mm differ in length"
+                )
+            points = np.column_stack(
+                (np.array(line.x_mm, dtype=np.int64), np.array(line.y_mm, dtype=np.int64))
+            )
+            kind = line.kind if line.kind in sf.MAP_LINE_KINDS else "other"
+            lines.append(
+                MapLine(
+                    id=int(line.id),
+                    kind=kind,
+                    points=points / sf.MM_PER_M,
+                    closed=bool(line.closed),
+                    style=line.style,
+                )
+            )
+        return tuple(lines)
 
     def _read_labels(self, reader: SeekingReader) -> dict[str, tuple[int, ...]]:
         if sf.TOPIC_LABELS not in self._channel_ids:

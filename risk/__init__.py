@@ -1,6 +1,7 @@
 """Driving risk models for importance filtering (Puphal et al., ICRAE 2022).
 
-Pure numpy, no I/O. The notebook entry point::
+numpy and a compiled numba kernel (risk.kernel), no I/O but the kernel cache. The notebook
+entry point::
 
     from risk import Frame, evaluate, MODELS
 
@@ -10,7 +11,7 @@ Pure numpy, no I/O. The notebook entry point::
 """
 
 from risk.errors import FrameError, RiskError, UnknownModelError
-from risk.frame import KIND_NAMES, Frame, Kind, Lane, LaneMap, Scene
+from risk.frame import KIND_NAMES, Frame, Kind, Lane, LaneMap, MapLine, Scene
 from risk.prediction import (
     FrameContext,
     KindUncertainty,
@@ -38,6 +39,7 @@ __all__ = [
     "KindUncertainty",
     "Lane",
     "LaneMap",
+    "MapLine",
     "ModelSpec",
     "PredictionSettings",
     "RiskError",

@@ -10,11 +10,25 @@ Every frame's report compares the cascade with the survival-analysis baseline co
 *all* agents: which baseline-important agents each stage dropped (false negatives) and
 what each stage cost beside what survival analysis on all agents costs.
 
+Two implementations of the same job, one the oracle of the other:
+
+- **Fused** (the default, whenever ``run_cascade`` is given no ``evaluate`` or
+  ``risk.evaluate`` itself): one compiled kernel call per stage over the index list of the
+  remaining agents, no sub-frames. A reachability bound (:func:`risk.kernel.reachable`,
+  maximum speeds :data:`MAX_SPEED_MPS`) first drops, in O(1) each, the agents whose
+  survival risk cannot reach the baseline threshold even at their kind's maximum speed;
+  zero false negatives by construction. Distance stages are keep/drop tests that stop as
+  soon as the decision is certain; the Gaussian stage computes survival risk in the same
+  loop, and the tier sort reuses it.
+- **Staged** (when a custom ``evaluate`` is injected, e.g. a stand-in in tests): each stage
+  is one ``evaluate`` call on a sub-frame of its survivors. The fused cascade keeps and
+  drops exactly the same agents, except those the reachability bound drops first.
+
 Choices the spec leaves open (documented here, see also ``docs/cascade.md``):
 
-- Each stage is one ``risk.evaluate`` call on its sub-frame, so its time includes that
-  model's own prediction on the sub-frame; the survival-on-all reference likewise
-  includes its own prediction on all agents. Times are wall-clock ``time.perf_counter``.
+- Each stage's time includes its own share of the prediction; the survival-on-all
+  reference likewise includes its own prediction on all agents. Times are wall-clock
+  ``time.perf_counter``.
 - A stage with no agent left to judge is not run; its time is 0.
 - Tiers are nested: an agent reaches tier ``k`` when it reached tier ``k - 1``, its
   survival risk is ``>= tiers[k].min_survival_risk`` and it is among the ``max_agents``
@@ -35,13 +49,31 @@ from typing import Any
 
 import numpy as np
 
+from risk import kernel
 from risk.errors import RiskError
-from risk.frame import Frame
-from risk.registry import BASELINE_MODEL, BASELINE_THRESHOLD
+from risk.frame import KIND_NAMES, Frame
+from risk.registry import (
+    BASELINE_MODEL,
+    BASELINE_THRESHOLD,
+    kernel_params,
+    kernel_settings,
+    resolve_params,
+    resolve_prediction,
+)
+from risk.registry import evaluate as risk_evaluate
 
 DEFAULT_CASCADE_PATH = pathlib.Path(__file__).with_name("default_cascade.toml")
 #: The model of the sorting step and of the baseline (survival analysis).
 SURVIVAL_MODEL = BASELINE_MODEL
+
+#: The reachability bound's maximum speed per kind, m/s: an agent is dropped ahead of the
+#: stages only when it cannot become important even at ``max(its speed, this)``.
+MAX_SPEED_MPS: dict[str, float] = {
+    "vehicle": 40.0,  # 144 km/h
+    "pedestrian": 7.0,  # a running adult
+    "cyclist": 15.0,  # 54 km/h
+    "other": 40.0,  # as a vehicle
+}
 
 #: Signature of ``risk.evaluate``: frame, model names, parameters -> name -> (N,) risks.
 Evaluator = Callable[..., dict[str, np.ndarray]]
@@ -169,7 +201,7 @@ def _parse_config(data: Mapping[str, Any], source: str) -> CascadeConfig:
     raw_stages = data["stages"]
     if not isinstance(raw_stages, list) or not raw_stages:
         raise fail("stages", "expected a non-empty array of tables ([[stages]])")
-    stages = []
+    stages: list[Stage] = []
     for i, raw in enumerate(raw_stages):
         prefix = f"stages[{i}]."
         check_keys(raw, _STAGE_KEYS, _STAGE_KEYS, prefix)
@@ -219,6 +251,10 @@ class CascadeResult:
     survival_all_time_s: float  # s, survival on all agents (what the cascade saves)
     others: np.ndarray  # (N,) bool, valid and not the ego
     survival_all: np.ndarray = field(repr=False)  # (N,) float64 R_S on all agents (NaN: ego)
+    # (N,) bool, dropped by the reachability bound ahead of stage 0 (their dropped_at is
+    # 0); None when the bound did not run (the staged cascade)
+    unreachable: np.ndarray | None = field(default=None, repr=False)
+    reach_time_s: float = 0.0  # s, the reachability bound
 
     @property
     def n_kept(self) -> np.ndarray:
@@ -238,20 +274,239 @@ def run_cascade(
     params: Mapping[str, Any] | None = None,
     prediction: Any = None,
     evaluate: Evaluator | None = None,
+    reachability: bool = True,
 ) -> CascadeResult:
     """Run the cascade on one frame.
 
-    Stage ``s`` evaluates ``config.stages[s].model`` on a sub-frame of the ego and the
-    agents kept by stage ``s - 1`` (all valid others for the first stage). ``params``
-    (model name -> parameters) and ``prediction`` (a ``risk.PredictionSettings``) are
-    passed to ``evaluate`` (``risk.evaluate`` by default) unchanged.
-    """
-    if evaluate is None:
-        from risk import evaluate as default_evaluate
+    Stage ``s`` judges ``config.stages[s].model`` on the agents kept by stage ``s - 1``
+    (all valid others for the first stage). ``params`` (model name -> parameters) and
+    ``prediction`` (a ``risk.PredictionSettings``) apply to every model.
 
-        evaluate = default_evaluate
+    With ``evaluate`` None or ``risk.evaluate`` (also a ``functools.partial`` of it that
+    sets only ``prediction``) the fused cascade runs, led by the reachability bound when
+    ``reachability`` is True; with any other ``evaluate`` the staged cascade calls it on
+    sub-frames.
+    """
+    fused, prediction = _fused_prediction(evaluate, prediction)
+    if fused:
+        return _run_fused(frame, config, params, prediction, reachability)
+    assert evaluate is not None
     if prediction is not None:
         evaluate = functools.partial(evaluate, prediction=prediction)
+    return _run_staged(frame, config, params, evaluate)
+
+
+def _fused_prediction(evaluate: Evaluator | None, prediction: Any) -> tuple[bool, Any]:
+    """Whether ``evaluate`` is the production ``risk.evaluate`` (so the fused cascade
+    gives the same result), and the prediction settings it implies."""
+    if evaluate is None or evaluate is risk_evaluate:
+        return True, prediction
+    if (
+        isinstance(evaluate, functools.partial)
+        and evaluate.func is risk_evaluate
+        and not evaluate.args
+        and set(evaluate.keywords) <= {"prediction"}
+    ):
+        return True, prediction if prediction is not None else evaluate.keywords.get("prediction")
+    return False, prediction
+
+
+def keep_bounds(threshold: float, epsilon_m: float) -> tuple[float, float]:
+    """Squared distances ``(stop2, cut2)`` of a distance stage ``eps / (eps + d) >= t``.
+
+    Any ``d`` with ``d^2 <= stop2`` certainly keeps and any ``d`` with ``d^2 > cut2``
+    certainly drops, in floating point (the risk is monotone in ``d`` and both ends are
+    stepped past the float where the comparison turns), so the kernel can stop early
+    and prune without changing one decision."""
+    if not threshold > 0:
+        return math.inf, math.inf  # everything is kept
+    if threshold > 1:
+        return -1.0, -1.0  # nothing reaches a risk above 1
+    d_cut = max(epsilon_m / threshold - epsilon_m, 0.0)
+    step = max(d_cut * 1e-15, 1e-300)
+    lo = d_cut
+    while lo > 0 and epsilon_m / (epsilon_m + lo) < threshold:
+        lo = max(lo - step, 0.0)
+        step *= 2.0
+    step = max(d_cut * 1e-15, 1e-300)
+    hi = d_cut
+    while epsilon_m / (epsilon_m + hi) >= threshold:
+        hi += step
+        step *= 2.0
+    stop = lo * (1 - 1e-12)
+    cut = hi * (1 + 1e-12)
+    return (stop * stop if epsilon_m / (epsilon_m + lo) >= threshold else -1.0), cut * cut
+
+
+def _kind_speeds() -> np.ndarray:
+    a = np.array([MAX_SPEED_MPS[k] for k in KIND_NAMES], dtype=np.float64)
+    a.flags.writeable = False
+    return a
+
+
+def _ro(a: np.ndarray) -> np.ndarray:
+    a = np.ascontiguousarray(a, dtype=np.int64)
+    a.flags.writeable = False
+    return a
+
+
+def _run_fused(
+    frame: Frame,
+    config: CascadeConfig,
+    params: Mapping[str, Any] | None,
+    prediction: Any,
+    reachability: bool,
+) -> CascadeResult:
+    chosen = resolve_params(params)
+    settings = resolve_prediction(prediction)
+    steps, unc = kernel_settings(settings)
+    fp, ip = kernel_params(chosen, settings)
+    n, n_stages = frame.n_agents, len(config.stages)
+    others = frame.others
+    surv_slot = kernel.SLOTS.index(SURVIVAL_MODEL)
+
+    start = time.perf_counter()
+    survival_all = kernel.run(frame, _WANT[(surv_slot,)], fp, ip, steps, unc)[surv_slot]
+    survival_all_time_s = time.perf_counter() - start
+    baseline = others & (np.nan_to_num(survival_all, nan=-np.inf) >= config.baseline_threshold)
+
+    start = time.perf_counter()
+    current = np.flatnonzero(others)
+    unreachable = np.zeros(n, dtype=bool)
+    if reachability and current.size:
+        reach = _reachable(frame, current, settings, unc, _MAX_SPEEDS, config.baseline_threshold)
+        unreachable[current[~reach]] = True
+        current = current[reach]
+    reach_time_s = time.perf_counter() - start
+
+    kept = np.zeros((n_stages, n), dtype=bool)
+    dropped_at = np.full(n, -1, dtype=np.int8)
+    dropped_at[unreachable] = 0
+    stage_time_s = np.zeros(n_stages)
+    survival_known: np.ndarray | None = None  # computed in the Gaussian stage's loop
+    for s, stage in enumerate(config.stages):
+        if not current.size:
+            continue
+        start = time.perf_counter()
+        slot = kernel.SLOTS.index(stage.model)
+        stop2, cut2 = kernel.NO_STOP, kernel.NO_CUT
+        if stage.model in ("path_distance", "trajectory_distance"):
+            stop2, cut2 = _stage_bounds(slot, stage.threshold, chosen[stage.model].epsilon_m)
+        slots = (slot, surv_slot) if stage.model == "gaussian" else (slot,)
+        agents = _ro(current)
+        out = kernel.run(frame, _WANT[slots], fp, ip, steps, unc, agents, stop2, cut2)
+        keep = np.nan_to_num(out[slot, current], nan=-np.inf) >= stage.threshold
+        kept[s, current[keep]] = True
+        dropped_at[current[~keep]] = s
+        if len(slots) == 2:
+            survival_known = out[surv_slot]
+        current = current[keep]
+        stage_time_s[s] = time.perf_counter() - start
+    false_negatives = (baseline[None, :] & ~kept).sum(axis=1).astype(np.int64)
+
+    survival = np.full(n, np.nan)
+    tier = np.full(n, -1, dtype=np.int8)
+    sort_time_s = 0.0
+    if current.size:
+        start = time.perf_counter()
+        if survival_known is None:
+            out = kernel.run(frame, _WANT[(surv_slot,)], fp, ip, steps, unc, _ro(current))
+            survival_known = out[surv_slot]
+        risk_surv = survival_known[current]
+        survival[current] = risk_surv
+        tier[current] = assign_tiers(risk_surv, config.tiers)
+        sort_time_s = time.perf_counter() - start
+
+    return CascadeResult(
+        stage_names=config.stage_names,
+        kept=kept,
+        dropped_at=dropped_at,
+        tier=tier,
+        survival=survival,
+        baseline=baseline,
+        false_negatives=false_negatives,
+        stage_time_s=stage_time_s,
+        sort_time_s=sort_time_s,
+        survival_all_time_s=survival_all_time_s,
+        others=others,
+        survival_all=survival_all,
+        unreachable=unreachable,
+        reach_time_s=reach_time_s,
+    )
+
+
+def reachable_mask(
+    frame: Frame,
+    threshold: float = BASELINE_THRESHOLD,
+    *,
+    prediction: Any = None,
+    max_speed_mps: Mapping[str, float] | None = None,
+) -> np.ndarray:
+    """``(N,)`` bool: False for the agents that the reachability bound drops (their
+    survival risk is certainly below ``threshold``), True for every other valid agent;
+    False for the ego and invalid agents. ``max_speed_mps``: per kind name (default
+    :data:`MAX_SPEED_MPS`)."""
+    settings = resolve_prediction(prediction)
+    _, unc = kernel_settings(settings)
+    speeds = _MAX_SPEEDS
+    if max_speed_mps is not None:
+        speeds = np.array([float(max_speed_mps[k]) for k in KIND_NAMES])
+        speeds.flags.writeable = False
+    out = np.zeros(frame.n_agents, dtype=bool)
+    agents = np.flatnonzero(frame.others)
+    if agents.size:
+        out[agents] = _reachable(frame, agents, settings, unc, speeds, threshold)
+    return out
+
+
+def _reachable(
+    frame: Frame,
+    agents: np.ndarray,
+    settings: Any,
+    unc: np.ndarray,
+    speeds: np.ndarray,
+    threshold: float,
+) -> np.ndarray:
+    fa = kernel.frame_arrays(frame)
+    return kernel.reachable(
+        fa[7], fa[9], fa[2], fa[5], int(frame.ego), _ro(agents), float(settings.horizon_s),
+        int(settings.n_steps), unc, speeds, float(threshold),
+    )  # fmt: skip
+
+
+class _Wants(dict):
+    """Read-only ``want`` flag vectors by tuple of model slots, made on first use."""
+
+    def __missing__(self, slots: tuple[int, ...]) -> np.ndarray:
+        want = np.zeros(kernel.N_MODELS, dtype=np.bool_)
+        want[list(slots)] = True
+        want.flags.writeable = False
+        self[slots] = want
+        return want
+
+
+_WANT = _Wants()
+_MAX_SPEEDS = _kind_speeds()
+
+
+@functools.lru_cache(maxsize=256)
+def _stage_bounds(slot: int, threshold: float, epsilon_m: float) -> tuple[np.ndarray, np.ndarray]:
+    stop, cut = keep_bounds(threshold, epsilon_m)
+    stop2 = np.array(kernel.NO_STOP)
+    cut2 = np.array(kernel.NO_CUT)
+    stop2[slot], cut2[slot] = stop, cut
+    stop2.flags.writeable = False
+    cut2.flags.writeable = False
+    return stop2, cut2
+
+
+def _run_staged(
+    frame: Frame,
+    config: CascadeConfig,
+    params: Mapping[str, Any] | None,
+    evaluate: Evaluator,
+) -> CascadeResult:
+    """The cascade on sub-frames through ``evaluate`` (the oracle of the fused one)."""
     n, n_stages = frame.n_agents, len(config.stages)
     others = frame.others
 

@@ -387,7 +387,7 @@ def _is_polyline(entry: object) -> bool:
 
 
 def _vector(name: str, values: object, n: int, dtype: type) -> np.ndarray:
-    a = np.array(values, dtype=dtype)
+    a: np.ndarray = np.array(values, dtype=dtype)
     if a.shape != (n,):
         raise FrameError(name, f"expected shape ({n},), got {a.shape}")
     return a
@@ -405,10 +405,29 @@ class Lane:
 
 
 @dataclass(frozen=True, eq=False)
+class MapLine:
+    """A map line that is not a lane centre: a lane boundary, road edge, crosswalk, ...
+
+    ``kind`` is one of ``lane_boundary``, ``road_edge``, ``crosswalk``, ``stop_line`` or
+    ``other``; ``style`` is the source's own type in free text (``solid_white``,
+    ``dashed``, ``median``, ...). ``closed``: a polygon whose last point joins its first
+    (crosswalks). Drawn as context only; no model uses it.
+    """
+
+    id: int
+    kind: str
+    points: np.ndarray  # (P, 2) float64, m
+    closed: bool = False
+    style: str = ""
+
+
+@dataclass(frozen=True, eq=False)
 class LaneMap:
-    """The static map of a scene: lane centre lines and their successor links."""
+    """The static map of a scene: lane centre lines and their successor links, plus the
+    lines drawn around them (lane boundaries, road edges, crosswalks; may be empty)."""
 
     lanes: tuple[Lane, ...] = ()
+    lines: tuple[MapLine, ...] = ()
 
     def by_id(self) -> dict[int, Lane]:
         return {lane.id: lane for lane in self.lanes}

@@ -132,7 +132,7 @@ def extend_paths(
     direction = _unit(fallback_heading)
     if p >= 2:
         good = seg_len > 0
-        has = good.any(axis=1)
+        has = np.asarray(good.any(axis=1))
         last = (p - 2) - np.argmax(good[:, ::-1], axis=1)
         vec = paths[rows, last + 1] - paths[rows, last]
         vec /= np.where(has, seg_len[rows, last], 1.0)[:, None]
@@ -448,7 +448,7 @@ def _group_starts(owner: np.ndarray) -> np.ndarray:
     return np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]]) if owner.size else owner
 
 
-def _box_gaps2(a: ChunkedPolylines, b: ChunkedPolylines, cols: slice) -> np.ndarray:
+def _box_gaps2(a: ChunkedPolylines, b: ChunkedPolylines, cols: slice | np.ndarray) -> np.ndarray:
     """Squared distance ``(Ca, n_cols)`` between the boxes of a's chunks and b's chunks
     ``cols`` (flat ids; inf where either chunk is inactive): a lower bound for every
     segment pair in them."""

@@ -6,7 +6,9 @@ extended straight along its last segment, and every model sees the same extended
 
 Uncertainty: a Gaussian per agent and step with covariance
 ``Rot(theta) diag(sig_lon^2, sig_lat^2) Rot(theta)^T``, ``theta`` the path heading at the
-predicted point, ``sig(s) = min(sig0 + k * v * s, sig_max)`` per axis and kind.
+predicted point, ``sig(s) = min(sig0 + k * v * s + g_t * s, sig_max)`` per axis and kind
+(``g_t = 0`` by default, the spec's model; ``g_t > 0`` lets the uncertainty of an agent
+that stands now grow with time too).
 
 :class:`FrameContext` computes the shared work (extended and cut paths, predicted
 trajectories, covariances, pairwise results) once per frame, lazily, and every model
@@ -31,11 +33,15 @@ T = TypeVar("T")
 
 
 # ---------------------------------------------------------------------- settings
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class KindUncertainty:
-    """Position uncertainty of one agent kind: ``sig(s) = min(sig0 + k * v * s, sig_max)``.
+    """Position uncertainty of one agent kind:
+    ``sig(s) = min(sig0 + k * v * s + g_t * s, sig_max)`` per axis.
 
-    ``growth_*`` is dimensionless: metres of standard deviation per metre travelled.
+    ``growth_*`` (``k``) is dimensionless: metres of standard deviation per metre
+    travelled. ``time_growth_*`` (``g_t``) is in m/s: metres of standard deviation per
+    second of prediction whatever the speed, so that an agent standing now still gets a
+    growing uncertainty (0 by default, the spec's model).
     """
 
     sigma0_lon_m: float
@@ -44,6 +50,8 @@ class KindUncertainty:
     growth_lat: float
     sigma_max_lon_m: float
     sigma_max_lat_m: float
+    time_growth_lon_mps: float = 0.0
+    time_growth_lat_mps: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -57,9 +65,30 @@ class KindUncertainty:
             raise RiskError("uncertainty sigma_max_lon_m and sigma_max_lat_m must be > 0")
 
 
-VEHICLE_UNCERTAINTY = KindUncertainty(0.75, 0.33, 0.125, 0.10, 5.0, 0.5)
-CYCLIST_UNCERTAINTY = KindUncertainty(0.33, 0.13, 0.125, 0.10, 3.3, 0.33)
-PEDESTRIAN_UNCERTAINTY = KindUncertainty(0.10, 0.10, 0.03, 0.03, 0.4, 1.5)
+VEHICLE_UNCERTAINTY = KindUncertainty(
+    sigma0_lon_m=0.75,
+    sigma0_lat_m=0.33,
+    growth_lon=0.125,
+    growth_lat=0.10,
+    sigma_max_lon_m=5.0,
+    sigma_max_lat_m=0.5,
+)
+CYCLIST_UNCERTAINTY = KindUncertainty(
+    sigma0_lon_m=0.33,
+    sigma0_lat_m=0.13,
+    growth_lon=0.125,
+    growth_lat=0.10,
+    sigma_max_lon_m=3.3,
+    sigma_max_lat_m=0.33,
+)
+PEDESTRIAN_UNCERTAINTY = KindUncertainty(
+    sigma0_lon_m=0.10,
+    sigma0_lat_m=0.10,
+    growth_lon=0.03,
+    growth_lat=0.03,
+    sigma_max_lon_m=0.4,
+    sigma_max_lat_m=1.5,
+)
 
 
 @dataclass(frozen=True)
@@ -79,7 +108,8 @@ class UncertaintyTable:
         return getattr(self, Kind.parse(kind).name.lower())
 
     def as_array(self) -> np.ndarray:
-        """``(4, 6)`` table indexed by Kind code: sig0 lon/lat, growth lon/lat, max lon/lat."""
+        """``(4, 8)`` table indexed by Kind code: sig0 lon/lat, growth lon/lat, max lon/lat,
+        time growth lon/lat."""
         return np.array(
             [[getattr(self.for_kind(k), f.name) for f in fields(KindUncertainty)] for k in Kind],
             dtype=np.float64,
@@ -140,12 +170,13 @@ def uncertainty_sigmas(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Standard deviations ``(A, n)`` in m, longitudinal and lateral, for agents ``(A,)``.
 
-    ``sig(s) = min(sig0 + k * v * s, sig_max)`` with the kind's row of ``table``.
+    ``sig(s) = min(sig0 + k * v * s + g_t * s, sig_max)`` with the kind's row of ``table``.
     """
-    rows = table.as_array()[kinds.astype(np.intp)]  # (A, 6)
+    rows = table.as_array()[kinds.astype(np.intp)]  # (A, 8)
     travelled = speed[:, None] * steps_s[None, :]  # (A, n), m
-    lon = np.minimum(rows[:, 0:1] + rows[:, 2:3] * travelled, rows[:, 4:5])
-    lat = np.minimum(rows[:, 1:2] + rows[:, 3:4] * travelled, rows[:, 5:6])
+    s = steps_s[None, :]
+    lon = np.minimum(rows[:, 0:1] + rows[:, 2:3] * travelled + rows[:, 6:7] * s, rows[:, 4:5])
+    lat = np.minimum(rows[:, 1:2] + rows[:, 3:4] * travelled + rows[:, 7:8] * s, rows[:, 5:6])
     return lon, lat
 
 
@@ -179,7 +210,7 @@ class FrameContext:
         self.row_agent = frame.path_agent
         # Rows are grouped by owner, so each agent's rows start where the owner changes.
         self.row_starts = np.flatnonzero(np.r_[True, self.row_agent[1:] != self.row_agent[:-1]])
-        self.ego_rows = np.flatnonzero(self.row_agent == frame.ego)
+        self.ego_rows: list[int] = [int(r) for r in np.flatnonzero(self.row_agent == frame.ego)]
         self._memo: dict[Hashable, Any] = {}
 
     # ------------------------------------------------------------------ helpers

@@ -226,8 +226,14 @@ class _Agent:
         for k in range(n):
             s = _step_time(k, settings)
             p, (c, sn) = _point_at(self.path, arcs, self.v * s, self.heading)
-            lon = min(u.sigma0_lon_m + u.growth_lon * self.v * s, u.sigma_max_lon_m)
-            lat = min(u.sigma0_lat_m + u.growth_lat * self.v * s, u.sigma_max_lat_m)
+            lon = min(
+                u.sigma0_lon_m + u.growth_lon * self.v * s + u.time_growth_lon_mps * s,
+                u.sigma_max_lon_m,
+            )
+            lat = min(
+                u.sigma0_lat_m + u.growth_lat * self.v * s + u.time_growth_lat_mps * s,
+                u.sigma_max_lat_m,
+            )
             self.pos.append(p)
             self.dirs.append((c, sn))
             self.sig_lon.append(lon)
@@ -313,7 +319,8 @@ def _pair_risks(ego: _Agent, other: _Agent, params: dict[str, Any], st: Predicti
     pc = params["circles"]
     best = math.inf
     for k in range(n):
-        r1 = 0.5 * ego.length + pc.sigma_scale * ego.sig_lon[k]
+        ego_body = ego.length if pc.radius_rule == "spec" else ego.width
+        r1 = 0.5 * ego_body + pc.sigma_scale * ego.sig_lon[k]
         r2 = 0.5 * other.width + pc.sigma_scale * other.sig_lon[k]
         for j in range(pc.n_circles):
             off = ((j + 0.5) / pc.n_circles - 0.5) * other.length

@@ -11,13 +11,14 @@ differently.)
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, fields
 from typing import Any, Literal
 
 import numpy as np
 
-from risk import distance, stochastic, temporal
+from risk import distance, kernel, stochastic, temporal
 from risk.errors import RiskError, UnknownModelError
 from risk.frame import Frame
 from risk.prediction import FrameContext, PredictionSettings
@@ -26,12 +27,15 @@ Family = Literal["distance", "time", "stochastic"]
 ModelFn = Callable[[FrameContext, Any], np.ndarray]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ModelSpec:
     """One risk model: how to call it and how to describe it.
 
-    ``fn(ctx, params)`` returns ``(N,)`` float64 risks, higher = riskier, NaN for the ego
-    and invalid agents; ``params`` is an instance of ``params_type`` (a frozen dataclass).
+    ``fn(ctx, params)`` is the vectorised numpy implementation: it returns ``(N,)``
+    float64 risks, higher = riskier, NaN for the ego and invalid agents; ``params`` is an
+    instance of ``params_type`` (a frozen dataclass). :func:`evaluate` runs the compiled
+    kernel (:mod:`risk.kernel`) instead; ``fn`` stays as the oracle it is tested against
+    (:func:`evaluate_numpy`). Build specs with keywords only.
     """
 
     name: str
@@ -65,101 +69,105 @@ MODELS: dict[str, ModelSpec] = {
     spec.name: spec
     for spec in (
         ModelSpec(
-            "current_distance",
-            "Current distance",
-            "distance",
-            "eq. 3-4, Sec. III-A",
-            "O(1)",
-            distance.CurrentDistanceParams,
-            distance.current_distance,
+            name="current_distance",
+            title="Current distance",
+            family="distance",
+            paper_ref="eq. 3-4, Sec. III-A",
+            complexity="O(1)",
+            params_type=distance.CurrentDistanceParams,
+            fn=distance.current_distance,
         ),
         ModelSpec(
-            "path_distance",
-            "Path distance",
-            "distance",
-            "eq. 5, Sec. III-A",
-            "O(p^2)",
-            distance.PathDistanceParams,
-            distance.path_distance,
+            name="path_distance",
+            title="Path distance",
+            family="distance",
+            paper_ref="eq. 5, Sec. III-A",
+            complexity="O(p^2)",
+            params_type=distance.PathDistanceParams,
+            fn=distance.path_distance,
         ),
         ModelSpec(
-            "trajectory_distance",
-            "Trajectory distance (dynamic horizon)",
-            "distance",
-            "eq. 12, Sec. III-D",
-            "O(p^2)",
-            distance.TrajectoryDistanceParams,
-            distance.trajectory_distance,
+            name="trajectory_distance",
+            title="Trajectory distance (dynamic horizon)",
+            family="distance",
+            paper_ref="eq. 12, Sec. III-D",
+            complexity="O(p^2)",
+            params_type=distance.TrajectoryDistanceParams,
+            fn=distance.trajectory_distance,
         ),
         ModelSpec(
-            "closest_encounter",
-            "Closest encounter",
-            "time",
-            "eq. 6-7, Sec. III-B",
-            "O(n)",
-            temporal.ClosestEncounterParams,
-            temporal.closest_encounter,
+            name="closest_encounter",
+            title="Closest encounter",
+            family="time",
+            paper_ref="eq. 6-7, Sec. III-B",
+            complexity="O(n)",
+            params_type=temporal.ClosestEncounterParams,
+            fn=temporal.closest_encounter,
         ),
         ModelSpec(
-            "headway",
-            "Closest encounter + headway",
-            "time",
-            "eq. 7-8, Sec. III-B",
-            "O(n + p)",
-            temporal.HeadwayParams,
-            temporal.headway,
+            name="headway",
+            title="Closest encounter + headway",
+            family="time",
+            paper_ref="eq. 7-8, Sec. III-B",
+            complexity="O(n + p)",
+            params_type=temporal.HeadwayParams,
+            fn=temporal.headway,
         ),
         ModelSpec(
-            "headway_2d",
-            "Closest encounter + 2D headway",
-            "time",
-            "eq. 8, Sec. III-B",
-            "O(n + p^2)",
-            temporal.Headway2DParams,
-            temporal.headway_2d,
+            name="headway_2d",
+            title="Closest encounter + 2D headway",
+            family="time",
+            paper_ref="eq. 8, Sec. III-B",
+            complexity="O(n + p^2)",
+            params_type=temporal.Headway2DParams,
+            fn=temporal.headway_2d,
         ),
         ModelSpec(
-            "circles",
-            "Circle approximation",
-            "stochastic",
-            "eq. 9, Sec. III-C",
-            "O(k n)",
-            stochastic.CirclesParams,
-            stochastic.circles,
+            name="circles",
+            title="Circle approximation",
+            family="stochastic",
+            paper_ref="eq. 9, Sec. III-C",
+            complexity="O(k n)",
+            params_type=stochastic.CirclesParams,
+            fn=stochastic.circles,
         ),
         ModelSpec(
-            "gaussian",
-            "2D Gaussians",
-            "stochastic",
-            "eq. 10, Sec. III-C",
-            "O(n)",
-            stochastic.GaussianParams,
-            stochastic.gaussian,
+            name="gaussian",
+            title="2D Gaussians",
+            family="stochastic",
+            paper_ref="eq. 10, Sec. III-C",
+            complexity="O(n)",
+            params_type=stochastic.GaussianParams,
+            fn=stochastic.gaussian,
             unit="1/m^2",
         ),
         ModelSpec(
-            "survival",
-            "Survival analysis",
-            "stochastic",
-            "eq. 11, Sec. III-C",
-            "O(n)",
-            stochastic.SurvivalParams,
-            stochastic.survival,
+            name="survival",
+            title="Survival analysis",
+            family="stochastic",
+            paper_ref="eq. 11, Sec. III-C",
+            complexity="O(n)",
+            params_type=stochastic.SurvivalParams,
+            fn=stochastic.survival,
         ),
     )
 }
 
 #: The model whose thresholded set is the ground truth of the ROC curves (paper Sec. IV-B).
 BASELINE_MODEL = "survival"
-#: An agent is important when its survival risk is at least this (paper Sec. IV-B).
+#: An agent is important when its survival risk is at least this (paper Sec. IV-B). The
+#: default of every ``threshold`` argument; pass another value to study its influence.
 BASELINE_THRESHOLD = 1e-25
 
+if tuple(MODELS) != kernel.SLOTS:
+    raise RuntimeError("risk.kernel.SLOTS must list the models in registry order")
 
-def baseline_mask(risks: np.ndarray) -> np.ndarray:
-    """Important agents ``(N,)`` bool: ``risk >= BASELINE_THRESHOLD``; False for NaN."""
+
+def baseline_mask(risks: np.ndarray, threshold: float = BASELINE_THRESHOLD) -> np.ndarray:
+    """Important agents ``(N,)`` bool: ``risk >= threshold``; False for NaN."""
     r = np.asarray(risks, dtype=np.float64)
     with np.errstate(invalid="ignore"):
-        return r >= BASELINE_THRESHOLD
+        return r >= threshold
 
 
 def resolve_models(models: Iterable[str] | str | None) -> list[str]:
@@ -180,9 +188,14 @@ def resolve_models(models: Iterable[str] | str | None) -> list[str]:
     return names
 
 
+_DEFAULTS: dict[str, Any] = {name: spec.default_params() for name, spec in MODELS.items()}
+
+
 def resolve_params(params: Mapping[str, Any] | None) -> dict[str, Any]:
     """Parameter objects for every model: the given ones, defaults for the rest."""
-    given = dict(params or {})
+    if not params:
+        return dict(_DEFAULTS)
+    given = dict(params)
     for name, value in given.items():
         if name not in MODELS:
             raise UnknownModelError(str(name), list(MODELS))
@@ -191,7 +204,61 @@ def resolve_params(params: Mapping[str, Any] | None) -> dict[str, Any]:
             raise RiskError(
                 f"parameters for {name!r} must be a {expected.__name__}, got {type(value).__name__}"
             )
-    return {name: given.get(name, spec.default_params()) for name, spec in MODELS.items()}
+    return {name: given.get(name, default) for name, default in _DEFAULTS.items()}
+
+
+def resolve_prediction(prediction: PredictionSettings | None) -> PredictionSettings:
+    """``prediction`` checked, or the defaults when None."""
+    if prediction is None:
+        return _DEFAULT_PREDICTION
+    if not isinstance(prediction, PredictionSettings):
+        raise RiskError(f"prediction must be a PredictionSettings, got {type(prediction).__name__}")
+    return prediction
+
+
+_DEFAULT_PREDICTION = PredictionSettings()
+
+
+def kernel_settings(prediction: PredictionSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Read-only steps ``(n,)`` and uncertainty table ``(4, 8)`` of ``prediction`` (cached
+    on the immutable settings object)."""
+    cached = prediction.__dict__.get("_kernel")
+    if cached is None:
+        steps = prediction.steps_s
+        unc = prediction.uncertainty.as_array()
+        steps.flags.writeable = False
+        unc.flags.writeable = False
+        cached = (steps, unc)
+        object.__setattr__(prediction, "_kernel", cached)
+    return cached
+
+
+_PACKED: dict[tuple[int, ...], tuple[Any, np.ndarray, np.ndarray]] = {}
+
+
+def kernel_params(
+    chosen: dict[str, Any], settings: PredictionSettings
+) -> tuple[np.ndarray, np.ndarray]:
+    """The kernel's parameter vectors, cached by the identity of the (immutable) parameter
+    objects; the cache holds them, so an identity is never reused while cached."""
+    objects = (*chosen.values(), settings)
+    key = tuple(map(id, objects))
+    hit = _PACKED.get(key)
+    if hit is None:
+        if len(_PACKED) > 256:
+            _PACKED.clear()
+        fp, ip = kernel.pack_params(chosen, settings.horizon_s, settings.dt_s)
+        hit = _PACKED[key] = (objects, fp, ip)
+    return hit[1], hit[2]
+
+
+@functools.lru_cache(maxsize=256)
+def _want(names: tuple[str, ...]) -> np.ndarray:
+    want = np.zeros(kernel.N_MODELS, dtype=np.bool_)
+    for name in names:
+        want[kernel.SLOTS.index(name)] = True
+    want.flags.writeable = False
+    return want
 
 
 def evaluate(
@@ -208,12 +275,32 @@ def evaluate(
     ``prediction``: horizon, step and uncertainty table (None = defaults).
 
     Returns name -> ``(N,)`` float64 in frame order, NaN for the ego and invalid agents.
-    Shared work (extended paths, predictions, covariances, pairwise overlaps) is computed
-    once per call and reused by every model.
+    Computed by the compiled kernel (:mod:`risk.kernel`) in one pass per agent row: the
+    shared work (extended paths, prediction, covariances) is done once per row and
+    reused by every requested model.
     """
     names = resolve_models(models)
     chosen = resolve_params(params)
-    if prediction is not None and not isinstance(prediction, PredictionSettings):
-        raise RiskError(f"prediction must be a PredictionSettings, got {type(prediction).__name__}")
-    ctx = FrameContext(frame, prediction)
+    settings = resolve_prediction(prediction)
+    steps, unc = kernel_settings(settings)
+    fp, ip = kernel_params(chosen, settings)
+    out = kernel.run(frame, _want(tuple(names)), fp, ip, steps, unc)
+    return {name: out[kernel.SLOTS.index(name)] for name in names}
+
+
+def evaluate_numpy(
+    frame: Frame,
+    models: Iterable[str] | None = None,
+    params: Mapping[str, Any] | None = None,
+    *,
+    prediction: PredictionSettings | None = None,
+) -> dict[str, np.ndarray]:
+    """:func:`evaluate` computed by the vectorised numpy modules (``ModelSpec.fn``).
+
+    Not the production path: the oracle that the compiled kernel is tested against, with
+    the plain-loop :func:`risk.reference.reference_evaluate`.
+    """
+    names = resolve_models(models)
+    chosen = resolve_params(params)
+    ctx = FrameContext(frame, resolve_prediction(prediction))
     return {name: MODELS[name].fn(ctx, chosen[name]) for name in names}

@@ -30,6 +30,14 @@ class CirclesParams:
     sigma_scale: float = field(
         default=2.0, metadata={"help": "radius grows by this many sig_lon(s)", "unit": ""}
     )
+    radius_rule: str = field(
+        default="spec",
+        metadata={
+            "help": "ego circle radius: 'spec' = ego length/2, 'width' = ego width/2 "
+            "(plus sigma_scale * sig_lon either way)",
+            "unit": "",
+        },
+    )
 
     def __post_init__(self) -> None:
         check_positive("circles", "epsilon_m", self.epsilon_m)
@@ -44,6 +52,10 @@ class CirclesParams:
         ):
             raise RiskError(
                 f"circles: sigma_scale must be a finite number >= 0, got {self.sigma_scale!r}"
+            )
+        if self.radius_rule not in ("spec", "width"):
+            raise RiskError(
+                f"circles: radius_rule must be 'spec' or 'width', got {self.radius_rule!r}"
             )
 
 
@@ -122,7 +134,8 @@ def circle_distances_rows(ctx: FrameContext, ego_row: int, params: CirclesParams
     c = params.sigma_scale
     k = params.n_circles
     ego = f.ego
-    r_ego = 0.5 * f.length[ego] + c * ctx.sigma_lon[ego_row]  # (n,)
+    ego_body = f.length[ego] if params.radius_rule == "spec" else f.width[ego]
+    r_ego = 0.5 * ego_body + c * ctx.sigma_lon[ego_row]  # (n,)
     agent = ctx.row_agent
     r_other = 0.5 * f.width[agent][:, None] + c * ctx.sigma_lon  # (M, n), stored once
     slices = (np.arange(k) + 0.5) / k - 0.5  # (k,)

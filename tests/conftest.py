@@ -6,6 +6,8 @@ import pathlib
 
 import pytest
 
+from risk import kernel
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / "shared" / "data"
 
@@ -18,3 +20,10 @@ def shared_data() -> pathlib.Path:
             f"real data samples not found at {SHARED_DATA} (clone ../shared beside the project)"
         )
     return SHARED_DATA
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Compile the risk kernels once, in the controller, before pytest-xdist starts its
+    workers: they then load the cached kernels instead of each compiling them."""
+    if not hasattr(config, "workerinput"):
+        kernel.warm_up()

@@ -301,3 +301,133 @@ def test_prediction_settings_reach_every_evaluation():
     assert not np.allclose(res.survival_all[frame.others], default[frame.others])
     kept = res.kept[0]
     np.testing.assert_allclose(res.survival[kept], expected[kept], rtol=1e-12)
+
+
+# ---------------------------------------------------------------------- fused cascade
+def spread_frame(rng: np.random.Generator, n: int, spread: float) -> Frame:
+    """Agents of every kind scattered up to ``spread`` m from the ego, random headings,
+    speeds and straight or bent paths (some long, some a single point)."""
+    xy = rng.uniform(-spread, spread, (n, 2))
+    xy[0] = 0.0
+    heading = rng.uniform(-np.pi, np.pi, n)
+    paths = []
+    for i in range(n):
+        pts = [xy[i]]
+        h = heading[i]
+        for _ in range(int(rng.integers(0, 4))):
+            h += rng.normal(0, 0.5)
+            pts.append(pts[-1] + rng.uniform(1, 60) * np.array([np.cos(h), np.sin(h)]))
+        paths.append(np.array(pts))
+    speed = rng.uniform(0, 30, n) * (rng.random(n) > 0.2)
+    kinds = rng.integers(0, 4, n)
+    valid = rng.random(n) > 0.05
+    valid[0] = True
+    return Frame.from_arrays(
+        xy, heading, speed, rng.uniform(0.3, 6, n), rng.uniform(0.3, 2.5, n), paths, 0,
+        kinds=kinds, valid=valid,
+    )  # fmt: skip
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.integers(0, 2**32 - 1),
+    st.sampled_from([1e-25, 1e-12, 1e-4]),
+    st.sampled_from([None, 0.0]),
+    st.sampled_from([20.0, 150.0, 600.0]),
+)
+def test_reachability_bound_never_drops_an_important_agent(seed, threshold, vmax, spread):
+    """Property: every agent that survival analysis rates important (R_S >= threshold) is
+    reachable, also with the maximum speeds set to 0 (the bound then rests on the agents'
+    own speeds alone, its tightest form)."""
+    from risk import PredictionSettings, evaluate
+    from risk.cascade import reachable_mask
+
+    rng = np.random.default_rng(seed)
+    frame = spread_frame(rng, 40, spread)
+    pred = PredictionSettings(horizon_s=float(rng.choice([2.0, 6.0])), dt_s=0.25)
+    speeds = (
+        None if vmax is None else dict.fromkeys(("vehicle", "pedestrian", "cyclist", "other"), vmax)
+    )
+    reach = reachable_mask(frame, threshold, prediction=pred, max_speed_mps=speeds)
+    surv = evaluate(frame, ["survival"], prediction=pred)["survival"]
+    important = frame.others & (np.nan_to_num(surv, nan=-1.0) >= threshold)
+    assert not (important & ~reach).any()
+    assert not reach[~frame.others].any()
+
+
+def test_reachability_bound_drops_far_agents():
+    from risk import PredictionSettings
+    from risk.cascade import reachable_mask
+
+    frame = spread_frame(np.random.default_rng(1), 60, 20.0)
+    far = Frame.from_arrays(
+        np.array([[0.0, 0.0], [5000.0, 0.0], [40.0, 0.0]]), np.zeros(3), np.array([10.0, 0, 0]),
+        np.full(3, 4.0), np.full(3, 2.0),
+        [np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([[5000.0, 0.0]]), np.array([[40.0, 0.0]])],
+        0,
+    )  # fmt: skip
+    np.testing.assert_array_equal(reachable_mask(far), [False, False, True])
+    # Close agents are never dropped.
+    assert reachable_mask(frame, prediction=PredictionSettings(2.0, 0.5))[frame.others].all()
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([30.0, 400.0]))
+def test_fused_cascade_matches_the_staged_oracle(seed, spread):
+    """Same kept sets, drops, tiers and survival as the staged cascade on sub-frames, except
+    the agents the reachability bound drops first (none of them important)."""
+    from risk import PredictionSettings, evaluate
+
+    rng = np.random.default_rng(seed)
+    frame = spread_frame(rng, 50, spread)
+    pred = PredictionSettings(horizon_s=4.0, dt_s=0.25)
+    config = CascadeConfig(
+        stages=(
+            Stage("path_distance", float(rng.choice([0.0, 0.02, 0.3, 1.0]))),
+            Stage("trajectory_distance", float(rng.choice([0.01, 0.1]))),
+            Stage("gaussian", float(rng.choice([0.0, 1e-30, 1e-3]))),
+        ),
+        tiers=TIERS,
+    )
+    staged = run_cascade(frame, config, prediction=pred, evaluate=lambda *a, **k: evaluate(*a, **k))
+    plain = run_cascade(frame, config, prediction=pred, reachability=False)
+    fused = run_cascade(frame, config, prediction=pred)
+    for name in ("kept", "dropped_at", "tier", "baseline", "false_negatives", "survival_all"):
+        np.testing.assert_array_equal(getattr(plain, name), getattr(staged, name), err_msg=name)
+    np.testing.assert_array_equal(plain.survival, staged.survival)
+    assert not (fused.unreachable & fused.baseline).any()
+    np.testing.assert_array_equal(fused.kept, staged.kept & ~fused.unreachable)
+    np.testing.assert_array_equal(fused.false_negatives, staged.false_negatives)
+    assert (fused.dropped_at[fused.unreachable] == 0).all()
+
+
+def test_engine_style_partial_uses_the_fused_cascade():
+    import functools
+
+    from risk import PredictionSettings, evaluate
+
+    frame = spread_frame(np.random.default_rng(4), 30, 3000.0)
+    pred = PredictionSettings(horizon_s=2.0, dt_s=0.5)
+    res = run_cascade(frame, CONFIG, evaluate=functools.partial(evaluate, prediction=pred))
+    assert res.unreachable is not None and res.unreachable.any()
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.floats(1e-9, 1.0),
+    st.floats(1e-3, 50.0),
+    st.lists(st.floats(0.0, 1e4), min_size=1, max_size=20),
+)
+def test_keep_bounds_never_change_a_decision(threshold, eps, distances):
+    """d^2 <= stop2 certainly keeps and d^2 > cut2 certainly drops, in floating point."""
+    from risk.cascade import keep_bounds
+
+    stop2, cut2 = keep_bounds(threshold, eps)
+    assert stop2 <= cut2
+    d_cut = eps / threshold - eps
+    for d in [*distances, d_cut, np.nextafter(d_cut, 0), np.nextafter(d_cut, np.inf)]:
+        risk = eps / (eps + d)
+        if d * d <= stop2:
+            assert risk >= threshold
+        if d * d > cut2:
+            assert risk < threshold

@@ -9,6 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from converters import mcap_io
+from converters import scene_format as sf
 from converters.synthetic import SyntheticSettings, generate_scene
 from replay.cli import main
 from replay.reader import open_scene, read_scene
@@ -154,7 +155,7 @@ def test_inspect_json_matches_the_file(runner, scene_file):
     }
     assert info["metadata"]["settings"] == reader.metadata["settings"]  # uncut
     assert info["lanes"] == 32
-    assert info["format_version"] == 1
+    assert info["format_version"] == sf.FORMAT_VERSION
 
 
 def test_inspect_shows_labels(runner, tmp_path):

@@ -43,11 +43,25 @@ def test_bad_settings_are_rejected(horizon, dt):
         PredictionSettings(horizon_s=horizon, dt_s=dt)
 
 
+ROW = {
+    "sigma0_lon_m": 0.5,
+    "sigma0_lat_m": 0.3,
+    "growth_lon": 0.1,
+    "growth_lat": 0.1,
+    "sigma_max_lon_m": 1.0,
+    "sigma_max_lat_m": 1.0,
+}
+
+
 def test_bad_uncertainty_is_rejected():
     with pytest.raises(RiskError, match="sigma0"):
-        KindUncertainty(0.0, 0.3, 0.1, 0.1, 1.0, 1.0)
+        KindUncertainty(**{**ROW, "sigma0_lon_m": 0.0})
     with pytest.raises(RiskError):
-        KindUncertainty(0.5, 0.3, -0.1, 0.1, 1.0, 1.0)
+        KindUncertainty(**{**ROW, "growth_lon": -0.1})
+    with pytest.raises(RiskError):
+        KindUncertainty(**{**ROW, "time_growth_lat_mps": -0.1})
+    with pytest.raises(TypeError):  # keywords only: six floats in a row are easy to swap
+        KindUncertainty(0.5, 0.3, 0.1, 0.1, 1.0, 1.0)  # type: ignore[misc]
 
 
 def test_settings_dict_has_the_spec_table():

@@ -19,19 +19,21 @@ pytestmark = pytest.mark.realdata
 
 
 def risk_timelines(rrd: pathlib.Path) -> dict[tuple[str, int], dict[int, float]]:
-    """(model, agent id) -> {time in ns: raw risk} from the recording's /risk entities."""
+    """(model, agent id) -> {time in ns: raw risk} from each agent's
+    ``/scene/agents/<id>/risk/<model>`` entities."""
     out: dict[tuple[str, int], dict[int, float]] = {}
     for chunk in rr_chunk.RrdReader(rrd).stream().to_chunks():
+        # /scene/agents/<id>/risk/<model>
         parts = chunk.entity_path.strip("/").split("/")
-        if chunk.is_static or len(parts) != 3 or "/" + parts[0] != L.RISK:
+        if chunk.is_static or len(parts) != 5 or "/" + "/".join(parts[:2]) != L.AGENTS:
             continue
-        if not parts[2].lstrip("-").isdigit():
-            continue  # e.g. /risk/<model>/threshold, the stage's threshold line
+        if parts[3] != L.RISK:
+            continue
         batch = chunk.to_record_batch()
         column = next(n for n in batch.schema.names if n.endswith(":scalars"))
         times = batch.column(L.TIMELINE).cast("int64").to_pylist()
         values = batch.column(column).to_pylist()
-        series = out.setdefault((parts[1], int(parts[2])), {})
+        series = out.setdefault((parts[4], int(parts[2])), {})
         for t, v in zip(times, values, strict=True):
             if v is not None:
                 series[t] = float(v[0])

@@ -147,8 +147,15 @@ class Entity:
         self.static: dict[str, list] = {}
         self.rows: list[tuple[int, dict[str, list]]] = []  # (time ns, component -> values)
 
-    def column(self, component: str) -> list:
-        return [values.get(component) for _, values in sorted(self.rows, key=lambda r: r[0])]
+    def column(self, component: str, *, rows_with: str | None = None) -> list:
+        """``component`` per row in time order (None where absent); ``rows_with``: only
+        the rows that hold that component (e.g. the line strips of an entity that also
+        holds text log rows)."""
+        return [
+            values.get(component)
+            for _, values in sorted(self.rows, key=lambda r: r[0])
+            if rows_with is None or rows_with in values
+        ]
 
     def times_s(self) -> list[float]:
         return [t / 1e9 for t, _ in sorted(self.rows, key=lambda r: r[0])]
@@ -194,14 +201,31 @@ def test_recorder_is_a_sink(tmp_path):
 
 def test_entities_present(recording):
     _, ents, _ = recording
-    for path in (L.SCENE, L.MAP_LANES, L.EGO_BODY, L.EGO_PATH, L.KEPT_BODIES, L.DROPPED_BODIES,
-                 L.TIER_OUTLINES, L.MISSED_OUTLINES, L.HEADINGS, L.PREDICTED_PATHS, L.SUMMARY,
-                 L.link_path(0, "near"), L.link_path(1, "wide")):  # fmt: skip
+    for path in (L.SCENE, L.MAP_LANES, L.EGO_BODY, L.EGO_PATH, L.SUMMARY):
         assert path in ents, path
-    for model in MODELS:
-        for agent in (1, 2, 3, 4):
+    for agent in (1, 2, 3, 4):  # one subtree per agent: body and nine (here three) risks
+        assert L.body_path(agent) in ents
+        for model in MODELS:
             assert L.risk_path(model, agent) in ents
+    for model in MODELS:
         assert L.risk_path(model, EGO_ID) not in ents  # the ego has no risk against itself
+    assert not any(p.startswith(L.LINKS) for p in ents)  # links are an option, off
+
+
+def test_per_agent_subtree_layout(recording):
+    """Everything of agent k lives under /scene/agents/k, and only there."""
+    _, ents, _ = recording
+    agent_paths = sorted(p for p in ents if p.startswith(L.AGENTS + "/"))
+    by_agent: dict[str, set[str]] = {}
+    for p in agent_paths:
+        agent, *rest = p[len(L.AGENTS) + 1 :].split("/")
+        by_agent.setdefault(agent, set()).add("/".join(rest))
+    assert set(by_agent) == {"1", "2", "3", "4"}
+    risks = {f"{L.RISK}/{m}" for m in MODELS} | {
+        f"{L.RISK_LOG10}/{m}" for m in ("wide", "survival")
+    }
+    assert by_agent["2"] == {L.BODY, L.PATH} | risks  # agent 2 reaches a deeper tier
+    assert by_agent["3"] == {L.BODY} | risks  # never beyond the first stage: no path
 
 
 def test_scene_is_flipped_for_display(recording):
@@ -221,12 +245,12 @@ def test_risk_timeline_equals_input_with_gap(recording):
     np.testing.assert_array_equal(scalars(ent), [1e-8])
     # Agent 1 in every frame, raw values in the model's units.
     np.testing.assert_array_equal(scalars(ents[L.risk_path("survival", 1)]), SURV[:, 0])
-    # Agents kept to the end in some frame have their own colour; the others (agent 3 is
-    # dropped whenever present) use the view's quiet default.
+    # The agents the views open on have their own colour (the same in every view); the
+    # others take the view's quiet default.
     own = tuple(int(c) for c in L.agent_series_colors(np.array([1]))[0])
-    assert [rgba(c[0])[:3] for c in ents[L.risk_path("survival", 1)].column("colors")] == [own] * 3
-    assert ents[L.risk_path("survival", 3)].column("colors") == [None, None, None]
-    assert ents[L.risk_path("wide", 2, log10=True)].column("colors")[0] is not None
+    for model in MODELS:
+        assert rgba(ents[L.risk_path(model, 1)].static["colors"][0])[:3] == own
+    assert "colors" not in ents[L.risk_path("survival", 4)].static  # agent 4 never matters
 
 
 def test_frame_timeline_is_logged(recording):
@@ -286,57 +310,72 @@ def test_ego_body_is_green_capsule_at_ego(recording):
     for k, (colors, strips, radii) in enumerate(
         zip(ego.column("colors"), ego.column("strips"), ego.column("radii"), strict=True)
     ):
-        assert [rgba(c)[:3] for c in colors] == [GREEN]
+        assert [rgba(c)[:3] for c in colors] == [GREEN, L.NOSE]  # capsule, heading nose
         centre = np.mean(np.array(strips[0]), axis=0)
         np.testing.assert_allclose(centre, [0.0, -20.0 + 4.0 * k], atol=1e-5)
-        assert radii == pytest.approx([1.0])  # half the 2 m width
+        assert radii[0] == pytest.approx(1.0)  # half the 2 m width
+    assert ego.column("labels") == [["ego 100", ""]] * 3
 
 
-def test_kept_and_dropped_bodies(recording):
+def body(ents, agent: int, frame: int) -> tuple[list, list, list]:
+    """(strip point counts, RGB colours, labels) of an agent's body entity in a frame."""
+    ent = ents[L.body_path(agent)]
+    strips = ent.column("strips", rows_with="strips")[frame]
+    return (
+        [len(s) for s in strips],
+        [rgba(c)[:3] for c in ent.column("colors", rows_with="strips")[frame]],
+        ent.column("labels", rows_with="strips")[frame],
+    )
+
+
+def test_bodies_markers_and_colours(recording):
     _, ents, _ = recording
-    kept, dropped = ents[L.KEPT_BODIES], ents[L.DROPPED_BODIES]
-    assert [len(s) for s in kept.column("strips")] == [1, 2, 2]
-    assert [len(s) for s in dropped.column("strips")] == [2, 0, 2]  # frame 2: agents 3, 4
-    # Survivors are red, the riskier the redder (less green): frame 1 has R_S 0.2 and 1e-4.
-    colors = [rgba(c) for c in kept.column("colors")[1]]
-    assert all(c[0] > 200 and c[0] > c[1] for c in colors)
-    assert colors[0][1] < colors[1][1]
-    assert {rgba(c)[:3] for c in dropped.column("colors")[0]} == {L.DROPPED}
-    assert kept.column("labels")[0] == ["1 C"]  # agent 1 reached the cooperative tier
+    # Frame 0: agent 1 kept to the cooperative tier: red capsule, nose, tier outline.
+    counts, colors, labels = body(ents, 1, 0)
+    assert counts == [2, 2, 5]
+    assert colors[0][0] > 200 and colors[0][0] > colors[0][1]  # red by survival risk
+    assert colors[2] == L.tier_color(2)
+    assert labels == ["", "", "1 C"]  # on the outline: white/cyan/magenta text, not red
+    # Agents 2 and 3 were dropped although baseline-important: yellow capsule and ring.
+    for agent, stage in ((2, 2), (3, 1)):
+        counts, colors, labels = body(ents, agent, 0)
+        assert counts == [2, 2, 17] and colors[0] == L.MISSED and colors[2] == L.MISSED
+        assert labels == ["", "", f"{agent} MISS ✗{stage}"]  # on the yellow ring
+    # Frame 2: agents 3 and 4 dropped, not important: grey, no marker, no label.
+    for agent in (3, 4):
+        counts, colors, labels = body(ents, agent, 2)
+        assert counts == [2, 2] and colors[0] == L.DROPPED and labels == ["", ""]
+    # The riskier survivor is redder (less green): frame 1 has R_S 0.2 (agent 1), 1e-4 (2).
+    assert body(ents, 1, 1)[1][0][1] < body(ents, 2, 1)[1][0][1]
+    # Agent 4 is absent in frames 0 and 1: empty rows (nothing drawn), present in frame 2.
+    assert [len(s) for s in ents[L.body_path(4)].column("strips", rows_with="strips")] == [0, 0, 2]
 
 
-def test_labels_default_show_false_negatives_only(recording):
+def test_label_counts_per_frame(recording):
+    """Default labels: the ego, the tier agents and the misses (frame 2: agents 3 and 4
+    are dropped but not important, so only the ego and agents 1, 2 are labelled)."""
     _, ents, _ = recording
-    # Frame 0: agent 2 dropped at stage 2 and agent 3 at stage 1, both baseline-important.
-    assert sorted(ents[L.DROPPED_BODIES].column("labels")[0]) == ["2 FN ✗2", "3 FN ✗1"]
-    # Frame 2: agents 3 and 4 dropped, not important (R_S 0, 1e-30): no label by default.
-    assert ents[L.DROPPED_BODIES].column("labels")[2] == ["", ""]
-    assert ents[L.DROPPED_BODIES].static["show_labels"] == [True]
+    per_frame = [0, 0, 0]
+    for path, ent in ents.items():
+        if path == L.EGO_BODY or (path.startswith(L.AGENTS) and path.endswith("/" + L.BODY)):
+            for f, labels in enumerate(ent.column("labels", rows_with="strips")):
+                per_frame[f] += sum(bool(x) for x in labels or [])
+    assert per_frame == [4, 3, 3]
 
 
-@pytest.mark.parametrize(("mode", "frame2"), [("all", ["3 ✗1", "4 ✗2"]), ("none", ["", ""])])
+@pytest.mark.parametrize(
+    ("mode", "frame2"), [("all", [["3 ✗1", ""], ["4 ✗2", ""]]), ("none", [None, None])]
+)
 def test_label_modes(tmp_path, mode, frame2):
     out, _ = write(tmp_path, labels=mode)
     ents = read_rrd(out)
-    assert ents[L.DROPPED_BODIES].column("labels")[2] == frame2
-    if mode == "none":
-        assert ents[L.KEPT_BODIES].static["show_labels"] == [False]
+    got = [ents[L.body_path(a)].column("labels", rows_with="strips")[2] for a in (3, 4)]
+    assert got == frame2
 
 
-def test_missed_outlines_and_tiers(recording):
-    _, ents, _ = recording
-    assert [len(s) for s in ents[L.MISSED_OUTLINES].column("strips")] == [2, 0, 0]
-    tiers = ents[L.TIER_OUTLINES]
-    assert [len(s) for s in tiers.column("strips")] == [1, 2, 2]
-    # Frame 0: agent 1 reached the cooperative tier (index 2).
-    assert rgba(tiers.column("colors")[0][0])[:3] == L.tier_color(2)
-    outline = np.array(tiers.column("strips")[0][0])
-    assert outline.shape == (5, 2)
-    np.testing.assert_allclose(outline[0], outline[-1])  # closed
-
-
-def test_links_start_at_the_ego(recording):
-    _, ents, _ = recording
+def test_links_are_an_option_and_start_at_the_ego(tmp_path):
+    out, _ = write(tmp_path, links=True)
+    ents = read_rrd(out)
     for s, model in enumerate(("near", "wide")):
         strips = ents[L.link_path(s, model)].column("strips")
         assert [len(x) for x in strips] == [[2, 2, 3], [1, 2, 2]][s]
@@ -347,10 +386,8 @@ def test_links_start_at_the_ego(recording):
 
 def test_threshold_lines_in_stage_views(recording):
     _, ents, _ = recording
-    np.testing.assert_allclose(
-        scalars(ents[f"{L.risk_root('near')}/{L.THRESHOLD_SERIES}"]), [0.2] * 3
-    )
-    log_thr = ents[f"{L.risk_root('wide', log10=True)}/{L.THRESHOLD_SERIES}"]
+    np.testing.assert_allclose(scalars(ents[L.threshold_path("near")]), [0.2] * 3)
+    log_thr = ents[L.threshold_path("wide", log10=True)]
     np.testing.assert_allclose(scalars(log_thr), [-6.0] * 3)
 
 
@@ -360,6 +397,7 @@ def test_map_lanes_static(recording):
     assert not lanes.rows
     assert len(lanes.static["strips"]) == 2
     assert [rgba(c)[:3] for c in lanes.static["colors"]] == [L.LANE, L.LANE_OTHER]
+    assert not any(p in ents for p in L.MAP_LINES.values())  # this map has no lines
 
 
 def test_summary_text(recording):
@@ -373,8 +411,8 @@ def test_summary_text(recording):
         assert needle in text, needle
 
 
-def test_blueprint_lays_out_views(recording):
-    out, _, _ = recording
+def blueprint_views(out: pathlib.Path) -> dict[str, tuple[str, str, list[str]]]:
+    """View name -> (class, origin, contents) of the recording's default blueprint."""
     reader = rr_chunk.RrdReader(out)
     assert len(reader.blueprints()) == 1
     views = {}
@@ -383,12 +421,31 @@ def test_blueprint_lays_out_views(recording):
         if "ViewBlueprint:class_identifier" in batch.schema.names:
             kind = batch.column("ViewBlueprint:class_identifier").to_pylist()[0][0]
             origin = batch.column("ViewBlueprint:space_origin").to_pylist()[0][0]
-            views[origin] = kind
-    assert views["/"] == "2D"
-    assert views[L.SUMMARY] == "TextDocument"
-    for origin in (L.FUNNEL, L.TIMING, L.FALSE_NEGATIVES, L.risk_root("near"),
-                   L.risk_root("wide", log10=True), L.risk_root("survival", log10=True)):  # fmt: skip
-        assert views[origin] == "TimeSeries", origin
+            name = batch.column("ViewBlueprint:display_name").to_pylist()[0][0]
+            views[chunk.entity_path] = (name, kind, origin)
+    contents = {}
+    for chunk in reader.stream(store=reader.blueprints()[0]).to_chunks():
+        batch = chunk.to_record_batch()
+        col = next((n for n in batch.schema.names if n.endswith("query")), None)
+        if col is not None:
+            contents[chunk.entity_path.rsplit("/", 1)[0]] = batch.column(col).to_pylist()[0]
+    return {
+        name: (kind, origin, contents.get(path, [])) for path, (name, kind, origin) in views.items()
+    }
+
+
+def test_blueprint_lays_out_views(recording):
+    out, _, _ = recording
+    views = blueprint_views(out)
+    assert views["Scene (top-down, y north)"][:2] == ("2D", "/")
+    assert views["Summary"][:2] == ("TextDocument", L.SUMMARY)
+    assert views["Misses (click a row: select the agent)"][:2] == ("TextLog", L.AGENTS)
+    for name in ("Funnel: agents left", "Compute time (ms)", "False negatives (cumulative)",
+                 "near · stage", "log10 wide · stage", "log10 survival"):  # fmt: skip
+        assert views[name][0] == "TimeSeries", name
+    # The risk views open on the agents that matter: misses (2, 3) first, then tiers (1).
+    contents = views["log10 survival"][2]
+    assert contents == [f"+ {L.risk_path('survival', a, log10=True)}" for a in (2, 3, 1)]
 
 
 def test_rerun_verify_passes(recording):
@@ -597,5 +654,7 @@ def test_synthetic_replay_round_trip(tmp_path):
     for s, stage in enumerate(keep.info.cascade.stages):
         funnel = scalars(ents[f"{L.FUNNEL}/{L.stage_key(s, stage.model)}"])
         np.testing.assert_array_equal(funnel, [r.cascade.n_kept[s] for r in keep.results])
-    bodies = ents[L.KEPT_BODIES].column("strips")
-    assert [len(b) for b in bodies] == [int(r.cascade.n_kept[-1]) for r in keep.results]
+    for r_index, r in enumerate(keep.results):  # every valid other agent has a body
+        for agent in r.frame.ids[r.frame.others]:
+            strips = ents[L.body_path(int(agent))].column("strips", rows_with="strips")
+            assert len(strips[r_index]) >= 2

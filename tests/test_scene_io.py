@@ -445,7 +445,7 @@ def test_newer_format_version_is_refused(tmp_path):
     with open(path, "rb") as f:
         data = f.read()
     # Same length replacement of the metadata value keeps every offset valid.
-    marker = b"format_version\x01\x00\x00\x001"
+    marker = b"format_version\x01\x00\x00\x00" + str(sf.FORMAT_VERSION).encode()
     assert data.count(marker) == 1
     path.write_bytes(data.replace(marker, marker[:-1] + b"9"))
     with pytest.raises(SceneFormatError, match=r"format version 9.*upgrade riskreplay"):

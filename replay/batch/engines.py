@@ -13,6 +13,7 @@ from typing import Any, Protocol
 from replay.batch.tasks import one_line
 from replay.errors import ReplayError
 from replay.pool import LocalEngine, default_workers
+from risk import kernel
 
 ENGINES: tuple[str, ...] = ("local", "ray")
 RAY_MISSING = "Ray is not installed; install it with: pip install 'riskreplay[ray]'"
@@ -58,6 +59,7 @@ class RayEngine:
         self._started = False
         if address:
             _check_reachable(address)
+        kernel.warm_up()  # compile once here; workers on this machine load the cache
         if not ray.is_initialized():
             kwargs: dict[str, Any] = {"logging_level": logging.WARNING, "log_to_driver": False}
             try:

@@ -25,6 +25,7 @@ SOURCES: dict[str, str] = {
     "av2": "replay.commands.convert_av2:av2",
     "commonroad": "replay.commands.convert_commonroad:commonroad",
     "interaction": "replay.commands.convert_interaction:interaction",
+    "foxglove": "replay.commands.convert_foxglove:foxglove",
 }
 
 

@@ -1,0 +1,303 @@
+"""The goals of issue 13 (one compiled kernel): medians of CPU and wall time on this machine.
+
+Usage::
+
+    .venv/bin/python benchmarks/bench_kernel.py              # every row (about 5 min)
+    .venv/bin/python benchmarks/bench_kernel.py --skip-cold  # without the cold compile
+
+Rows:
+
+- all nine models per frame at N = 100 and N = 1000 (``evaluate(frame)``), the growth;
+- the cascade (reachability bound + stages + tier sort) against survival analysis on
+  all agents, at N = 100 on the intersection frames of ``bench_models.py`` and at
+  N = 1000 on a Waymo-like scene with far agents (a 3 km x 3 km road grid, ego in the
+  middle). The cascade's CPU time is the CPU time of ``run_cascade`` minus that of the
+  survival-on-all reference it computes for its report, measured separately;
+- ``replay run`` on the converted Waymo sample and ``replay demo``, end to end in new
+  processes with a warm kernel cache (``--no-rrd`` is not used: the recording is part of
+  the job); start-up = ``replay --help`` in a new process;
+- the cold compile (a new process with an empty ``NUMBA_CACHE_DIR``: wall time and the
+  child's CPU time) and the warm import + first call (a new process, warm cache);
+- peak RSS (``ru_maxrss``) of a process that evaluates all nine models at N = 1000, and
+  of one that only imports risk and evaluates N = 2.
+
+Frames: ``--frames`` random frames per size, each timed ``--repeat`` times; the medians
+are over all of those runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_models import SPACING_M, _resample, random_frame  # noqa: E402
+
+from risk import Frame, evaluate  # noqa: E402
+from risk.cascade import CascadeConfig, run_cascade  # noqa: E402
+
+WAYMO = ROOT.parent / "shared" / "data" / "waymo" / "womd_637f20cafde22ff8.tfrecord"
+REPLAY = str(Path(sys.executable).with_name("replay"))
+
+
+def far_scene(n_agents: int, rng: np.random.Generator) -> Frame:
+    """A Waymo-like scene with far agents: straight two-way roads every 250 m on a
+    3 km x 3 km grid, agents on lanes with 150 m forward paths (1.5 m spacing), speeds
+    0-20 m/s (one in five standing), the ego at the centre."""
+    half, lane = 1500.0, 1.75
+    roads = np.arange(-half, half + 1, 250.0)
+    lanes = []
+    for c in roads:
+        for off, sign in ((-lane, 1.0), (lane, -1.0)):
+            lanes.append(np.array([[-half * sign, c + off], [half * sign, c + off]]))
+            lanes.append(np.array([[c - off, -half * sign], [c - off, half * sign]]))
+    lanes = [_resample(x, SPACING_M) for x in lanes]
+    n_pts = int(150.0 / SPACING_M) + 1
+    xy, heading, paths = [], [], []
+    for i in range(n_agents):
+        lane_pts = lanes[rng.integers(len(lanes))]
+        if i == 0:  # the ego near the centre
+            j = int(np.argmin(np.hypot(*lane_pts.T)))
+            j = min(j, len(lane_pts) - n_pts)
+        else:
+            j = int(rng.integers(0, len(lane_pts) - n_pts))
+        path = lane_pts[j : j + n_pts]
+        d = path[1] - path[0]
+        xy.append(path[0])
+        heading.append(np.arctan2(d[1], d[0]))
+        paths.append(path)
+    speed = rng.uniform(0, 20, n_agents) * (rng.random(n_agents) > 0.2)
+    return Frame.from_arrays(
+        np.array(xy), np.array(heading), speed, np.full(n_agents, 4.5),
+        np.full(n_agents, 1.9), paths, ego=0,
+    )  # fmt: skip
+
+
+def timed(fn: Callable[[], object], repeat: int) -> tuple[list[float], list[float]]:
+    wall, cpu = [], []
+    for _ in range(repeat):
+        w, c = time.perf_counter(), time.process_time()
+        fn()
+        cpu.append(time.process_time() - c)
+        wall.append(time.perf_counter() - w)
+    return wall, cpu
+
+
+def medians(frames: list[Frame], fn: Callable[[Frame], object], repeat: int) -> tuple[float, float]:
+    wall, cpu = [], []
+    for f in frames:
+        fn(f)  # warm (page-in, caches)
+        w, c = timed(lambda f=f: fn(f), repeat)
+        wall += w
+        cpu += c
+    return statistics.median(wall), statistics.median(cpu)
+
+
+def cascade_medians(frames: list[Frame], repeat: int) -> dict[str, float]:
+    """Medians of the cascade (bound + stages + sort) and of survival on all agents."""
+    config = CascadeConfig.default()
+    casc_wall, surv_wall, casc_cpu, surv_cpu, dropped = [], [], [], [], []
+    for f in frames:
+        run_cascade(f, config)
+        for _ in range(repeat):
+            c = time.process_time()
+            res = run_cascade(f, config)
+            total_cpu = time.process_time() - c
+            c = time.process_time()
+            evaluate(f, ["survival"])
+            s_cpu = time.process_time() - c
+            casc_wall.append(res.reach_time_s + res.stage_time_s.sum() + res.sort_time_s)
+            surv_wall.append(res.survival_all_time_s)
+            casc_cpu.append(max(total_cpu - s_cpu, 0.0))
+            surv_cpu.append(s_cpu)
+            dropped.append(int(res.unreachable.sum()))
+    return {
+        "cascade_wall": statistics.median(casc_wall),
+        "survival_wall": statistics.median(surv_wall),
+        "cascade_cpu": statistics.median(casc_cpu),
+        "survival_cpu": statistics.median(surv_cpu),
+        "unreachable": statistics.median(dropped),
+        "n_others": float(frames[0].others.sum()),
+    }
+
+
+def child(code: str, env: dict[str, str] | None = None) -> tuple[float, float, str]:
+    """Wall and CPU time (s) of a new Python process running ``code``, and its stdout."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    w = time.perf_counter()
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    )
+    wall = time.perf_counter() - w
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, cpu, out.stdout
+
+
+def command(args: list[str], repeat: int) -> tuple[float, float]:
+    """Median wall and CPU time (s) of a command in a new process."""
+    wall, cpu = [], []
+    for _ in range(repeat):
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        w = time.perf_counter()
+        subprocess.run(args, check=True, capture_output=True)
+        wall.append(time.perf_counter() - w)
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu.append((after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime))
+    return statistics.median(wall), statistics.median(cpu)
+
+
+FIRST_CALL = """
+import time
+t0 = time.perf_counter(); c0 = time.process_time()
+import numpy as np
+from risk import Frame, evaluate
+f = Frame.from_arrays(np.array([[0.0, 0.0], [5.0, 0.0]]), np.zeros(2), np.ones(2), np.ones(2),
+    np.ones(2), [np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([[5.0, 0.0], [6.0, 0.0]])], ego=0)
+evaluate(f)
+print(time.perf_counter() - t0, time.process_time() - c0)
+"""
+
+RSS = """
+import resource, sys
+sys.path.insert(0, {bench!r})
+import numpy as np
+from bench_models import random_frame
+from risk import evaluate
+n = {n}
+f = random_frame(n, np.random.default_rng(3))
+evaluate(f)
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+"""
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--skip-cold", action="store_true", help="skip the cold compile row")
+    args = ap.parse_args(argv)
+    rng = np.random.default_rng(7)
+    rows: list[tuple[str, str, str, str]] = []
+    load = [os.getloadavg()[0]]
+
+    frames = {n: [random_frame(n, rng) for _ in range(args.frames)] for n in (100, 1000)}
+    nine = {n: medians(frames[n], evaluate, args.repeat) for n in (100, 1000)}
+    for n in (100, 1000):
+        goal = "≤ 1 ms" if n == 100 else "≤ 10 ms"
+        w, c = nine[n]
+        rows.append((f"all nine models, N = {n}", f"{1e3 * c:.2f} ms", f"{1e3 * w:.2f} ms", goal))
+    rows.append(
+        (
+            "growth N = 100 → 1000",
+            f"{nine[1000][1] / nine[100][1]:.1f}x",
+            f"{nine[1000][0] / nine[100][0]:.1f}x",
+            "≤ 11x",
+        )
+    )
+    print("  measured evaluate", file=sys.stderr)
+
+    for label, fr, goal in (
+        ("cascade vs survival on all, N = 100 (intersection)", frames[100], "≤ 1.0x"),
+        (
+            "cascade vs survival on all, N = 1000 (far agents)",
+            [far_scene(1000, rng) for _ in range(args.frames)],
+            "≤ 0.6x",
+        ),
+    ):
+        m = cascade_medians(fr, args.repeat)
+        rows.append(
+            (
+                label,
+                f"{m['cascade_cpu'] / m['survival_cpu']:.2f}x "
+                f"({1e3 * m['cascade_cpu']:.2f} / {1e3 * m['survival_cpu']:.2f} ms)",
+                f"{m['cascade_wall'] / m['survival_wall']:.2f}x "
+                f"({1e3 * m['cascade_wall']:.2f} / {1e3 * m['survival_wall']:.2f} ms); "
+                f"bound drops {m['unreachable']:.0f} of {m['n_others']:.0f}",
+                goal,
+            )
+        )
+    print("  measured cascade", file=sys.stderr)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp_p = Path(tmp)
+        startup = command([REPLAY, "--help"], 3)
+        rows.append(
+            ("start-up (`replay --help`)", f"{startup[1]:.2f} s", f"{startup[0]:.2f} s", "")
+        )
+        if WAYMO.is_file():
+            scene = tmp_p / "waymo.mcap"
+            subprocess.run(
+                [REPLAY, "convert", "waymo", str(WAYMO), "-o", str(scene)],
+                check=True,
+                capture_output=True,
+            )
+            run = command([REPLAY, "run", str(scene), "--no-progress"], 3)
+            rows.append(
+                (
+                    "`replay run`, Waymo sample (83 agents, 91 frames), new process, warm",
+                    f"{run[1]:.2f} s",
+                    f"{run[0]:.2f} s",
+                    "≤ 2 s wall",
+                )
+            )
+        demo = command([REPLAY, "demo", "-o", str(tmp_p / "demo"), "--no-progress"], 3)
+        rows.append(
+            (
+                "`replay demo` (100 agents, 100 frames), beyond start-up",
+                f"{demo[1] - startup[1]:.2f} s",
+                f"{demo[0] - startup[0]:.2f} s",
+                "≤ 1 s",
+            )
+        )
+    print("  measured commands", file=sys.stderr)
+
+    first = [child(FIRST_CALL) for _ in range(3)]
+    inside = sorted(tuple(map(float, out.split())) for _, _, out in first)[1]
+    rows.append(
+        (
+            "warm import + first call (inside the process)",
+            f"{inside[1]:.2f} s",
+            f"{inside[0]:.2f} s",
+            "≤ 1 s",
+        )
+    )
+    if not args.skip_cold:
+        with tempfile.TemporaryDirectory() as cache:
+            wall, cpu, _ = child(FIRST_CALL, {**os.environ, "NUMBA_CACHE_DIR": cache})
+        rows.append(
+            ("compile from cold, once (whole process)", f"{cpu:.1f} s", f"{wall:.1f} s", "≤ 30 s")
+        )
+    for n in (2, 1000):
+        _, _, out = child(RSS.format(bench=str(ROOT / "benchmarks"), n=n))
+        rows.append((f"peak RSS, all nine at N = {n}", f"{float(out):.0f} MB", "", ""))
+    load.append(os.getloadavg()[0])
+
+    print(
+        f"Load average (1 min) on this {os.cpu_count()}-core machine: "
+        f"{load[0]:.1f} before, {load[1]:.1f} after. Medians of {args.repeat} runs x "
+        f"{args.frames} frames; T = 12 s, dt = 0.1 s."
+    )
+    print()
+    print("| figure | CPU | wall | goal |")
+    print("|---|---:|---:|---|")
+    for r in rows:
+        print("| " + " | ".join(r) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

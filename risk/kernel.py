@@ -1,0 +1,955 @@
+"""The compiled production path of :func:`risk.evaluate` and of the fused cascade.
+
+One pass per agent row: for each path candidate of each requested agent the kernel
+
+1. extends the path straight to ``v T`` (and cuts it at ``v T`` when trajectory distance
+   is asked for);
+2. predicts it at constant speed along the path, with the per-kind covariances;
+3. runs every requested model against every ego candidate: exact segment distances
+   pruned by chunk bounding boxes, the closest encounter, headway and 2D headway, the
+   circles, and one loop for the Gaussian overlap and survival analysis.
+
+Everything per row lives in scratch buffers of one path or one horizon (a few kB), so
+nothing grows with ``N^2`` and memory stays cache-sized; only the ego's candidates are
+kept for the whole call. The maths follows the vectorised numpy modules
+(:mod:`risk.distance`, :mod:`risk.temporal`, :mod:`risk.stochastic`, :mod:`risk.prediction`)
+operation by operation, including numpy's pairwise summation, so that the results agree
+with them bit for bit except where ``exp`` differs in the last bit; those modules and
+:mod:`risk.reference` are the oracles the tests compare with.
+
+Compile cost: every function is ``@njit(cache=True)`` and none is recursive (a recursive
+cached function crashed on cache load). The cache folder is ``NUMBA_CACHE_DIR`` when set,
+else a per-user folder (``$XDG_CACHE_HOME/riskreplay/numba`` or
+``~/.cache/riskreplay/numba``); the variable is exported so that worker processes share
+the folder. A cold start logs one warning that it is compiling. :func:`warm_up` compiles
+(or loads) every kernel; call it in a parent process before starting workers.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import pathlib
+import sys
+from typing import Any
+
+import numba
+import numpy as np
+from numba.core import event
+
+from risk.frame import Frame
+
+log = logging.getLogger("risk")
+
+
+def default_cache_dir() -> pathlib.Path:
+    """The per-user kernel cache folder used when ``NUMBA_CACHE_DIR`` is not set."""
+    if sys.platform == "win32":
+        base = pathlib.Path(os.environ.get("LOCALAPPDATA") or pathlib.Path.home() / "AppData")
+    else:
+        base = pathlib.Path(os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache")
+    return base / "riskreplay" / "numba"
+
+
+def _configure_cache() -> str:
+    path = os.environ.get("NUMBA_CACHE_DIR") or str(default_cache_dir())
+    os.environ["NUMBA_CACHE_DIR"] = path  # worker processes inherit it
+    numba.config.CACHE_DIR = path  # type: ignore[attr-defined]  # read by the decorators
+    return path
+
+
+CACHE_DIR = _configure_cache()
+
+
+class _CompileNotice(event.Listener):
+    """Logs once per process that the kernels are being compiled (a cache miss)."""
+
+    said = False
+
+    def on_start(self, ev: event.Event) -> None:
+        if not _CompileNotice.said:
+            _CompileNotice.said = True
+            log.warning(
+                "riskreplay: compiling the risk kernels once (about 10-30 s); "
+                "later runs load them from %s",
+                CACHE_DIR,
+            )
+
+    def on_end(self, ev: event.Event) -> None:
+        pass
+
+
+event.register("numba:compile", _CompileNotice())
+
+# Model slots, in registry order.
+CUR, PATH, TRAJ, ENC, HW, H2D, CIRC, GAUSS, SURV = range(9)
+N_MODELS = 9
+# Float parameters.
+F_EPS = 0  # 9 slots: eps of CUR, PATH, TRAJ, ENC, HW, H2D, CIRC (others unused)
+F_LIM_ENC, F_LIM_HW, F_LIM_H2D = 9, 10, 11  # count an encounter when s_E < this
+F_TAU_HW, F_TAU_H2D = 12, 13
+F_TOL_HW, F_TOL_H2D = 14, 15
+F_SCALE_CIRC = 16
+F_DT_TAU = 17  # dt / tau_esc
+N_FLOAT = 18
+# Integer parameters.
+I_NCIRC, I_RADIUS_RULE = 0, 1
+N_INT = 2
+
+#: Segments per chunk of the bounding-box pruning (as risk.geometry.CHUNK_SEGMENTS).
+K = 8
+#: Numpy's pairwise summation block (numpy/core/src/umath/loops_utils.h).
+PW_BLOCK = 128
+TIE = 1e-9  # risk.temporal.TIE_TOLERANCE_M
+#: exp(x) is exactly 0 in float64 below about -745.13; a margin keeps it exact.
+EXP_ZERO = -760.0
+INF = math.inf
+
+
+# ---------------------------------------------------------------------- summation
+@numba.njit(cache=True)
+def _pw_leaf(a: np.ndarray, s: int, n: int) -> float:
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[s + i]
+        return res
+    r0, r1, r2, r3 = a[s], a[s + 1], a[s + 2], a[s + 3]
+    r4, r5, r6, r7 = a[s + 4], a[s + 5], a[s + 6], a[s + 7]
+    i = 8
+    stop = n - (n % 8)
+    while i < stop:
+        r0 += a[s + i]
+        r1 += a[s + i + 1]
+        r2 += a[s + i + 2]
+        r3 += a[s + i + 3]
+        r4 += a[s + i + 4]
+        r5 += a[s + i + 5]
+        r6 += a[s + i + 6]
+        r7 += a[s + i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[s + i]
+        i += 1
+    return res
+
+
+@numba.njit(cache=True)
+def np_sum(a: np.ndarray, n: int) -> float:
+    """``a[:n].sum()`` exactly as numpy adds (pairwise), without recursion."""
+    if n <= PW_BLOCK:
+        return _pw_leaf(a, 0, n)
+    fs = np.empty(64, np.int64)
+    fn = np.empty(64, np.int64)
+    stage = np.empty(64, np.int64)
+    vals = np.empty(64)
+    top, vtop = 0, 0
+    fs[0], fn[0], stage[0] = 0, n, 0
+    while top >= 0:
+        s, m = fs[top], fn[top]
+        if m <= PW_BLOCK:
+            vals[vtop] = _pw_leaf(a, s, m)
+            vtop += 1
+            top -= 1
+            continue
+        n2 = m // 2
+        n2 -= n2 % 8
+        if stage[top] == 0:
+            stage[top] = 1
+            top += 1
+            fs[top], fn[top], stage[top] = s, n2, 0
+        elif stage[top] == 1:
+            stage[top] = 2
+            top += 1
+            fs[top], fn[top], stage[top] = s + n2, m - n2, 0
+        else:
+            vtop -= 1
+            vals[vtop - 1] = vals[vtop - 1] + vals[vtop]
+            top -= 1
+    return vals[0]
+
+
+# ---------------------------------------------------------------------- paths
+@numba.njit(cache=True)
+def _extend(paths, m, npts, heading, min_len, seg, ex, ey, ecum, eux, euy):
+    """risk.geometry.extend_paths, cumulative_lengths and segment_unit_vectors for row m.
+
+    Writes the padded extended path (P+1 points) and returns its real point count."""
+    p = paths.shape[1]
+    p1 = p + 1
+    last = -1
+    for j in range(p - 1):
+        dx = paths[m, j + 1, 0] - paths[m, j, 0]
+        dy = paths[m, j + 1, 1] - paths[m, j, 1]
+        seg[j] = math.sqrt(dx * dx + dy * dy)
+        if seg[j] > 0:
+            last = j
+    total = np_sum(seg, p - 1)
+    if last >= 0:
+        dirx = (paths[m, last + 1, 0] - paths[m, last, 0]) / seg[last]
+        diry = (paths[m, last + 1, 1] - paths[m, last, 1]) / seg[last]
+    else:
+        dirx, diry = math.cos(heading), math.sin(heading)
+    extra = max(min_len - total, 0.0)
+    endx = paths[m, npts - 1, 0] + dirx * extra
+    endy = paths[m, npts - 1, 1] + diry * extra
+    for j in range(p1):
+        if j < npts:
+            ex[j], ey[j] = paths[m, j, 0], paths[m, j, 1]
+        else:
+            ex[j], ey[j] = endx, endy
+    ecum[0] = 0.0
+    have = False
+    lx, ly = math.cos(heading), math.sin(heading)
+    for j in range(p1 - 1):
+        dx = ex[j + 1] - ex[j]
+        dy = ey[j + 1] - ey[j]
+        # the given segments keep their lengths (same points, same root)
+        length = seg[j] if j < npts - 1 else math.sqrt(dx * dx + dy * dy)
+        ecum[j + 1] = ecum[j] + length
+        if length > 0:
+            inv = 1.0 / length
+            lx, ly = dx * inv, dy * inv
+            have = True
+        if have:
+            eux[j], euy[j] = lx, ly
+        else:
+            eux[j], euy[j] = math.cos(heading), math.sin(heading)
+    return npts + 1
+
+
+@numba.njit(cache=True)
+def _interp(ex, ey, ecum, s, j):
+    """Point at arc ``s`` of a padded path (risk.geometry.interpolate_components).
+
+    ``j`` is a start index for the search (any index with ``ecum[j] <= s``). Returns x,
+    y, the segment index and the last point index with ``ecum <= s``."""
+    p1 = ex.shape[0]
+    s = min(max(s, 0.0), ecum[p1 - 1])
+    while j + 1 < p1 and ecum[j + 1] <= s:
+        j += 1
+    seg = min(j, p1 - 2)
+    c0 = ecum[seg]
+    length = ecum[seg + 1] - c0
+    frac = (s - c0) / length if length > 0 else 0.0
+    frac = min(max(frac, 0.0), 1.0)
+    x = (ex[seg + 1] - ex[seg]) * frac + ex[seg]
+    y = (ey[seg + 1] - ey[seg]) * frac + ey[seg]
+    return x, y, seg, j
+
+
+@numba.njit(cache=True)
+def _cut(ex, ey, ecum, length_m, cx, cy):
+    """risk.geometry.cut_paths for one padded path; returns the cut's point count."""
+    p1 = ex.shape[0]
+    length = min(length_m, ecum[p1 - 1])
+    endx, endy, _, _ = _interp(ex, ey, ecum, length, 0)
+    keep = 0
+    for j in range(p1):
+        if ecum[j] <= length:
+            keep += 1
+    n = min(keep + 1, p1)
+    for j in range(n):
+        if j < keep:
+            cx[j], cy[j] = ex[j], ey[j]
+        else:
+            cx[j], cy[j] = endx, endy
+    return n
+
+
+@numba.njit(cache=True)
+def _boxes(x, y, n, box):
+    """Bounding boxes (lox, loy, hix, hiy) of chunks of K segments; returns the count."""
+    nseg = max(n - 1, 1)
+    c = (nseg + K - 1) // K
+    for ci in range(c):
+        j0 = ci * K
+        j1 = min(j0 + K, n - 1)
+        lox, loy, hix, hiy = x[j0], y[j0], x[j0], y[j0]
+        for j in range(j0 + 1, j1 + 1):
+            lox = min(lox, x[j])
+            hix = max(hix, x[j])
+            loy = min(loy, y[j])
+            hiy = max(hiy, y[j])
+        box[ci, 0], box[ci, 1], box[ci, 2], box[ci, 3] = lox, loy, hix, hiy
+    return c
+
+
+@numba.njit(cache=True)
+def _gap2(a, ia, b, ib):
+    gx = max(max(b[ib, 0] - a[ia, 2], a[ia, 0] - b[ib, 2]), 0.0)
+    gy = max(max(b[ib, 1] - a[ia, 3], a[ia, 1] - b[ib, 3]), 0.0)
+    return gx * gx + gy * gy
+
+
+@numba.njit(cache=True)
+def _sign(v):
+    return 1.0 if v > 0 else (-1.0 if v < 0 else 0.0)
+
+
+@numba.njit(cache=True)
+def _pseg2(px, py, ox, oy, sx, sy, inv2):
+    """Squared distance from a point to a segment (as risk.geometry._side_and_distance2)."""
+    rx = px - ox
+    ry = py - oy
+    t = (rx * sx + ry * sy) * inv2
+    t = min(max(t, 0.0), 1.0)
+    rx -= t * sx
+    ry -= t * sy
+    return rx * rx + ry * ry
+
+
+@numba.njit(cache=True)
+def _chunk_pair2(ax, ay, an, ca, bx, by, bn, cb, best):
+    """Least squared distance between the segments of chunk ``ca`` of polyline a and chunk
+    ``cb`` of b, or ``best`` when none is nearer; 0 when two segments intersect
+    (risk.geometry._fine). Segment pairs whose boxes are farther apart than ``best`` are
+    skipped (they can neither intersect nor be nearer)."""
+    sa = max(an - 1, 1)
+    sb = max(bn - 1, 1)
+    for i in range(ca * K, min(ca * K + K, sa)):
+        i1 = min(i + 1, an - 1)
+        p1x, p1y = ax[i], ay[i]
+        q1x, q1y = ax[i1], ay[i1]
+        s1x, s1y = q1x - p1x, q1y - p1y
+        lo1x, hi1x = min(p1x, q1x), max(p1x, q1x)
+        lo1y, hi1y = min(p1y, q1y), max(p1y, q1y)
+        len1 = s1x * s1x + s1y * s1y
+        inv1 = 1.0 / len1 if len1 > 1e-300 else 0.0
+        for j in range(cb * K, min(cb * K + K, sb)):
+            j1 = min(j + 1, bn - 1)
+            p2x, p2y = bx[j], by[j]
+            q2x, q2y = bx[j1], by[j1]
+            gx = max(max(min(p2x, q2x) - hi1x, lo1x - max(p2x, q2x)), 0.0)
+            gy = max(max(min(p2y, q2y) - hi1y, lo1y - max(p2y, q2y)), 0.0)
+            if gx * gx + gy * gy > best:
+                continue
+            s2x, s2y = q2x - p2x, q2y - p2y
+            o1 = _sign(s1x * (p2y - p1y) - s1y * (p2x - p1x))
+            o2 = _sign(s1x * (q2y - p1y) - s1y * (q2x - p1x))
+            o3 = _sign(s2x * (p1y - p2y) - s2y * (p1x - p2x))
+            o4 = _sign(s2x * (q1y - p2y) - s2y * (q1x - p2x))
+            collinear = o1 == 0 and o2 == 0 and o3 == 0 and o4 == 0
+            if o1 * o2 <= 0 and o3 * o4 <= 0 and not collinear:
+                return 0.0
+            len2 = s2x * s2x + s2y * s2y
+            inv2 = 1.0 / len2 if len2 > 1e-300 else 0.0
+            d = _pseg2(p2x, p2y, p1x, p1y, s1x, s1y, inv1)
+            d = min(d, _pseg2(q2x, q2y, p1x, p1y, s1x, s1y, inv1))
+            d = min(d, _pseg2(p1x, p1y, p2x, p2y, s2x, s2y, inv2))
+            d = min(d, _pseg2(q1x, q1y, p2x, p2y, s2x, s2y, inv2))
+            best = min(best, d)
+    return best
+
+
+@numba.njit(cache=True)
+def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2, cut2):
+    """Exact least distance between polylines a and b (risk.geometry.polyline_distances).
+
+    Chunk pairs whose boxes are farther apart than the best distance found so far (or than
+    ``sqrt(cut2)``) are skipped, which never loses the minimum below ``sqrt(cut2)``. Returns
+    early once the squared distance is at most ``stop2`` (pass -1 for the exact value)."""
+    gmin, amin, bmin = INF, 0, 0
+    for i in range(nca):
+        for j in range(ncb):
+            g = _gap2(abox, i, bbox, j)
+            gaps[i * ncb + j] = g
+            if g < gmin:
+                gmin, amin, bmin = g, i, j
+    if gmin > cut2:
+        return math.sqrt(gmin)  # a lower bound beyond the cut: the caller drops
+    best = _chunk_pair2(ax, ay, an, amin, bx, by, bn, bmin, INF)
+    if best == 0.0 or best <= stop2:
+        return math.sqrt(best)
+    for i in range(nca):
+        for j in range(ncb):
+            g = gaps[i * ncb + j]
+            if g > best or g > cut2 or (i == amin and j == bmin):
+                continue
+            d = _chunk_pair2(ax, ay, an, i, bx, by, bn, j, best)
+            if d < best:
+                best = d
+                if best == 0.0 or best <= stop2:
+                    return math.sqrt(best)
+    return math.sqrt(best)
+
+
+@numba.njit(cache=True)
+def _project(px, py, ex, ey, ecum, n):
+    """Distance from a point to a polyline and the arc length of the nearest point, the
+    first along the path on ties (risk.geometry.project_points)."""
+    best, arc = INF, 0.0
+    for j in range(n - 1):
+        abx = ex[j + 1] - ex[j]
+        aby = ey[j + 1] - ey[j]
+        len2 = abx * abx + aby * aby
+        inv2 = 1.0 / len2 if len2 > 0 else 0.0
+        rx = px - ex[j]
+        ry = py - ey[j]
+        t = min(max((rx * abx + ry * aby) * inv2, 0.0), 1.0)
+        rx -= t * abx
+        ry -= t * aby
+        d2 = rx * rx + ry * ry
+        if d2 < best:
+            best = d2
+            arc = ecum[j] + t * math.sqrt(len2)
+    return math.sqrt(best), arc
+
+
+@numba.njit(cache=True)
+def _touch0(px, py, ax, ay, bx, by):
+    """Whether risk.geometry._point_segment_distance is exactly 0."""
+    abx = bx - ax
+    aby = by - ay
+    len2 = abx * abx + aby * aby
+    rx = px - ax
+    ry = py - ay
+    t = (rx * abx + ry * aby) / len2 if len2 > 0 else 0.0
+    t = min(max(t, 0.0), 1.0)
+    return rx - t * abx == 0.0 and ry - t * aby == 0.0
+
+
+@numba.njit(cache=True)
+def _first_crossing(bx, by, bcum, bn, bbox, ncb, ax, ay, acum, an, abox, nca):
+    """Arc lengths (along b, along a) of the first point along polyline b that lies on a
+    (risk.geometry.first_intersections); NaN, NaN when they never meet."""
+    best_b, best_a = INF, INF
+    for cb in range(ncb):
+        if bcum[min(cb * K, bn - 1)] > best_b:
+            break  # every later segment starts beyond the crossing found
+        for ca in range(nca):
+            if _gap2(abox, ca, bbox, cb) != 0.0:
+                continue
+            for i in range(cb * K, min(cb * K + K, bn - 1)):
+                px, py = bx[i], by[i]
+                qx, qy = bx[i + 1], by[i + 1]
+                dx, dy = qx - px, qy - py
+                for j in range(ca * K, min(ca * K + K, an - 1)):
+                    e0x, e0y = ax[j], ay[j]
+                    e1x, e1y = ax[j + 1], ay[j + 1]
+                    ex_, ey_ = e1x - e0x, e1y - e0y
+                    o1 = _sign(ex_ * (py - e0y) - ey_ * (px - e0x))
+                    o2 = _sign(ex_ * (qy - e0y) - ey_ * (qx - e0x))
+                    o3 = _sign(dx * (e0y - py) - dy * (e0x - px))
+                    o4 = _sign(dx * (e1y - py) - dy * (e1x - px))
+                    collinear = o1 == 0 and o2 == 0 and o3 == 0 and o4 == 0
+                    hit = o1 * o2 <= 0 and o3 * o4 <= 0 and not collinear
+                    if not hit and ex_ * dy - ey_ * dx == 0:
+                        hit = (
+                            _touch0(e0x, e0y, px, py, qx, qy)
+                            or _touch0(e1x, e1y, px, py, qx, qy)
+                            or _touch0(px, py, e0x, e0y, e1x, e1y)
+                            or _touch0(qx, qy, e0x, e0y, e1x, e1y)
+                        )
+                    if not hit:
+                        continue
+                    wx, wy = e0x - px, e0y - py
+                    denom = dx * ey_ - dy * ex_
+                    len2 = dx * dx + dy * dy
+                    if denom != 0:
+                        t = (wx * ey_ - wy * ex_) / denom
+                    elif len2 > 0:
+                        t0 = (wx * dx + wy * dy) / len2
+                        t1 = ((e1x - px) * dx + (e1y - py) * dy) / len2
+                        t = min(t0, t1)
+                    else:
+                        t = 0.0
+                    t = min(max(t, 0.0), 1.0)
+                    ptx = px + t * dx
+                    pty = py + t * dy
+                    el2 = ex_ * ex_ + ey_ * ey_
+                    u = ((ptx - e0x) * ex_ + (pty - e0y) * ey_) / el2 if el2 > 0 else 0.0
+                    u = min(max(u, 0.0), 1.0)
+                    s_b = bcum[i] + t * (bcum[i + 1] - bcum[i])
+                    s_a = acum[j] + u * (acum[j + 1] - acum[j])
+                    if s_b < best_b or (s_b == best_b and s_a < best_a):
+                        best_b, best_a = s_b, s_a
+    if best_b == INF:
+        return math.nan, math.nan
+    return best_b, best_a
+
+
+# ---------------------------------------------------------------------- prediction
+@numba.njit(cache=True)
+def _predict(ex, ey, ecum, eux, euy, v, steps, u, tx, ty, dxs, dys, slon, cxx, cxy, cyy):
+    """Constant-speed prediction along the extended path, and the covariances
+    (risk.prediction.FrameContext._trajectory, uncertainty_sigmas, covariances)."""
+    j = 0
+    for k in range(steps.shape[0]):
+        travelled = v * steps[k]
+        x, y, seg, j = _interp(ex, ey, ecum, travelled, j)
+        tx[k], ty[k] = x, y
+        c, s = eux[seg], euy[seg]
+        dxs[k], dys[k] = c, s
+        lon = min(u[0] + u[2] * travelled + u[6] * steps[k], u[4])
+        lat = min(u[1] + u[3] * travelled + u[7] * steps[k], u[5])
+        slon[k] = lon
+        a = lon * lon
+        b = lat * lat
+        cc = c * c
+        ss = s * s
+        cxx[k] = a * cc + b * ss
+        cxy[k] = (a - b) * c * s
+        cyy[k] = a * ss + b * cc
+
+
+@numba.njit(cache=True)
+def _time_gap(arc, l1, v1):
+    """(l2 - l1) / v1 ahead of the ego, inf behind it, for NaN or a standing ego."""
+    if v1 <= 0:
+        return INF
+    gap = arc - l1
+    if gap >= 0:
+        return gap / v1
+    return INF
+
+
+# ---------------------------------------------------------------------- the kernel
+@numba.njit(cache=True)
+def _row_starts(path_agent, n):
+    start = np.full(n + 1, -1, np.int64)
+    m = path_agent.shape[0]
+    for r in range(m - 1, -1, -1):
+        start[path_agent[r]] = r
+    start[n] = m
+    for i in range(n - 1, -1, -1):
+        if start[i] < 0:
+            start[i] = start[i + 1]
+    return start
+
+
+@numba.njit(cache=True)
+def evaluate_agents(
+    xy, heading, speed, length, width, kinds, valid, paths, path_points, path_agent, ego,
+    agents, steps, unc, want, fp, ip, stop2, cut2,
+):  # fmt: skip
+    """Risks ``(9, N)`` of the requested models (``want``) for ``agents`` (an empty array:
+    every valid agent but the ego); NaN elsewhere.
+
+    ``stop2`` / ``cut2`` (9,): squared distances for the keep/drop mode of the distance
+    models (the cascade): stop at ``stop2``, prune beyond ``cut2``; ``-1`` / ``inf`` for
+    exact values."""
+    n = xy.shape[0]
+    if agents.shape[0] == 0:
+        agents = np.array([i for i in range(n) if valid[i] and i != ego], dtype=np.int64)
+    p = paths.shape[1]
+    p1 = p + 1
+    ns = steps.shape[0]
+    horizon = steps[ns - 1]
+    nch = (p1 - 1 + K - 1) // K + 1
+    out = np.full((N_MODELS, n), np.nan)
+    starts = _row_starts(path_agent, n)
+    want_path = want[PATH] or want[H2D]
+    want_pred = want[ENC] or want[HW] or want[H2D] or want[CIRC] or want[GAUSS] or want[SURV]
+    exact_path = want[H2D] or stop2[PATH] < 0
+    # ------------------------------------------------ ego candidates
+    e0, e1 = starts[ego], starts[ego + 1]
+    ne = e1 - e0
+    seg = np.empty(max(p - 1, 1))
+    gx = np.empty((ne, p1))
+    gy = np.empty((ne, p1))
+    gcum = np.empty((ne, p1))
+    gux = np.empty((ne, p1))
+    guy = np.empty((ne, p1))
+    gn = np.empty(ne, np.int64)
+    gbox = np.empty((ne, nch, 4))
+    gnb = np.empty(ne, np.int64)
+    kx = np.empty((ne, p1))
+    ky = np.empty((ne, p1))
+    kn = np.empty(ne, np.int64)
+    kbox = np.empty((ne, nch, 4))
+    knb = np.empty(ne, np.int64)
+    g_tx = np.empty((ne, ns))
+    g_ty = np.empty((ne, ns))
+    g_dx = np.empty((ne, ns))
+    g_dy = np.empty((ne, ns))
+    g_sl = np.empty((ne, ns))
+    g_xx = np.empty((ne, ns))
+    g_xy = np.empty((ne, ns))
+    g_yy = np.empty((ne, ns))
+    g_l1 = np.empty(ne)
+    v_e = speed[ego]
+    u_e = unc[kinds[ego]]
+    for e in range(ne):
+        r = e0 + e
+        gn[e] = _extend(
+            paths, r, path_points[r], heading[ego], v_e * horizon, seg,
+            gx[e], gy[e], gcum[e], gux[e], guy[e],
+        )  # fmt: skip
+        gnb[e] = _boxes(gx[e], gy[e], gn[e], gbox[e])
+        kn[e] = _cut(gx[e], gy[e], gcum[e], v_e * horizon, kx[e], ky[e])
+        knb[e] = _boxes(kx[e], ky[e], kn[e], kbox[e])
+        _predict(
+            gx[e], gy[e], gcum[e], gux[e], guy[e], v_e, steps, u_e,
+            g_tx[e], g_ty[e], g_dx[e], g_dy[e], g_sl[e], g_xx[e], g_xy[e], g_yy[e],
+        )  # fmt: skip
+        g_l1[e] = _project(xy[ego, 0], xy[ego, 1], gx[e], gy[e], gcum[e], gn[e])[1]
+    # ------------------------------------------------ per-row scratch
+    ex = np.empty(p1)
+    ey = np.empty(p1)
+    ecum = np.empty(p1)
+    eux = np.empty(p1)
+    euy = np.empty(p1)
+    cx = np.empty(p1)
+    cy = np.empty(p1)
+    ebox = np.empty((nch, 4))
+    cbox = np.empty((nch, 4))
+    gaps = np.empty(nch * nch)
+    tx = np.empty(ns)
+    ty = np.empty(ns)
+    dxs = np.empty(ns)
+    dys = np.empty(ns)
+    slon = np.empty(ns)
+    cxx = np.empty(ns)
+    cxy = np.empty(ns)
+    cyy = np.empty(ns)
+    terms = np.empty(ns)
+    n_circ = ip[I_NCIRC]
+    scale = fp[F_SCALE_CIRC]
+    dt_tau = fp[F_DT_TAU]
+    lateral = np.empty(ne)
+    arc_on = np.empty(ne)
+    best = np.empty(N_MODELS)
+    cn, cnb = 0, 0
+    for a_idx in range(agents.shape[0]):
+        i = agents[a_idx]
+        best[:] = -INF
+        if want[CUR]:
+            d = math.hypot(xy[i, 0] - xy[ego, 0], xy[i, 1] - xy[ego, 1])
+            best[CUR] = fp[F_EPS + CUR] / (fp[F_EPS + CUR] + d)
+        if want[HW] or want[H2D]:
+            for e in range(ne):
+                lateral[e], arc_on[e] = _project(xy[i, 0], xy[i, 1], gx[e], gy[e], gcum[e], gn[e])
+        v = speed[i]
+        u = unc[kinds[i]]
+        path_done = False
+        traj_done = False
+        if (want[PATH] and not exact_path) or (want[TRAJ] and stop2[TRAJ] >= 0):
+            # Keep/drop mode: the paths' first points bound both distances from above, so
+            # an agent whose path starts near an ego path start is kept in O(1).
+            d0 = INF
+            for r in range(starts[i], starts[i + 1]):
+                for e in range(ne):
+                    ddx = paths[r, 0, 0] - paths[e0 + e, 0, 0]
+                    ddy = paths[r, 0, 1] - paths[e0 + e, 0, 1]
+                    d0 = min(d0, ddx * ddx + ddy * ddy)
+            for slot in (PATH, TRAJ):
+                if want[slot] and d0 <= stop2[slot]:
+                    eps = fp[F_EPS + slot]
+                    best[slot] = eps / (eps + math.sqrt(d0))
+                    if slot == PATH:
+                        path_done = True
+                    else:
+                        traj_done = True
+        for r in range(starts[i], starts[i + 1]):
+            if not ((want_path and not path_done) or (want[TRAJ] and not traj_done) or want_pred):
+                break
+            en = _extend(
+                paths, r, path_points[r], heading[i], v * horizon, seg, ex, ey, ecum, eux, euy
+            )
+            nb = _boxes(ex, ey, en, ebox) if want_path else 0
+            if want[TRAJ] and not traj_done:
+                cn = _cut(ex, ey, ecum, v * horizon, cx, cy)
+                cnb = _boxes(cx, cy, cn, cbox)
+            if want_pred:
+                _predict(
+                    ex, ey, ecum, eux, euy, v, steps, u,
+                    tx, ty, dxs, dys, slon, cxx, cxy, cyy,
+                )  # fmt: skip
+            for e in range(ne):
+                d_path = INF
+                if want_path and not path_done:
+                    d_path = _polyline_distance(
+                        gx[e], gy[e], gn[e], gbox[e], gnb[e], ex, ey, en, ebox, nb, gaps,
+                        -1.0 if exact_path else stop2[PATH], INF if exact_path else cut2[PATH],
+                    )  # fmt: skip
+                    if want[PATH]:
+                        eps = fp[F_EPS + PATH]
+                        best[PATH] = max(best[PATH], eps / (eps + d_path))
+                        if not exact_path and d_path * d_path <= stop2[PATH]:
+                            path_done = True
+                if want[TRAJ] and not traj_done:
+                    d = _polyline_distance(
+                        kx[e], ky[e], kn[e], kbox[e], knb[e], cx, cy, cn, cbox, cnb, gaps,
+                        stop2[TRAJ], cut2[TRAJ],
+                    )  # fmt: skip
+                    eps = fp[F_EPS + TRAJ]
+                    best[TRAJ] = max(best[TRAJ], eps / (eps + d))
+                    if stop2[TRAJ] >= 0 and d * d <= stop2[TRAJ]:
+                        traj_done = True
+                if not want_pred:
+                    continue
+                # closest encounter, circles, Gaussian overlap and survival: one loop
+                r_ego = 0.5 * (length[ego] if ip[I_RADIUS_RULE] == 0 else width[ego])
+                d2min = INF
+                circ = INF
+                gmax = -INF
+                log_s = 0.0
+                for k in range(ns):
+                    rx = tx[k] - g_tx[e, k]
+                    ry = ty[k] - g_ty[e, k]
+                    d2 = rx * rx + ry * ry
+                    d2min = min(d2min, d2)
+                    if want[CIRC]:
+                        reach = (r_ego + scale * g_sl[e, k]) + (0.5 * width[i] + scale * slon[k])
+                        along = rx * dxs[k] + ry * dys[k]
+                        c2min = INF
+                        for c in range(n_circ):
+                            o = length[i] * ((c + 0.5) / n_circ - 0.5)
+                            c2min = min(c2min, d2 + (2.0 * o) * along + o * o)
+                        # sqrt is monotone: one root per step gives the same minimum
+                        circ = min(circ, math.sqrt(max(c2min, 0.0)) - reach)
+                    if want[GAUSS] or want[SURV]:
+                        sxx = cxx[k] + g_xx[e, k]
+                        sxy = cxy[k] + g_xy[e, k]
+                        syy = cyy[k] + g_yy[e, k]
+                        det = sxx * syy - sxy * sxy
+                        q = syy * (rx * rx) - 2.0 * (sxy * (rx * ry))
+                        q = (q + sxx * (ry * ry)) / det * -0.5
+                        if q < EXP_ZERO:  # exp(q) is exactly 0: skip two exp and a root
+                            po = 0.0
+                            terms[k] = 0.0
+                        else:
+                            po = math.exp(q) / (math.sqrt(det) * (2.0 * math.pi))
+                            if want[SURV]:
+                                terms[k] = po * math.exp(-log_s)
+                        gmax = max(gmax, po)
+                        log_s += po + dt_tau
+                if want[ENC] or want[HW] or want[H2D]:
+                    d_e = math.sqrt(d2min)
+                    tie = (d_e + TIE) ** 2
+                    k_e = 0
+                    for k in range(ns):
+                        rx = tx[k] - g_tx[e, k]
+                        ry = ty[k] - g_ty[e, k]
+                        if rx * rx + ry * ry <= tie:
+                            k_e = k
+                            break
+                    for slot, lim in ((ENC, F_LIM_ENC), (HW, F_LIM_HW), (H2D, F_LIM_H2D)):
+                        if want[slot]:
+                            eps = fp[F_EPS + slot]
+                            r_enc = eps / (eps + d_e) if steps[k_e] < fp[lim] else 0.0
+                            best[slot] = max(best[slot], r_enc)
+                if want[HW]:
+                    th = INF
+                    if lateral[e] <= fp[F_TOL_HW]:
+                        th = _time_gap(arc_on[e], g_l1[e], v_e)
+                    tau = fp[F_TAU_HW]
+                    best[HW] = max(best[HW], tau / (tau + th))
+                if want[H2D]:
+                    th = INF
+                    if lateral[e] <= fp[F_TOL_H2D]:
+                        th = _time_gap(arc_on[e], g_l1[e], v_e)
+                    elif d_path == 0.0:
+                        s_b, s_a = _first_crossing(
+                            ex, ey, ecum, en, ebox, nb, gx[e], gy[e], gcum[e], gn[e],
+                            gbox[e], gnb[e],
+                        )  # fmt: skip
+                        th = _time_gap(s_a - s_b, g_l1[e], v_e)
+                    tau = fp[F_TAU_H2D]
+                    best[H2D] = max(best[H2D], tau / (tau + th))
+                if want[CIRC]:
+                    eps = fp[F_EPS + CIRC]
+                    best[CIRC] = max(best[CIRC], eps / (eps + max(circ, 0.0)))
+                if want[GAUSS]:
+                    best[GAUSS] = max(best[GAUSS], gmax)
+                if want[SURV]:
+                    best[SURV] = max(best[SURV], np_sum(terms, ns))
+        for slot in range(N_MODELS):
+            if want[slot]:
+                out[slot, i] = best[slot]
+    return out
+
+
+@numba.njit(cache=True)
+def reachable(
+    paths, path_agent, speed, kinds, ego, agents, horizon, n_steps, unc, max_speed, threshold
+):
+    """The reachability bound of the cascade: False for agents of ``agents`` whose survival
+    risk is certainly below ``threshold``; O(1) per path row.
+
+    Positions along a path lie within ``v s`` of its first point, so the centre distance at
+    any step is at least ``d = max(D0 - (w_i + v_ego) T, 0)``, ``D0`` the least distance of
+    the candidates' first points and ``w_i = max(v_i, max_speed[kind])``. With ``S`` the
+    summed covariance, ``lambda_max(S) <= L = sm_i^2 + sm_e^2`` (``sm`` the largest
+    ``sigma_max`` of the kind) and ``det(S) >= l^2``, ``l = s0_i^2 + s0_e^2`` (``s0`` the
+    least of ``min(sigma0, sigma_max)``), so ``P_o <= exp(-d^2 / (2 L)) / (2 pi l)`` and
+    ``R_S <= sum_k P_o(s_k) <= n exp(-d^2 / (2 L)) / (2 pi l)``. The agent is dropped when
+    that bound is below ``threshold / 1000`` (the margin covers rounding)."""
+    n = speed.shape[0]
+    starts = _row_starts(path_agent, n)
+    keep = np.ones(agents.shape[0], np.bool_)
+    if not threshold > 0:
+        return keep
+    ue = unc[kinds[ego]]
+    sm_e = max(ue[4], ue[5])
+    s0_e = min(min(ue[0], ue[4]), min(ue[1], ue[5]))
+    log_thr = math.log(threshold / 1000.0)
+    for a_idx in range(agents.shape[0]):
+        i = agents[a_idx]
+        d0 = INF
+        for r in range(starts[i], starts[i + 1]):
+            for re in range(starts[ego], starts[ego + 1]):
+                d0 = min(
+                    d0,
+                    math.hypot(paths[r, 0, 0] - paths[re, 0, 0], paths[r, 0, 1] - paths[re, 0, 1]),
+                )
+        u = unc[kinds[i]]
+        w = max(speed[i], max_speed[kinds[i]]) + speed[ego]
+        d = max(d0 - w * horizon, 0.0)
+        big = max(u[4], u[5]) ** 2 + sm_e**2
+        small = min(min(u[0], u[4]), min(u[1], u[5])) ** 2 + s0_e**2
+        log_bound = math.log(n_steps / (2.0 * math.pi * small)) - d * d / (2.0 * big)
+        keep[a_idx] = log_bound >= log_thr
+    return keep
+
+
+# ---------------------------------------------------------------------- Python side
+#: Model names in slot order (the registry's order; checked by the registry).
+SLOTS: tuple[str, ...] = (
+    "current_distance",
+    "path_distance",
+    "trajectory_distance",
+    "closest_encounter",
+    "headway",
+    "headway_2d",
+    "circles",
+    "gaussian",
+    "survival",
+)
+RADIUS_RULES: tuple[str, ...] = ("spec", "width")
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    """``a`` as a read-only C-contiguous array (no copy when it already is one), so that
+    every call has the same argument types and the kernel compiles once."""
+    b = np.ascontiguousarray(a)
+    if b.flags.writeable:
+        b = b.view()
+        b.flags.writeable = False
+    return b
+
+
+def frame_arrays(frame: Any) -> tuple[np.ndarray, ...]:
+    """The frame's arrays in kernel order (xy .. path_agent), cached on the frame (frames
+    are immutable)."""
+    cached = frame.__dict__.get("_kernel_arrays")
+    if cached is None:
+        cached = tuple(
+            _readonly(a)
+            for a in (
+                frame.xy,
+                frame.heading,
+                frame.speed,
+                frame.length,
+                frame.width,
+                frame.kinds,
+                frame.valid,
+                frame.paths,
+                frame.path_points,
+                frame.path_agent,
+            )
+        )
+        object.__setattr__(frame, "_kernel_arrays", cached)
+    return cached
+
+
+def pack_params(chosen: dict[str, Any], horizon_s: float, dt_s: float) -> tuple[np.ndarray, ...]:
+    """Float and integer parameter vectors of the kernel from the parameter objects."""
+    fp = np.zeros(N_FLOAT)
+    for slot, name in enumerate(SLOTS[:7]):
+        fp[F_EPS + slot] = chosen[name].epsilon_m
+    for lim, name in ((F_LIM_ENC, SLOTS[ENC]), (F_LIM_HW, SLOTS[HW]), (F_LIM_H2D, SLOTS[H2D])):
+        value = chosen[name].encounter_time_max_s
+        fp[lim] = horizon_s if value is None else value
+    fp[F_TAU_HW] = chosen[SLOTS[HW]].tau_s
+    fp[F_TAU_H2D] = chosen[SLOTS[H2D]].tau_s
+    fp[F_TOL_HW] = chosen[SLOTS[HW]].on_path_tolerance_m
+    fp[F_TOL_H2D] = chosen[SLOTS[H2D]].on_path_tolerance_m
+    circles = chosen[SLOTS[CIRC]]
+    fp[F_SCALE_CIRC] = circles.sigma_scale
+    fp[F_DT_TAU] = dt_s / chosen[SLOTS[SURV]].escape_time_s
+    ip = np.zeros(N_INT, np.int64)
+    ip[I_NCIRC] = circles.n_circles
+    ip[I_RADIUS_RULE] = RADIUS_RULES.index(circles.radius_rule)
+    fp.flags.writeable = False
+    ip.flags.writeable = False
+    return fp, ip
+
+
+def _constant(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
+
+
+#: ``stop2``, ``cut2`` for exact values; the empty agent list ("every valid agent").
+NO_STOP = _constant(np.full(N_MODELS, -1.0))
+NO_CUT = _constant(np.full(N_MODELS, np.inf))
+ALL_AGENTS = _constant(np.zeros(0, np.int64))
+
+
+def run(
+    frame: Any,
+    want: np.ndarray,
+    fp: np.ndarray,
+    ip: np.ndarray,
+    steps: np.ndarray,
+    unc: np.ndarray,
+    agents: np.ndarray | None = None,
+    stop2: np.ndarray | None = None,
+    cut2: np.ndarray | None = None,
+) -> np.ndarray:
+    """Risks ``(9, N)`` of the models flagged in ``want`` for ``agents`` (default: every
+    valid agent but the ego); NaN elsewhere. Every array argument must be read-only (one
+    compiled signature)."""
+    if agents is None:
+        agents = ALL_AGENTS
+    elif agents.size == 0:
+        return np.full((N_MODELS, frame.n_agents), np.nan)
+    return evaluate_agents(  # type: ignore[call-arg]
+        *frame_arrays(frame),
+        int(frame.ego),
+        agents,
+        steps,
+        unc,
+        want,
+        fp,
+        ip,
+        NO_STOP if stop2 is None else stop2,
+        NO_CUT if cut2 is None else cut2,
+    )
+
+
+def warm_up() -> None:
+    """Compile every kernel, or load it from the cache, with the argument types that
+    :func:`risk.evaluate` and the cascade use.
+
+    Call it once in a parent process before starting workers (pytest-xdist, batch, Ray),
+    so that they load the cached kernels instead of each compiling them."""
+    frame = Frame.from_arrays(
+        np.array([[0.0, 0.0], [8.0, 1.0]]),
+        np.zeros(2),
+        np.array([5.0, 3.0]),
+        np.full(2, 4.5),
+        np.full(2, 1.9),
+        [np.array([[0.0, 0.0], [20.0, 0.0]]), np.array([[8.0, 1.0], [8.0, 20.0]])],
+        ego=0,
+    )
+    steps = _constant(np.linspace(0.0, 1.0, 5))
+    unc = _constant(np.tile([0.5, 0.3, 0.1, 0.1, 2.0, 1.0, 0.0, 0.0], (4, 1)))
+    fp = np.ones(N_FLOAT)
+    fp[F_DT_TAU] = 0.25
+    ip = np.array([3, 0], dtype=np.int64)
+    run(
+        frame,
+        _constant(np.ones(N_MODELS, dtype=np.bool_)),
+        _constant(fp),
+        _constant(ip),
+        steps,
+        unc,
+    )
+    fa = frame_arrays(frame)
+    speeds = _constant(np.full(4, 10.0))
+    reachable(fa[7], fa[9], fa[2], fa[5], 0, _constant(np.array([1])), 1.0, 5, unc, speeds, 1e-25)

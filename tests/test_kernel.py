@@ -1,0 +1,224 @@
+"""The compiled kernel (risk.kernel, the production path of risk.evaluate) against its
+oracles: the vectorised numpy modules (risk.registry.evaluate_numpy) and the plain-loop
+reference (risk.reference).
+
+Tolerances: 1e-9 relative for the distance-like models, 1e-6 in log10 for the Gaussian
+and survival models (values below 1e-300 are subnormal and compared absolutely). On the
+benchmark's lane frames the kernel also agrees with numpy bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from frames import mixed_frame as random_frame
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from risk import (
+    BASELINE_THRESHOLD,
+    MODELS,
+    Frame,
+    KindUncertainty,
+    PredictionSettings,
+    UncertaintyTable,
+    baseline_mask,
+    evaluate,
+)
+from risk.reference import reference_evaluate
+from risk.registry import evaluate_numpy
+from risk.stochastic import CirclesParams, SurvivalParams
+from risk.temporal import ClosestEncounterParams, Headway2DParams, HeadwayParams
+
+STOCHASTIC = ("gaussian", "survival")
+SHORT = PredictionSettings(horizon_s=3.0, dt_s=0.25)
+
+
+def assert_close(fast: dict, slow: dict, label: str = "") -> None:
+    for name in fast:
+        a, b = fast[name], slow[name]
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b), err_msg=f"{label}{name}")
+        m = ~np.isnan(a)
+        a, b = a[m], b[m]
+        if name in STOCHASTIC:
+            tiny = (a < 1e-300) | (b < 1e-300)
+            np.testing.assert_allclose(a[tiny], b[tiny], rtol=0, atol=1e-300, err_msg=name)
+            err = np.abs(np.log10(a[~tiny]) - np.log10(b[~tiny]))
+            assert np.all(err <= 1e-6), f"{label}{name}: log10 error {err.max()}"
+        else:
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=0, err_msg=f"{label}{name}")
+
+
+def assert_oracles(frame: Frame, params=None, prediction=None, reference: bool = True) -> dict:
+    fast = evaluate(frame, None, params, prediction=prediction)
+    assert_close(fast, evaluate_numpy(frame, None, params, prediction=prediction), "numpy: ")
+    if reference:
+        slow = reference_evaluate(frame, None, params, prediction=prediction)
+        assert_close(fast, slow, "reference: ")
+    return fast
+
+
+# ---------------------------------------------------------------------- random frames
+@settings(max_examples=150, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_hypothesis_frames_match_numpy_and_reference(seed):
+    assert_oracles(random_frame(np.random.default_rng(seed)), prediction=SHORT)
+
+
+OTHER = {
+    "closest_encounter": ClosestEncounterParams(encounter_time_max_s=math.inf),  # keep d_E
+    "headway": HeadwayParams(tau_s=2.5, on_path_tolerance_m=3.0, encounter_time_max_s=1.0),
+    "headway_2d": Headway2DParams(tau_s=0.7, on_path_tolerance_m=0.5),
+    "circles": CirclesParams(n_circles=4, sigma_scale=1.5, radius_rule="width"),
+    "survival": SurvivalParams(escape_time_s=1.3),
+}
+GROWING = UncertaintyTable(
+    vehicle=KindUncertainty(
+        sigma0_lon_m=0.6, sigma0_lat_m=0.3, growth_lon=0.1, growth_lat=0.05,
+        sigma_max_lon_m=4.0, sigma_max_lat_m=1.0, time_growth_lon_mps=0.3,
+        time_growth_lat_mps=0.1,
+    ),
+    pedestrian=KindUncertainty(
+        sigma0_lon_m=0.1, sigma0_lat_m=0.1, growth_lon=0.0, growth_lat=0.0,
+        sigma_max_lon_m=2.0, sigma_max_lat_m=2.0, time_growth_lon_mps=0.5,
+        time_growth_lat_mps=0.5,
+    ),
+)  # fmt: skip
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_every_baseline_choice_is_honoured(seed):
+    """Encounter rule, circle radii, escape time, horizon/step and a time-based growth of
+    the uncertainty: the kernel follows both oracles on each."""
+    pred = PredictionSettings(horizon_s=4.0, dt_s=0.5, uncertainty=GROWING)
+    assert_oracles(random_frame(np.random.default_rng(seed)), OTHER, pred)
+
+
+def test_time_growth_reaches_standing_agents():
+    """g_t > 0 widens the Gaussian of an agent that stands now (k v s is 0 for it)."""
+    f = Frame.from_arrays(
+        np.array([[0.0, 0.0], [6.0, 3.0]]), np.zeros(2), np.zeros(2), np.full(2, 4.0),
+        np.full(2, 2.0), [np.array([[0.0, 0.0]]), np.array([[6.0, 3.0]])], ego=0,
+    )  # fmt: skip
+    still = evaluate(f, ["gaussian"], prediction=SHORT)["gaussian"][1]
+    grow = PredictionSettings(horizon_s=3.0, dt_s=0.25, uncertainty=GROWING)
+    spread = assert_oracles(f, prediction=grow)["gaussian"][1]
+    assert spread > 10 * still  # wider Gaussians overlap more at this distance
+
+
+def test_encounter_rules():
+    """Still closing at T: 0 under the paper's rule (s_max = T), eps / (eps + d_E) when
+    d_E is kept (s_max = inf)."""
+    f = Frame.from_arrays(
+        np.array([[0.0, 0.0], [100.0, 0.0]]), np.array([0.0, math.pi]), np.array([1.0, 1.0]),
+        np.zeros(2), np.zeros(2), [np.array([[0.0, 0.0], [1.0, 0.0]]),
+        np.array([[100.0, 0.0], [99.0, 0.0]])], ego=0,
+    )  # fmt: skip
+    paper = evaluate(f, ["closest_encounter"], prediction=SHORT)["closest_encounter"][1]
+    keep = ClosestEncounterParams(encounter_time_max_s=math.inf)
+    kept = evaluate(f, ["closest_encounter"], {"closest_encounter": keep}, prediction=SHORT)
+    assert paper == 0.0
+    assert kept["closest_encounter"][1] == pytest.approx(1.0 / (1.0 + 94.0))  # 100 - 2 * 3
+
+
+def test_lane_frames_match_numpy_bit_for_bit():
+    """The benchmark's intersection frames: every model identical to the numpy code."""
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
+    from bench_models import random_frame as lane_frame
+
+    rng = np.random.default_rng(5)
+    for n in (2, 40, 120):
+        f = lane_frame(n, rng)
+        fast, slow = evaluate(f), evaluate_numpy(f)
+        for name in MODELS:
+            np.testing.assert_array_equal(fast[name], slow[name], err_msg=name)
+
+
+# ---------------------------------------------------------------------- degenerate frames
+def test_ego_alone_and_all_invalid():
+    alone = Frame.from_arrays(
+        np.zeros((1, 2)), [0.0], [3.0], [4.0], [2.0], [np.array([[0.0, 0.0]])], ego=0
+    )
+    for name, r in evaluate(alone).items():
+        assert r.shape == (1,) and np.isnan(r).all(), name
+    f = random_frame(np.random.default_rng(3))
+    invalid = Frame.from_padded(
+        **{
+            k: getattr(f, k)
+            for k in ("ids", "kinds", "xy", "heading", "speed", "length", "width", "paths")
+        },
+        valid=np.arange(f.n_agents) == f.ego,
+        path_points=f.path_points,
+        path_agent=f.path_agent,
+        ego=f.ego,
+    )
+    for name, r in evaluate(invalid).items():
+        assert np.isnan(r).all(), name
+
+
+def test_zero_length_paths_and_coincident_agents():
+    """One-point paths, repeated points, standing and moving agents, and agents placed
+    exactly on the ego (same point, same path)."""
+    p = np.array([[5.0, 5.0]])
+    rep = np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    f = Frame.from_arrays(
+        np.array([[0.0, 0.0], [5.0, 5.0], [0.0, 0.0], [0.0, 0.0], [5.0, 5.0]]),
+        np.array([0.3, 1.0, 0.3, 2.0, -1.0]),
+        np.array([4.0, 0.0, 4.0, 2.0, 3.0]),
+        np.array([4.0, 0.5, 4.0, 0.0, 1.0]),
+        np.array([2.0, 0.5, 2.0, 0.0, 1.0]),
+        [rep, p, rep, np.array([[0.0, 0.0]]), [p, np.array([[5.0, 5.0], [5.0, 5.0]])]],
+        ego=0,
+        kinds=["vehicle", "pedestrian", "vehicle", "other", "cyclist"],
+    )
+    r = assert_oracles(f, prediction=SHORT)
+    assert r["current_distance"][2] == 1.0 and r["path_distance"][2] == 1.0
+
+
+def test_two_thousand_agents():
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
+    from bench_models import random_frame as lane_frame
+
+    f = lane_frame(2000, np.random.default_rng(9))
+    fast = assert_oracles(f, prediction=SHORT, reference=False)
+    assert all(np.isfinite(v[f.others]).all() for v in fast.values())
+
+
+def test_baseline_threshold_is_a_parameter():
+    r = np.array([np.nan, 1e-30, 1e-25, 1e-20])
+    np.testing.assert_array_equal(baseline_mask(r), [False, False, True, True])
+    np.testing.assert_array_equal(baseline_mask(r, threshold=1e-31), [False, True, True, True])
+    assert BASELINE_THRESHOLD == 1e-25
+
+
+# ---------------------------------------------------------------------- compile cost
+@pytest.mark.slow
+def test_cold_cache_compiles_once_then_loads(tmp_path):
+    """A fresh NUMBA_CACHE_DIR: the first process says it compiles and fills the folder;
+    the second loads the kernels silently."""
+    code = (
+        "import numpy as np; from risk import Frame, evaluate; "
+        "f = Frame.from_arrays(np.array([[0.0, 0.0], [5.0, 0.0]]), np.zeros(2), np.ones(2), "
+        "np.ones(2), np.ones(2), [np.array([[0.0, 0.0], [1.0, 0.0]]), "
+        "np.array([[5.0, 0.0], [6.0, 0.0]])], ego=0); "
+        "print(repr(evaluate(f)['survival'][1]))"
+    )
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    runs = [
+        subprocess.run(
+            [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600
+        )
+        for _ in range(2)
+    ]
+    for run in runs:
+        assert run.returncode == 0, run.stderr
+    assert "compiling the risk kernels" in runs[0].stderr
+    assert "compiling" not in runs[1].stderr
+    assert runs[0].stdout == runs[1].stdout
+    assert any(tmp_path.rglob("*.nbi")) and any(tmp_path.rglob("*.nbc"))
