@@ -10,6 +10,7 @@ live here, below both, so that an output package needs nothing from ``replay`` (
 from __future__ import annotations
 
 import pathlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -17,6 +18,7 @@ import numpy as np
 
 from risk.cascade import CascadeConfig, CascadeResult
 from risk.frame import Frame, LaneMap
+from risk.hindsight import Tracks
 
 
 @dataclass(frozen=True, eq=False)
@@ -32,6 +34,9 @@ class SceneInfo:
     model_names: tuple[str, ...]  # the keys of FrameResult.risks, in registry order
     source: pathlib.Path | None  # the scene file, None for an in-memory scene
     n_frames: int  # frames in the scene (some may be skipped: ego missing)
+    # The scene's recorded agent states (risk.hindsight.Tracks), read on first call and
+    # cached: for sinks that need the recorded future (hindsight truth). None: unknown.
+    tracks: Callable[[], Tracks] | None = None
 
 
 @dataclass(frozen=True, eq=False)

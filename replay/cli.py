@@ -27,6 +27,7 @@ COMMANDS: dict[str, str] = {
     "inspect": "replay.commands.inspect:inspect_cmd",
     "calibrate": "replay.commands.calibrate:calibrate",
     "stats": "replay.commands.stats:stats",
+    "evaluate": "replay.commands.evaluate:evaluate",
     "experiment": "replay.commands.experiment:experiment",
     "batch": "replay.commands.batch:batch",
     "models": "replay.commands.models:models",

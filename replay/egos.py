@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import os
 import pathlib
 import sys
@@ -36,6 +37,7 @@ from replay.errors import ReplayError
 from replay.reader import open_scene
 from risk.cascade import CascadeConfig, Evaluator
 from risk.frame import Frame, LaneMap
+from risk.hindsight import Tracks, tracks_from_frames
 from risk.motion import MIN_TRAVEL_M, moving_agent_ids
 
 #: What ``--ego`` takes besides an agent id.
@@ -63,6 +65,14 @@ class _LoadedScene:
 
     def frames(self) -> Iterator[Frame]:
         return (frame for _, frame in self.indexed)
+
+    def tracks(self) -> Tracks:
+        """Every recorded agent state (the hindsight truth's input), built once."""
+        return self._tracks
+
+    @functools.cached_property
+    def _tracks(self) -> Tracks:
+        return tracks_from_frames([f for _, f in self.indexed], frame_period_s=self.frame_period_s)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -30,6 +30,7 @@ from replay.errors import ReplayError
 from replay.reader import open_scene
 from risk.cascade import SURVIVAL_MODEL, CascadeConfig, CascadeResult, Evaluator, run_cascade
 from risk.frame import Frame, LaneMap, Scene
+from risk.hindsight import Tracks, tracks_from_frames
 from risk.registry import resolve_models
 
 
@@ -103,6 +104,9 @@ class InMemoryScene:
 
     def frames(self) -> Iterator[Frame]:
         return iter(self.scene.frames)
+
+    def tracks(self) -> Tracks:
+        return tracks_from_frames(self.scene.frames, frame_period_s=self.scene.frame_period_s)
 
 
 class _Totals:
@@ -214,6 +218,9 @@ def _run(
         model_names=model_names,
         source=path,
         n_frames=int(reader.n_frames),
+        tracks=functools.cache(reader.tracks)
+        if callable(getattr(reader, "tracks", None))
+        else None,
     )
     totals = _Totals(len(cascade.stages), len(cascade.tiers))
     totals.read_time_s = read_first_s

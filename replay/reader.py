@@ -49,6 +49,7 @@ from converters import scene_format as sf
 from replay.errors import SceneFormatError
 from risk.errors import FrameError
 from risk.frame import Frame, Lane, LaneMap, MapLine, Scene
+from risk.hindsight import Tracks, tracks_from_states
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _MAX_EXACT_MM = 2**53  # coordinates are exact integers of mm up to here
@@ -291,6 +292,37 @@ class SceneReader:
             ego_present=np.array(present, dtype=bool),
         )
 
+    def tracks(self) -> Tracks:
+        """Every recorded agent state of the scene as :class:`risk.hindsight.Tracks`
+        (``/agents`` only: paths are not decoded). Frame ``k`` of the grid is the stored
+        frame nearest ``t0 + k * frame_period_s``, ``t0`` the first frame's time."""
+        cols: dict[str, list[np.ndarray]] = {k: [] for k in ("t", *_TRACK_FIELDS)}
+        for _, data in self._messages([sf.TOPIC_AGENTS]):
+            m = self._parse(sf.Agents, data, sf.TOPIC_AGENTS)
+            valid = np.array(m.valid, dtype=bool)
+            ids = np.array(m.ids, dtype=np.int64)
+            for name in _TRACK_FIELDS:
+                values = np.array(getattr(m, name), dtype=np.int64)
+                if values.size != ids.size:
+                    raise self._bad_length(
+                        int(m.frame_index), f"/agents {name}", values.size, ids.size
+                    )
+                cols[name].append(values[valid])
+            cols["t"].append(np.full(int(valid.sum()), float(m.t_s)))
+        flat = {k: np.concatenate(v) if v else np.empty(0) for k, v in cols.items()}
+        t0 = float(min((c[0] for c in cols["t"] if c.size), default=0.0))
+        return tracks_from_states(
+            np.rint((flat["t"] - t0) / self.frame_period_s).astype(np.int64),
+            flat["ids"],
+            flat["kinds"],
+            np.column_stack((flat["x_mm"], flat["y_mm"])) / sf.MM_PER_M,
+            flat["heading_urad"] / sf.URAD_PER_RAD,
+            flat["length_mm"] / sf.MM_PER_M,
+            flat["width_mm"] / sf.MM_PER_M,
+            t0_s=t0,
+            dt_s=self.frame_period_s,
+        )
+
     def read(self, *, skip_missing_ego: bool = False) -> Scene:
         """The whole scene in memory (see :meth:`frames` for frames without their ego)."""
         meta = {k: v for k, v in self.metadata.items() if k not in _STRUCTURAL_KEYS}
@@ -418,6 +450,8 @@ class SceneReader:
             " again"
         )
 
+
+_TRACK_FIELDS = ("ids", "kinds", "x_mm", "y_mm", "heading_urad", "length_mm", "width_mm")
 
 _STRUCTURAL_KEYS = ("frame_period_s", "format_version", "ego_id")
 """Metadata keys that describe the file rather than the source (not in Scene.metadata)."""

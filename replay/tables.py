@@ -10,7 +10,12 @@ a risk value). Columns, in order:
 - ``kept_<model>``: kept after that cascade stage (stages in cascade order);
 - ``dropped_by``: the stage model that dropped the agent, null if it survived;
 - ``tier``: deepest planner tier reached, by name, null if none;
-- ``baseline``: survival baseline (``R_S >= baseline_threshold``) on all agents.
+- ``baseline``: survival baseline (``R_S >= baseline_threshold``) on all agents;
+- ``truth_gap_m``, ``truth_pet_s``, ``truth_label``: the hindsight truth from the scene's
+  recorded future (:mod:`risk.hindsight`, ``docs/hindsight.md``): least box clearance at
+  equal times within the horizon (m), post-encroachment time (s; null when the footprints
+  do not meet), and whether the agent really came close (true / false, null when the
+  window is censored). All null when the engine cannot give the recorded tracks.
 
 The file is written once, at ``close()``, to a temporary name in the target folder and
 renamed into place, so a failed run never leaves a half-written table.
@@ -28,6 +33,9 @@ from base.atomic import atomic_output
 from base.sinks import FrameResult, SceneInfo
 from replay.errors import ReplayError
 from risk.frame import KIND_NAMES
+from risk.hindsight import LABEL_POSITIVE, LABEL_UNKNOWN, HindsightSettings, hindsight_truth
+
+TRUTH_COLUMNS = ("truth_gap_m", "truth_pet_s", "truth_label")
 
 SUFFIXES = (".parquet", ".csv")
 
@@ -39,7 +47,13 @@ class TableSink:
     (what ``replay stats`` uses).
     """
 
-    def __init__(self, path: str | os.PathLike[str] | None):
+    def __init__(
+        self,
+        path: str | os.PathLike[str] | None,
+        *,
+        hindsight: HindsightSettings | None = None,
+    ):
+        self.hindsight = hindsight or HindsightSettings()
         self._info: SceneInfo | None = None
         self._chunks: list[dict[str, np.ndarray]] = []
         self.path = None if path is None else pathlib.Path(path)
@@ -98,7 +112,33 @@ class TableSink:
             _names(data["dropped_at"], stage_names, "dropped_by"),
             _names(data["tier"], tier_names, "tier"),
         )
-        return df.select([*keys[:5], *keys[5:-3], "dropped_by", "tier", "baseline"])
+        df = df.with_columns(self._truth(data["t_s"], data["ego_id"], data["agent_id"]))
+        return df.select([*keys[:5], *keys[5:-3], "dropped_by", "tier", "baseline", *TRUTH_COLUMNS])
+
+    def _truth(self, t_s: np.ndarray, ego_id: np.ndarray, agent_id: np.ndarray) -> list[pl.Series]:
+        """The hindsight columns for rows (t_s, ego_id, agent_id), from the scene's tracks."""
+        n = len(t_s)
+        gap, pet = np.full(n, np.nan), np.full(n, np.nan)
+        label = np.full(n, LABEL_UNKNOWN, dtype=np.int8)
+        get_tracks = self._require_info().tracks
+        if n and get_tracks is not None:
+            tracks = get_tracks()
+            egos, ego_row = np.unique(np.asarray(ego_id, dtype=np.int64), return_inverse=True)
+            ego_col = tracks.index_of(egos)
+            truth = hindsight_truth(tracks, np.maximum(ego_col, 0), settings=self.hindsight)
+            k = tracks.frame_of(np.asarray(t_s, dtype=np.float64))
+            a = tracks.index_of(np.asarray(agent_id, dtype=np.int64))
+            ok = (k >= 0) & (k < tracks.n_frames) & (a >= 0) & (ego_col[ego_row] >= 0)
+            idx = (k[ok], ego_row[ok], a[ok])
+            gap[ok], pet[ok], label[ok] = truth.gap_m[idx], truth.pet_s[idx], truth.label[idx]
+        labels = np.array([None, False, True], dtype=object)[
+            np.where(label == LABEL_UNKNOWN, 0, np.where(label == LABEL_POSITIVE, 2, 1))
+        ]
+        return [
+            pl.Series("truth_gap_m", gap).fill_nan(None),
+            pl.Series("truth_pet_s", pet).fill_nan(None),
+            pl.Series("truth_label", labels.tolist(), dtype=pl.Boolean),
+        ]
 
     def close(self) -> None:
         if self.path is None:

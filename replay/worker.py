@@ -13,6 +13,7 @@ import os
 import pathlib
 import warnings
 from dataclasses import dataclass
+from typing import Any
 
 import polars as pl
 
@@ -22,6 +23,7 @@ from replay.engine import EVERY_FRAME, ReplayWarning, RunSummary, SceneSource, S
 from replay.stats.sink import StatsSink
 from risk.cascade import CascadeConfig
 from risk.frame import Scene
+from risk.hindsight import HindsightSettings
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,6 +42,9 @@ def replay_scene(
     cascade: CascadeConfig,
     models: tuple[str, ...] | None = None,
     recording: str | os.PathLike[str] | None = None,
+    params: Any = None,
+    prediction: Any = None,
+    hindsight: HindsightSettings | None = None,
     ego: int | str | None = None,
     every: int | Stride = 1,
 ) -> SceneTables:
@@ -47,20 +52,23 @@ def replay_scene(
     tables, named ``name`` in their ``scene`` column; also write its ``.rrd`` to
     ``recording`` (its folder is created). Every output is aborted on an error.
 
-    ``ego``: an agent id, None for the recording's ego, or ``"all"`` for every moving
-    agent in turn (:mod:`replay.egos`; a scene file only, and no recording). ``every``:
-    the frame stride."""
+    ``params`` (model name -> parameters) and ``prediction`` go to every model
+    evaluation; ``hindsight``: the settings of the table's truth columns. ``ego``: an
+    agent id, None for the recording's ego, or ``"all"`` for every moving agent in turn
+    (:mod:`replay.egos`; a scene file only, and no recording). ``every``: the frame
+    stride."""
     if ego == ALL_EGOS:
         if recording is not None:
             raise ValueError("a recording shows one ego's view; it cannot go with ego='all'")
         if not isinstance(source, (str, os.PathLike)):
             raise TypeError("ego='all' replays a scene file")
-        collect = StatsSink(name)
+        collect = StatsSink(name, hindsight=hindsight)
         egos = run_every_ego(
-            source, sinks=[collect], cascade=cascade, models=models, every=every, progress=False
-        )
+            source, sinks=[collect], cascade=cascade, models=models, every=every,
+            params=params, prediction=prediction, progress=False,
+        )  # fmt: skip
         return SceneTables(collect.agents(), collect.frames(), pooled(egos))
-    collect = StatsSink(name)
+    collect = StatsSink(name, hindsight=hindsight)
     sinks: list[Sink] = [collect]
     if recording is not None:
         # Imported here: rerun adds about a second to every worker's start, and most
@@ -72,8 +80,9 @@ def replay_scene(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ReplayWarning)  # skipped frames: absent from tables
         summary = run_scene(
-            source, sinks=sinks, cascade=cascade, models=models, progress=False,
-            ego=None if ego is None else int(ego), every=every,
+            source, sinks=sinks, cascade=cascade, models=models, params=params,
+            prediction=prediction, progress=False, ego=None if ego is None else int(ego),
+            every=every,
         )  # fmt: skip
     return SceneTables(collect.agents(), collect.frames(), summary)
 
@@ -88,13 +97,16 @@ class SceneJob:
     models: tuple[str, ...] | None = None
     ego: int | str | None = None
     every: Stride = EVERY_FRAME
+    params: Any = None  # model name -> parameters, for every evaluation
+    prediction: Any = None  # risk.PredictionSettings
+    hindsight: HindsightSettings | None = None  # settings of the truth columns
 
 
 def replay_job(job: SceneJob) -> tuple[pl.DataFrame, pl.DataFrame]:
     """The agents and frames tables of one scene file (runs in a worker process)."""
     tables = replay_scene(
         job.path, name=job.name, cascade=job.cascade, models=job.models, ego=job.ego,
-        every=job.every,
+        every=job.every, params=job.params, prediction=job.prediction, hindsight=job.hindsight,
     )  # fmt: skip
     return tables.agents, tables.frames
 

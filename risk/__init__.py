@@ -11,7 +11,9 @@ entry point::
 """
 
 from risk.errors import FrameError, RiskError, UnknownModelError
+from risk.evaluation import evaluate_references, pooled_roc
 from risk.frame import KIND_NAMES, Frame, Kind, Lane, LaneMap, MapLine, Scene
+from risk.hindsight import HindsightSettings, Tracks, Truth, hindsight_truth
 from risk.prediction import (
     FrameContext,
     KindUncertainty,
@@ -35,6 +37,7 @@ __all__ = [
     "Frame",
     "FrameContext",
     "FrameError",
+    "HindsightSettings",
     "Kind",
     "KindUncertainty",
     "Lane",
@@ -44,8 +47,13 @@ __all__ = [
     "PredictionSettings",
     "RiskError",
     "Scene",
+    "Tracks",
+    "Truth",
     "UncertaintyTable",
     "UnknownModelError",
     "baseline_mask",
     "evaluate",
+    "evaluate_references",
+    "hindsight_truth",
+    "pooled_roc",
 ]

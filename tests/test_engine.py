@@ -215,7 +215,10 @@ def test_table_has_one_row_per_frame_and_other_agent(tmp_path, suffix):
         "frame", "t_s", "ego_id", "agent_id", "kind", "x_m", "y_m", "speed_mps",
         *(f"risk_{m}" for m in MODEL_NAMES),
         "kept_path_distance", "kept_gaussian", "dropped_by", "tier", "baseline",
+        "truth_gap_m", "truth_pet_s", "truth_label",
     ]  # fmt: skip
+    # A 3-frame scene is far shorter than the 5 s hindsight horizon: no negative label.
+    assert not (df["truth_label"] == False).any()  # noqa: E712
     # Frames 0 and 2 processed (1 skipped): 3 + 2 other agents.
     assert df.height == 5
     assert df["frame"].to_list() == [0, 0, 0, 2, 2]

@@ -85,10 +85,17 @@ def collect(
     models: Sequence[str] | None,
     workers: int,
     progress: bool,
+    params: object = None,
+    prediction: object = None,
+    hindsight: object = None,
     ego: int | str | None = None,
     every: Stride = EVERY_FRAME,
 ) -> tuple[pl.DataFrame, pl.DataFrame, list[str], list[str]]:
-    """Agents and frames tables of every input, with the stage and tier names."""
+    """Agents and frames tables of every input, with the stage and tier names.
+
+    ``params``, ``prediction`` go to every model evaluation of the replayed scenes,
+    ``hindsight`` (``risk.hindsight.HindsightSettings``) to their truth columns; tables
+    are read as they were written."""
     stage_names = list(cascade.stage_names)
     cascade_tiers = [t.name for t in cascade.tiers]
     tier_names = cascade_tiers
@@ -97,7 +104,17 @@ def collect(
     names = scene_names([*inputs.scenes, *inputs.tables])
     if inputs.scenes:
         tasks = [
-            SceneJob(p, n, cascade, None if models is None else tuple(models), ego, every)
+            SceneJob(
+                p,
+                n,
+                cascade,
+                None if models is None else tuple(models),
+                ego,
+                every,
+                params=params,
+                prediction=prediction,
+                hindsight=hindsight,
+            )
             for p, n in zip(inputs.scenes, names[: len(inputs.scenes)], strict=True)
         ]
         for a, f in parallel_map(

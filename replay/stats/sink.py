@@ -17,6 +17,7 @@ from base.sinks import FrameResult, SceneInfo
 from replay.errors import StatsError
 from replay.tables import TableSink
 from risk.cascade import CascadeResult
+from risk.hindsight import HindsightSettings
 from risk.registry import MODELS
 
 #: A situation is one frame of one scene.
@@ -27,9 +28,9 @@ class StatsSink:
     """A :class:`base.sinks.Sink` that collects the agents and frames tables of one
     scene, named ``scene`` in the ``scene`` column of both."""
 
-    def __init__(self, scene: str):
+    def __init__(self, scene: str, *, hindsight: HindsightSettings | None = None):
         self.scene = scene
-        self._table = TableSink(None)
+        self._table = TableSink(None, hindsight=hindsight)
         self._frames: list[dict[str, Any]] = []
         self._info: SceneInfo | None = None
 

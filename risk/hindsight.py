@@ -1,0 +1,528 @@
+"""Hindsight truth: what really happened next between the ego and each agent.
+
+Pure numpy over a scene's recorded track arrays (no I/O). For every (ego, frame, agent)
+this gives, from the recording's own future within a horizon ``H``:
+
+- **gap** ``truth_gap_m``: the minimum clearance between the two oriented boxes (the
+  agents' recorded footprints: centre, heading, length, width) *at equal times*, over the
+  frames ``f .. f + H`` at which both are recorded. Exact rectangle-to-rectangle distance
+  (:func:`box_gap`), 0 when the boxes touch or overlap. NaN when the two are never both
+  recorded in the window.
+- **PET** ``truth_pet_s`` (post-encroachment time): the time between the first of the two
+  leaving a place and the second reaching it, minimised over every place both footprints
+  cover within the window. On the frame grid: the least ``|t_i - t_j|`` over the frames
+  ``i`` (ego) and ``j`` (agent) of the window whose boxes overlap (touching counts). This
+  equals ``min over points x of (t_in,second(x) - t_out,first(x))``: when the first road
+  user occupies ``x`` last at ``t_i`` and the second first at ``t_j``, boxes ``i`` and
+  ``j`` both contain ``x``; conversely every overlapping pair bounds that point's PET from
+  above. A collision (overlap at ``i == j``) gives 0. NaN when the swept footprints never
+  meet within the window. The resolution is one frame period.
+
+  Why per point and not "the first leaves the whole shared area, the second enters it":
+  for agents on the same lane or merging, the shared area is a long strip that both
+  occupy at once without ever coming close, so the area-level time is negative and
+  meaningless; per point it is the follower's time gap, the usual rear-end surrogate. For
+  a perpendicular crossing the two agree to within the time a body takes to cross its
+  own width.
+- **label**: an *interaction* when ``gap <= gap_m`` or ``PET <= pet_s`` (defaults 0.5 m
+  and 1.0 s, see ``docs/hindsight.md`` for the sources). A close approach seen in the
+  recorded part of the window is a positive even when the window is censored.
+- **censoring**: a (frame, agent) is *censored* when the window ``f .. f + H`` is not
+  recorded enough for both: the scene ends before ``t_f + H``, or the ego or the agent is
+  not recorded at some step of the window (it left or had not yet entered the recorded
+  area), i.e. fewer than ``coverage * (H_steps + 1)`` of the window's steps hold both
+  (default ``coverage = 1``: every step). A censored pair that was not seen coming close
+  has label *unknown* (-1, null in tables), never a silent negative.
+
+Times are on the scene's frame grid ``t_k = t_0 + k dt``; ``H_steps = floor(H / dt)``
+(a horizon that is not a whole number of frames is rounded down; 1e-9 s tolerance).
+
+Cost per ego: ``T x N`` box gaps and ``(2 H_steps + 1) x T x N`` overlap tests (one
+vectorised pass per time lag, a cheap bounding-circle test first); egos are processed
+in vectorised blocks, so there is no Python loop over agents.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from risk.errors import RiskError
+from risk.frame import Frame
+
+#: Label codes of :class:`Truth`.
+LABEL_UNKNOWN = -1
+LABEL_NEGATIVE = 0
+LABEL_POSITIVE = 1
+#: Boxes closer than this (m) touch: absorbs rounding in the separating-axis test.
+TOUCH_M = 1e-9
+#: Elements of one (T, E, N) block of the vectorised computation (bounds memory).
+BLOCK_ELEMENTS = 400_000
+
+
+# ---------------------------------------------------------------------- settings
+@dataclass(frozen=True)
+class HindsightSettings:
+    """Parameters of the hindsight truth (see the module docstring and docs/hindsight.md).
+
+    - ``horizon_s``: how far ahead of each frame the recording is searched (s);
+    - ``gap_m``: a box clearance at or below this is an interaction (m);
+    - ``pet_s``: a post-encroachment time at or below this is an interaction (s);
+    - ``coverage``: the share of the window's steps at which both agents must be recorded
+      for a negative to be trusted (1 = every step).
+    """
+
+    horizon_s: float = 5.0
+    gap_m: float = 0.5
+    pet_s: float = 1.0
+    coverage: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("horizon_s", "gap_m", "pet_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise RiskError(f"hindsight {name} must be a finite number >= 0, got {value}")
+        if not (0.0 < self.coverage <= 1.0):
+            raise RiskError(f"hindsight coverage must be in (0, 1], got {self.coverage}")
+
+    def horizon_steps(self, dt_s: float) -> int:
+        """Frames in the horizon (rounded down)."""
+        return math.floor(self.horizon_s / dt_s + 1e-9)
+
+
+# ---------------------------------------------------------------------- tracks
+@dataclass(frozen=True, eq=False)
+class Tracks:
+    """A scene's recorded agents as arrays over ``T`` frames and ``N`` agents.
+
+    ``xy (T, N, 2)`` m, ``heading (T, N)`` rad, ``length``, ``width (T, N)`` m and
+    ``valid (T, N)`` bool (recorded in that frame); ``ids (N,)`` int64 unique,
+    ``kinds (N,)`` int8 (:class:`risk.Kind` codes, the first recorded); ``t0_s`` and
+    ``dt_s``: frame ``k`` is at ``t0_s + k * dt_s``. Fields of unrecorded entries are
+    ignored.
+    """
+
+    ids: np.ndarray
+    kinds: np.ndarray
+    xy: np.ndarray
+    heading: np.ndarray
+    length: np.ndarray
+    width: np.ndarray
+    valid: np.ndarray
+    t0_s: float
+    dt_s: float
+
+    def __post_init__(self) -> None:
+        t, n = self.valid.shape
+        shapes = {
+            "xy": (t, n, 2),
+            "heading": (t, n),
+            "length": (t, n),
+            "width": (t, n),
+            "ids": (n,),
+            "kinds": (n,),
+        }
+        for name, shape in shapes.items():
+            got = np.shape(getattr(self, name))
+            if got != shape:
+                raise RiskError(f"tracks: {name} must have shape {shape}, got {got}")
+        if not (math.isfinite(self.dt_s) and self.dt_s > 0):
+            raise RiskError(f"tracks: the frame period must be > 0, got {self.dt_s}")
+        if np.unique(self.ids).size != n:
+            raise RiskError("tracks: agent ids must be unique")
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.valid.shape[0])
+
+    @property
+    def n_agents(self) -> int:
+        return int(self.valid.shape[1])
+
+    def index_of(self, agent_ids: np.ndarray | Sequence[int]) -> np.ndarray:
+        """Column indices of ``agent_ids`` (-1 for an id the tracks do not hold)."""
+        ids = np.asarray(agent_ids, dtype=np.int64)
+        if self.ids.size == 0:
+            return np.full(ids.shape, -1, dtype=np.int64)
+        order = np.argsort(self.ids)
+        pos = np.clip(np.searchsorted(self.ids[order], ids), 0, self.ids.size - 1)
+        return np.where(self.ids[order][pos] == ids, order[pos], -1)
+
+    def frame_of(self, t_s: np.ndarray | float) -> np.ndarray:
+        """The frame index nearest to each time ``t_s``."""
+        return np.rint((np.asarray(t_s, dtype=np.float64) - self.t0_s) / self.dt_s).astype(np.int64)
+
+
+def tracks_from_states(
+    frame_index: np.ndarray,
+    agent_id: np.ndarray,
+    kind: np.ndarray,
+    xy: np.ndarray,
+    heading: np.ndarray,
+    length: np.ndarray,
+    width: np.ndarray,
+    *,
+    t0_s: float,
+    dt_s: float,
+    n_frames: int | None = None,
+) -> Tracks:
+    """Tracks from flat recorded states, one row per (frame, agent) that is recorded.
+
+    ``frame_index (R,)`` int (0-based on the grid ``t0_s + k dt_s``), ``agent_id (R,)``,
+    ``kind (R,)``, ``xy (R, 2)``, ``heading``, ``length``, ``width (R,)``. A (frame,
+    agent) given twice keeps the last row.
+    """
+    fi = np.asarray(frame_index, dtype=np.int64)
+    if fi.size and fi.min() < 0:
+        raise RiskError("tracks: frame indices must be >= 0")
+    t = int(n_frames if n_frames is not None else (fi.max() + 1 if fi.size else 0))
+    ids, col = np.unique(np.asarray(agent_id, dtype=np.int64), return_inverse=True)
+    n = ids.size
+    out_xy = np.zeros((t, n, 2))
+    out_h = np.zeros((t, n))
+    out_l = np.zeros((t, n))
+    out_w = np.zeros((t, n))
+    valid = np.zeros((t, n), dtype=bool)
+    out_xy[fi, col] = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    out_h[fi, col] = heading
+    out_l[fi, col] = length
+    out_w[fi, col] = width
+    valid[fi, col] = True
+    kinds = np.zeros(n, dtype=np.int8)
+    first = np.lexsort((fi, col))  # by agent, then frame
+    starts = np.r_[0, np.flatnonzero(np.diff(col[first])) + 1] if fi.size else np.empty(0, int)
+    kinds[col[first[starts]]] = np.asarray(kind)[first[starts]]
+    return Tracks(ids, kinds, out_xy, out_h, out_l, out_w, valid, float(t0_s), float(dt_s))
+
+
+def tracks_from_frames(frames: Sequence[Frame], *, frame_period_s: float) -> Tracks:
+    """Tracks of a scene's frames (every valid agent of every frame; frame ``k`` of the
+    grid is the one nearest ``t0 + k dt``, ``t0`` the first frame's time)."""
+    if not frames:
+        raise RiskError("tracks: no frames")
+    t0 = float(frames[0].t)
+    rows = [(f, np.flatnonzero(f.valid)) for f in frames]
+    fi = np.concatenate(
+        [np.full(r.size, round((f.t - t0) / frame_period_s), dtype=np.int64) for f, r in rows]
+    )
+    return tracks_from_states(
+        fi,
+        np.concatenate([f.ids[r] for f, r in rows]),
+        np.concatenate([f.kinds[r] for f, r in rows]),
+        np.concatenate([f.xy[r] for f, r in rows]),
+        np.concatenate([f.heading[r] for f, r in rows]),
+        np.concatenate([f.length[r] for f, r in rows]),
+        np.concatenate([f.width[r] for f, r in rows]),
+        t0_s=t0,
+        dt_s=frame_period_s,
+    )
+
+
+# ---------------------------------------------------------------------- box geometry
+def box_corners(
+    x: np.ndarray, y: np.ndarray, heading: np.ndarray, length: np.ndarray, width: np.ndarray
+) -> np.ndarray:
+    """Corners ``(..., 4, 2)`` of oriented boxes (counter-clockwise), broadcasting."""
+    c, s = np.cos(heading), np.sin(heading)
+    hl, hw = np.asarray(length) / 2.0, np.asarray(width) / 2.0
+    sl = np.array([1.0, -1.0, -1.0, 1.0])
+    sw = np.array([1.0, 1.0, -1.0, -1.0])
+    ex = (hl * c)[..., None] * sl - (hw * s)[..., None] * sw
+    ey = (hl * s)[..., None] * sl + (hw * c)[..., None] * sw
+    return np.stack([np.asarray(x)[..., None] + ex, np.asarray(y)[..., None] + ey], axis=-1)
+
+
+def boxes_overlap(
+    xa: np.ndarray,
+    ya: np.ndarray,
+    ha: np.ndarray,
+    la: np.ndarray,
+    wa: np.ndarray,
+    xb: np.ndarray,
+    yb: np.ndarray,
+    hb: np.ndarray,
+    lb: np.ndarray,
+    wb: np.ndarray,
+) -> np.ndarray:
+    """Whether two oriented boxes touch or overlap (separating-axis test), broadcasting.
+    Boxes within :data:`TOUCH_M` of each other touch.
+
+    Box = centre ``(x, y)``, heading (rad), length along the heading, width across it.
+    """
+    dx, dy = np.subtract(xb, xa), np.subtract(yb, ya)
+    ca, sa, cb, sb = np.cos(ha), np.sin(ha), np.cos(hb), np.sin(hb)
+    hla, hwa = np.asarray(la) / 2.0, np.asarray(wa) / 2.0
+    hlb, hwb = np.asarray(lb) / 2.0, np.asarray(wb) / 2.0
+    # |u_a . u_b| and the other three products between the boxes' unit axes.
+    uu = np.abs(ca * cb + sa * sb)  # u_a . u_b  (= v_a . v_b)
+    uv = np.abs(-ca * sb + sa * cb)  # u_a . v_b  (= v_a . u_b up to sign)
+    overlap = np.abs(dx * ca + dy * sa) <= hla + hlb * uu + hwb * uv + TOUCH_M  # axis u_a
+    overlap &= np.abs(-dx * sa + dy * ca) <= hwa + hlb * uv + hwb * uu + TOUCH_M  # axis v_a
+    overlap &= np.abs(dx * cb + dy * sb) <= hlb + hla * uu + hwa * uv + TOUCH_M  # axis u_b
+    overlap &= np.abs(-dx * sb + dy * cb) <= hwb + hla * uv + hwa * uu + TOUCH_M  # axis v_b
+    return overlap
+
+
+def _corners_to_box(
+    x: np.ndarray,
+    y: np.ndarray,
+    h: np.ndarray,
+    length: np.ndarray,
+    width: np.ndarray,
+    xb: np.ndarray,
+    yb: np.ndarray,
+    hb: np.ndarray,
+    lb: np.ndarray,
+    wb: np.ndarray,
+) -> np.ndarray:
+    """Least distance from the 4 corners of box A to box B (as a filled rectangle):
+    each corner in B's frame, then the distance to an axis-aligned rectangle."""
+    corners = box_corners(x, y, h, length, width)  # (..., 4, 2)
+    dx = corners[..., 0] - xb[..., None]
+    dy = corners[..., 1] - yb[..., None]
+    c, s = np.cos(hb)[..., None], np.sin(hb)[..., None]
+    u = np.abs(dx * c + dy * s) - lb[..., None] / 2.0
+    v = np.abs(-dx * s + dy * c) - wb[..., None] / 2.0
+    d2 = np.maximum(u, 0.0) ** 2 + np.maximum(v, 0.0) ** 2
+    return np.sqrt(d2.min(axis=-1))
+
+
+def box_gap(
+    xa: np.ndarray,
+    ya: np.ndarray,
+    ha: np.ndarray,
+    la: np.ndarray,
+    wa: np.ndarray,
+    xb: np.ndarray,
+    yb: np.ndarray,
+    hb: np.ndarray,
+    lb: np.ndarray,
+    wb: np.ndarray,
+) -> np.ndarray:
+    """Exact clearance (m) between two oriented boxes, 0 when they touch or overlap.
+
+    Arguments broadcast. Two disjoint convex polygons are nearest between a corner of one
+    and an edge of the other, so the gap is the least distance from a corner of either box
+    to the other box (8 point-to-rectangle distances, each in the rectangle's own frame).
+    """
+    shape = np.broadcast_shapes(*(np.shape(a) for a in (xa, ya, ha, la, wa, xb, yb, hb, lb, wb)))
+    args = [np.broadcast_to(np.asarray(a, dtype=np.float64), shape) for a in (xa, ya, ha, la, wa)]
+    brgs = [np.broadcast_to(np.asarray(a, dtype=np.float64), shape) for a in (xb, yb, hb, lb, wb)]
+    overlap = boxes_overlap(*args, *brgs)
+    out = np.zeros(shape)
+    apart = ~overlap
+    if apart.any():
+        a_ = [a[apart] for a in args]
+        b_ = [b[apart] for b in brgs]
+        out[apart] = np.minimum(_corners_to_box(*a_, *b_), _corners_to_box(*b_, *a_))
+    return out
+
+
+# ---------------------------------------------------------------------- windows
+def forward_window_min(a: np.ndarray, length: int) -> np.ndarray:
+    """``out[f] = min(a[f : f + length])`` along axis 0 (the window is cut at the end).
+
+    Sparse-table doubling: O(T log length) vectorised passes over the other axes.
+    """
+    if length < 1:
+        raise RiskError(f"window length must be >= 1, got {length}")
+    a = np.asarray(a, dtype=np.float64)
+    t = a.shape[0]
+    pad = np.full((length, *a.shape[1:]), np.inf)
+    m = np.concatenate([a, pad])  # m[f] = min(a[f : f + w]) for the current w
+    w = 1
+    while 2 * w <= length:
+        m = np.minimum(m, np.concatenate([m[w:], pad[:w]]))
+        w *= 2
+    rest = length - w  # 0 <= rest < w: cover [f, f + length) with two windows of w
+    if rest:
+        m = np.minimum(m, np.concatenate([m[rest:], pad[:rest]]))
+    return m[:t]
+
+
+def forward_window_sum(a: np.ndarray, length: int) -> np.ndarray:
+    """``out[f] = sum(a[f : f + length])`` along axis 0 (cut at the end), exact for ints."""
+    a = np.asarray(a)
+    c = np.concatenate([np.zeros((1, *a.shape[1:]), dtype=np.int64), np.cumsum(a, axis=0)])
+    t = a.shape[0]
+    end = np.minimum(np.arange(t) + length, t)
+    return c[end] - c[:t]
+
+
+# ---------------------------------------------------------------------- truth
+@dataclass(frozen=True, eq=False)
+class Truth:
+    """Hindsight truth for egos ``E`` over ``T`` frames and ``N`` agents (arrays
+    ``(T, E, N)``; a single ego gives ``E = 1``).
+
+    - ``gap_m``: least box clearance at equal times in the window; NaN where the pair is
+      never both recorded in it (and where the ego is not recorded at the frame, and for
+      the ego itself);
+    - ``pet_s``: post-encroachment time; NaN where the footprints do not meet;
+    - ``observed``: steps of the window at which both are recorded (``0 .. H_steps+1``);
+    - ``censored``: the window is not recorded enough (see the module docstring);
+    - ``label``: 1 interaction, 0 none (window recorded enough), -1 unknown (censored
+      without a close approach, or the ego or agent not recorded at the frame, or the
+      ego itself).
+    """
+
+    egos: np.ndarray  # (E,) column indices of the egos in the tracks
+    gap_m: np.ndarray
+    pet_s: np.ndarray
+    observed: np.ndarray
+    censored: np.ndarray
+    label: np.ndarray
+    horizon_steps: int
+    settings: HindsightSettings
+
+
+def hindsight_truth(
+    tracks: Tracks,
+    egos: np.ndarray | Sequence[int] | int,
+    *,
+    settings: HindsightSettings | None = None,
+) -> Truth:
+    """The hindsight truth of every frame and agent, seen from each ego column in
+    ``egos`` (indices into ``tracks``' agents). See the module docstring."""
+    settings = settings or HindsightSettings()
+    egos_arr = np.atleast_1d(np.asarray(egos, dtype=np.int64))
+    n_t, n = tracks.valid.shape
+    if egos_arr.size and (egos_arr.min() < 0 or egos_arr.max() >= n):
+        raise RiskError(f"ego index out of range: the tracks hold {n} agents")
+    h = settings.horizon_steps(tracks.dt_s)
+    shape = (n_t, egos_arr.size, n)
+    gap = np.full(shape, np.nan)
+    pet = np.full(shape, np.nan)
+    observed = np.zeros(shape, dtype=np.int64)
+    per_block = max(1, BLOCK_ELEMENTS // max(1, n_t * n))
+    for start in range(0, egos_arr.size, per_block):  # blocks of egos, each vectorised
+        block = egos_arr[start : start + per_block]
+        sl = slice(start, start + block.size)
+        gap[:, sl], pet[:, sl], observed[:, sl] = _block_truth(tracks, block, h)
+    need = settings.coverage * (h + 1) - 1e-9
+    censored = observed < need
+    close = (gap <= settings.gap_m) | (pet <= settings.pet_s + 1e-9)
+    label = np.where(close, LABEL_POSITIVE, np.where(censored, LABEL_UNKNOWN, LABEL_NEGATIVE))
+    # Not applicable: the ego itself, or either one not recorded at the frame.
+    here = tracks.valid[:, egos_arr][:, :, None] & tracks.valid[:, None, :]
+    here &= egos_arr[None, :, None] != np.arange(n)[None, None, :]
+    label = np.where(here, label, LABEL_UNKNOWN).astype(np.int8)
+    gap = np.where(here, gap, np.nan)
+    pet = np.where(here, pet, np.nan)
+    return Truth(
+        egos=egos_arr,
+        gap_m=gap,
+        pet_s=pet,
+        observed=observed,
+        censored=censored | ~here,
+        label=label,
+        horizon_steps=h,
+        settings=settings,
+    )
+
+
+def _block_truth(
+    tracks: Tracks, egos: np.ndarray, h: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gap, PET and observed steps ``(T, E, N)`` for a block of egos."""
+    n_t, n = tracks.valid.shape
+    x, y = tracks.xy[..., 0], tracks.xy[..., 1]
+    hd, ln, wd, ok = tracks.heading, tracks.length, tracks.width, tracks.valid
+    not_self = egos[:, None] != np.arange(n)[None, :]  # (E, N)
+
+    def ego(a: np.ndarray) -> np.ndarray:
+        return a[:, egos][:, :, None]  # (T, E, 1)
+
+    def other(a: np.ndarray) -> np.ndarray:
+        return a[:, None, :]  # (T, 1, N)
+
+    both = ego(ok) & other(ok) & not_self  # (T, E, N)
+    t_i, e_i, a_i = np.nonzero(both)  # only where both are recorded
+    c_i = egos[e_i]
+    gap_now = np.full(both.shape, np.inf)
+    gap_now[t_i, e_i, a_i] = box_gap(
+        x[t_i, c_i], y[t_i, c_i], hd[t_i, c_i], ln[t_i, c_i], wd[t_i, c_i],
+        x[t_i, a_i], y[t_i, a_i], hd[t_i, a_i], ln[t_i, a_i], wd[t_i, a_i],
+    )  # fmt: skip
+    gap = forward_window_min(gap_now, h + 1)
+    gap[~np.isfinite(gap)] = np.nan
+    observed = forward_window_sum(both.astype(np.int64), h + 1)
+
+    pet = np.full((n_t, egos.size, n), np.nan)
+    pe, pa = _pet_candidates(tracks, egos)
+    if pe.size:
+        pet[:, pe, pa] = _pet_pairs(tracks, egos[pe], pa, h)
+    return gap, pet, observed
+
+
+def _pet_candidates(tracks: Tracks, egos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ego position in ``egos``, agent column) of the pairs whose footprints can meet at
+    all: the axis-aligned boxes around their whole recorded sweeps intersect."""
+    x, y, ok = tracks.xy[..., 0], tracks.xy[..., 1], tracks.valid
+    r = np.hypot(tracks.length, tracks.width) / 2.0
+    lo_x = np.where(ok, x - r, np.inf).min(axis=0)
+    hi_x = np.where(ok, x + r, -np.inf).max(axis=0)
+    lo_y = np.where(ok, y - r, np.inf).min(axis=0)
+    hi_y = np.where(ok, y + r, -np.inf).max(axis=0)
+    e = egos[:, None]
+    meet = (lo_x[e] <= hi_x[None, :]) & (lo_x[None, :] <= hi_x[e])
+    meet &= (lo_y[e] <= hi_y[None, :]) & (lo_y[None, :] <= hi_y[e])
+    meet &= e != np.arange(tracks.n_agents)[None, :]
+    ego_pos, agent = np.nonzero(meet)
+    return ego_pos, agent
+
+
+def _pet_pairs(tracks: Tracks, e_col: np.ndarray, a_col: np.ndarray, h: int) -> np.ndarray:
+    """PET ``(T, P)`` of the pairs (``e_col``, ``a_col``) over every frame's window.
+
+    One vectorised pass per lag ``d = j - i`` (ego frame ``i``, agent frame ``j``,
+    ``|d| <= h``), by increasing ``|d|`` so that the first lag that meets is the least: a
+    bounding-circle test, then the separating-axis test on the survivors. An overlap at
+    ``(i, j)`` belongs to the window of frame ``f`` when ``max(i, j) - h <= f <= min(i,
+    j)``; those frames get ``|d| dt`` unless a smaller lag already gave them a value.
+    """
+    n_t = tracks.n_frames
+    cols = {
+        "x": tracks.xy[..., 0], "y": tracks.xy[..., 1], "h": tracks.heading,
+        "l": tracks.length, "w": tracks.width, "ok": tracks.valid,
+        "r": np.hypot(tracks.length, tracks.width) / 2.0,
+    }  # fmt: skip
+    ego = {k: v[:, e_col] for k, v in cols.items()}  # (T, P)
+    oth = {k: v[:, a_col] for k, v in cols.items()}
+    n_p = e_col.size
+    pet = np.full((n_t, n_p), np.nan)
+    for lag in sorted(range(-h, h + 1), key=abs):
+        k = abs(lag)
+        if k >= n_t:
+            continue
+        m = n_t - k  # pairs (i, j) indexed by min(i, j) = 0 .. m - 1
+        ei = slice(0, m) if lag >= 0 else slice(k, n_t)  # ego frames
+        aj = slice(k, n_t) if lag >= 0 else slice(0, m)  # agent frames
+        dx = ego["x"][ei] - oth["x"][aj]
+        dy = ego["y"][ei] - oth["y"][aj]
+        reach = ego["r"][ei] + oth["r"][aj]
+        near = ego["ok"][ei] & oth["ok"][aj] & (dx * dx + dy * dy <= reach * reach)
+        mi, pi = np.nonzero(near)
+        if mi.size == 0:
+            continue
+        ti, tj = mi + ei.start, mi + aj.start
+        meet = boxes_overlap(
+            ego["x"][ti, pi], ego["y"][ti, pi], ego["h"][ti, pi], ego["l"][ti, pi], ego["w"][ti, pi],
+            oth["x"][tj, pi], oth["y"][tj, pi], oth["h"][tj, pi], oth["l"][tj, pi], oth["w"][tj, pi],
+        )  # fmt: skip
+        mi, pi = mi[meet], pi[meet]
+        if mi.size == 0:
+            continue
+        # Frames max(0, m + k - h) .. m of pair p get k: +1 / -1 on a difference array
+        # over the pairs that meet at this lag, then a cumulative sum over frames.
+        up, local = np.unique(pi, return_inverse=True)
+        diff = np.zeros((n_t + 1, up.size), dtype=np.int64)
+        np.add.at(diff, (np.maximum(mi + k - h, 0), local), 1)
+        np.add.at(diff, (mi + 1, local), -1)
+        covered = np.cumsum(diff[:n_t], axis=0) > 0
+        sub = pet[:, up]
+        pet[:, up] = np.where(covered & np.isnan(sub), k * tracks.dt_s, sub)
+    return pet
