@@ -23,6 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from converters.errors import ConversionError
+from converters.finite import REASONS, apply_bad_rule, bad_states
 from converters.hindsight import Hindsight
 from converters.lanegraph import LaneGraph, PathRows, PathSettings, straight_rows
 from risk.frame import Frame, Kind, LaneMap, Scene
@@ -140,6 +141,8 @@ def build_scene(
     labels: Mapping[str, tuple[int, ...]] | None = None,
     source: str = "input",
     progress: bool = False,
+    skip_bad: bool = False,
+    skipped: Skipped | None = None,
 ) -> Scene:
     """Frames with paths for every step at which any track is valid; the scene's ego is
     track index ``ego``.
@@ -150,13 +153,25 @@ def build_scene(
 
     ``paths`` is ``map`` (lane graph of ``lane_map``) or ``hindsight`` (recorded future).
     ``source`` names the input in error messages. Raises ConversionError when the ego is
-    never valid or a track id repeats.
+    never valid or a track id repeats. Valid states with non-finite or out-of-range
+    values follow the rule of :mod:`converters.finite`: an error, or with ``skip_bad``
+    dropped, noted in ``skipped`` and counted in the metadata (``bad_states_dropped``).
     """
     if paths not in PATH_MODES:
         raise ConversionError(f"unknown path mode {paths!r}; expected one of {PATH_MODES}")
     if len(np.unique(table.ids)) != table.n_tracks:
         raise ConversionError(f"{source}: a track id appears more than once")
-    valid = table.usable()
+    bad, reason = bad_states(
+        table.xy, table.heading, table.speed, table.length, table.width, table.valid
+    )
+    n_bad = apply_bad_rule(
+        bad.ravel(),
+        lambda i: _describe_state(table, reason, *divmod(i, table.n_tracks)),
+        source=source,
+        skip_bad=skip_bad,
+        skipped=skipped,
+    )
+    valid = table.usable() & ~bad
     dropped = int((table.valid & ~valid).sum())
     if not valid[:, ego].any():
         raise ConversionError(
@@ -176,6 +191,7 @@ def build_scene(
         "steps_without_ego": str(int((~valid[steps, ego]).sum())),
         "steps_without_agents": str(table.n_steps - steps.size),
         "invalid_states_dropped": str(dropped),
+        "bad_states_dropped": str(n_bad),
     }
     if paths == "map":
         facts.update(
@@ -191,6 +207,13 @@ def build_scene(
         metadata=facts,
         labels=dict(labels or {}),
         ego_id=int(table.ids[ego]),
+    )
+
+
+def _describe_state(table: TrackTable, reason: np.ndarray, step: int, track: int) -> str:
+    return (
+        f"track {int(table.ids[track])} at t={float(table.t_s[step]):g} s:"
+        f" {REASONS[int(reason[step, track])]}"
     )
 
 

@@ -26,7 +26,8 @@ import numpy as np
 import pyarrow as pa
 import rerun as rr
 
-from base.atomic import temp_path_beside
+from base.atomic import commit, temp_path_beside
+from base.guard import run_with_stall_timeout
 from base.sinks import FrameResult, SceneInfo
 from recordings import columns as C
 from recordings import layout as L
@@ -154,8 +155,10 @@ class SceneRecorder:
         assert self._info is not None
         self._tmp = temp_path_beside(self.output)
         try:
-            self._write(self._tmp)
-            os.replace(self._tmp, self.output)
+            tmp = self._tmp
+            # A save that stops making progress (full disk) fails instead of hanging.
+            run_with_stall_timeout(lambda: self._write(tmp), watch=tmp, target=self.output)
+            commit(self._tmp, self.output)
         except BaseException:
             self._discard()
             self._state = "aborted"

@@ -423,6 +423,11 @@ def _process(
 def _no_ego_message(ego_id: int, ids_seen: set[int]) -> str:
     some = ", ".join(str(i) for i in sorted(ids_seen)[:8])
     more = ", ..." if len(ids_seen) > 8 else ""
+    if not ids_seen:
+        return (
+            f"agent id {ego_id} is not a valid agent in any frame, and the scene has no valid"
+            " agents at all; convert the source again"
+        )
     return (
         f"agent id {ego_id} is not a valid agent in any frame of the scene; "
         f"valid ids include {some}{more}"

@@ -144,11 +144,15 @@ class TableSink:
         if self.path is None:
             return  # in memory: the rows stay available through dataframe()
         df = self.dataframe()
-        with atomic_output(self.path) as tmp:
-            if self.path.suffix.lower() == ".csv":
-                df.write_csv(tmp)
-            else:
-                df.write_parquet(tmp, compression="zstd")
+        try:
+            with atomic_output(self.path) as tmp:
+                if self.path.suffix.lower() == ".csv":
+                    df.write_csv(tmp)
+                else:
+                    df.write_parquet(tmp, compression="zstd")
+        except pl.exceptions.PolarsError as exc:  # e.g. a full disk ("os error 28")
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            raise ReplayError(f"could not write {self.path}: {first}") from None
         self._chunks = []
 
     def abort(self) -> None:

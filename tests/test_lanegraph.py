@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from converters.errors import ConversionError
 from converters.hindsight import Hindsight
 from converters.lanegraph import LaneGraph, PathSettings, arc_length, simplify, straight_rows
-from converters.tracks import TrackTable, build_scene, integer_ids
+from converters.tracks import Skipped, TrackTable, build_scene, integer_ids
 from risk.frame import Kind, Lane, LaneMap
 
 V, P, C, OT = int(Kind.VEHICLE), int(Kind.PEDESTRIAN), int(Kind.CYCLIST), int(Kind.OTHER)
@@ -366,14 +366,19 @@ def test_build_scene_keeps_every_track_and_every_step(mode):
         np.testing.assert_allclose(ped[0], [(22, 5), (22 + 130, 5)])
 
 
-def test_build_scene_drops_states_with_bad_values_and_rejects_a_missing_ego():
+def test_build_scene_stops_at_or_drops_bad_values_and_rejects_a_missing_ego():
     valid = np.ones((3, 3), bool)
     table = _table(valid)
     table.xy[1, 1] = np.nan
-    scene = build_scene(
-        table, 0, LaneMap(), paths="map", settings=PathSettings(), frame_period_s=0.1, metadata={}
-    )
+    args = (table, 0, LaneMap())
+    kwargs = dict(paths="map", settings=PathSettings(), frame_period_s=0.1, metadata={})
+    with pytest.raises(ConversionError, match=r"x\.csv: track \d+ at t=.* position is not"):
+        build_scene(*args, **kwargs, source="x.csv")  # the default: stop, naming the record
+    skipped = Skipped()
+    scene = build_scene(*args, **kwargs, source="x.csv", skip_bad=True, skipped=skipped)
     assert scene.metadata["invalid_states_dropped"] == "1"
+    assert scene.metadata["bad_states_dropped"] == "1"
+    assert len(skipped) == 1 and "dropped 1 state(s)" in skipped.what[0]
     assert not scene.frames[1].valid[1]
     with pytest.raises(ConversionError, match=r"ego .*valid at no time step"):
         build_scene(

@@ -17,6 +17,7 @@ from typing import Any
 import click
 import polars as pl
 
+from base.guard import OutputGuard
 from replay.commands.ego_options import ego_option, every_option
 from replay.engine import Stride
 from replay.evaluation import (
@@ -228,19 +229,21 @@ def evaluate(
         n_boot=n_boot,
         seed=seed,
     )
-    start = time.perf_counter()
-    agents, datasets, hs = collect_agents(
-        inputs, cascade=cascade, hindsight=hindsight, workers=workers or default_workers(),
-        progress=progress, ego=ego, every=every,
-    )  # fmt: skip
-    read_s = time.perf_counter() - start
-    start = time.perf_counter()
-    summary = evaluate_agents(
-        agents, settings=settings, datasets=datasets, hindsight=hs,
-        inputs=[str(p) for p in inputs],
-    )  # fmt: skip
-    summary["time_s"] = {"replay / read": read_s, "evaluation": time.perf_counter() - start}
-    files = write_evaluation(summary, agents, out_dir, datasets=datasets, plots=plots)
+    guard = OutputGuard(inputs=[*inputs, cascade_file], folders=(out_dir,))
+    with guard:  # checked and locked at once; every file appears together
+        start = time.perf_counter()
+        agents, datasets, hs = collect_agents(
+            inputs, cascade=cascade, hindsight=hindsight, workers=workers or default_workers(),
+            progress=progress, ego=ego, every=every,
+        )  # fmt: skip
+        read_s = time.perf_counter() - start
+        start = time.perf_counter()
+        summary = evaluate_agents(
+            agents, settings=settings, datasets=datasets, hindsight=hs,
+            inputs=[str(p) for p in inputs],
+        )  # fmt: skip
+        summary["time_s"] = {"replay / read": read_s, "evaluation": time.perf_counter() - start}
+        files = write_evaluation(summary, agents, out_dir, datasets=datasets, plots=plots)
     click.echo(format_evaluation(summary))
     click.echo("Time: " + ", ".join(f"{k} {v:.1f} s" for k, v in summary["time_s"].items()))
     click.echo("Wrote:")

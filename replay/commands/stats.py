@@ -11,9 +11,11 @@ from dataclasses import dataclass
 import click
 import polars as pl
 
+from base.guard import OutputGuard
 from replay.commands.ego_options import ego_option, every_option
 from replay.engine import EVERY_FRAME, Stride
 from replay.errors import ReplayError
+from replay.limits import WORKERS
 from replay.pool import default_workers, parallel_map
 from replay.stats import (
     DEFAULT_ERRORS_MODEL,
@@ -175,7 +177,7 @@ def collect(
 )
 @click.option(
     "--workers",
-    type=click.IntRange(min=1),
+    type=WORKERS,
     default=None,
     help="Processes replaying scenes in parallel. Default: the number of CPUs.",
 )
@@ -217,34 +219,36 @@ def stats(
     resolve_models([errors_model])
     cascade = CascadeConfig.from_toml(cascade_file) if cascade_file else CascadeConfig.default()
     found = resolve_inputs(inputs)
-    engine_models = None
-    if chosen is not None:
-        engine_models = list(dict.fromkeys([*chosen, errors_model, "survival"]))
-    times: dict[str, float] = {}
-    start = time.perf_counter()
-    agents, frames, stage_names, tier_names = collect(
-        found,
-        cascade,
-        models=engine_models,
-        workers=workers or default_workers(),
-        progress=progress,
-        ego=ego,
-        every=every,
-    )
-    times["replay / read"] = time.perf_counter() - start
-    result = run_stats(
-        agents,
-        frames,
-        out_dir,
-        models=chosen,
-        errors_model=errors_model,
-        stage_names=stage_names,
-        tier_names=tier_names,
-        cascade=cascade,
-        inputs=[str(p) for p in (*found.scenes, *found.tables)],
-        plots=plots,
-        times=times,
-    )
+    guard = OutputGuard(inputs=(*found.scenes, *found.tables, cascade_file), folders=(out_dir,))
+    with guard:  # checked and locked before the replays; all files appear together
+        engine_models = None
+        if chosen is not None:
+            engine_models = list(dict.fromkeys([*chosen, errors_model, "survival"]))
+        times: dict[str, float] = {}
+        start = time.perf_counter()
+        agents, frames, stage_names, tier_names = collect(
+            found,
+            cascade,
+            models=engine_models,
+            workers=workers or default_workers(),
+            progress=progress,
+            ego=ego,
+            every=every,
+        )
+        times["replay / read"] = time.perf_counter() - start
+        result = run_stats(
+            agents,
+            frames,
+            out_dir,
+            models=chosen,
+            errors_model=errors_model,
+            stage_names=stage_names,
+            tier_names=tier_names,
+            cascade=cascade,
+            inputs=[str(p) for p in (*found.scenes, *found.tables)],
+            plots=plots,
+            times=times,
+        )
     click.echo(format_stats(result.stats, times))
     click.echo("Wrote:")
     for path in result.files.values():
