@@ -17,6 +17,9 @@ import uuid
 from collections.abc import Callable, Iterator
 from typing import Any
 
+CommitHook = Callable[[pathlib.Path, pathlib.Path], None]
+_commit_hook: CommitHook | None = None  # set by base.guard.OutputGuard while it is active
+
 
 def temp_path_beside(path: str | os.PathLike[str]) -> pathlib.Path:
     """Create and return an empty, uniquely named temporary file in ``path``'s folder.
@@ -31,6 +34,24 @@ def temp_path_beside(path: str | os.PathLike[str]) -> pathlib.Path:
     return tmp
 
 
+def set_commit_hook(hook: CommitHook | None) -> CommitHook | None:
+    """Route :func:`commit` through ``hook`` (None: rename at once); returns the old hook.
+
+    ``base.guard.OutputGuard`` uses it to commit a command's outputs all together."""
+    global _commit_hook
+    previous, _commit_hook = _commit_hook, hook
+    return previous
+
+
+def commit(tmp: str | os.PathLike[str], target: str | os.PathLike[str]) -> None:
+    """Move a finished temporary file onto its target: at once, or, inside an
+    ``OutputGuard``, together with the command's other outputs when it succeeds."""
+    if _commit_hook is not None:
+        _commit_hook(pathlib.Path(tmp), pathlib.Path(target))
+    else:
+        os.replace(tmp, target)
+
+
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike[str]) -> Iterator[pathlib.Path]:
     """Yield a temporary path to write to; on success it replaces ``path`` atomically.
@@ -42,7 +63,7 @@ def atomic_output(path: str | os.PathLike[str]) -> Iterator[pathlib.Path]:
     tmp = temp_path_beside(target)
     try:
         yield tmp
-        os.replace(tmp, target)
+        commit(tmp, target)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

@@ -31,6 +31,7 @@ import numpy as np
 import polars as pl
 
 from converters.errors import ConversionError
+from converters.finite import check_grid
 from converters.lanegraph import PathSettings, lanelet_centerline
 from converters.map_lines import av2_lines
 from converters.tracks import Skipped, TrackTable, build_scene, integer_ids
@@ -132,6 +133,7 @@ def scenario_tracks(df: pl.DataFrame, where: str) -> tuple[TrackTable, list[str]
     n_steps = int(step.max()) + 1
     if "num_timestamps" in df.columns:
         n_steps = max(n_steps, int(df["num_timestamps"].max()))
+    check_grid(n_steps, len(names), source=where, what="timesteps")  # before allocating
     agent = np.array([col[t] for t in df["track_id"].to_list()], dtype=np.int64)
     if np.unique(step * len(names) + agent).size != df.height:
         raise ConversionError(f"{where}: a track has two rows for the same timestep")
@@ -226,6 +228,8 @@ def parquet_to_scene(
     paths: str = "map",
     settings: PathSettings | None = None,
     progress: bool = False,
+    skip_bad: bool = False,
+    skipped: Skipped | None = None,
 ) -> Scene:
     """One scenario as a scene. The map is ``map_json`` or found beside the parquet
     (:func:`map_path_for`); without a map, ``--paths map`` gives straight paths."""
@@ -278,6 +282,8 @@ def parquet_to_scene(
         labels=labels,
         source=where,
         progress=progress,
+        skip_bad=skip_bad,
+        skipped=skipped,
     )
 
 
@@ -305,7 +311,10 @@ def read_scenes(
     """Every scenario under ``path`` (:func:`find_scenarios`) as a scene."""
     for parquet in find_scenarios(path):
         try:
-            yield parquet_to_scene(parquet, paths=paths, settings=settings, progress=progress)
+            yield parquet_to_scene(
+                parquet, paths=paths, settings=settings, progress=progress,
+                skip_bad=skip_bad, skipped=skipped,
+            )  # fmt: skip
         except ConversionError as exc:
             if not skip_bad:
                 raise

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from converters.errors import ConversionError
+from converters.finite import MAX_STEPS, check_grid
 from converters.lanegraph import PathSettings, dedupe, lanelet_centerline
 from converters.map_lines import commonroad_lines
 from converters.tracks import Skipped, TrackTable, build_scene, moving_ego
@@ -115,7 +116,12 @@ def _value(elem: ET.Element | None, what: str) -> float:
 
 
 def _optional(elem: ET.Element | None, what: str) -> float:
-    return np.nan if elem is None else _value(elem, what)
+    """NaN when the element is absent (filled in later); an explicit NaN in the file is a
+    bad value, not a missing one, so it becomes inf for converters.finite's rule."""
+    if elem is None:
+        return np.nan
+    value = _value(elem, what)
+    return np.inf if np.isnan(value) else value
 
 
 def _point(elem: ET.Element) -> tuple[float, float]:
@@ -174,8 +180,11 @@ def _state_row(state: ET.Element) -> tuple[float, float, float, float, float]:
         raise ValueError("a state has no <position><point>")
     vx = _optional(found.get("velocity"), "velocity")
     vy = _optional(found.get("velocityY"), "velocityY")
+    time_step = _value(found.get("time"), "time")
+    if not (math.isfinite(time_step) and 0 <= time_step <= MAX_STEPS):
+        raise ValueError(f"<time> must be a time step in 0..{MAX_STEPS}, got {time_step:g}")
     return (
-        round(_value(found.get("time"), "time")),
+        round(time_step),
         *_point(point),
         _optional(found.get("orientation"), "orientation"),
         math.hypot(vx, 0.0 if math.isnan(vy) else vy),
@@ -192,7 +201,8 @@ def _fill_motion(
         vel = np.stack([np.gradient(xy[:, 0], t), np.gradient(xy[:, 1], t)], axis=1)
         speed = np.where(np.isnan(speed), np.hypot(*vel.T), speed)
         heading = np.where(np.isnan(heading), np.arctan2(vel[:, 1], vel[:, 0]), heading)
-    return np.nan_to_num(heading), np.nan_to_num(speed)
+    # Missing values (NaN) of a lone state become 0; infinities stay, for converters.finite.
+    return np.where(np.isnan(heading), 0.0, heading), np.where(np.isnan(speed), 0.0, speed)
 
 
 def read_lane_map(root: ET.Element, where: str) -> LaneMap:
@@ -244,14 +254,18 @@ def read_obstacles(
 
 
 def obstacles_table(
-    obstacles: list[Obstacle], dt_s: float, static: list[Obstacle] | None = None
+    obstacles: list[Obstacle],
+    dt_s: float,
+    static: list[Obstacle] | None = None,
+    where: str = "input",
 ) -> TrackTable:
     """The obstacles on a common grid of time steps (from the earliest state's step of a
     dynamic obstacle); each ``static`` obstacle stands at its pose, speed 0, at every
-    step."""
+    step. A grid too large for this machine's memory is refused before it is allocated."""
     static = static or []
     first = min(int(o.steps[0]) for o in obstacles)
     n_steps = max(int(o.steps[-1]) for o in obstacles) - first + 1
+    check_grid(n_steps, len(obstacles) + len(static), source=where)
     grid = np.arange(n_steps)
     static = [
         Obstacle(
@@ -315,7 +329,7 @@ def read_scene(
     static = read_obstacles(
         root, dt_s, where, skip_bad=skip_bad, skipped=skipped, tag="staticObstacle"
     )
-    table = obstacles_table(obstacles, dt_s, static)
+    table = obstacles_table(obstacles, dt_s, static, where)
     ids = [o.id for o in obstacles]
     if ego is None:
         ego_index, choice = moving_ego(table)
@@ -348,4 +362,6 @@ def read_scene(
         metadata=metadata,
         source=where,
         progress=progress,
+        skip_bad=skip_bad,
+        skipped=skipped,
     )

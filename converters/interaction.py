@@ -40,6 +40,7 @@ import polars as pl
 from lanelet2.projection import UtmProjector
 
 from converters.errors import ConversionError
+from converters.finite import MAX_STEPS, check_grid
 from converters.lanegraph import PathSettings, lanelet_centerline
 from converters.tracks import Skipped, TrackTable, build_scene, integer_ids, moving_ego
 from risk.frame import Kind, Lane, LaneMap, Scene
@@ -185,7 +186,11 @@ def read_rows(
     ).with_row_index("line", offset=2)  # line 1 is the header
     required = [c for c in REQUIRED_COLUMNS if c in numeric]
     bad = parsed.filter(
-        pl.any_horizontal([pl.col(c).is_null() | pl.col(c).is_nan() for c in required])
+        # Unparseable values are bad rows; NaN/inf in a state's values (x, y, vx, ...)
+        # follow converters.finite's rule later, but the time columns must be finite.
+        pl.any_horizontal([pl.col(c).is_null() for c in required])
+        | ~pl.col("frame_id").is_finite()
+        | ~pl.col("timestamp_ms").is_finite()
         | pl.col("track_id").is_null()
         | (pl.col("track_id") == "")
     )
@@ -206,7 +211,10 @@ def read_rows(
 def rows_to_table(df: pl.DataFrame, where: str) -> tuple[TrackTable, list[str], dict, float]:
     """Rows as a :class:`TrackTable`; also the track names, the renamed ids and the period."""
     df = df.sort("track_id", "frame_id")
-    frame = df["frame_id"].to_numpy().astype(np.int64)
+    raw = df["frame_id"].to_numpy()
+    if not (np.abs(raw) <= MAX_STEPS).all():
+        raise ConversionError(f"{where}: a frame_id is beyond {MAX_STEPS}; the file is corrupt")
+    frame = raw.astype(np.int64)
     first = int(frame.min())
     step = frame - first
     names: list[str] = df["track_id"].unique(maintain_order=True).to_list()
@@ -214,6 +222,7 @@ def rows_to_table(df: pl.DataFrame, where: str) -> tuple[TrackTable, list[str], 
     col = {n: i for i, n in enumerate(names)}
     agent = np.array([col[t] for t in df["track_id"].to_list()], dtype=np.int64)
     n_steps, n = int(step.max()) + 1, len(names)
+    check_grid(n_steps, n, source=where, what="frames")  # before allocating
     if np.unique(step * n + agent).size != df.height:
         raise ConversionError(f"{where}: a track has two rows for the same frame_id")
     period, t0 = _period(frame, df["timestamp_ms"].to_numpy(), where)
@@ -377,4 +386,6 @@ def read_scene(
         metadata=metadata,
         source=where,
         progress=progress,
+        skip_bad=skip_bad,
+        skipped=skipped,
     )

@@ -47,7 +47,7 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from tqdm import tqdm
 
-from base.atomic import temp_path_beside
+from base.atomic import commit, temp_path_beside
 from converters import foxglove_scene as fg
 from converters import scene_format as sf
 from converters.errors import ConversionError
@@ -289,7 +289,7 @@ class SceneWriter:
             self._writer.add_metadata(sf.METADATA_NAME, self._final_metadata())
             self._writer.finish()
             self._file.close()
-            os.replace(self._tmp, self.path)
+            commit(self._tmp, self.path)
         except BaseException:
             self.abort()
             raise
@@ -365,5 +365,5 @@ def write_scene(
         foxglove=foxglove,
     ) as writer:
         for frame in frames:
-            writer.add_frame(frame)
+            writer.add_frame(frame, ego_id=scene.ego_id)
     return writer.path

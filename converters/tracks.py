@@ -6,9 +6,11 @@ adds the agent paths (``map`` or ``hindsight``) and cuts the frames.
 Frame layout (documented in docs/recorded-data.md): every frame holds **every track of
 the scene** in the same order, with ``valid`` saying whether the track was observed at
 that step, so that agent indices are stable over the scene and every agent that is valid
-in a frame gets a risk value there. Only the steps at which the ego is valid become
-frames (a :class:`risk.Frame` needs a valid ego); the number of steps dropped for that is
-recorded in the metadata as ``steps_without_ego``.
+in a frame gets a risk value there. Every step at which any track is valid becomes a
+frame; where the scene's ego is not valid the frame is seen from the first valid track
+(a :class:`risk.Frame` needs a valid ego) and the scene's ``ego_id`` still names the real
+ego, so a replay from it skips those frames while ``--ego all`` and the hindsight truth
+use them. Their number is recorded in the metadata as ``steps_without_ego``.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from converters.errors import ConversionError
+from converters.finite import REASONS, apply_bad_rule, bad_states
 from converters.hindsight import Hindsight
 from converters.lanegraph import LaneGraph, PathRows, PathSettings, straight_rows
 from risk.frame import Frame, Kind, LaneMap, Scene
@@ -138,24 +141,43 @@ def build_scene(
     labels: Mapping[str, tuple[int, ...]] | None = None,
     source: str = "input",
     progress: bool = False,
+    skip_bad: bool = False,
+    skipped: Skipped | None = None,
 ) -> Scene:
-    """Frames with paths for every step at which track index ``ego`` is valid.
+    """Frames with paths for every step at which any track is valid; the scene's ego is
+    track index ``ego``.
+
+    A step where the ego is not valid is kept (other agents' motion there matters to
+    ``--ego all`` and to the hindsight truth), seen from the first valid track; the
+    scene's ``ego_id`` names the real ego, so a replay from it skips such frames.
 
     ``paths`` is ``map`` (lane graph of ``lane_map``) or ``hindsight`` (recorded future).
     ``source`` names the input in error messages. Raises ConversionError when the ego is
-    never valid or a track id repeats.
+    never valid or a track id repeats. Valid states with non-finite or out-of-range
+    values follow the rule of :mod:`converters.finite`: an error, or with ``skip_bad``
+    dropped, noted in ``skipped`` and counted in the metadata (``bad_states_dropped``).
     """
     if paths not in PATH_MODES:
         raise ConversionError(f"unknown path mode {paths!r}; expected one of {PATH_MODES}")
     if len(np.unique(table.ids)) != table.n_tracks:
         raise ConversionError(f"{source}: a track id appears more than once")
-    valid = table.usable()
+    bad, reason = bad_states(
+        table.xy, table.heading, table.speed, table.length, table.width, table.valid
+    )
+    n_bad = apply_bad_rule(
+        bad.ravel(),
+        lambda i: _describe_state(table, reason, *divmod(i, table.n_tracks)),
+        source=source,
+        skip_bad=skip_bad,
+        skipped=skipped,
+    )
+    valid = table.usable() & ~bad
     dropped = int((table.valid & ~valid).sum())
-    steps = np.flatnonzero(valid[:, ego])
-    if steps.size == 0:
+    if not valid[:, ego].any():
         raise ConversionError(
             f"{source}: the ego (track {int(table.ids[ego])}) is valid at no time step"
         )
+    steps = np.flatnonzero(valid.any(axis=1))
     frame_of_step = np.full(table.n_steps, -1, dtype=np.int64)
     frame_of_step[steps] = np.arange(steps.size)
     rows = _path_rows(table, valid, steps, frame_of_step, lane_map, paths, settings)
@@ -166,8 +188,10 @@ def build_scene(
         "horizon_s": f"{settings.horizon_s:g}",
         "margin_m": f"{settings.margin_m:g}",
         "frame_period_s": f"{frame_period_s:g}",
-        "steps_without_ego": str(table.n_steps - steps.size),
+        "steps_without_ego": str(int((~valid[steps, ego]).sum())),
+        "steps_without_agents": str(table.n_steps - steps.size),
         "invalid_states_dropped": str(dropped),
+        "bad_states_dropped": str(n_bad),
     }
     if paths == "map":
         facts.update(
@@ -182,6 +206,14 @@ def build_scene(
         frame_period_s=float(frame_period_s),
         metadata=facts,
         labels=dict(labels or {}),
+        ego_id=int(table.ids[ego]),
+    )
+
+
+def _describe_state(table: TrackTable, reason: np.ndarray, step: int, track: int) -> str:
+    return (
+        f"track {int(table.ids[track])} at t={float(table.t_s[step]):g} s:"
+        f" {REASONS[int(reason[step, track])]}"
     )
 
 
@@ -273,7 +305,7 @@ def _frames(
                 paths=rows.points[lo:hi, : int(count.max())],
                 path_points=count,
                 path_agent=rows.agent[lo:hi],
-                ego=ego,
+                ego=ego if ok[ego] else int(np.argmax(ok)),
                 t=float(table.t_s[step]),
             )
         )

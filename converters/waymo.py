@@ -212,6 +212,8 @@ def scenario_to_scene(
     paths: str = "map",
     settings: PathSettings | None = None,
     progress: bool = False,
+    skip_bad: bool = False,
+    skipped: Skipped | None = None,
 ) -> Scene:
     """One ``Scenario`` message as a scene (``source`` and ``record`` name it in errors)."""
     settings = settings or PathSettings()
@@ -248,6 +250,8 @@ def scenario_to_scene(
         labels=scenario_labels(msg, where),
         source=where,
         progress=progress,
+        skip_bad=skip_bad,
+        skipped=skipped,
     )
 
 
@@ -270,6 +274,8 @@ def read_scenes(
                 paths=paths,
                 settings=settings,
                 progress=progress,
+                skip_bad=skip_bad,
+                skipped=skipped,
             )
         except ConversionError as exc:
             if not skip_bad:

@@ -19,20 +19,22 @@ import math
 import os
 import pathlib
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
 import pyarrow as pa
 import rerun as rr
 
-from base.atomic import temp_path_beside
+from base.atomic import commit, temp_path_beside
+from base.guard import run_with_stall_timeout
 from base.sinks import FrameResult, SceneInfo
 from recordings import columns as C
 from recordings import layout as L
 from recordings.errors import RecordingError
 from recordings.summary import recording_name, summary_markdown
 from risk.cascade import SURVIVAL_MODEL
+from risk.hindsight import LABEL_POSITIVE, LABEL_UNKNOWN, truth_for_rows
 from risk.registry import MODELS
 
 LabelMode = Literal["kept", "all", "none"]
@@ -154,8 +156,10 @@ class SceneRecorder:
         assert self._info is not None
         self._tmp = temp_path_beside(self.output)
         try:
-            self._write(self._tmp)
-            os.replace(self._tmp, self.output)
+            tmp = self._tmp
+            # A save that stops making progress (full disk) fails instead of hanging.
+            run_with_stall_timeout(lambda: self._write(tmp), watch=tmp, target=self.output)
+            commit(self._tmp, self.output)
         except BaseException:
             self._discard()
             self._state = "aborted"
@@ -178,7 +182,7 @@ class SceneRecorder:
 
     def _write(self, path: pathlib.Path) -> None:
         assert self._info is not None
-        info, frames = self._info, self._frames
+        info, frames = self._info, _with_hindsight(self._frames, self._info)
         scene = _concatenate(frames, info)
         models = tuple(info.model_names)
         log10_ranges = {
@@ -273,6 +277,28 @@ def _collect(result: FrameResult, info: SceneInfo, *, keep_paths: bool) -> _Fram
             _path_owner_rows(frame, idx[deep], keep_paths)
         ],
     )
+
+
+def _with_hindsight(frames: list[_FrameRows], info: SceneInfo) -> list[_FrameRows]:
+    """Frames whose hindsight label the run did not give get it from the scene's recorded
+    tracks, through the same rows function as the table's ``truth_label``
+    (:func:`risk.hindsight.truth_for_rows`, default settings)."""
+    need = [k for k, f in enumerate(frames) if np.isnan(f.truth).all()]
+    if info.tracks is None or not need:
+        return frames
+    rows = [frames[k] for k in need]
+    t_s = np.concatenate([np.full(f.ids.size, f.t) for f in rows])
+    ego = np.concatenate([np.full(f.ids.size, f.ids[f.is_ego][0] if f.is_ego.any() else -1)
+                          for f in rows])  # fmt: skip
+    agent = np.concatenate([f.ids for f in rows])
+    _, _, label = truth_for_rows(info.tracks(), t_s, ego, agent)
+    value = np.where(label == LABEL_UNKNOWN, np.nan, (label == LABEL_POSITIVE).astype(float))
+    out = list(frames)
+    for k, part in zip(
+        need, np.split(value, np.cumsum([f.ids.size for f in rows])[:-1]), strict=True
+    ):
+        out[k] = replace(frames[k], truth=np.where(frames[k].is_ego, np.nan, part))
+    return out
 
 
 def _truth(result: FrameResult, n: int) -> np.ndarray:

@@ -7,12 +7,15 @@ Subcommands live in ``replay/commands/<name>.py`` and are imported only when use
 
 from __future__ import annotations
 
+import errno
 import importlib
 import importlib.util
+import os
 import sys
 
 import click
 
+from base.guard import target_of_temp
 from replay import __version__
 from replay.user_errors import user_errors
 
@@ -55,11 +58,38 @@ class LazyGroup(click.Group):
     def invoke(self, ctx: click.Context):
         try:
             return super().invoke(ctx)
+        except OSError as exc:
+            if exc.errno != errno.EPIPE and not isinstance(exc, BrokenPipeError):
+                raise click.ClickException(_os_message(exc)) from None
+            quiet_broken_pipe()
         except user_errors() as exc:
-            message = str(exc) or type(exc).__name__
-            if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in message:
-                message = f"{message}: {exc.filename}"
-            raise click.ClickException(message) from None
+            raise click.ClickException(str(exc) or type(exc).__name__) from None
+
+
+def _os_message(exc: OSError) -> str:
+    """The error's message, naming the target file rather than its temporary file."""
+    if exc.strerror and exc.filename:
+        name = target_of_temp(exc.filename)
+        if name != exc.filename:
+            return f"cannot write {name}: {exc.strerror}"
+        return f"{exc.strerror}: {exc.filename}"
+    message = str(exc) or type(exc).__name__
+    if exc.filename and str(exc.filename) not in message:
+        message = f"{message}: {target_of_temp(exc.filename)}"
+    return message
+
+
+def quiet_broken_pipe() -> None:
+    """The reader of stdout went away (``replay models | head -1``): end quietly with
+    status 0, as Unix tools do. Later writes (and the final flush) go to /dev/null."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass  # stdout is not a real file (a test runner): nothing to redirect
+    finally:
+        os.close(devnull)
+    raise SystemExit(0)
 
 
 def _module_exists(target: str) -> bool:

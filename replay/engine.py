@@ -102,6 +102,11 @@ class InMemoryScene:
     def n_frames(self) -> int:
         return len(self.scene.frames)
 
+    @property
+    def ego_id(self) -> int | None:
+        """The scene's ego (None: the frames' own, see :class:`risk.Scene`)."""
+        return self.scene.ego_id
+
     def frames(self) -> Iterator[Frame]:
         return iter(self.scene.frames)
 
@@ -421,6 +426,11 @@ def _process(
 def _no_ego_message(ego_id: int, ids_seen: set[int]) -> str:
     some = ", ".join(str(i) for i in sorted(ids_seen)[:8])
     more = ", ..." if len(ids_seen) > 8 else ""
+    if not ids_seen:
+        return (
+            f"agent id {ego_id} is not a valid agent in any frame, and the scene has no valid"
+            " agents at all; convert the source again"
+        )
     return (
         f"agent id {ego_id} is not a valid agent in any frame of the scene; "
         f"valid ids include {some}{more}"

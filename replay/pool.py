@@ -26,6 +26,7 @@ from typing import Any
 from tqdm import tqdm
 
 from replay.errors import ReplayError
+from replay.lifeline import exit_with_parent
 from risk import kernel
 
 
@@ -47,10 +48,12 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _quiet_worker() -> None:
+def _quiet_worker(driver: int) -> None:
     """Initializer of local workers: leave Ctrl-C to the driver, which stops queueing and
-    lets running tasks finish (their outputs are atomic), and set thread counts."""
+    lets running tasks finish (their outputs are atomic), exit when the driver (pid
+    ``driver``) dies, so that no worker outlives it, and set thread counts."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    exit_with_parent(driver)
     init_worker()
 
 
@@ -83,6 +86,7 @@ class LocalEngine:
             max_workers=self.workers,
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_quiet_worker,
+            initargs=(os.getpid(),),
         )
 
     def _replace_pool(self) -> None:

@@ -34,11 +34,13 @@ import math
 import os
 import pathlib
 import struct
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import IO, Any
 
 import numpy as np
+import zstandard
 from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader, SeekingReader
 from mcap.records import Channel, Schema
@@ -50,9 +52,13 @@ from risk.frame import Frame, Lane, LaneMap, MapLine, Scene
 from risk.hindsight import Tracks, tracks_from_states
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+_MAX_EXACT_MM = 2**53  # coordinates are exact integers of mm up to here
 
 # What the mcap library raises on damaged input (it has no single base class for it).
-_DAMAGE = (McapError, EOFError, struct.error, ValueError, IndexError, KeyError)
+_DAMAGE = (
+    McapError, EOFError, struct.error, ValueError, IndexError, KeyError, OverflowError,
+    zstandard.ZstdError,
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -101,8 +107,9 @@ class SceneReader:
         self.path = pathlib.Path(path)
         with open(self.path, "rb") as f:
             _check_magic(self.path, f)
-            reader = SeekingReader(f)
+            reader = SeekingReader(f, validate_crcs=True)
             summary = _summary_or_raise(self.path, f, reader)
+            _check_section_crcs(self.path, f)
             self.library: str = _header_library(reader)
             self.channels: tuple[ChannelInfo, ...] = _channel_infos(summary)
             self._channel_ids = {c.topic: c.id for c in summary.channels.values()}
@@ -213,7 +220,7 @@ class SceneReader:
     def _messages(self, topics: list[str]) -> Iterator[tuple[str, bytes]]:
         """(topic, payload) of the given channels, in log time order, one chunk at a time."""
         with open(self.path, "rb") as f:
-            reader = SeekingReader(f)
+            reader = SeekingReader(f, validate_crcs=True)
             try:
                 for _, channel, message in reader.iter_messages(topics=topics):
                     yield channel.topic, message.data
@@ -317,15 +324,36 @@ class SceneReader:
         )
 
     def read(self, *, skip_missing_ego: bool = False) -> Scene:
-        """The whole scene in memory (see :meth:`frames` for frames without their ego)."""
+        """The whole scene in memory.
+
+        A scene file with one ego (``ego_id`` in its metadata) may hold frames where that
+        ego is not observed (recorded scenes keep them, see ``converters.tracks``): they
+        are kept, seen from their first valid agent, and the Scene's ``ego_id`` names the
+        real ego, so the scene writes back unchanged. With ``skip_missing_ego`` they are
+        left out. Without a scene ego, such a frame raises as in :meth:`frames`.
+        """
         meta = {k: v for k, v in self.metadata.items() if k not in _STRUCTURAL_KEYS}
+        ego_id = self.ego_id
+        if ego_id is None or skip_missing_ego:
+            frames = tuple(self.frames(skip_missing_ego=skip_missing_ego))
+        else:
+            frames = tuple(self._frames_any_ego())
         return Scene(
             map=self.map,
-            frames=tuple(self.frames(skip_missing_ego=skip_missing_ego)),
+            frames=frames,
             frame_period_s=self.frame_period_s,
             metadata=meta,
             labels=dict(self.labels),
+            ego_id=ego_id,
         )
+
+    def _frames_any_ego(self) -> Iterator[Frame]:
+        for entry in self.entries(any_ego=True):
+            if entry.frame is None:
+                raise SceneFormatError(
+                    f"{self.path}: frame {entry.index} (t={entry.t_s:g} s) has no valid agent"
+                )
+            yield entry.frame
 
     # ------------------------------------------------------------------ decoding
     def _decode(self, agents: Any, paths: Any, *, any_ego: bool = False) -> FrameEntry:
@@ -347,6 +375,8 @@ class SceneReader:
             if values.size != n:
                 raise self._bad_length(index, f"/agents {name}", values.size, n)
             fields[name] = values
+        for name in ("x_mm", "y_mm"):
+            self._check_exact(index, f"/agents {name}", fields[name])
         valid = fields["valid"]
         ego_hits = np.flatnonzero((ids == agents.ego_id) & valid)
         if ego_hits.size == 0 and any_ego:
@@ -399,6 +429,8 @@ class SceneReader:
         x = np.array(paths.x_mm, dtype=np.int64)
         y = np.array(paths.y_mm, dtype=np.int64)
         total = int(points.sum())
+        self._check_exact(index, "/paths x_mm", x)
+        self._check_exact(index, "/paths y_mm", y)
         if x.size != total or y.size != total:
             raise self._bad_length(index, "/paths x_mm/y_mm", min(x.size, y.size), total)
         # Gather every candidate into (M, P) slots; slots past a candidate's end repeat its
@@ -418,6 +450,14 @@ class SceneReader:
                 f"{self.path}: a {topic} message does not decode as {cls.DESCRIPTOR.full_name}"
                 f" ({exc}); the file is damaged, convert the source again"
             ) from None
+
+    def _check_exact(self, index: int, what: str, values: np.ndarray) -> None:
+        """Coordinates beyond 2**53 mm cannot come from a converter (docs/scene-format.md)."""
+        if values.size and np.abs(values).max() > _MAX_EXACT_MM:
+            raise SceneFormatError(
+                f"{self.path}: frame {index}: {what} holds a value beyond the format's"
+                " 2**53 mm limit; the file is damaged, convert the source again"
+            )
 
     def _bad_length(self, index: int, what: str, got: int, expected: int) -> SceneFormatError:
         return SceneFormatError(
@@ -494,6 +534,45 @@ def _truncated_message(path: pathlib.Path, f: IO[bytes]) -> str:
         f" {frames} complete frame(s) precede the cut. The copy or conversion was"
         " interrupted: copy or convert it again"
     )
+
+
+_FOOTER = struct.Struct("<BQQQI")  # opcode, record length, summary start, offset start, crc
+_DATA_END = struct.Struct("<BQI")  # opcode, record length, data section crc
+
+
+def _check_section_crcs(path: pathlib.Path, f: IO[bytes]) -> None:
+    """Check the CRCs of the data and summary sections (MCAP's DataEnd and Footer
+    records), so that damage the reader would not notice (message indexes, statistics)
+    is reported too. A CRC of 0 means "not computed" and is not checked."""
+    size = f.seek(0, os.SEEK_END)
+    footer_at = size - len(MCAP_MAGIC) - _FOOTER.size
+    f.seek(footer_at)
+    _, _, summary_start, _, summary_crc = _FOOTER.unpack(f.read(_FOOTER.size))
+    damaged = SceneFormatError(
+        f"{path}: damaged MCAP file (a section checksum does not match); copy or convert it again"
+    )
+    if summary_start and summary_crc:
+        f.seek(summary_start)
+        data = f.read(footer_at + _FOOTER.size - 4 - summary_start)
+        if zlib.crc32(data) != summary_crc:
+            raise damaged
+    data_end_at = summary_start - _DATA_END.size if summary_start else 0
+    if data_end_at > len(MCAP_MAGIC):
+        f.seek(data_end_at)
+        opcode, _, data_crc = _DATA_END.unpack(f.read(_DATA_END.size))
+        if opcode == 0x0F and data_crc:
+            f.seek(0)
+            crc = 0
+            remaining = data_end_at
+            while remaining:
+                block = f.read(min(remaining, 1 << 22))
+                if not block:
+                    break
+                crc = zlib.crc32(block, crc)
+                remaining -= len(block)
+            if crc != data_crc:
+                raise damaged
+    f.seek(0)
 
 
 def _header_library(reader: SeekingReader) -> str:

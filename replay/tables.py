@@ -33,7 +33,7 @@ from base.atomic import atomic_output
 from base.sinks import FrameResult, SceneInfo
 from replay.errors import ReplayError
 from risk.frame import KIND_NAMES
-from risk.hindsight import LABEL_POSITIVE, LABEL_UNKNOWN, HindsightSettings, hindsight_truth
+from risk.hindsight import LABEL_POSITIVE, LABEL_UNKNOWN, HindsightSettings, truth_for_rows
 
 TRUTH_COLUMNS = ("truth_gap_m", "truth_pet_s", "truth_label")
 
@@ -122,15 +122,9 @@ class TableSink:
         label = np.full(n, LABEL_UNKNOWN, dtype=np.int8)
         get_tracks = self._require_info().tracks
         if n and get_tracks is not None:
-            tracks = get_tracks()
-            egos, ego_row = np.unique(np.asarray(ego_id, dtype=np.int64), return_inverse=True)
-            ego_col = tracks.index_of(egos)
-            truth = hindsight_truth(tracks, np.maximum(ego_col, 0), settings=self.hindsight)
-            k = tracks.frame_of(np.asarray(t_s, dtype=np.float64))
-            a = tracks.index_of(np.asarray(agent_id, dtype=np.int64))
-            ok = (k >= 0) & (k < tracks.n_frames) & (a >= 0) & (ego_col[ego_row] >= 0)
-            idx = (k[ok], ego_row[ok], a[ok])
-            gap[ok], pet[ok], label[ok] = truth.gap_m[idx], truth.pet_s[idx], truth.label[idx]
+            gap, pet, label = truth_for_rows(
+                get_tracks(), t_s, ego_id, agent_id, settings=self.hindsight
+            )
         labels = np.array([None, False, True], dtype=object)[
             np.where(label == LABEL_UNKNOWN, 0, np.where(label == LABEL_POSITIVE, 2, 1))
         ]
@@ -144,11 +138,15 @@ class TableSink:
         if self.path is None:
             return  # in memory: the rows stay available through dataframe()
         df = self.dataframe()
-        with atomic_output(self.path) as tmp:
-            if self.path.suffix.lower() == ".csv":
-                df.write_csv(tmp)
-            else:
-                df.write_parquet(tmp, compression="zstd")
+        try:
+            with atomic_output(self.path) as tmp:
+                if self.path.suffix.lower() == ".csv":
+                    df.write_csv(tmp)
+                else:
+                    df.write_parquet(tmp, compression="zstd")
+        except pl.exceptions.PolarsError as exc:  # e.g. a full disk ("os error 28")
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            raise ReplayError(f"could not write {self.path}: {first}") from None
         self._chunks = []
 
     def abort(self) -> None:

@@ -3,6 +3,8 @@ without a traceback, and ``replay batch`` records them without the code location
 
 from __future__ import annotations
 
+from base.guard import OutputError  # standard library only: cheap to import here
+
 
 def user_errors() -> tuple[type[BaseException], ...]:
     """Exception types whose message is meant for the user (no traceback)."""
@@ -15,4 +17,4 @@ def user_errors() -> tuple[type[BaseException], ...]:
     from replay.errors import ReplayError
     from risk.errors import RiskError
 
-    return (RiskError, ConversionError, ReplayError, RecordingError, OSError)
+    return (RiskError, ConversionError, ReplayError, RecordingError, OutputError, OSError)

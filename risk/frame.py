@@ -435,7 +435,13 @@ class LaneMap:
 
 @dataclass(frozen=True, eq=False)
 class Scene:
-    """A map, a sequence of frames with a common ego id, and what the source says of itself.
+    """A map, a sequence of frames, and what the source says of itself.
+
+    ``ego_id``: the scene's ego. None: every frame's own ego (``frame.ego_id``), the same
+    in every frame. Set, it may be absent or invalid in some frames: a recorded scene keeps
+    the steps where its ego is not observed (they matter to ``--ego all`` and to the
+    hindsight truth), seen there from another valid agent; readers report such frames as
+    ego-less for a replay from the scene's ego.
 
     ``metadata`` holds string facts (dataset, file, scenario id, converter and version,
     parameters); ``labels`` holds named agent-id lists that a dataset provides (Waymo
@@ -447,3 +453,4 @@ class Scene:
     frame_period_s: float
     metadata: dict[str, str] = field(default_factory=dict)
     labels: dict[str, tuple[int, ...]] = field(default_factory=dict)
+    ego_id: int | None = None

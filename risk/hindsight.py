@@ -526,3 +526,34 @@ def _pet_pairs(tracks: Tracks, e_col: np.ndarray, a_col: np.ndarray, h: int) -> 
         sub = pet[:, up]
         pet[:, up] = np.where(covered & np.isnan(sub), k * tracks.dt_s, sub)
     return pet
+
+
+def truth_for_rows(
+    tracks: Tracks,
+    t_s: np.ndarray,
+    ego_id: np.ndarray,
+    agent_id: np.ndarray,
+    *,
+    settings: HindsightSettings | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The truth of arbitrary rows ``(t_s, ego_id, agent_id)`` (each ``(R,)``), as the
+    table and the recording need it: ``(gap_m, pet_s, label)``, ``(R,)`` each; NaN gap or
+    PET and ``LABEL_UNKNOWN`` for rows outside the tracks (an unknown time, ego or agent).
+
+    The egos of the rows are computed together (one :func:`hindsight_truth` call).
+    """
+    t_s = np.asarray(t_s, dtype=np.float64)
+    n = t_s.size
+    gap, pet = np.full(n, np.nan), np.full(n, np.nan)
+    label = np.full(n, LABEL_UNKNOWN, dtype=np.int8)
+    if n == 0:
+        return gap, pet, label
+    egos, ego_row = np.unique(np.asarray(ego_id, dtype=np.int64), return_inverse=True)
+    ego_col = tracks.index_of(egos)
+    truth = hindsight_truth(tracks, np.maximum(ego_col, 0), settings=settings)
+    k = tracks.frame_of(t_s)
+    a = tracks.index_of(np.asarray(agent_id, dtype=np.int64))
+    ok = (k >= 0) & (k < tracks.n_frames) & (a >= 0) & (ego_col[ego_row] >= 0)
+    idx = (k[ok], ego_row[ok], a[ok])
+    gap[ok], pet[ok], label[ok] = truth.gap_m[idx], truth.pet_s[idx], truth.label[idx]
+    return gap, pet, label

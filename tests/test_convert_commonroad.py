@@ -123,8 +123,10 @@ def test_obstacles_lanelets_and_the_default_ego(tiny):
 
 def test_chosen_ego_and_unknown_ego(tiny):
     scene = read_scene(tiny, ego=9, paths="hindsight")
-    assert len(scene.frames) == 2 and scene.metadata["steps_without_ego"] == "3"
-    assert scene.frames[0].ego_id == 9 and scene.metadata["ego_choice"] == "--ego"
+    # Every step with an agent is a frame; the ego (9) is missing at three of them.
+    assert len(scene.frames) == 5 and scene.metadata["steps_without_ego"] == "3"
+    assert scene.ego_id == 9 and scene.metadata["ego_choice"] == "--ego"
+    assert sum(f.ego_id == 9 for f in scene.frames) == 2
     with pytest.raises(ConversionError, match=r"no dynamic obstacle with id 99 \(ids: 7, 8, 9\)"):
         read_scene(tiny, ego=99)
 
@@ -180,7 +182,7 @@ def test_cli_to_folder_with_ego(tiny, tmp_path):
     written = out / "ZAM_Tiny-1_1_T-1.mcap"
     assert result.stdout.strip() == str(written)
     scene = read_mcap(written)
-    assert scene.frames[0].ego_id == 9 and scene.metadata["dataset"] == "commonroad"
+    assert scene.ego_id == 9 and scene.metadata["dataset"] == "commonroad"
 
 
 SAMPLES = (
@@ -227,12 +229,14 @@ def test_real_samples(shared_data, tmp_path, name):
             math.hypot(p[1] - pts[0][1], p[2] - pts[0][2]) for p in pts
         )
     assert travelled[ego] == pytest.approx(max(travelled.values()))
-    assert len(scene.frames) == states[ego]
+    # Every time step with a recorded state is a frame; the scene's ego is named apart.
+    all_times = set().union(*times.values())
+    assert len(scene.frames) == len(all_times) and scene.ego_id == ego
+    assert sum(f.ego_id == ego for f in scene.frames) == states[ego]
     assert scene.frames[0].n_agents == len(obstacles)
     assert len(scene.map.lanes) == len(root.findall("lanelet"))
-    # Every recorded state at a time the ego is present is a valid agent in that frame.
-    expected = sum(len(t & times[ego]) for t in times.values())
-    assert sum(int(f.valid.sum()) for f in scene.frames) == expected
+    # Every recorded state is a valid agent in its frame.
+    assert sum(int(f.valid.sum()) for f in scene.frames) == sum(states.values())
 
 
 def test_static_obstacles_stand_and_traffic_lights_are_counted(tmp_path):

@@ -123,7 +123,9 @@ def test_tracks_ego_period_and_paths(files):
     (truck,) = f.agent_paths(1)  # west on the reversed copy of the two-way lanelet
     assert truck[-1][0] < 0 and truck[1][1] == pytest.approx(10)
     scene = read_scene(csv, osm, ego=2, paths="hindsight")
-    assert len(scene.frames) == 3 and scene.frames[0].ego_id == 2
+    # Every step with an agent stays a frame; the truck (2) is the ego at three of them.
+    assert len(scene.frames) == 5 and scene.ego_id == 2
+    assert sum(f.ego_id == 2 for f in scene.frames) == 3
     with pytest.raises(ConversionError, match=r"no track with id 5 \(ids: 1, 2\)"):
         read_scene(csv, osm, ego=5)
 

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from converters.errors import ConversionError
 from converters.hindsight import Hindsight
 from converters.lanegraph import LaneGraph, PathSettings, arc_length, simplify, straight_rows
-from converters.tracks import TrackTable, build_scene, integer_ids
+from converters.tracks import Skipped, TrackTable, build_scene, integer_ids
 from risk.frame import Kind, Lane, LaneMap
 
 V, P, C, OT = int(Kind.VEHICLE), int(Kind.PEDESTRIAN), int(Kind.CYCLIST), int(Kind.OTHER)
@@ -341,7 +341,7 @@ def _table(valid: np.ndarray, kinds=(V, V, P)) -> TrackTable:
 
 
 @pytest.mark.parametrize("mode", ["map", "hindsight"])
-def test_build_scene_keeps_every_track_and_drops_steps_without_ego(mode):
+def test_build_scene_keeps_every_track_and_every_step(mode):
     valid = np.ones((5, 3), bool)
     valid[0, 0] = False  # the ego is missing at step 0
     valid[2, 1] = False  # another agent vanishes for one step
@@ -350,11 +350,13 @@ def test_build_scene_keeps_every_track_and_drops_steps_without_ego(mode):
         table, 0, STRAIGHT, paths=mode, settings=PathSettings(), frame_period_s=0.1,
         metadata={"dataset": "test"}, labels={"x": (8,)},
     )  # fmt: skip
-    assert len(scene.frames) == 4
+    assert len(scene.frames) == 5 and scene.ego_id == 7
     assert scene.metadata["steps_without_ego"] == "1"
+    # Step 0 has no ego: it is kept, seen from the first valid agent.
+    assert scene.frames[0].ego_id == 8 and not scene.frames[0].valid[0]
     assert scene.metadata["paths"] == mode
     assert scene.labels == {"x": (8,)}
-    f = scene.frames[1]  # step 2
+    f = scene.frames[2]  # step 2
     assert f.t == pytest.approx(0.2)
     assert f.ids.tolist() == [7, 8, 9] and f.valid.tolist() == [True, False, True]
     assert f.ego_id == 7
@@ -364,14 +366,19 @@ def test_build_scene_keeps_every_track_and_drops_steps_without_ego(mode):
         np.testing.assert_allclose(ped[0], [(22, 5), (22 + 130, 5)])
 
 
-def test_build_scene_drops_states_with_bad_values_and_rejects_a_missing_ego():
+def test_build_scene_stops_at_or_drops_bad_values_and_rejects_a_missing_ego():
     valid = np.ones((3, 3), bool)
     table = _table(valid)
     table.xy[1, 1] = np.nan
-    scene = build_scene(
-        table, 0, LaneMap(), paths="map", settings=PathSettings(), frame_period_s=0.1, metadata={}
-    )
+    args = (table, 0, LaneMap())
+    kwargs = dict(paths="map", settings=PathSettings(), frame_period_s=0.1, metadata={})
+    with pytest.raises(ConversionError, match=r"x\.csv: track \d+ at t=.* position is not"):
+        build_scene(*args, **kwargs, source="x.csv")  # the default: stop, naming the record
+    skipped = Skipped()
+    scene = build_scene(*args, **kwargs, source="x.csv", skip_bad=True, skipped=skipped)
     assert scene.metadata["invalid_states_dropped"] == "1"
+    assert scene.metadata["bad_states_dropped"] == "1"
+    assert len(skipped) == 1 and "dropped 1 state(s)" in skipped.what[0]
     assert not scene.frames[1].valid[1]
     with pytest.raises(ConversionError, match=r"ego .*valid at no time step"):
         build_scene(

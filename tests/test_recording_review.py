@@ -270,3 +270,29 @@ def test_waymo_recording_review(shared_data, tmp_path):
     # The map: lanes plus the sample's 58 road lines, 28 road edges and 4 crosswalks.
     sizes = {k: len(ents[p].static["strips"]) for k, p in L.MAP_LINES.items() if p in ents}
     assert sizes == {"lane_boundary": 58, "road_edge": 28, "crosswalk": 4}
+
+
+@pytest.mark.realdata
+def test_recorded_scene_marks_the_tables_hindsight_positives(shared_data, tmp_path):
+    """A SinD scene end to end: the recording computes the hindsight truth from the same
+    recorded tracks (one rows function) as the table, so every kept agent whose
+    ``truth_label`` is true carries the orange ring in its frame, and no other does."""
+    src = sorted((shared_data / "recorded" / "sind").glob("*.xml"))[0]
+    scene, rrd, table = tmp_path / "s.mcap", tmp_path / "s.rrd", tmp_path / "s.parquet"
+    runner = CliRunner()
+    assert runner.invoke(main, ["convert", "commonroad", str(src), "-o", str(scene)]).exit_code == 0
+    res = runner.invoke(
+        main, ["run", str(scene), "-o", str(rrd), "--table", str(table), "--no-progress"]
+    )
+    assert res.exit_code == 0, res.output
+    ents, df = read_rrd(rrd), pl.read_parquet(table)
+    kept = df.filter(pl.col("dropped_by").is_null())
+    positives = kept.filter(pl.col("truth_label").fill_null(False))
+    assert positives.height > 0, "this scene has agents that came close"
+    pos = {f: k for k, f in enumerate(sorted(df["frame"].unique().to_list()))}
+    for r in kept.iter_rows(named=True):
+        ent = ents[L.body_path(r["agent_id"])]
+        per_frame = ent.column("colors", rows_with="strips")
+        assert len(per_frame) == len(pos)  # one row of the body per recorded frame
+        colors = [rgba(c)[:3] for c in per_frame[pos[r["frame"]]]]
+        assert (L.HINDSIGHT in colors) == bool(r["truth_label"]), r

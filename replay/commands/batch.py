@@ -7,12 +7,15 @@ import sys
 
 import click
 
+from base.guard import OutputGuard
 from replay.batch import CONVERT_KINDS, ENGINES, BatchReport, BatchSettings, run_batch
 from replay.commands.ego_options import ego_option, every_option
 from replay.commands.settings_option import load_cascade, set_option
 from replay.egos import ALL_EGOS
 from replay.engine import Stride
 from replay.errors import ReplayError
+from replay.lifeline import sigterm_as_interrupt
+from replay.limits import WORKERS
 
 _FAILURES_SHOWN = 5
 
@@ -31,7 +34,7 @@ _FAILURES_SHOWN = 5
     "instance or on the cluster at --ray-address (needs: pip install 'riskreplay[ray]').",
 )  # fmt: skip
 @click.option(
-    "--workers", type=click.IntRange(min=1), default=None,
+    "--workers", type=WORKERS, default=None,
     help="Worker processes (local) or CPUs of the local Ray instance.  "
     "[default: the CPUs this process may use; on a Ray cluster: the cluster's]",
 )  # fmt: skip
@@ -137,11 +140,17 @@ def batch(
         ego=ego,
         every=every,
     )
+    sigterm_as_interrupt()  # SIGTERM stops like Ctrl-C; killed workers' outputs are atomic
+    # Locked and checked at once; scenes are committed one by one (resumable), so no
+    # deferred transaction here. Stale temporary files of a killed run are removed.
+    guard = OutputGuard(inputs=[*inputs, cascade_file, map_osm], folders=(out_dir,),
+                        transaction=False)  # fmt: skip
     try:
-        report = run_batch(
-            inputs, out_dir, settings, engine=engine, workers=workers,
-            ray_address=ray_address, progress=progress,
-        )  # fmt: skip
+        with guard:
+            report = run_batch(
+                inputs, out_dir, settings, engine=engine, workers=workers,
+                ray_address=ray_address, progress=progress,
+            )  # fmt: skip
     except KeyboardInterrupt:
         # Running scenes finished and are complete; the same command resumes.
         click.echo("Interrupted. Run the same command again to resume: complete scenes "

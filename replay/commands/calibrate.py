@@ -13,6 +13,7 @@ import pathlib
 import click
 
 from base.atomic import write_text
+from base.guard import OutputGuard
 from replay.calibration import (
     DEFAULT_STAGES,
     DEFAULT_TIER_COUNTS,
@@ -112,16 +113,18 @@ def calibrate(
     if not output.parent.is_dir():
         raise ReplayError(f"{output}: the folder {output.parent} does not exist")
 
-    data = collect(scenes, models, progress=progress)
-    config, cal = calibrated_config(data, models, max_fn_rate=max_fn_rate, tiers=tiers,
-                                    tier_counts=counts)  # fmt: skip
-    means = tier_means(config, data)
-    command = _command_line(scenes, output, max_fn_rate, models, counts, base)
-    config = CascadeConfig(
-        stages=config.stages, tiers=config.tiers, baseline_threshold=config.baseline_threshold,
-        provenance=provenance(config, cal, data, means, command, counts, note=note),
-    )  # fmt: skip
-    write_text(output, config.to_toml_string())
+    with OutputGuard(inputs=(*scenes, base), files=(output,)):  # before any work
+        data = collect(scenes, models, progress=progress)
+        config, cal = calibrated_config(data, models, max_fn_rate=max_fn_rate, tiers=tiers,
+                                        tier_counts=counts)  # fmt: skip
+        means = tier_means(config, data)
+        command = _command_line(scenes, output, max_fn_rate, models, counts, base)
+        config = CascadeConfig(
+            stages=config.stages, tiers=config.tiers,
+            baseline_threshold=config.baseline_threshold,
+            provenance=provenance(config, cal, data, means, command, counts, note=note),
+        )  # fmt: skip
+        write_text(output, config.to_toml_string())
     click.echo(_report(config, cal, data, means))
     click.echo(f"Wrote {output}")
 

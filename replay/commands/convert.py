@@ -6,15 +6,16 @@ only when used (``replay.cli.LazyGroup``).
 
 from __future__ import annotations
 
-import os
 import pathlib
 import sys
 from typing import TYPE_CHECKING
 
 import click
 
+from base.guard import OutputGuard
 from converters.sources import SOURCES as RECORDED
 from replay.cli import LazyGroup
+from replay.limits import AGENTS, ARM_LENGTHS, DURATIONS, PERIODS, SEEDS, SITUATIONS, check_frames
 
 if TYPE_CHECKING:
     from converters.synthetic import SyntheticSettings
@@ -49,21 +50,21 @@ def convert() -> None:
     "needed). Default: synthetic.mcap, or situations/ with --situations.",
 )  # fmt: skip
 @click.option(
-    "--agents", type=click.IntRange(min=1), default=None,
+    "--agents", type=AGENTS, default=None,
     help="Number of agents, the ego included. Default: drawn per scene from the paper's "
     "range, 30 to 100.",
 )  # fmt: skip
 @click.option(
-    "--seed", type=click.IntRange(min=0), default=0, show_default=True,
+    "--seed", type=SEEDS, default=0, show_default=True,
     help="Random seed; the same seed and options give the same scene. With --situations, "
     "situation k uses seed + k.",
 )  # fmt: skip
 @click.option(
-    "--duration", "duration_s", type=click.FloatRange(min=0, min_open=True), default=10.0,
+    "--duration", "duration_s", type=DURATIONS, default=10.0,
     show_default=True, help="Scene length in seconds (ignored with --situations).",
 )  # fmt: skip
 @click.option(
-    "--period", "frame_period_s", type=click.FloatRange(min=0, min_open=True), default=0.1,
+    "--period", "frame_period_s", type=PERIODS, default=0.1,
     show_default=True, help="Frame period in seconds (0.1 = 10 Hz).",
 )  # fmt: skip
 @click.option(
@@ -71,11 +72,11 @@ def convert() -> None:
     help="Lanes per direction on each of the four arms.",
 )  # fmt: skip
 @click.option(
-    "--arm-length", "arm_length_m", type=click.FloatRange(min=30), default=150.0,
+    "--arm-length", "arm_length_m", type=ARM_LENGTHS, default=150.0,
     show_default=True, help="Length of each arm beyond the intersection box, in metres.",
 )  # fmt: skip
 @click.option(
-    "--situations", type=click.IntRange(min=1), default=None,
+    "--situations", type=SITUATIONS, default=None,
     help="Write this many single-frame situations (one MCAP each, situation_0000.mcap, "
     "...) instead of one scene, like the paper's dataset of ~500.",
 )  # fmt: skip
@@ -111,6 +112,8 @@ def synthetic(
     from converters.intersection import IntersectionSettings
     from converters.synthetic import SyntheticSettings
 
+    if situations is None:
+        check_frames(duration_s, frame_period_s)
     settings = SyntheticSettings(
         intersection=IntersectionSettings(lanes_per_direction=lanes, arm_length_m=arm_length_m),
         n_agents=agents,
@@ -118,26 +121,36 @@ def synthetic(
         frame_period_s=frame_period_s,
     )
     if situations is None:
-        _one_scene(output or pathlib.Path("synthetic.mcap"), settings, seed)
+        output = output or pathlib.Path("synthetic.mcap")
+        if output.is_dir():
+            raise click.UsageError(
+                f"{output} is a folder; give a file name (e.g. {output}/scene.mcap)"
+            )
+        _one_scene(output, settings, seed)
     else:
-        _situations(output or pathlib.Path("situations"), settings, seed, situations, progress)
+        output = output or pathlib.Path("situations")
+        if output.exists() and not output.is_dir():
+            raise click.UsageError(
+                f"{output} exists and is not a folder; --situations writes a folder"
+            )
+        with OutputGuard(folders=(output,)):  # all situations appear together, or none
+            _situations(output, settings, seed, situations, progress)
 
 
 def _one_scene(output: pathlib.Path, settings: SyntheticSettings, seed: int) -> None:
     from converters.mcap_io import write_scene
     from converters.synthetic import generate_scene
 
-    if output.is_dir():
-        raise click.UsageError(f"{output} is a folder; give a file name (e.g. {output}/scene.mcap)")
-    scene = generate_scene(settings, seed)
-    path = write_scene(output, scene)
+    with OutputGuard(files=(output,), create_folders=True) as guard:
+        scene = generate_scene(settings, seed)
+        write_scene(output, scene)
+        size = guard.pending()[output].stat().st_size
     frames = scene.frames
     click.echo(
-        f"{len(frames)} frames, {frames[0].n_agents} agents (seed {seed}),"
-        f" {os.path.getsize(path) / 1024:.0f} KiB",
+        f"{len(frames)} frames, {frames[0].n_agents} agents (seed {seed}), {size / 1024:.0f} KiB",
         err=True,
     )
-    click.echo(str(path))
+    click.echo(str(output))
 
 
 def _situations(
@@ -148,8 +161,6 @@ def _situations(
     from converters.mcap_io import write_scene
     from converters.synthetic import generate_situation
 
-    if folder.exists() and not folder.is_dir():
-        raise click.UsageError(f"{folder} exists and is not a folder; --situations writes a folder")
     folder.mkdir(parents=True, exist_ok=True)
     digits = max(4, len(str(count - 1)))
     total_agents = 0

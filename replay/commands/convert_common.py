@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import math
+import os
 import pathlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import click
 
@@ -80,13 +81,26 @@ def output_option(f: Callable) -> Callable:
     )(f)
 
 
+def files_under(path: pathlib.Path | None) -> Iterator[pathlib.Path]:
+    """The file itself, or every file below a folder (inputs a command must not overwrite)."""
+    if path is None:
+        return
+    if path.is_dir():
+        for root, _dirs, names in os.walk(path):
+            yield from (pathlib.Path(root, n) for n in names)
+    else:
+        yield path
+
+
 def skip_bad_option(what: str) -> Callable:
     def decorate(f: Callable) -> Callable:
         return click.option(
             "--skip-bad",
             is_flag=True,
-            help=f"Skip {what} that cannot be read, convert the rest and list what was "
-            "skipped (default: stop at the first one with an error).",
+            help=f"Skip {what} that cannot be read, and drop states with NaN, infinite or "
+            "out-of-range values (counted in the scene's metadata as bad_states_dropped); "
+            "convert the rest and list what was skipped or dropped (default: stop at the "
+            "first bad record with an error naming it).",
         )(f)
 
     return decorate

@@ -6,6 +6,7 @@ import pathlib
 
 import click
 
+from base.guard import OutputGuard
 from converters.errors import ConversionError
 from converters.mcap_io import write_scene
 from replay.reader import read_scene
@@ -32,6 +33,7 @@ def foxglove(scene_file: pathlib.Path, output: pathlib.Path) -> None:
     """
     if output.resolve() == scene_file.resolve():
         raise ConversionError(f"{output}: the output may not be the input; name another file")
-    scene = read_scene(scene_file)
-    written = write_scene(output, scene, foxglove=True)
+    with OutputGuard(inputs=(scene_file,), files=(output,)):  # hard links, locks, stale temps
+        scene = read_scene(scene_file)
+        written = write_scene(output, scene, foxglove=True)
     click.echo(f"Wrote {written}")

@@ -16,6 +16,7 @@ from typing import Any
 
 import click
 
+from base.guard import OutputGuard
 from converters.errors import ConversionError
 from converters.mcap_io import write_scene
 from converters.sources import SOURCES, ReadOptions, SourceInput, SourceSpec
@@ -23,6 +24,7 @@ from converters.tracks import Skipped
 from replay.commands.convert_common import (
     MCAP_SUFFIX,
     Outputs,
+    files_under,
     finish,
     output_option,
     path_options,
@@ -46,7 +48,16 @@ def ego_line(name: str, scene: Any) -> str:
     """``NAME: ego TRACK (why)``: the agent a conversion made the ego, and the reason."""
     meta = scene.metadata
     why = meta.get("ego_choice") or "the recording's own ego"
-    return f"{name}: ego {meta.get('ego_track', '?')} (id {scene.frames[0].ego_id}): {why}"
+    return f"{name}: ego {meta.get('ego_track', '?')} (id {scene.ego_id if scene.ego_id is not None else scene.frames[0].ego_id}): {why}"
+
+
+def _companions(spec: SourceSpec, source: SourceInput) -> list[pathlib.Path]:
+    """The other files the conversion reads (maps); none when they cannot be found yet
+    (the conversion then reports that itself)."""
+    try:
+        return [pathlib.Path(p) for p in spec.companions(source)]
+    except ConversionError:
+        return []
 
 
 def source_command(spec: SourceSpec) -> click.Command:
@@ -74,7 +85,16 @@ def source_command(spec: SourceSpec) -> click.Command:
             progress=True,
         )
         source = SourceInput(source=spec.name, path=inputs[0], extra=inputs[1:], map=map_osm)
-        convert_input(spec, source, options, output)
+        # Every file the conversion reads is an input the outputs must not overwrite.
+        read = [p for f in (*source.files, *_companions(spec, source)) for p in files_under(f)]
+        single = output.suffix.lower() == MCAP_SUFFIX and not output.is_dir()
+        with OutputGuard(
+            inputs=read,
+            files=(output,) if single else (),
+            folders=() if single else (output,),
+            create_folders=True,
+        ):
+            convert_input(spec, source, options, output)
 
     params: list[Callable[[Callable], Callable]] = [
         click.argument(

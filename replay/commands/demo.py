@@ -6,9 +6,11 @@ import pathlib
 
 import click
 
+from base.guard import OutputGuard
 from converters.mcap_io import write_scene
 from converters.synthetic import SyntheticSettings, generate_scene
 from replay.commands.run import format_summary, make_sinks, run_with_warnings
+from replay.limits import SEEDS
 from risk.frame import Scene
 
 DEMO_SEED = 7  # fixed so that every demo shows the same scene (not a calibration seed)
@@ -39,7 +41,7 @@ def demo_scene(
     help="Folder for the scene (.mcap), the recording (.rrd) and the table (.parquet); "
     "created if needed.",
 )  # fmt: skip
-@click.option("--seed", type=int, default=DEMO_SEED, show_default=True,
+@click.option("--seed", type=SEEDS, default=DEMO_SEED, show_default=True,
               help="Seed of the synthetic traffic.")  # fmt: skip
 @click.option("--agents", type=click.IntRange(2, 500), default=DEMO_AGENTS, show_default=True,
               help="Agents in the scene, the ego included.")  # fmt: skip
@@ -54,10 +56,15 @@ def demo(output_dir: pathlib.Path, seed: int, agents: int, progress: bool) -> No
       intersection.rrd      the recording: open it with 'rerun intersection.rrd'
       intersection.parquet  every agent's risks and the cascade decisions, per frame
     """
-    output_dir.mkdir(parents=True, exist_ok=True)
     scene_path = output_dir / "intersection.mcap"
-    click.echo(f"Generating a synthetic intersection: {agents} agents, seed {seed} ...", err=True)
-    write_scene(scene_path, demo_scene(n_agents=agents, seed=seed))
-    sinks = make_sinks(scene_path.with_suffix(".rrd"), scene_path.with_suffix(".parquet"))
-    summary = run_with_warnings(scene_path, sinks=sinks, progress=progress)
+    rrd, table = scene_path.with_suffix(".rrd"), scene_path.with_suffix(".parquet")
+    # All three files appear together or not at all; the folder is removed again on failure.
+    with OutputGuard(files=(scene_path, rrd, table), folders=(output_dir,)) as guard:
+        click.echo(
+            f"Generating a synthetic intersection: {agents} agents, seed {seed} ...", err=True
+        )
+        write_scene(scene_path, demo_scene(n_agents=agents, seed=seed))
+        guard.commit_now(scene_path)  # the replay reads it back
+        sinks = make_sinks(rrd, table)
+        summary = run_with_warnings(scene_path, sinks=sinks, progress=progress)
     click.echo(format_summary(summary, extra_outputs=(scene_path,)))

@@ -14,6 +14,7 @@ from dataclasses import replace
 
 import click
 
+from base.guard import OutputGuard
 from replay.commands.ego_options import StrideParam, ego_option, every_option
 from replay.commands.settings_option import load_cascade, set_option
 from replay.engine import Stride
@@ -181,54 +182,56 @@ def evaluate(
         n_boot=n_boot,
         seed=seed,
     )
-    start = time.perf_counter()
     workers_n = workers or default_workers()
-    agents, datasets, hs = collect_agents(
-        inputs, cascade=cascade, hindsight=hindsight, workers=workers_n,
-        progress=progress, ego=ego, every=every,
-    )  # fmt: skip
-    read_s = time.perf_counter() - start
-    start = time.perf_counter()
-    summary = evaluate_agents(
-        agents, settings=settings, datasets=datasets, hindsight=hs,
-        inputs=[str(p) for p in inputs],
-    )  # fmt: skip
-    summary["time_s"] = {"replay / read": read_s, "evaluation": time.perf_counter() - start}
-    click.echo(format_evaluation(summary))
-    files: dict[str, pathlib.Path] = {}
-    sweep = None
-    if sensitivity:
+    guard = OutputGuard(inputs=[*inputs, cascade_file], folders=(out_dir,), files=(report_path,))
+    with guard:  # checked and locked at once; every file appears together
         start = time.perf_counter()
-        found = resolve_inputs(list(inputs))
-        if found.tables:
-            raise EvaluationError(
-                "--sensitivity replays the scenes with other settings; give .mcap scenes, "
-                "not tables"
-            )
-        subset = sweep_subset(found.scenes, sensitivity_scenes)
-        same = sensitivity_scenes == 1 and sensitivity_every in (None, every)
-        sweep = run_sweep(
-            subset, default_agents=agents if same else None,
-            datasets=datasets if same else None, cascade=cascade, hindsight=hs,
-            settings=replace(settings, n_boot=sensitivity_bootstrap), workers=workers_n,
-            progress=progress, ego=ego, every=sensitivity_every or every,
+        agents, datasets, hs = collect_agents(
+            inputs, cascade=cascade, hindsight=hindsight, workers=workers_n,
+            progress=progress, ego=ego, every=every,
         )  # fmt: skip
-        summary["sensitivity"] = {
-            "scenes": len(subset), "every": str(sensitivity_every or every),
-            "bootstrap": sensitivity_bootstrap, "time_s": sweep.time_s,
-        }  # fmt: skip
-        summary["time_s"]["sensitivity"] = time.perf_counter() - start
-        files.update(write_sweep(sweep, out_dir, plots=plots))
-        click.echo(format_sweep(sweep))
-    files.update(write_evaluation(summary, agents, out_dir, datasets=datasets, plots=plots))
-    if report_path is not None:
-        files.update(
-            write_report(
-                report_path, summary, agents, out_dir=out_dir, sweep=sweep,
-                command=" ".join(["replay", "evaluate", *sys.argv[2:]]) if len(sys.argv) > 1 else "",
-                datasets=datasets,
-            )
+        read_s = time.perf_counter() - start
+        start = time.perf_counter()
+        summary = evaluate_agents(
+            agents, settings=settings, datasets=datasets, hindsight=hs,
+            inputs=[str(p) for p in inputs],
         )  # fmt: skip
+        summary["time_s"] = {"replay / read": read_s, "evaluation": time.perf_counter() - start}
+        click.echo(format_evaluation(summary))
+        files: dict[str, pathlib.Path] = {}
+        sweep = None
+        if sensitivity:
+            start = time.perf_counter()
+            found = resolve_inputs(list(inputs))
+            if found.tables:
+                raise EvaluationError(
+                    "--sensitivity replays the scenes with other settings; give .mcap scenes, "
+                    "not tables"
+                )
+            subset = sweep_subset(found.scenes, sensitivity_scenes)
+            same = sensitivity_scenes == 1 and sensitivity_every in (None, every)
+            sweep = run_sweep(
+                subset, default_agents=agents if same else None,
+                datasets=datasets if same else None, cascade=cascade, hindsight=hs,
+                settings=replace(settings, n_boot=sensitivity_bootstrap), workers=workers_n,
+                progress=progress, ego=ego, every=sensitivity_every or every,
+            )  # fmt: skip
+            summary["sensitivity"] = {
+                "scenes": len(subset), "every": str(sensitivity_every or every),
+                "bootstrap": sensitivity_bootstrap, "time_s": sweep.time_s,
+            }  # fmt: skip
+            summary["time_s"]["sensitivity"] = time.perf_counter() - start
+            files.update(write_sweep(sweep, out_dir, plots=plots))
+            click.echo(format_sweep(sweep))
+        files.update(write_evaluation(summary, agents, out_dir, datasets=datasets, plots=plots))
+        if report_path is not None:
+            command = " ".join(["replay", "evaluate", *sys.argv[2:]]) if len(sys.argv) > 1 else ""
+            files.update(
+                write_report(
+                    report_path, summary, agents, out_dir=out_dir, sweep=sweep,
+                    command=command, datasets=datasets,
+                )
+            )  # fmt: skip
     click.echo("Time: " + ", ".join(f"{k} {v:.1f} s" for k, v in summary["time_s"].items()))
     click.echo("Wrote:")
     for path in files.values():

@@ -8,6 +8,7 @@ import time
 
 import click
 
+from base.guard import OutputGuard
 from replay.commands.stats import format_stats
 from replay.experiment import (
     ExperimentResult,
@@ -18,6 +19,7 @@ from replay.experiment import (
     run_experiment,
     write_experiment,
 )
+from replay.limits import SEEDS, SITUATIONS, WORKERS
 from replay.pool import default_workers
 from replay.stats import DEFAULT_ERRORS_MODEL
 from risk.cascade import CascadeConfig
@@ -27,21 +29,21 @@ from risk.registry import resolve_models
 @click.command("experiment")
 @click.option(
     "--situations",
-    type=click.IntRange(min=2),
+    type=click.IntRange(2, SITUATIONS.max),
     default=500,
     show_default=True,
     help="Synthetic situations to draw (the paper used about 500).",
 )
 @click.option(
     "--seed",
-    type=click.IntRange(min=0),
+    type=SEEDS,
     default=0,
     show_default=True,
     help="Seed of the whole experiment; situation i uses SeedSequence(seed, spawn_key=(i,)).",
 )
 @click.option(
     "--workers",
-    type=click.IntRange(min=1),
+    type=WORKERS,
     default=None,
     help="Worker processes for generating and replaying. Default: the number of CPUs.",
 )
@@ -119,14 +121,16 @@ def experiment(
     )
     if report_copy is not None and not report_copy.parent.is_dir():
         raise click.UsageError(f"--report: the folder {report_copy.parent} does not exist")
-    start = time.perf_counter()
-    result = run_experiment(settings, progress=progress, cascade=cascade)
-    files = write_experiment(
-        result,
-        out_dir,
-        command=_command(settings, cascade_file, out_dir, report_copy),
-        report_copy=report_copy,
-    )
+    guard = OutputGuard(inputs=(cascade_file,), files=(report_copy,), folders=(out_dir,))
+    with guard:  # checked and locked at once; every file appears together
+        start = time.perf_counter()
+        result = run_experiment(settings, progress=progress, cascade=cascade)
+        files = write_experiment(
+            result,
+            out_dir,
+            command=_command(settings, cascade_file, out_dir, report_copy),
+            report_copy=report_copy,
+        )
     total = time.perf_counter() - start
     click.echo(_summary(result, total))
     click.echo("Wrote:")

@@ -21,6 +21,10 @@ VALUE_WIDTH = 70  # long metadata values (e.g. settings JSON) are cut in the tab
 def inspect_cmd(scene: pathlib.Path, as_json: bool) -> None:
     """Show what SCENE (an MCAP scene file) holds, without replaying it.
 
+    Every frame is decoded and checked as 'replay run' checks it (paired /agents and
+    /paths messages, finite times and values, unique ids, the format's limits), so a
+    scene that inspect accepts is one that run accepts; otherwise it says what is wrong.
+
     Channels (topic, schema, message count), frames, time span and duration, agents per
     frame (min / median / max, stored and valid), the ego id and in how many frames it
     is present, the map size, the source's metadata and labels.
@@ -41,6 +45,7 @@ def describe(path: pathlib.Path) -> dict[str, Any]:
     """Everything ``inspect`` reports, as plain JSON-able values."""
     reader = open_scene(path)
     stats = reader.frame_stats()
+    n_checked = sum(1 for _ in reader.entries())  # decodes every frame, as `replay run` does
     ego_ids = sorted({int(e) for e in stats.ego_id})
     return {
         "path": str(path),
@@ -56,6 +61,7 @@ def describe(path: pathlib.Path) -> dict[str, Any]:
         "valid_agents_per_frame": _spread(stats.n_valid),
         "ego_ids": ego_ids,
         "frames_with_ego": int(stats.ego_present.sum()),
+        "frames_checked": n_checked,
         "lanes": len(reader.map.lanes),
         "channels": [
             {

@@ -7,6 +7,7 @@ import warnings
 
 import click
 
+from base.guard import OutputGuard
 from replay.commands.ego_options import ego_option, every_option
 from replay.commands.settings_option import load_cascade, set_option
 from replay.egos import ALL_EGOS, EgosSummary, pooled, run_every_ego
@@ -65,6 +66,7 @@ def run(
     cascade = load_cascade(cascade_file, sets)
     if no_rrd and output is not None:
         raise click.UsageError("--output names the recording; it cannot go with --no-rrd")
+    inputs = (scene, cascade_file)
     if ego == ALL_EGOS:
         if output is not None:
             raise click.UsageError(
@@ -77,18 +79,22 @@ def run(
             "one ego with --ego ID to look at it.",
             err=True,
         )
-        egos = run_every_ego(
-            scene, sinks=make_sinks(None, table), cascade=cascade, every=every, progress=progress
-        )
+        with OutputGuard(inputs=inputs, files=(table,)):  # checked before the replay
+            egos = run_every_ego(
+                scene, sinks=make_sinks(None, table), cascade=cascade, every=every,
+                progress=progress,
+            )  # fmt: skip
         click.echo(format_egos_summary(egos))
         return
-    sinks = make_sinks(None if no_rrd else (output or scene.with_suffix(".rrd")), table)
-    reader = open_scene(scene)
-    if ego is None:  # the scene's own ego: say which agent it is and why
-        click.echo(ego_note(reader.metadata), err=True)
-    summary = run_with_warnings(
-        reader, sinks=sinks, cascade=cascade, ego=ego, progress=progress, every=every
-    )
+    rrd = None if no_rrd else (output or scene.with_suffix(".rrd"))
+    with OutputGuard(inputs=inputs, files=(rrd, table)):  # checked before the replay
+        sinks = make_sinks(rrd, table)
+        reader = open_scene(scene)
+        if ego is None:  # the scene's own ego: say which agent it is and why
+            click.echo(ego_note(reader.metadata), err=True)
+        summary = run_with_warnings(
+            reader, sinks=sinks, cascade=cascade, ego=ego, progress=progress, every=every
+        )
     click.echo(format_summary(summary))
 
 

@@ -8,10 +8,12 @@ import time
 
 import click
 
+from base.guard import OutputGuard
 from replay.commands.ego_options import ego_option, every_option
 from replay.commands.settings_option import load_cascade, set_option
 from replay.engine import Stride
 from replay.inputs import collect, resolve_inputs
+from replay.limits import WORKERS
 from replay.pool import default_workers
 from replay.stats import (
     DEFAULT_ERRORS_MODEL,
@@ -54,7 +56,7 @@ from risk.registry import resolve_models
 )
 @click.option(
     "--workers",
-    type=click.IntRange(min=1),
+    type=WORKERS,
     default=None,
     help="Processes replaying scenes in parallel. Default: the number of CPUs.",
 )
@@ -98,34 +100,36 @@ def stats(
     resolve_models([errors_model])
     cascade = load_cascade(cascade_file, sets)
     found = resolve_inputs(inputs)
-    engine_models = None
-    if chosen is not None:
-        engine_models = list(dict.fromkeys([*chosen, errors_model, "survival"]))
-    times: dict[str, float] = {}
-    start = time.perf_counter()
-    agents, frames, stage_names, tier_names = collect(
-        found,
-        cascade,
-        models=engine_models,
-        workers=workers or default_workers(),
-        progress=progress,
-        ego=ego,
-        every=every,
-    )
-    times["replay / read"] = time.perf_counter() - start
-    result = run_stats(
-        agents,
-        frames,
-        out_dir,
-        models=chosen,
-        errors_model=errors_model,
-        stage_names=stage_names,
-        tier_names=tier_names,
-        cascade=cascade,
-        inputs=[str(p) for p in (*found.scenes, *found.tables)],
-        plots=plots,
-        times=times,
-    )
+    guard = OutputGuard(inputs=(*found.scenes, *found.tables, cascade_file), folders=(out_dir,))
+    with guard:  # checked and locked before the replays; all files appear together
+        engine_models = None
+        if chosen is not None:
+            engine_models = list(dict.fromkeys([*chosen, errors_model, "survival"]))
+        times: dict[str, float] = {}
+        start = time.perf_counter()
+        agents, frames, stage_names, tier_names = collect(
+            found,
+            cascade,
+            models=engine_models,
+            workers=workers or default_workers(),
+            progress=progress,
+            ego=ego,
+            every=every,
+        )
+        times["replay / read"] = time.perf_counter() - start
+        result = run_stats(
+            agents,
+            frames,
+            out_dir,
+            models=chosen,
+            errors_model=errors_model,
+            stage_names=stage_names,
+            tier_names=tier_names,
+            cascade=cascade,
+            inputs=[str(p) for p in (*found.scenes, *found.tables)],
+            plots=plots,
+            times=times,
+        )
     click.echo(format_stats(result.stats, times))
     click.echo("Wrote:")
     for path in result.files.values():

@@ -14,6 +14,7 @@ import numpy as np
 import polars as pl
 
 from base.atomic import atomic_write, write_text
+from base.guard import target_of_temp
 from replay.errors import StatsError
 from replay.stats.compute import DatasetStats
 from replay.stats.sink import (
@@ -23,6 +24,7 @@ from replay.stats.sink import (
     time_columns,
     with_ego_column,
 )
+from replay.tablecheck import check_agents_table
 
 
 # ---------------------------------------------------------------------- tables from disk
@@ -82,6 +84,7 @@ def read_agents_table(path: str | os.PathLike[str], scene: str | None = None) ->
     if missing or not model_names_of(df):
         what = ", ".join(missing) or "risk_<model>"
         raise StatsError(f"{path}: not a 'replay run --table' table (no {what} column)")
+    check_agents_table(df, path)  # empty, non-numeric or out-of-range risks
     if df.schema["baseline"] != pl.Boolean:
         df = df.with_columns(pl.col("baseline").cast(pl.String).str.to_lowercase() == "true")
     if "scene" not in df.columns:
@@ -133,10 +136,14 @@ def write_stats(stats: DatasetStats, out_dir: str | os.PathLike[str]) -> dict[st
 
 
 def _write_table(df: pl.DataFrame, tmp: str, suffix: str) -> None:
-    if suffix == ".csv":
-        df.write_csv(tmp)
-    else:
-        df.write_parquet(tmp, compression="zstd")
+    try:
+        if suffix == ".csv":
+            df.write_csv(tmp)
+        else:
+            df.write_parquet(tmp, compression="zstd")
+    except pl.exceptions.PolarsError as exc:  # e.g. a full disk ("os error 28")
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise StatsError(f"could not write {target_of_temp(tmp)}: {first}") from None
 
 
 def _jsonable(value: Any) -> Any:

@@ -1,0 +1,41 @@
+"""Bounds on what a user can ask for on the command line, checked before any allocation.
+
+Each bound is a click parameter type, so a request beyond it is a one-line usage error
+(exit 2) naming the option and its range, instead of an ``OverflowError``, a
+``MemoryError`` after minutes, or a run without end.
+"""
+
+from __future__ import annotations
+
+import os
+
+import click
+
+MAX_SEED = 2**63 - 1  # numpy seeds are non-negative; SeedSequence takes any such integer
+MAX_WORKERS = max(8, 8 * (os.cpu_count() or 1))  # processes: more only thrash the machine
+MAX_AGENTS = 10_000  # agents in one synthetic scene (the paper: 30 to 100)
+MAX_SITUATIONS = 1_000_000  # synthetic situations of one command
+MIN_PERIOD_S = 1e-3  # frame period: 1 kHz at most
+MAX_PERIOD_S = 3600.0
+MAX_DURATION_S = 24 * 3600.0
+MAX_FRAMES = 1_000_000  # frames of one synthetic scene (duration / period)
+MAX_ARM_LENGTH_M = 100_000.0  # a synthetic intersection's arms: 100 km
+
+SEEDS = click.IntRange(0, MAX_SEED)
+WORKERS = click.IntRange(1, MAX_WORKERS)
+AGENTS = click.IntRange(1, MAX_AGENTS)
+SITUATIONS = click.IntRange(1, MAX_SITUATIONS)
+PERIODS = click.FloatRange(MIN_PERIOD_S, MAX_PERIOD_S)
+DURATIONS = click.FloatRange(0, MAX_DURATION_S, min_open=True)
+ARM_LENGTHS = click.FloatRange(30, MAX_ARM_LENGTH_M)
+
+
+def check_frames(duration_s: float, period_s: float) -> None:
+    """Refuse a synthetic scene of more than :data:`MAX_FRAMES` frames."""
+    frames = duration_s / period_s
+    if frames > MAX_FRAMES:
+        raise click.BadParameter(
+            f"--duration {duration_s:g} s at --period {period_s:g} s is {frames:.3g} frames;"
+            f" at most {MAX_FRAMES} are supported",
+            param_hint="--duration/--period",
+        )

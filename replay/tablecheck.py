@@ -1,0 +1,54 @@
+"""Checks of an agents table read back from disk (``replay run --table``), so that a
+damaged or foreign table is reported instead of feeding impossible values into the
+statistics: no rows, non-numeric risk columns, or a risk outside its model's range.
+
+Ranges (docs/models.md): every model's risk lies in ``[0, 1]`` except ``gaussian``
+(``[0, inf)``, unit 1/m^2). NaN is allowed (the ego and invalid agents have no risk).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import polars as pl
+
+from replay.errors import ReplayError
+
+RISK_PREFIX = "risk_"
+DEFAULT_RANGE = (0.0, 1.0)
+RANGES: dict[str, tuple[float, float]] = {"gaussian": (0.0, math.inf)}
+TOLERANCE = 1e-9  # float noise at the ends of a range
+
+
+class TableError(ReplayError):
+    """A table file holds values no ``replay run --table`` could have written."""
+
+
+def check_agents_table(df: pl.DataFrame, path: str | os.PathLike[str]) -> None:
+    """Raise :class:`TableError` naming ``path`` when the table is empty, a risk column
+    is not numeric, or a risk value is outside its model's range."""
+    if df.height == 0:
+        raise TableError(f"{path}: the table has no rows; replay the scene again")
+    for column in (c for c in df.columns if c.startswith(RISK_PREFIX)):
+        dtype = df.schema[column]
+        if not (dtype.is_numeric() or dtype == pl.Null):
+            raise TableError(
+                f"{path}: column {column} holds {dtype} values, not numbers; the table is"
+                " damaged or not from 'replay run --table'"
+            )
+        model = column.removeprefix(RISK_PREFIX)
+        lo, hi = RANGES.get(model, DEFAULT_RANGE)
+        values = pl.col(column).cast(pl.Float64)
+        bad = df.select(
+            (values.is_infinite() | (values < lo - TOLERANCE) | (values > hi + TOLERANCE)).sum()
+        ).item()
+        if bad:
+            first = df.filter(
+                values.is_infinite() | (values < lo - TOLERANCE) | (values > hi + TOLERANCE)
+            )[column][0]
+            raise TableError(
+                f"{path}: {bad} value(s) of {column} lie outside the model's range"
+                f" [{lo:g}, {hi:g}] (e.g. {first:g}); the table is damaged, replay the scene"
+                " again"
+            )
