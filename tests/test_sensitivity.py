@@ -219,6 +219,7 @@ def invoke(*args):
 
 def test_evaluate_sensitivity_and_report(corpus, tmp_path):
     out, report = tmp_path / "out", tmp_path / "docs" / "recorded-evaluation.md"
+    report.parent.mkdir()  # the output guard wants the report's folder to exist
     r = invoke("evaluate", *paths(corpus), "-o", out, "--bootstrap", 20, "--sensitivity",
                "--sensitivity-bootstrap", 10, "--sensitivity-every", "1s", "--report", report,
                "--workers", 1, "--no-progress")  # fmt: skip
