@@ -224,8 +224,9 @@ def evaluate(
             files.update(write_sweep(sweep, out_dir, plots=plots))
             click.echo(format_sweep(sweep))
         files.update(write_evaluation(summary, agents, out_dir, datasets=datasets, plots=plots))
-        if report_path is not None:
-            command = " ".join(["replay", "evaluate", *sys.argv[2:]]) if len(sys.argv) > 1 else ""
+    if report_path is not None:  # after the guard: it copies the plots written above
+        command = " ".join(["replay", "evaluate", *sys.argv[2:]]) if len(sys.argv) > 1 else ""
+        with OutputGuard(files=(report_path,)):
             files.update(
                 write_report(
                     report_path, summary, agents, out_dir=out_dir, sweep=sweep,
