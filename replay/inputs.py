@@ -21,6 +21,7 @@ from replay.stats import (
 )
 from replay.worker import SceneJob, replay_job
 from risk.cascade import CascadeConfig
+from risk.hindsight import HindsightSettings
 
 SCENE_SUFFIXES = (".mcap",)
 TABLE_SUFFIXES = (".parquet", ".csv")
@@ -78,7 +79,7 @@ def collect(
     progress: bool,
     params: object = None,
     prediction: object = None,
-    hindsight: object = None,
+    hindsight: HindsightSettings | None = None,
     ego: int | str | None = None,
     every: Stride = EVERY_FRAME,
 ) -> tuple[pl.DataFrame, pl.DataFrame, list[str], list[str]]:
