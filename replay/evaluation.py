@@ -526,9 +526,9 @@ def collect_agents(
     )
     files = [*found.scenes, *found.tables]
     names = scene_names(files)
-    datasets = {n: p.resolve().parent.name for n, p in zip(names, files, strict=True)}
+    datasets = {n: p.absolute().parent.name for n, p in zip(names, files, strict=True)}
     if "scene" in agents.columns:  # merged tables name their scenes themselves
-        table_dirs = {p.resolve().parent.name for p in found.tables}
+        table_dirs = {p.absolute().parent.name for p in found.tables}
         for s in agents["scene"].unique().to_list():
             if s not in datasets and len(table_dirs) == 1:
                 datasets[s] = next(iter(table_dirs))

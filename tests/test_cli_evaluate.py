@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from converters.mcap_io import write_scene
 from replay.cli import main
-from replay.evaluation import EvaluationSettings, evaluate_inputs, site_of
+from replay.evaluation import EvaluationSettings, collect_agents, evaluate_inputs, site_of
 from risk.frame import Frame, LaneMap, Scene
 
 
@@ -186,3 +186,14 @@ def test_every_moving_agent_as_the_ego(corpus, tmp_path):
     assert summary["references"]["hindsight"]["positive_agents"] == 4
     r = invoke("evaluate", corpus / "setA", "-o", out, "--ego", "nobody", "--no-progress")
     assert r.exit_code != 0 and "neither an agent id" in r.output
+
+
+def test_dataset_is_the_folder_named_not_where_a_link_points(corpus, tmp_path):
+    """Scenes linked into one folder per dataset (e.g. from replay batch's flat
+    OUT/scenes/) are grouped by the folder they were named in, not the link target's."""
+    linked = tmp_path / "mydata"
+    linked.mkdir()
+    for scene in (corpus / "setA").glob("*.mcap"):
+        (linked / scene.name).symlink_to(scene)
+    _, datasets, _ = collect_agents([linked])
+    assert set(datasets.values()) == {"mydata"}
