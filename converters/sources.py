@@ -201,8 +201,9 @@ def _av2_scenes(inp: SourceInput, opt: ReadOptions, skipped: Skipped) -> Iterato
 
         def build(parquet: pathlib.Path = parquet) -> Scene:
             return av2.parquet_to_scene(
-                parquet, paths=opt.paths, settings=opt.settings, progress=opt.progress
-            )
+                parquet, paths=opt.paths, settings=opt.settings, progress=opt.progress,
+                skip_bad=opt.skip_bad, skipped=skipped,
+            )  # fmt: skip
 
         yield parquet.stem, build
 
@@ -219,8 +220,9 @@ def _av2_sensor_scenes(
 
         def build(log: pathlib.Path = log) -> Scene:
             return av2_sensor.read_scene(
-                log, paths=opt.paths, settings=opt.settings, progress=opt.progress
-            )
+                log, paths=opt.paths, settings=opt.settings, progress=opt.progress,
+                skip_bad=opt.skip_bad, skipped=skipped,
+            )  # fmt: skip
 
         yield log.name, build
 

@@ -201,3 +201,24 @@ def test_real_sample_replays_with_every_valid_agent_scored(shared_data, tmp_path
     assert set(zip(rows["frame"].to_list(), rows["agent_id"].to_list(), strict=True)) == expected
     risks = [c for c in rows.columns if c.startswith("risk_")]
     assert rows.select(pl.all_horizontal([pl.col(c).is_finite() for c in risks])).to_series().all()
+
+
+def test_cli_skip_bad_drops_a_non_finite_state(tmp_path):
+    """`replay convert av2 --skip-bad` reaches the converter's bad-value rule: a NaN
+    position stops the default run and is dropped, counted, with the option."""
+    parquet = write_scenario(tmp_path / "s")
+    df = pl.read_parquet(parquet)
+    df = df.with_columns(
+        pl.when(pl.int_range(pl.len()) == 1).then(float("nan")).otherwise(pl.col("position_x"))
+        .alias("position_x")
+    )  # fmt: skip
+    df.write_parquet(parquet)
+    runner = CliRunner()
+    out = tmp_path / "out.mcap"
+    strict = runner.invoke(main, ["convert", "av2", str(tmp_path / "s"), "-o", str(out)])
+    assert strict.exit_code == 1 and not out.exists()
+    result = runner.invoke(
+        main, ["convert", "av2", str(tmp_path / "s"), "-o", str(out), "--skip-bad"]
+    )
+    assert result.exit_code == 0, result.output
+    assert parquet_to_scene(parquet, skip_bad=True).metadata["bad_states_dropped"] == "1"
