@@ -82,6 +82,11 @@ class _CompileNotice(event.Listener):
 
 event.register("numba:compile", _CompileNotice())
 
+#: Every kernel function: cached; numpy's error model (a float division by zero gives
+#: inf or NaN, as in the numpy oracle, instead of a Python ZeroDivisionError check
+#: around every division).
+_jit = numba.njit(cache=True, error_model="numpy")
+
 # Model slots, in registry order.
 CUR, PATH, TRAJ, ENC, HW, H2D, CIRC, GAUSS, SURV = range(9)
 N_MODELS = 9
@@ -108,7 +113,7 @@ INF = math.inf
 
 
 # ---------------------------------------------------------------------- summation
-@numba.njit(cache=True)
+@_jit
 def _pw_leaf(a: np.ndarray, s: int, n: int) -> float:
     if n < 8:
         res = 0.0
@@ -136,7 +141,7 @@ def _pw_leaf(a: np.ndarray, s: int, n: int) -> float:
     return res
 
 
-@numba.njit(cache=True)
+@_jit
 def np_sum(a: np.ndarray, n: int) -> float:
     """``a[:n].sum()`` exactly as numpy adds (pairwise), without recursion."""
     if n <= PW_BLOCK:
@@ -172,7 +177,7 @@ def np_sum(a: np.ndarray, n: int) -> float:
 
 
 # ---------------------------------------------------------------------- paths
-@numba.njit(cache=True)
+@_jit
 def _extend(paths, m, npts, heading, min_len, seg, ex, ey, ecum, eux, euy):
     """risk.geometry.extend_paths, cumulative_lengths and segment_unit_vectors for row m.
 
@@ -220,7 +225,7 @@ def _extend(paths, m, npts, heading, min_len, seg, ex, ey, ecum, eux, euy):
     return npts + 1
 
 
-@numba.njit(cache=True)
+@_jit
 def _interp(ex, ey, ecum, s, j):
     """Point at arc ``s`` of a padded path (risk.geometry.interpolate_components).
 
@@ -240,7 +245,7 @@ def _interp(ex, ey, ecum, s, j):
     return x, y, seg, j
 
 
-@numba.njit(cache=True)
+@_jit
 def _cut(ex, ey, ecum, length_m, cx, cy):
     """risk.geometry.cut_paths for one padded path; returns the cut's point count."""
     p1 = ex.shape[0]
@@ -259,7 +264,7 @@ def _cut(ex, ey, ecum, length_m, cx, cy):
     return n
 
 
-@numba.njit(cache=True)
+@_jit
 def _boxes(x, y, n, box):
     """Bounding boxes (lox, loy, hix, hiy) of chunks of K segments; returns the count."""
     nseg = max(n - 1, 1)
@@ -277,19 +282,19 @@ def _boxes(x, y, n, box):
     return c
 
 
-@numba.njit(cache=True)
+@_jit
 def _gap2(a, ia, b, ib):
     gx = max(max(b[ib, 0] - a[ia, 2], a[ia, 0] - b[ib, 2]), 0.0)
     gy = max(max(b[ib, 1] - a[ia, 3], a[ia, 1] - b[ib, 3]), 0.0)
     return gx * gx + gy * gy
 
 
-@numba.njit(cache=True)
+@_jit
 def _sign(v):
     return 1.0 if v > 0 else (-1.0 if v < 0 else 0.0)
 
 
-@numba.njit(cache=True)
+@_jit
 def _pseg2(px, py, ox, oy, sx, sy, inv2):
     """Squared distance from a point to a segment (as risk.geometry._side_and_distance2)."""
     rx = px - ox
@@ -301,12 +306,12 @@ def _pseg2(px, py, ox, oy, sx, sy, inv2):
     return rx * rx + ry * ry
 
 
-@numba.njit(cache=True)
-def _chunk_pair2(ax, ay, an, ca, bx, by, bn, cb, best):
-    """Least squared distance between the segments of chunk ``ca`` of polyline a and chunk
-    ``cb`` of b, or ``best`` when none is nearer; 0 when two segments intersect
-    (risk.geometry._fine). Segment pairs whose boxes are farther apart than ``best`` are
-    skipped (they can neither intersect nor be nearer)."""
+@_jit
+def _cross_any(ax, ay, an, ca, bx, by, bn, cb):
+    """Whether a segment of chunk ``ca`` of polyline a crosses or touches a segment of
+    chunk ``cb`` of b by the orientation test of risk.geometry._fine (collinear overlaps
+    excluded: their distance is 0 anyway). Only segment pairs whose boxes touch are
+    tested; the others cannot meet."""
     sa = max(an - 1, 1)
     sb = max(bn - 1, 1)
     for i in range(ca * K, min(ca * K + K, sa)):
@@ -316,35 +321,71 @@ def _chunk_pair2(ax, ay, an, ca, bx, by, bn, cb, best):
         s1x, s1y = q1x - p1x, q1y - p1y
         lo1x, hi1x = min(p1x, q1x), max(p1x, q1x)
         lo1y, hi1y = min(p1y, q1y), max(p1y, q1y)
-        len1 = s1x * s1x + s1y * s1y
-        inv1 = 1.0 / len1 if len1 > 1e-300 else 0.0
         for j in range(cb * K, min(cb * K + K, sb)):
             j1 = min(j + 1, bn - 1)
             p2x, p2y = bx[j], by[j]
             q2x, q2y = bx[j1], by[j1]
-            gx = max(max(min(p2x, q2x) - hi1x, lo1x - max(p2x, q2x)), 0.0)
-            gy = max(max(min(p2y, q2y) - hi1y, lo1y - max(p2y, q2y)), 0.0)
-            if gx * gx + gy * gy > best:
+            if min(p2x, q2x) > hi1x or lo1x > max(p2x, q2x):
+                continue
+            if min(p2y, q2y) > hi1y or lo1y > max(p2y, q2y):
                 continue
             s2x, s2y = q2x - p2x, q2y - p2y
             o1 = _sign(s1x * (p2y - p1y) - s1y * (p2x - p1x))
             o2 = _sign(s1x * (q2y - p1y) - s1y * (q2x - p1x))
+            if o1 * o2 > 0:
+                continue
             o3 = _sign(s2x * (p1y - p2y) - s2y * (p1x - p2x))
             o4 = _sign(s2x * (q1y - p2y) - s2y * (q1x - p2x))
             collinear = o1 == 0 and o2 == 0 and o3 == 0 and o4 == 0
-            if o1 * o2 <= 0 and o3 * o4 <= 0 and not collinear:
-                return 0.0
-            len2 = s2x * s2x + s2y * s2y
-            inv2 = 1.0 / len2 if len2 > 1e-300 else 0.0
-            d = _pseg2(p2x, p2y, p1x, p1y, s1x, s1y, inv1)
-            d = min(d, _pseg2(q2x, q2y, p1x, p1y, s1x, s1y, inv1))
-            d = min(d, _pseg2(p1x, p1y, p2x, p2y, s2x, s2y, inv2))
-            d = min(d, _pseg2(q1x, q1y, p2x, p2y, s2x, s2y, inv2))
-            best = min(best, d)
+            if o3 * o4 <= 0 and not collinear:
+                return True
+    return False
+
+
+@_jit
+def _points_to_segments2(ax, ay, an, ca, bx, by, bn, cb, best):
+    """Least squared distance from the vertices of chunk ``cb`` of b to the segments of
+    chunk ``ca`` of a, or ``best`` when none is nearer. A vertex whose distance to a
+    segment's box is at least ``best`` is skipped (it cannot be nearer)."""
+    sa = max(an - 1, 1)
+    sb = max(bn - 1, 1)
+    j0 = cb * K
+    j1 = min(cb * K + K, sb)  # the chunk's last vertex (its last segment's end)
+    for i in range(ca * K, min(ca * K + K, sa)):
+        i1 = min(i + 1, an - 1)
+        ox, oy = ax[i], ay[i]
+        qx, qy = ax[i1], ay[i1]
+        sx, sy = qx - ox, qy - oy
+        lox, hix = min(ox, qx), max(ox, qx)
+        loy, hiy = min(oy, qy), max(oy, qy)
+        len2 = sx * sx + sy * sy
+        inv2 = 1.0 / len2 if len2 > 1e-300 else 0.0
+        for j in range(j0, j1 + 1):
+            jj = min(j, bn - 1)
+            px, py = bx[jj], by[jj]
+            gx = max(max(lox - px, px - hix), 0.0)
+            gy = max(max(loy - py, py - hiy), 0.0)
+            if gx * gx + gy * gy > best:
+                continue
+            best = min(best, _pseg2(px, py, ox, oy, sx, sy, inv2))
     return best
 
 
-@numba.njit(cache=True)
+@_jit
+def _chunk_pair2(ax, ay, an, ca, bx, by, bn, cb, best, touch):
+    """Least squared distance between the segments of chunk ``ca`` of polyline a and chunk
+    ``cb`` of b, or ``best`` when none is nearer; 0 when two segments cross
+    (risk.geometry._fine). As there, the distance of two segments that do not cross is
+    the least of their vertex-to-segment distances, so each vertex-segment distance is
+    computed once per chunk pair, not once per segment pair. ``touch``: whether the chunk
+    boxes touch (otherwise no segments can cross)."""
+    if touch and _cross_any(ax, ay, an, ca, bx, by, bn, cb):
+        return 0.0
+    best = _points_to_segments2(ax, ay, an, ca, bx, by, bn, cb, best)
+    return _points_to_segments2(bx, by, bn, cb, ax, ay, an, ca, best)
+
+
+@_jit
 def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2, cut2):
     """Exact least distance between polylines a and b (risk.geometry.polyline_distances).
 
@@ -360,15 +401,15 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
                 gmin, amin, bmin = g, i, j
     if gmin > cut2:
         return math.sqrt(gmin)  # a lower bound beyond the cut: the caller drops
-    best = _chunk_pair2(ax, ay, an, amin, bx, by, bn, bmin, INF)
+    best = _chunk_pair2(ax, ay, an, amin, bx, by, bn, bmin, INF, gmin == 0.0)
     if best == 0.0 or best <= stop2:
         return math.sqrt(best)
     for i in range(nca):
         for j in range(ncb):
             g = gaps[i * ncb + j]
-            if g > best or g > cut2 or (i == amin and j == bmin):
-                continue
-            d = _chunk_pair2(ax, ay, an, i, bx, by, bn, j, best)
+            if g >= best or g > cut2 or (i == amin and j == bmin):
+                continue  # (a pair no nearer than the best cannot lower it)
+            d = _chunk_pair2(ax, ay, an, i, bx, by, bn, j, best, g == 0.0)
             if d < best:
                 best = d
                 if best == 0.0 or best <= stop2:
@@ -376,7 +417,7 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
     return math.sqrt(best)
 
 
-@numba.njit(cache=True)
+@_jit
 def _project(px, py, ex, ey, ecum, n):
     """Distance from a point to a polyline and the arc length of the nearest point, the
     first along the path on ties (risk.geometry.project_points)."""
@@ -398,7 +439,7 @@ def _project(px, py, ex, ey, ecum, n):
     return math.sqrt(best), arc
 
 
-@numba.njit(cache=True)
+@_jit
 def _touch0(px, py, ax, ay, bx, by):
     """Whether risk.geometry._point_segment_distance is exactly 0."""
     abx = bx - ax
@@ -411,7 +452,7 @@ def _touch0(px, py, ax, ay, bx, by):
     return rx - t * abx == 0.0 and ry - t * aby == 0.0
 
 
-@numba.njit(cache=True)
+@_jit
 def _first_crossing(bx, by, bcum, bn, bbox, ncb, ax, ay, acum, an, abox, nca):
     """Arc lengths (along b, along a) of the first point along polyline b that lies on a
     (risk.geometry.first_intersections); NaN, NaN when they never meet."""
@@ -472,7 +513,7 @@ def _first_crossing(bx, by, bcum, bn, bbox, ncb, ax, ay, acum, an, abox, nca):
 
 
 # ---------------------------------------------------------------------- prediction
-@numba.njit(cache=True)
+@_jit
 def _predict(ex, ey, ecum, eux, euy, v, steps, u, tx, ty, dxs, dys, slon, cxx, cxy, cyy):
     """Constant-speed prediction along the extended path, and the covariances
     (risk.prediction.FrameContext._trajectory, uncertainty_sigmas, covariances)."""
@@ -495,7 +536,7 @@ def _predict(ex, ey, ecum, eux, euy, v, steps, u, tx, ty, dxs, dys, slon, cxx, c
         cyy[k] = a * ss + b * cc
 
 
-@numba.njit(cache=True)
+@_jit
 def _time_gap(arc, l1, v1):
     """(l2 - l1) / v1 ahead of the ego, inf behind it, for NaN or a standing ego."""
     if v1 <= 0:
@@ -507,7 +548,7 @@ def _time_gap(arc, l1, v1):
 
 
 # ---------------------------------------------------------------------- the kernel
-@numba.njit(cache=True)
+@_jit
 def _row_starts(path_agent, n):
     start = np.full(n + 1, -1, np.int64)
     m = path_agent.shape[0]
@@ -520,7 +561,7 @@ def _row_starts(path_agent, n):
     return start
 
 
-@numba.njit(cache=True)
+@_jit
 def evaluate_agents(
     xy, heading, speed, length, width, kinds, valid, paths, path_points, path_agent, ego,
     agents, steps, unc, want, fp, ip, stop2, cut2,
@@ -763,7 +804,7 @@ def evaluate_agents(
     return out
 
 
-@numba.njit(cache=True)
+@_jit
 def reachable(
     paths, path_agent, speed, kinds, ego, agents, horizon, n_steps, unc, max_speed, threshold
 ):
