@@ -418,24 +418,42 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
 
 
 @_jit
-def _project(px, py, ex, ey, ecum, n):
-    """Distance from a point to a polyline and the arc length of the nearest point, the
-    first along the path on ties (risk.geometry.project_points)."""
-    best, arc = INF, 0.0
+def _segments(ex, ey, n, inv2, slen):
+    """Per segment of a polyline: ``1 / length^2`` (0 for a zero-length one) and the
+    length, as risk.geometry.project_points computes them."""
     for j in range(n - 1):
         abx = ex[j + 1] - ex[j]
         aby = ey[j + 1] - ey[j]
         len2 = abx * abx + aby * aby
-        inv2 = 1.0 / len2 if len2 > 0 else 0.0
-        rx = px - ex[j]
-        ry = py - ey[j]
-        t = min(max((rx * abx + ry * aby) * inv2, 0.0), 1.0)
-        rx -= t * abx
-        ry -= t * aby
-        d2 = rx * rx + ry * ry
-        if d2 < best:
-            best = d2
-            arc = ecum[j] + t * math.sqrt(len2)
+        inv2[j] = 1.0 / len2 if len2 > 0 else 0.0
+        slen[j] = math.sqrt(len2)
+
+
+@_jit
+def _project(px, py, ex, ey, ecum, n, inv2, slen, box, nb):
+    """Distance from a point to a polyline and the arc length of the nearest point, the
+    first along the path on ties (risk.geometry.project_points). ``inv2``, ``slen``: from
+    :func:`_segments`; ``box``, ``nb``: the chunk boxes. Chunks are walked in order and
+    one whose box is farther than the best so far is skipped (it holds no nearer point,
+    and a later tie never wins)."""
+    best, arc = INF, 0.0
+    for c in range(nb):
+        gx = max(max(box[c, 0] - px, px - box[c, 2]), 0.0)
+        gy = max(max(box[c, 1] - py, py - box[c, 3]), 0.0)
+        if gx * gx + gy * gy > best:
+            continue
+        for j in range(c * K, min(c * K + K, n - 1)):
+            abx = ex[j + 1] - ex[j]
+            aby = ey[j + 1] - ey[j]
+            rx = px - ex[j]
+            ry = py - ey[j]
+            t = min(max((rx * abx + ry * aby) * inv2[j], 0.0), 1.0)
+            rx -= t * abx
+            ry -= t * aby
+            d2 = rx * rx + ry * ry
+            if d2 < best:
+                best = d2
+                arc = ecum[j] + t * slen[j]
     return math.sqrt(best), arc
 
 
@@ -464,12 +482,20 @@ def _first_crossing(bx, by, bcum, bn, bbox, ncb, ax, ay, acum, an, abox, nca):
             if _gap2(abox, ca, bbox, cb) != 0.0:
                 continue
             for i in range(cb * K, min(cb * K + K, bn - 1)):
+                if bcum[i] > best_b:
+                    break  # any point of this segment lies beyond the crossing found
                 px, py = bx[i], by[i]
                 qx, qy = bx[i + 1], by[i + 1]
                 dx, dy = qx - px, qy - py
+                lox, hix = min(px, qx), max(px, qx)
+                loy, hiy = min(py, qy), max(py, qy)
                 for j in range(ca * K, min(ca * K + K, an - 1)):
                     e0x, e0y = ax[j], ay[j]
                     e1x, e1y = ax[j + 1], ay[j + 1]
+                    if min(e0x, e1x) > hix or lox > max(e0x, e1x):
+                        continue  # the segments' boxes do not touch: they cannot meet
+                    if min(e0y, e1y) > hiy or loy > max(e0y, e1y):
+                        continue
                     ex_, ey_ = e1x - e0x, e1y - e0y
                     o1 = _sign(ex_ * (py - e0y) - ey_ * (px - e0x))
                     o2 = _sign(ex_ * (qy - e0y) - ey_ * (qx - e0x))
@@ -611,6 +637,8 @@ def evaluate_agents(
     g_xy = np.empty((ne, ns))
     g_yy = np.empty((ne, ns))
     g_l1 = np.empty(ne)
+    g_inv2 = np.empty((ne, p1))
+    g_len = np.empty((ne, p1))
     v_e = speed[ego]
     u_e = unc[kinds[ego]]
     for e in range(ne):
@@ -626,7 +654,11 @@ def evaluate_agents(
             gx[e], gy[e], gcum[e], gux[e], guy[e], v_e, steps, u_e,
             g_tx[e], g_ty[e], g_dx[e], g_dy[e], g_sl[e], g_xx[e], g_xy[e], g_yy[e],
         )  # fmt: skip
-        g_l1[e] = _project(xy[ego, 0], xy[ego, 1], gx[e], gy[e], gcum[e], gn[e])[1]
+        _segments(gx[e], gy[e], gn[e], g_inv2[e], g_len[e])
+        g_l1[e] = _project(
+            xy[ego, 0], xy[ego, 1], gx[e], gy[e], gcum[e], gn[e], g_inv2[e], g_len[e],
+            gbox[e], gnb[e],
+        )[1]  # fmt: skip
     # ------------------------------------------------ per-row scratch
     ex = np.empty(p1)
     ey = np.empty(p1)
@@ -662,7 +694,10 @@ def evaluate_agents(
             best[CUR] = fp[F_EPS + CUR] / (fp[F_EPS + CUR] + d)
         if want[HW] or want[H2D]:
             for e in range(ne):
-                lateral[e], arc_on[e] = _project(xy[i, 0], xy[i, 1], gx[e], gy[e], gcum[e], gn[e])
+                lateral[e], arc_on[e] = _project(
+                    xy[i, 0], xy[i, 1], gx[e], gy[e], gcum[e], gn[e], g_inv2[e], g_len[e],
+                    gbox[e], gnb[e],
+                )  # fmt: skip
         v = speed[i]
         u = unc[kinds[i]]
         path_done = False
