@@ -181,7 +181,9 @@ def np_sum(a: np.ndarray, n: int) -> float:
 def _extend(paths, m, npts, heading, min_len, seg, ex, ey, ecum, eux, euy):
     """risk.geometry.extend_paths, cumulative_lengths and segment_unit_vectors for row m.
 
-    Writes the padded extended path (P+1 points) and returns its real point count."""
+    Writes the padded extended path (P+1 points) and returns its real point count. The
+    unit vectors are written only for the segments that start within ``min_len`` (the
+    prediction's reach, ``v T``): the prediction reads no others."""
     p = paths.shape[1]
     p1 = p + 1
     last = -1
@@ -214,6 +216,8 @@ def _extend(paths, m, npts, heading, min_len, seg, ex, ey, ecum, eux, euy):
         # the given segments keep their lengths (same points, same root)
         length = seg[j] if j < npts - 1 else math.sqrt(dx * dx + dy * dy)
         ecum[j + 1] = ecum[j] + length
+        if ecum[j] > min_len:
+            continue  # beyond the prediction's reach: no unit vector needed
         if length > 0:
             inv = 1.0 / length
             lx, ly = dx * inv, dy * inv
@@ -768,15 +772,19 @@ def evaluate_agents(
                     ry = ty[k] - g_ty[e, k]
                     d2 = rx * rx + ry * ry
                     d2min = min(d2min, d2)
-                    if want[CIRC]:
+                    if want[CIRC] and circ > 0.0:  # (once <= 0, the risk is 1)
                         reach = (r_ego + scale * g_sl[e, k]) + (0.5 * width[i] + scale * slon[k])
                         along = rx * dxs[k] + ry * dys[k]
                         c2min = INF
                         for c in range(n_circ):
                             o = length[i] * ((c + 0.5) / n_circ - 0.5)
                             c2min = min(c2min, d2 + (2.0 * o) * along + o * o)
-                        # sqrt is monotone: one root per step gives the same minimum
-                        circ = min(circ, math.sqrt(max(c2min, 0.0)) - reach)
+                        # sqrt is monotone: one root per step gives the same minimum; a
+                        # step certainly no nearer than the best (a margin for rounding)
+                        # skips it
+                        lim = circ + reach
+                        if lim > 0.0 and c2min <= lim * lim * (1.0 + 1e-9):
+                            circ = min(circ, math.sqrt(max(c2min, 0.0)) - reach)
                     if want[GAUSS] or want[SURV]:
                         sxx = cxx[k] + g_xx[e, k]
                         sxy = cxy[k] + g_xy[e, k]
