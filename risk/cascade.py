@@ -405,17 +405,148 @@ def _run_fused(
     settings = resolve_prediction(prediction)
     steps, unc = kernel_settings(settings)
     fp, ip = kernel_params(chosen, settings)
-    n, n_stages = frame.n_agents, len(config.stages)
+    n = frame.n_agents
     others = frame.others
     surv_slot = kernel.SLOTS.index(SURVIVAL_MODEL)
 
     start = time.perf_counter()
     survival_all = kernel.run(frame, _WANT[(surv_slot,)], fp, ip, steps, unc)[surv_slot]
     survival_all_time_s = time.perf_counter() - start
-    baseline = others & (np.nan_to_num(survival_all, nan=-np.inf) >= config.baseline_threshold)
+    baseline = others & (survival_all >= config.baseline_threshold)  # NaN: False
 
+    if all(stage.model in _FUSED_MODELS for stage in config.stages):
+        parts = _one_pass(frame, config, chosen, settings, steps, unc, fp, ip, reachability)
+    else:
+        parts = _pass_per_stage(
+            frame, config, chosen, settings, steps, unc, fp, ip, reachability, surv_slot
+        )
+    kept, dropped_at, unreachable, survival, current, times = parts
+    reach_time_s, stage_time_s, sort_time_s = times
+    false_negatives = (baseline[None, :] & ~kept).sum(axis=1).astype(np.int64)
+    tier = np.full(n, -1, dtype=np.int8)
+    if current.size:
+        start = time.perf_counter()
+        tier[current] = assign_tiers(survival[current], config.tiers)
+        sort_time_s += time.perf_counter() - start
+
+    return CascadeResult(
+        stage_names=config.stage_names,
+        kept=kept,
+        dropped_at=dropped_at,
+        tier=tier,
+        survival=survival,
+        baseline=baseline,
+        false_negatives=false_negatives,
+        stage_time_s=stage_time_s,
+        sort_time_s=sort_time_s,
+        survival_all_time_s=survival_all_time_s,
+        others=others,
+        survival_all=survival_all,
+        unreachable=unreachable,
+        reach_time_s=reach_time_s,
+    )
+
+
+#: Stage models that the one-pass kernel (:func:`risk.kernel.cascade_agents`) runs.
+_FUSED_MODELS = ("path_distance", "trajectory_distance", "gaussian")
+
+#: kept (S, N), dropped_at, unreachable, survival, survivors, (reach, stage, sort times).
+_Parts = tuple[
+    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[float, np.ndarray, float]
+]
+
+
+def _one_pass(
+    frame: Frame,
+    config: CascadeConfig,
+    chosen: Mapping[str, Any],
+    settings: Any,
+    steps: np.ndarray,
+    unc: np.ndarray,
+    fp: np.ndarray,
+    ip: np.ndarray,
+    reachability: bool,
+) -> _Parts:
+    """The bound, every stage and survival of the survivors in one kernel call.
+
+    Each stage's time (and the bound's, and survival's in the sort time) is the call's
+    measured wall time shared out in proportion to the CPU cycles the kernel counted in
+    that part (its set-up, the ego's prediction, and the call overhead are so shared
+    in the same proportion)."""
+    n_stages = len(config.stages)
+    slots, thr, stop2, cut2 = _stage_vectors(config.stages, chosen)
+    agents = _ro(np.flatnonzero(frame.others))
     start = time.perf_counter()
-    current = np.flatnonzero(others)
+    code, survival, cyc = kernel.cascade_agents(  # type: ignore[call-arg]
+        *kernel.frame_arrays(frame), int(frame.ego), agents, steps, unc, fp, ip, slots, thr,
+        stop2, cut2, bool(reachability), _MAX_SPEEDS, float(config.baseline_threshold),
+    )  # fmt: skip
+    wall = time.perf_counter() - start
+    parts = cyc[1:].astype(float)
+    total = parts.sum()
+    if total <= 0 and agents.size:  # no cycle counter on this CPU: time each stage
+        return _pass_per_stage(
+            frame, config, chosen, settings, steps, unc, fp, ip, reachability,
+            kernel.SLOTS.index(SURVIVAL_MODEL),
+        )  # fmt: skip
+    share = parts * (wall / total) if total > 0 else np.zeros(parts.size)
+    kept = code[None, :] > np.arange(n_stages)[:, None]
+    dropped_at = np.where((code >= 0) & (code < n_stages), code, -1).astype(np.int8)
+    unreachable = code == -1
+    dropped_at[unreachable] = 0
+    current = np.flatnonzero(code == n_stages)
+    return (
+        kept,
+        dropped_at,
+        unreachable,
+        survival,
+        current,
+        (float(share[0]), share[1 : 1 + n_stages].copy(), float(share[1 + n_stages])),
+    )
+
+
+@functools.lru_cache(maxsize=64)
+def _stage_vectors_cached(
+    stages: tuple[Any, ...], eps: tuple[float, ...]
+) -> tuple[np.ndarray, ...]:
+    slots = np.array([kernel.SLOTS.index(st.model) for st in stages], dtype=np.int64)
+    thr = np.array([st.threshold for st in stages], dtype=np.float64)
+    stop2 = np.full(len(stages), -1.0)
+    cut2 = np.full(len(stages), np.inf)
+    for s, (stage, e) in enumerate(zip(stages, eps, strict=True)):
+        if stage.model in ("path_distance", "trajectory_distance"):
+            stop2[s], cut2[s] = keep_bounds(stage.threshold, e)
+    for a in (slots, thr, stop2, cut2):
+        a.flags.writeable = False
+    return slots, thr, stop2, cut2
+
+
+def _stage_vectors(stages: tuple[Any, ...], chosen: Mapping[str, Any]) -> tuple[np.ndarray, ...]:
+    """Slots, thresholds and keep/drop bounds of the stages, as read-only arrays."""
+    eps = tuple(
+        float(chosen[st.model].epsilon_m) if hasattr(chosen[st.model], "epsilon_m") else 0.0
+        for st in stages
+    )
+    return _stage_vectors_cached(tuple(stages), eps)
+
+
+def _pass_per_stage(
+    frame: Frame,
+    config: CascadeConfig,
+    chosen: Mapping[str, Any],
+    settings: Any,
+    steps: np.ndarray,
+    unc: np.ndarray,
+    fp: np.ndarray,
+    ip: np.ndarray,
+    reachability: bool,
+    surv_slot: int,
+) -> _Parts:
+    """One kernel call for the bound, one per stage and one for survival, each timed
+    (stages of any model)."""
+    n, n_stages = frame.n_agents, len(config.stages)
+    start = time.perf_counter()
+    current = np.flatnonzero(frame.others)
     unreachable = np.zeros(n, dtype=bool)
     if reachability and current.size:
         reach = _reachable(frame, current, settings, unc, _MAX_SPEEDS, config.baseline_threshold)
@@ -446,36 +577,22 @@ def _run_fused(
             survival_known = out[surv_slot]
         current = current[keep]
         stage_time_s[s] = time.perf_counter() - start
-    false_negatives = (baseline[None, :] & ~kept).sum(axis=1).astype(np.int64)
-
     survival = np.full(n, np.nan)
-    tier = np.full(n, -1, dtype=np.int8)
     sort_time_s = 0.0
     if current.size:
         start = time.perf_counter()
         if survival_known is None:
             out = kernel.run(frame, _WANT[(surv_slot,)], fp, ip, steps, unc, _ro(current))
             survival_known = out[surv_slot]
-        risk_surv = survival_known[current]
-        survival[current] = risk_surv
-        tier[current] = assign_tiers(risk_surv, config.tiers)
+        survival[current] = survival_known[current]
         sort_time_s = time.perf_counter() - start
-
-    return CascadeResult(
-        stage_names=config.stage_names,
-        kept=kept,
-        dropped_at=dropped_at,
-        tier=tier,
-        survival=survival,
-        baseline=baseline,
-        false_negatives=false_negatives,
-        stage_time_s=stage_time_s,
-        sort_time_s=sort_time_s,
-        survival_all_time_s=survival_all_time_s,
-        others=others,
-        survival_all=survival_all,
-        unreachable=unreachable,
-        reach_time_s=reach_time_s,
+    return (
+        kept,
+        dropped_at,
+        unreachable,
+        survival,
+        current,
+        (reach_time_s, stage_time_s, sort_time_s),
     )
 
 
@@ -628,7 +745,8 @@ def assign_tiers(survival: np.ndarray, tiers: Sequence[Tier]) -> np.ndarray:
     Tier ``k`` holds the agents of tier ``k - 1`` whose risk is ``>= min_survival_risk``,
     capped to the ``max_agents`` riskiest (ties: the lower index first).
     """
-    risk = np.nan_to_num(np.asarray(survival, dtype=np.float64), nan=-np.inf)
+    risk = np.asarray(survival, dtype=np.float64)
+    risk = np.where(np.isnan(risk), -np.inf, risk)
     order = np.argsort(-risk, kind="stable")  # riskiest first
     result = np.full(risk.shape, -1, dtype=np.int8)
     members = order

@@ -36,7 +36,9 @@ from typing import Any
 
 import numba
 import numpy as np
-from numba.core import event
+from llvmlite import ir
+from numba.core import cgutils, event, types
+from numba.extending import intrinsic
 
 from risk.frame import Frame
 
@@ -376,16 +378,19 @@ def _points_to_segments2(ax, ay, an, ca, bx, by, bn, cb, best):
 
 
 @_jit
-def _chunk_pair2(ax, ay, an, ca, bx, by, bn, cb, best, touch):
+def _chunk_pair2(ax, ay, an, ca, bx, by, bn, cb, best, touch, stop2):
     """Least squared distance between the segments of chunk ``ca`` of polyline a and chunk
     ``cb`` of b, or ``best`` when none is nearer; 0 when two segments cross
     (risk.geometry._fine). As there, the distance of two segments that do not cross is
     the least of their vertex-to-segment distances, so each vertex-segment distance is
     computed once per chunk pair, not once per segment pair. ``touch``: whether the chunk
-    boxes touch (otherwise no segments can cross)."""
+    boxes touch (otherwise no segments can cross). Returns early, with a squared distance
+    at most ``stop2``, once one is found (the keep/drop mode)."""
     if touch and _cross_any(ax, ay, an, ca, bx, by, bn, cb):
         return 0.0
     best = _points_to_segments2(ax, ay, an, ca, bx, by, bn, cb, best)
+    if best <= stop2:
+        return best  # the caller stops here
     return _points_to_segments2(bx, by, bn, cb, ax, ay, an, ca, best)
 
 
@@ -405,7 +410,7 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
                 gmin, amin, bmin = g, i, j
     if gmin > cut2:
         return math.sqrt(gmin)  # a lower bound beyond the cut: the caller drops
-    best = _chunk_pair2(ax, ay, an, amin, bx, by, bn, bmin, INF, gmin == 0.0)
+    best = _chunk_pair2(ax, ay, an, amin, bx, by, bn, bmin, INF, gmin == 0.0, stop2)
     if best == 0.0 or best <= stop2:
         return math.sqrt(best)
     for i in range(nca):
@@ -413,7 +418,7 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
             g = gaps[i * ncb + j]
             if g >= best or g > cut2 or (i == amin and j == bmin):
                 continue  # (a pair no nearer than the best cannot lower it)
-            d = _chunk_pair2(ax, ay, an, i, bx, by, bn, j, best, g == 0.0)
+            d = _chunk_pair2(ax, ay, an, i, bx, by, bn, j, best, g == 0.0, stop2)
             if d < best:
                 best = d
                 if best == 0.0 or best <= stop2:
@@ -848,6 +853,29 @@ def evaluate_agents(
 
 
 @_jit
+def _reach_keep(paths, starts, i, ego, speed, kinds, horizon, n_steps, unc, max_speed, log_thr):
+    """The reachability bound for agent ``i`` (see :func:`reachable`); ``log_thr`` is
+    ``log(threshold / 1000)``."""
+    ue = unc[kinds[ego]]
+    sm_e = max(ue[4], ue[5])
+    s0_e = min(min(ue[0], ue[4]), min(ue[1], ue[5]))
+    d0 = INF
+    for r in range(starts[i], starts[i + 1]):
+        for re in range(starts[ego], starts[ego + 1]):
+            d0 = min(
+                d0,
+                math.hypot(paths[r, 0, 0] - paths[re, 0, 0], paths[r, 0, 1] - paths[re, 0, 1]),
+            )
+    u = unc[kinds[i]]
+    w = max(speed[i], max_speed[kinds[i]]) + speed[ego]
+    d = max(d0 - w * horizon, 0.0)
+    big = max(u[4], u[5]) ** 2 + sm_e**2
+    small = min(min(u[0], u[4]), min(u[1], u[5])) ** 2 + s0_e**2
+    log_bound = math.log(n_steps / (2.0 * math.pi * small)) - d * d / (2.0 * big)
+    return log_bound >= log_thr
+
+
+@_jit
 def reachable(
     paths, path_agent, speed, kinds, ego, agents, horizon, n_steps, unc, max_speed, threshold
 ):
@@ -867,27 +895,308 @@ def reachable(
     keep = np.ones(agents.shape[0], np.bool_)
     if not threshold > 0:
         return keep
-    ue = unc[kinds[ego]]
-    sm_e = max(ue[4], ue[5])
-    s0_e = min(min(ue[0], ue[4]), min(ue[1], ue[5]))
     log_thr = math.log(threshold / 1000.0)
     for a_idx in range(agents.shape[0]):
-        i = agents[a_idx]
-        d0 = INF
-        for r in range(starts[i], starts[i + 1]):
-            for re in range(starts[ego], starts[ego + 1]):
-                d0 = min(
-                    d0,
-                    math.hypot(paths[r, 0, 0] - paths[re, 0, 0], paths[r, 0, 1] - paths[re, 0, 1]),
-                )
-        u = unc[kinds[i]]
-        w = max(speed[i], max_speed[kinds[i]]) + speed[ego]
-        d = max(d0 - w * horizon, 0.0)
-        big = max(u[4], u[5]) ** 2 + sm_e**2
-        small = min(min(u[0], u[4]), min(u[1], u[5])) ** 2 + s0_e**2
-        log_bound = math.log(n_steps / (2.0 * math.pi * small)) - d * d / (2.0 * big)
-        keep[a_idx] = log_bound >= log_thr
+        keep[a_idx] = _reach_keep(
+            paths, starts, agents[a_idx], ego, speed, kinds, horizon, n_steps, unc, max_speed,
+            log_thr,
+        )  # fmt: skip
     return keep
+
+
+# ---------------------------------------------------------------------- fused cascade
+@intrinsic
+def _cycles(typingctx):  # type: ignore[no-untyped-def]
+    """The CPU's cycle counter (``llvm.readcyclecounter``: the TSC on x86; 0 where the
+    target has none). Cacheable, unlike a call into C through ctypes."""
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        fnty = ir.FunctionType(ir.IntType(64), [])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.readcyclecounter")
+        return builder.call(fn, [])
+
+    return types.int64(), codegen
+
+
+@_jit
+def _survival_pair(tx, ty, cxx, cxy, cyy, gtx, gty, gxx, gxy, gyy, ns, dt_tau, terms):
+    """Survival risk of one prediction against one ego prediction, operation by operation
+    as in :func:`evaluate_agents` (so the values are the same)."""
+    log_s = 0.0
+    for k in range(ns):
+        rx = tx[k] - gtx[k]
+        ry = ty[k] - gty[k]
+        sxx = cxx[k] + gxx[k]
+        sxy = cxy[k] + gxy[k]
+        syy = cyy[k] + gyy[k]
+        det = sxx * syy - sxy * sxy
+        q = syy * (rx * rx) - 2.0 * (sxy * (rx * ry))
+        q = (q + sxx * (ry * ry)) / det * -0.5
+        if q < EXP_ZERO:
+            po = 0.0
+            terms[k] = 0.0
+        else:
+            po = math.exp(q) / (math.sqrt(det) * (2.0 * math.pi))
+            terms[k] = po * math.exp(-log_s)
+        log_s += po + dt_tau
+    return np_sum(terms, ns)
+
+
+@_jit
+def _gauss_reaches(tx, ty, cxx, cxy, cyy, gtx, gty, gxx, gxy, gyy, ns, thr, qcut):
+    """Whether the Gaussian overlap of one prediction pair reaches ``thr`` at some step
+    (:func:`evaluate_agents`' ``P_o``). Steps with ``q < qcut`` are skipped without
+    ``exp``: there ``P_o < thr`` certainly (see :func:`cascade_agents`)."""
+    for k in range(ns):
+        rx = tx[k] - gtx[k]
+        ry = ty[k] - gty[k]
+        sxx = cxx[k] + gxx[k]
+        sxy = cxy[k] + gxy[k]
+        syy = cyy[k] + gyy[k]
+        det = sxx * syy - sxy * sxy
+        q = syy * (rx * rx) - 2.0 * (sxy * (rx * ry))
+        q = (q + sxx * (ry * ry)) / det * -0.5
+        if q < qcut:
+            continue
+        po = 0.0 if q < EXP_ZERO else math.exp(q) / (math.sqrt(det) * (2.0 * math.pi))
+        if po >= thr:
+            return True
+    return False
+
+
+@_jit
+def cascade_agents(
+    xy, heading, speed, length, width, kinds, valid, paths, path_points, path_agent, ego,
+    agents, steps, unc, fp, ip, st_slot, st_thr, st_stop2, st_cut2, use_reach, max_speed,
+    base_thr,
+):  # fmt: skip
+    """The fused cascade: one pass per agent of ``agents`` through the reachability bound
+    (when ``use_reach``) and the stages (model slot ``st_slot[s]``, one of PATH, TRAJ,
+    GAUSS; kept when its risk reaches ``st_thr[s]``), then survival analysis for the
+    survivors. Each agent's path is extended once and predicted once, whatever the
+    stages.
+
+    Distance stages are keep/drop tests (``st_stop2``, ``st_cut2``: see
+    ``risk.cascade.keep_bounds``), the Gaussian stage stops at the first step that
+    reaches the threshold and skips ``exp`` where ``q < log(2 pi l thr) - 1``: with
+    ``l = s0_i^2 + s0_e^2`` (see :func:`reachable`) ``sqrt(det S) >= l`` (Minkowski's
+    determinant inequality), so ``P_o <= exp(q) / (2 pi l) < thr`` there.
+
+    Returns ``code`` (N,) int64 (-2 not judged, -1 dropped by the bound, ``s`` dropped at
+    stage ``s``, ``S`` kept by every stage), the survival risk of the survivors (N,)
+    (NaN elsewhere) and the cycle counts (S + 3,) of the set-up (the ego's candidates),
+    the bound, each stage and the survival analysis (for the caller to share out the
+    call's measured time)."""
+    n = xy.shape[0]
+    n_st = st_slot.shape[0]
+    code = np.full(n, -2, np.int64)
+    surv_out = np.full(n, np.nan)
+    cyc = np.zeros(n_st + 3, np.int64)
+    t_prev = _cycles()
+    p = paths.shape[1]
+    p1 = p + 1
+    ns = steps.shape[0]
+    horizon = steps[ns - 1]
+    nch = (p1 - 1 + K - 1) // K + 1
+    starts = _row_starts(path_agent, n)
+    rmax = 1
+    for a_idx in range(agents.shape[0]):
+        i = agents[a_idx]
+        rmax = max(rmax, starts[i + 1] - starts[i])
+    # ------------------------------------------------ ego candidates
+    e0, e1 = starts[ego], starts[ego + 1]
+    ne = e1 - e0
+    seg = np.empty(max(p - 1, 1))
+    gx = np.empty((ne, p1))
+    gy = np.empty((ne, p1))
+    gcum = np.empty((ne, p1))
+    gux = np.empty((ne, p1))
+    guy = np.empty((ne, p1))
+    gn = np.empty(ne, np.int64)
+    gbox = np.empty((ne, nch, 4))
+    gnb = np.empty(ne, np.int64)
+    kx = np.empty((ne, p1))
+    ky = np.empty((ne, p1))
+    kn = np.empty(ne, np.int64)
+    kbox = np.empty((ne, nch, 4))
+    knb = np.empty(ne, np.int64)
+    g_tx = np.empty((ne, ns))
+    g_ty = np.empty((ne, ns))
+    g_dx = np.empty((ne, ns))
+    g_dy = np.empty((ne, ns))
+    g_sl = np.empty((ne, ns))
+    g_xx = np.empty((ne, ns))
+    g_xy = np.empty((ne, ns))
+    g_yy = np.empty((ne, ns))
+    v_e = speed[ego]
+    u_e = unc[kinds[ego]]
+    for e in range(ne):
+        r = e0 + e
+        gn[e] = _extend(
+            paths, r, path_points[r], heading[ego], v_e * horizon, seg,
+            gx[e], gy[e], gcum[e], gux[e], guy[e],
+        )  # fmt: skip
+        gnb[e] = _boxes(gx[e], gy[e], gn[e], gbox[e])
+        kn[e] = _cut(gx[e], gy[e], gcum[e], v_e * horizon, kx[e], ky[e])
+        knb[e] = _boxes(kx[e], ky[e], kn[e], kbox[e])
+        _predict(
+            gx[e], gy[e], gcum[e], gux[e], guy[e], v_e, steps, u_e,
+            g_tx[e], g_ty[e], g_dx[e], g_dy[e], g_sl[e], g_xx[e], g_xy[e], g_yy[e],
+        )  # fmt: skip
+    s0_e = min(min(u_e[0], u_e[4]), min(u_e[1], u_e[5]))
+    # ------------------------------------------------ per-agent scratch (rmax rows)
+    ex = np.empty((rmax, p1))
+    ey = np.empty((rmax, p1))
+    ecum = np.empty((rmax, p1))
+    eux = np.empty((rmax, p1))
+    euy = np.empty((rmax, p1))
+    en = np.empty(rmax, np.int64)
+    ebox = np.empty((rmax, nch, 4))
+    nb = np.empty(rmax, np.int64)
+    cx = np.empty(p1)
+    cy = np.empty(p1)
+    cbox = np.empty((nch, 4))
+    gaps = np.empty(nch * nch)
+    tx = np.empty((rmax, ns))
+    ty = np.empty((rmax, ns))
+    dxs = np.empty(ns)
+    dys = np.empty(ns)
+    slon = np.empty(ns)
+    cxx = np.empty((rmax, ns))
+    cxy = np.empty((rmax, ns))
+    cyy = np.empty((rmax, ns))
+    terms = np.empty(ns)
+    extended = np.zeros(rmax, np.bool_)
+    predicted = np.zeros(rmax, np.bool_)
+    log_thr = math.log(base_thr / 1000.0) if base_thr > 0 else -INF
+    t = _cycles()
+    cyc[0] += t - t_prev
+    t_prev = t
+    for a_idx in range(agents.shape[0]):
+        i = agents[a_idx]
+        if use_reach and base_thr > 0:
+            ok = _reach_keep(
+                paths, starts, i, ego, speed, kinds, horizon, ns, unc, max_speed, log_thr
+            )
+            t = _cycles()
+            cyc[1] += t - t_prev
+            t_prev = t
+            if not ok:
+                code[i] = -1
+                continue
+        r0, r1 = starts[i], starts[i + 1]
+        v = speed[i]
+        u = unc[kinds[i]]
+        extended[:] = False
+        predicted[:] = False
+        code[i] = n_st
+        for s in range(n_st):
+            slot = st_slot[s]
+            thr = st_thr[s]
+            keep = False
+            if slot in (PATH, TRAJ):
+                stop2 = st_stop2[s]
+                cut2 = st_cut2[s]
+                eps = fp[F_EPS + slot]
+                if stop2 >= 0:  # O(1): the paths' first points bound the distance
+                    d0 = INF
+                    for r in range(r0, r1):
+                        for e in range(ne):
+                            ddx = paths[r, 0, 0] - paths[e0 + e, 0, 0]
+                            ddy = paths[r, 0, 1] - paths[e0 + e, 0, 1]
+                            d0 = min(d0, ddx * ddx + ddy * ddy)
+                    keep = d0 <= stop2 and eps / (eps + math.sqrt(d0)) >= thr
+                for r in range(r0, r1):
+                    if keep:
+                        break
+                    m = r - r0
+                    if not extended[m]:
+                        en[m] = _extend(
+                            paths, r, path_points[r], heading[i], v * horizon, seg,
+                            ex[m], ey[m], ecum[m], eux[m], euy[m],
+                        )  # fmt: skip
+                        nb[m] = _boxes(ex[m], ey[m], en[m], ebox[m])
+                        extended[m] = True
+                    if slot == TRAJ:
+                        cn = _cut(ex[m], ey[m], ecum[m], v * horizon, cx, cy)
+                        cnb = _boxes(cx, cy, cn, cbox)
+                    for e in range(ne):
+                        if slot == PATH:
+                            d = _polyline_distance(
+                                gx[e], gy[e], gn[e], gbox[e], gnb[e], ex[m], ey[m], en[m],
+                                ebox[m], nb[m], gaps, stop2, cut2,
+                            )  # fmt: skip
+                        else:
+                            d = _polyline_distance(
+                                kx[e], ky[e], kn[e], kbox[e], knb[e], cx, cy, cn, cbox, cnb,
+                                gaps, stop2, cut2,
+                            )  # fmt: skip
+                        if eps / (eps + d) >= thr:
+                            keep = True
+                            break
+            else:  # GAUSS
+                small = min(min(u[0], u[4]), min(u[1], u[5])) ** 2 + s0_e**2
+                qcut = math.log(thr * (2.0 * math.pi) * small) - 1.0 if thr > 0 else -INF
+                for r in range(r0, r1):
+                    if keep:
+                        break
+                    m = r - r0
+                    if not extended[m]:
+                        en[m] = _extend(
+                            paths, r, path_points[r], heading[i], v * horizon, seg,
+                            ex[m], ey[m], ecum[m], eux[m], euy[m],
+                        )  # fmt: skip
+                        nb[m] = _boxes(ex[m], ey[m], en[m], ebox[m])
+                        extended[m] = True
+                    if not predicted[m]:
+                        _predict(
+                            ex[m], ey[m], ecum[m], eux[m], euy[m], v, steps, u,
+                            tx[m], ty[m], dxs, dys, slon, cxx[m], cxy[m], cyy[m],
+                        )  # fmt: skip
+                        predicted[m] = True
+                    for e in range(ne):
+                        if _gauss_reaches(
+                            tx[m], ty[m], cxx[m], cxy[m], cyy[m],
+                            g_tx[e], g_ty[e], g_xx[e], g_xy[e], g_yy[e], ns, thr, qcut,
+                        ):  # fmt: skip
+                            keep = True
+                            break
+            t = _cycles()
+            cyc[2 + s] += t - t_prev
+            t_prev = t
+            if not keep:
+                code[i] = s
+                break
+        if code[i] != n_st:
+            continue
+        best = -INF
+        for r in range(r0, r1):
+            m = r - r0
+            if not extended[m]:
+                en[m] = _extend(
+                    paths, r, path_points[r], heading[i], v * horizon, seg,
+                    ex[m], ey[m], ecum[m], eux[m], euy[m],
+                )  # fmt: skip
+                extended[m] = True
+            if not predicted[m]:
+                _predict(
+                    ex[m], ey[m], ecum[m], eux[m], euy[m], v, steps, u,
+                    tx[m], ty[m], dxs, dys, slon, cxx[m], cxy[m], cyy[m],
+                )  # fmt: skip
+                predicted[m] = True
+            for e in range(ne):
+                best = max(
+                    best,
+                    _survival_pair(
+                        tx[m], ty[m], cxx[m], cxy[m], cyy[m],
+                        g_tx[e], g_ty[e], g_xx[e], g_xy[e], g_yy[e], ns, fp[F_DT_TAU], terms,
+                    ),
+                )  # fmt: skip
+        surv_out[i] = best
+        t = _cycles()
+        cyc[n_st + 2] += t - t_prev
+        t_prev = t
+    return code, surv_out, cyc
 
 
 # ---------------------------------------------------------------------- Python side
