@@ -15,7 +15,10 @@ Rows:
   survival-on-all reference it computes for its report, measured separately;
 - ``replay run`` on the converted Waymo sample and ``replay demo``, end to end in new
   processes with a warm kernel cache (``--no-rrd`` is not used: the recording is part of
-  the job); start-up = ``replay --help`` in a new process;
+  the job); start-up = ``replay run --help`` / ``replay demo --help`` in a new process
+  (the CLI and that one subcommand's imports; ``replay --help`` imports every
+  subcommand, which no real command does). "Beyond start-up" still includes the first
+  kernel call's cache load (numba's one-time set-up in each process);
 - the cold compile (a new process with an empty ``NUMBA_CACHE_DIR``: wall time and the
   child's CPU time) and the warm import + first call (a new process, warm cache);
 - peak RSS (``ru_maxrss``) of a process that evaluates all nine models at N = 1000, and
@@ -234,10 +237,15 @@ def main(argv: list[str] | None = None) -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp_p = Path(tmp)
-        startup = command([REPLAY, "--help"], 3)
+        # Start-up = what the command itself pays before its work: a new process that
+        # imports the CLI and only that subcommand (``replay CMD --help``). ``replay
+        # --help`` imports every subcommand (scipy.stats, matplotlib, ...), which neither
+        # ``run`` nor ``demo`` does.
+        run_start = command([REPLAY, "run", "--help"], 3)
         rows.append(
-            ("start-up (`replay --help`)", f"{startup[1]:.2f} s", f"{startup[0]:.2f} s", "")
-        )
+            ("start-up of `replay run` (`replay run --help`)", f"{run_start[1]:.2f} s",
+             f"{run_start[0]:.2f} s", "")
+        )  # fmt: skip
         if WAYMO.is_file():
             scene = tmp_p / "waymo.mcap"
             subprocess.run(
@@ -254,12 +262,25 @@ def main(argv: list[str] | None = None) -> int:
                     "≤ 2 s wall",
                 )
             )
+            rows.append(
+                ("`replay run`, Waymo sample, beyond start-up", f"{run[1] - run_start[1]:.2f} s",
+                 f"{run[0] - run_start[0]:.2f} s", "")
+            )  # fmt: skip
+        demo_start = command([REPLAY, "demo", "--help"], 3)
+        rows.append(
+            ("start-up of `replay demo` (`replay demo --help`)", f"{demo_start[1]:.2f} s",
+             f"{demo_start[0]:.2f} s", "")
+        )  # fmt: skip
         demo = command([REPLAY, "demo", "-o", str(tmp_p / "demo"), "--no-progress"], 3)
         rows.append(
+            ("`replay demo` (100 agents, 100 frames), whole", f"{demo[1]:.2f} s",
+             f"{demo[0]:.2f} s", "")
+        )  # fmt: skip
+        rows.append(
             (
-                "`replay demo` (100 agents, 100 frames), beyond start-up",
-                f"{demo[1] - startup[1]:.2f} s",
-                f"{demo[0] - startup[0]:.2f} s",
+                "`replay demo`, beyond start-up",
+                f"{demo[1] - demo_start[1]:.2f} s",
+                f"{demo[0] - demo_start[0]:.2f} s",
                 "≤ 1 s",
             )
         )
