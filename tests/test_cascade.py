@@ -401,6 +401,56 @@ def test_fused_cascade_matches_the_staged_oracle(seed, spread):
     assert (fused.dropped_at[fused.unreachable] == 0).all()
 
 
+@settings(max_examples=10, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_fused_cascade_with_other_stage_models_matches_the_staged_oracle(seed):
+    """Stages outside the one-pass kernel (here the current distance and the circles, in
+    another order) run one kernel call per stage; same decisions as on sub-frames."""
+    from risk import PredictionSettings, evaluate
+
+    rng = np.random.default_rng(seed)
+    frame = spread_frame(rng, 40, 60.0)
+    pred = PredictionSettings(horizon_s=3.0, dt_s=0.25)
+    config = CascadeConfig(
+        stages=(
+            Stage("gaussian", float(rng.choice([0.0, 1e-30]))),
+            Stage("current_distance", float(rng.choice([0.02, 0.1]))),
+            Stage("circles", 0.05),
+        ),
+        tiers=TIERS,
+    )
+    staged = run_cascade(frame, config, prediction=pred, evaluate=lambda *a, **k: evaluate(*a, **k))
+    plain = run_cascade(frame, config, prediction=pred, reachability=False)
+    for name in ("kept", "dropped_at", "tier", "false_negatives", "survival"):
+        np.testing.assert_array_equal(getattr(plain, name), getattr(staged, name), err_msg=name)
+
+
+def test_one_pass_stage_times_share_the_measured_call():
+    """The one-pass cascade reports each part's time as a share of the call: every share
+    is >= 0, a stage that judged nobody costs 0, and the parts add up to no more than the
+    whole run."""
+    import time
+
+    frame = spread_frame(np.random.default_rng(2), 60, 50.0)
+    config = CascadeConfig(
+        stages=(
+            Stage("path_distance", 0.02),
+            Stage("trajectory_distance", 2.0),  # drops everyone (risk <= 1)
+            Stage("gaussian", 1e-30),
+        ),
+        tiers=TIERS,
+    )
+    start = time.perf_counter()
+    res = run_cascade(frame, config)
+    whole = time.perf_counter() - start
+    assert res.kept[1].sum() == 0 and res.kept[0].sum() > 0
+    assert (res.stage_time_s >= 0).all() and res.reach_time_s >= 0 and res.sort_time_s >= 0
+    assert res.stage_time_s[0] > 0 and res.stage_time_s[1] > 0
+    assert res.stage_time_s[2] == 0.0  # nobody reached the Gaussian stage
+    parts = res.reach_time_s + res.stage_time_s.sum() + res.sort_time_s
+    assert parts + res.survival_all_time_s <= whole
+
+
 def test_engine_style_partial_uses_the_fused_cascade():
     import functools
 
