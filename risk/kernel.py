@@ -211,15 +211,28 @@ def _extend(paths, m, npts, heading, min_len, seg, ex, ey, ecum, eux, euy):
             ex[j], ey[j] = endx, endy
     ecum[0] = 0.0
     have = False
-    lx, ly = math.cos(heading), math.sin(heading)
+    hx, hy = math.cos(heading), math.sin(heading)
+    lx, ly = hx, hy
+    c = 0.0  # ecum[j + 1], kept in a register
     for j in range(p1 - 1):
-        dx = ex[j + 1] - ex[j]
-        dy = ey[j + 1] - ey[j]
+        start = c
         # the given segments keep their lengths (same points, same root)
-        length = seg[j] if j < npts - 1 else math.sqrt(dx * dx + dy * dy)
-        ecum[j + 1] = ecum[j] + length
-        if ecum[j] > min_len:
-            continue  # beyond the prediction's reach: no unit vector needed
+        if j < npts - 1:
+            length = seg[j]
+            c = start + length
+            ecum[j + 1] = c
+            if start > min_len:
+                continue  # beyond the prediction's reach: no unit vector needed
+            dx = paths[m, j + 1, 0] - paths[m, j, 0]
+            dy = paths[m, j + 1, 1] - paths[m, j, 1]
+        else:
+            dx = ex[j + 1] - ex[j]
+            dy = ey[j + 1] - ey[j]
+            length = math.sqrt(dx * dx + dy * dy)
+            c = start + length
+            ecum[j + 1] = c
+            if start > min_len:
+                continue
         if length > 0:
             inv = 1.0 / length
             lx, ly = dx * inv, dy * inv
@@ -227,7 +240,7 @@ def _extend(paths, m, npts, heading, min_len, seg, ex, ey, ecum, eux, euy):
         if have:
             eux[j], euy[j] = lx, ly
         else:
-            eux[j], euy[j] = math.cos(heading), math.sin(heading)
+            eux[j], euy[j] = hx, hy
     return npts + 1
 
 
@@ -268,6 +281,37 @@ def _cut(ex, ey, ecum, length_m, cx, cy):
         else:
             cx[j], cy[j] = endx, endy
     return n
+
+
+@_jit
+def _cut_boxes(cx, cy, cn, ecum, length_m, ebox, en, box):
+    """:func:`_boxes` of a cut made by :func:`_cut` from a path with chunk boxes ``ebox``
+    (``en`` points): a chunk whose points are all points of that path, at the same
+    indices, has the same box and is copied."""
+    p1 = ecum.shape[0]
+    length = min(length_m, ecum[p1 - 1])
+    keep = 0
+    for j in range(p1):
+        if ecum[j] <= length:
+            keep += 1
+    nseg = max(cn - 1, 1)
+    nc = (nseg + K - 1) // K
+    for ci in range(nc):
+        j0 = ci * K
+        j1 = min(j0 + K, cn - 1)
+        if j1 == j0 + K and j1 < keep and j1 <= en - 1:
+            box[ci, 0], box[ci, 1], box[ci, 2], box[ci, 3] = (
+                ebox[ci, 0], ebox[ci, 1], ebox[ci, 2], ebox[ci, 3]
+            )  # fmt: skip
+            continue
+        lox, loy, hix, hiy = cx[j0], cy[j0], cx[j0], cy[j0]
+        for j in range(j0 + 1, j1 + 1):
+            lox = min(lox, cx[j])
+            hix = max(hix, cx[j])
+            loy = min(loy, cy[j])
+            hiy = max(hiy, cy[j])
+        box[ci, 0], box[ci, 1], box[ci, 2], box[ci, 3] = lox, loy, hix, hiy
+    return nc
 
 
 @_jit
@@ -572,6 +616,19 @@ def _predict(ex, ey, ecum, eux, euy, v, steps, u, tx, ty, dxs, dys, slon, cxx, c
 
 
 @_jit
+def _escape_track(ns, dt_tau, sl, se):
+    """``sl[k]``: the survival loop's ``log_s`` before step ``k`` when every earlier
+    ``P_o + dt/tau`` rounds to ``dt/tau`` (always so far from the ego); ``se[k] =
+    exp(-sl[k])``. The loop looks ``exp(-log_s)`` up here whenever ``log_s == sl[k]``
+    (the same argument, so the same value) instead of computing it."""
+    log_s = 0.0
+    for k in range(ns):
+        sl[k] = log_s
+        se[k] = math.exp(-log_s)
+        log_s += 0.0 + dt_tau
+
+
+@_jit
 def _time_gap(arc, l1, v1):
     """(l2 - l1) / v1 ahead of the ego, inf behind it, for NaN or a standing ego."""
     if v1 <= 0:
@@ -691,6 +748,10 @@ def evaluate_agents(
     n_circ = ip[I_NCIRC]
     scale = fp[F_SCALE_CIRC]
     dt_tau = fp[F_DT_TAU]
+    surv_l = np.empty(ns)
+    surv_e = np.empty(ns)
+    if want[SURV]:
+        _escape_track(ns, dt_tau, surv_l, surv_e)
     lateral = np.empty(ne)
     arc_on = np.empty(ne)
     best = np.empty(N_MODELS)
@@ -737,7 +798,10 @@ def evaluate_agents(
             nb = _boxes(ex, ey, en, ebox) if want_path else 0
             if want[TRAJ] and not traj_done:
                 cn = _cut(ex, ey, ecum, v * horizon, cx, cy)
-                cnb = _boxes(cx, cy, cn, cbox)
+                if want_path:
+                    cnb = _cut_boxes(cx, cy, cn, ecum, v * horizon, ebox, en, cbox)
+                else:
+                    cnb = _boxes(cx, cy, cn, cbox)
             if want_pred:
                 _predict(
                     ex, ey, ecum, eux, euy, v, steps, u,
@@ -803,7 +867,10 @@ def evaluate_agents(
                         else:
                             po = math.exp(q) / (math.sqrt(det) * (2.0 * math.pi))
                             if want[SURV]:
-                                terms[k] = po * math.exp(-log_s)
+                                if log_s == surv_l[k]:
+                                    terms[k] = po * surv_e[k]
+                                else:
+                                    terms[k] = po * math.exp(-log_s)
                         gmax = max(gmax, po)
                         log_s += po + dt_tau
                 if want[ENC] or want[HW] or want[H2D]:
@@ -919,7 +986,7 @@ def _cycles(typingctx):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _survival_pair(tx, ty, cxx, cxy, cyy, gtx, gty, gxx, gxy, gyy, ns, dt_tau, terms):
+def _survival_pair(tx, ty, cxx, cxy, cyy, gtx, gty, gxx, gxy, gyy, ns, dt_tau, terms, sl, se):
     """Survival risk of one prediction against one ego prediction, operation by operation
     as in :func:`evaluate_agents` (so the values are the same)."""
     log_s = 0.0
@@ -937,7 +1004,7 @@ def _survival_pair(tx, ty, cxx, cxy, cyy, gtx, gty, gxx, gxy, gyy, ns, dt_tau, t
             terms[k] = 0.0
         else:
             po = math.exp(q) / (math.sqrt(det) * (2.0 * math.pi))
-            terms[k] = po * math.exp(-log_s)
+            terms[k] = po * (se[k] if log_s == sl[k] else math.exp(-log_s))
         log_s += po + dt_tau
     return np_sum(terms, ns)
 
@@ -1068,6 +1135,9 @@ def cascade_agents(
     terms = np.empty(ns)
     extended = np.zeros(rmax, np.bool_)
     predicted = np.zeros(rmax, np.bool_)
+    surv_l = np.empty(ns)
+    surv_e = np.empty(ns)
+    _escape_track(ns, fp[F_DT_TAU], surv_l, surv_e)
     log_thr = math.log(base_thr / 1000.0) if base_thr > 0 else -INF
     t = _cycles()
     cyc[0] += t - t_prev
@@ -1119,7 +1189,7 @@ def cascade_agents(
                         extended[m] = True
                     if slot == TRAJ:
                         cn = _cut(ex[m], ey[m], ecum[m], v * horizon, cx, cy)
-                        cnb = _boxes(cx, cy, cn, cbox)
+                        cnb = _cut_boxes(cx, cy, cn, ecum[m], v * horizon, ebox[m], en[m], cbox)
                     for e in range(ne):
                         if slot == PATH:
                             d = _polyline_distance(
@@ -1190,6 +1260,7 @@ def cascade_agents(
                     _survival_pair(
                         tx[m], ty[m], cxx[m], cxy[m], cyy[m],
                         g_tx[e], g_ty[e], g_xx[e], g_xy[e], g_yy[e], ns, fp[F_DT_TAU], terms,
+                        surv_l, surv_e,
                     ),
                 )  # fmt: skip
         surv_out[i] = best
