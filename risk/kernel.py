@@ -754,6 +754,8 @@ def evaluate_agents(
         _escape_track(ns, dt_tau, surv_l, surv_e)
     lateral = np.empty(ne)
     arc_on = np.empty(ne)
+    o2 = np.empty(max(n_circ, 1))
+    oo = np.empty(max(n_circ, 1))
     best = np.empty(N_MODELS)
     cn, cnb = 0, 0
     for a_idx in range(agents.shape[0]):
@@ -836,28 +838,37 @@ def evaluate_agents(
                 circ = INF
                 gmax = -INF
                 log_s = 0.0
+                # loop invariants in registers, the circles' offsets once per agent
+                w_circ, w_stoch, w_surv = want[CIRC], want[GAUSS] or want[SURV], want[SURV]
+                half_w = 0.5 * width[i]
+                gtx, gty, gsl = g_tx[e], g_ty[e], g_sl[e]
+                gxx, gxy, gyy = g_xx[e], g_xy[e], g_yy[e]
+                if w_circ:
+                    for c in range(n_circ):
+                        o = length[i] * ((c + 0.5) / n_circ - 0.5)
+                        o2[c] = 2.0 * o
+                        oo[c] = o * o
                 for k in range(ns):
-                    rx = tx[k] - g_tx[e, k]
-                    ry = ty[k] - g_ty[e, k]
+                    rx = tx[k] - gtx[k]
+                    ry = ty[k] - gty[k]
                     d2 = rx * rx + ry * ry
                     d2min = min(d2min, d2)
-                    if want[CIRC] and circ > 0.0:  # (once <= 0, the risk is 1)
-                        reach = (r_ego + scale * g_sl[e, k]) + (0.5 * width[i] + scale * slon[k])
+                    if w_circ and circ > 0.0:  # (once <= 0, the risk is 1)
+                        reach = (r_ego + scale * gsl[k]) + (half_w + scale * slon[k])
                         along = rx * dxs[k] + ry * dys[k]
                         c2min = INF
                         for c in range(n_circ):
-                            o = length[i] * ((c + 0.5) / n_circ - 0.5)
-                            c2min = min(c2min, d2 + (2.0 * o) * along + o * o)
+                            c2min = min(c2min, d2 + o2[c] * along + oo[c])
                         # sqrt is monotone: one root per step gives the same minimum; a
                         # step certainly no nearer than the best (a margin for rounding)
                         # skips it
                         lim = circ + reach
                         if lim > 0.0 and c2min <= lim * lim * (1.0 + 1e-9):
                             circ = min(circ, math.sqrt(max(c2min, 0.0)) - reach)
-                    if want[GAUSS] or want[SURV]:
-                        sxx = cxx[k] + g_xx[e, k]
-                        sxy = cxy[k] + g_xy[e, k]
-                        syy = cyy[k] + g_yy[e, k]
+                    if w_stoch:
+                        sxx = cxx[k] + gxx[k]
+                        sxy = cxy[k] + gxy[k]
+                        syy = cyy[k] + gyy[k]
                         det = sxx * syy - sxy * sxy
                         q = syy * (rx * rx) - 2.0 * (sxy * (rx * ry))
                         q = (q + sxx * (ry * ry)) / det * -0.5
@@ -866,7 +877,7 @@ def evaluate_agents(
                             terms[k] = 0.0
                         else:
                             po = math.exp(q) / (math.sqrt(det) * (2.0 * math.pi))
-                            if want[SURV]:
+                            if w_surv:
                                 if log_s == surv_l[k]:
                                     terms[k] = po * surv_e[k]
                                 else:
