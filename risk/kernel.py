@@ -439,12 +439,15 @@ def _chunk_pair2(ax, ay, an, ca, bx, by, bn, cb, best, touch, stop2):
 
 
 @_jit
-def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2, cut2):
+def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2, cut2, above):
     """Exact least distance between polylines a and b (risk.geometry.polyline_distances).
 
     Chunk pairs whose boxes are farther apart than the best distance found so far (or than
     ``sqrt(cut2)``) are skipped, which never loses the minimum below ``sqrt(cut2)``. Returns
-    early once the squared distance is at most ``stop2`` (pass -1 for the exact value)."""
+    early once the squared distance is at most ``stop2`` (pass -1 for the exact value).
+    ``above``: a squared distance known to lie above the minimum (inf if none), to prune
+    with from the start; should nothing be nearer after all, the search runs again
+    without it."""
     gmin, amin, bmin = INF, 0, 0
     for i in range(nca):
         for j in range(ncb):
@@ -454,19 +457,22 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
                 gmin, amin, bmin = g, i, j
     if gmin > cut2:
         return math.sqrt(gmin)  # a lower bound beyond the cut: the caller drops
-    best = _chunk_pair2(ax, ay, an, amin, bx, by, bn, bmin, INF, gmin == 0.0, stop2)
-    if best == 0.0 or best <= stop2:
-        return math.sqrt(best)
-    for i in range(nca):
-        for j in range(ncb):
-            g = gaps[i * ncb + j]
-            if g >= best or g > cut2 or (i == amin and j == bmin):
-                continue  # (a pair no nearer than the best cannot lower it)
-            d = _chunk_pair2(ax, ay, an, i, bx, by, bn, j, best, g == 0.0, stop2)
-            if d < best:
-                best = d
-                if best == 0.0 or best <= stop2:
-                    return math.sqrt(best)
+    for start in (above, INF):
+        best = _chunk_pair2(ax, ay, an, amin, bx, by, bn, bmin, start, gmin == 0.0, stop2)
+        if best == 0.0 or best <= stop2:
+            return math.sqrt(best)
+        for i in range(nca):
+            for j in range(ncb):
+                g = gaps[i * ncb + j]
+                if g >= best or g > cut2 or (i == amin and j == bmin):
+                    continue  # (a pair no nearer than the best cannot lower it)
+                d = _chunk_pair2(ax, ay, an, i, bx, by, bn, j, best, g == 0.0, stop2)
+                if d < best:
+                    best = d
+                    if best == 0.0 or best <= stop2:
+                        return math.sqrt(best)
+        if best < start:
+            break  # found below the bound: the minimum
     return math.sqrt(best)
 
 
@@ -677,6 +683,7 @@ def evaluate_agents(
     want_path = want[PATH] or want[H2D]
     want_pred = want[ENC] or want[HW] or want[H2D] or want[CIRC] or want[GAUSS] or want[SURV]
     exact_path = want[H2D] or stop2[PATH] < 0
+    traj_exact = stop2[TRAJ] < 0 and cut2[TRAJ] == INF
     # ------------------------------------------------ ego candidates
     e0, e1 = starts[ego], starts[ego + 1]
     ne = e1 - e0
@@ -811,25 +818,34 @@ def evaluate_agents(
                 )  # fmt: skip
             for e in range(ne):
                 d_path = INF
+                d_traj = INF
+                if want[TRAJ] and not traj_done:
+                    d_traj = _polyline_distance(
+                        kx[e], ky[e], kn[e], kbox[e], knb[e], cx, cy, cn, cbox, cnb, gaps,
+                        stop2[TRAJ], cut2[TRAJ], INF,
+                    )  # fmt: skip
+                    eps = fp[F_EPS + TRAJ]
+                    best[TRAJ] = max(best[TRAJ], eps / (eps + d_traj))
+                    if stop2[TRAJ] >= 0 and d_traj * d_traj <= stop2[TRAJ]:
+                        traj_done = True
                 if want_path and not path_done:
+                    # The cut paths lie on the extended ones (the cut's end point to
+                    # rounding), so an exact trajectory distance bounds the path distance
+                    # from above: a margin of 1 um keeps the bound above the true minimum,
+                    # which is then found exactly as without it.
+                    bound = INF
+                    if traj_exact and d_traj < INF:
+                        bound = (d_traj + 1e-6) ** 2
                     d_path = _polyline_distance(
                         gx[e], gy[e], gn[e], gbox[e], gnb[e], ex, ey, en, ebox, nb, gaps,
                         -1.0 if exact_path else stop2[PATH], INF if exact_path else cut2[PATH],
+                        bound,
                     )  # fmt: skip
                     if want[PATH]:
                         eps = fp[F_EPS + PATH]
                         best[PATH] = max(best[PATH], eps / (eps + d_path))
                         if not exact_path and d_path * d_path <= stop2[PATH]:
                             path_done = True
-                if want[TRAJ] and not traj_done:
-                    d = _polyline_distance(
-                        kx[e], ky[e], kn[e], kbox[e], knb[e], cx, cy, cn, cbox, cnb, gaps,
-                        stop2[TRAJ], cut2[TRAJ],
-                    )  # fmt: skip
-                    eps = fp[F_EPS + TRAJ]
-                    best[TRAJ] = max(best[TRAJ], eps / (eps + d))
-                    if stop2[TRAJ] >= 0 and d * d <= stop2[TRAJ]:
-                        traj_done = True
                 if not want_pred:
                     continue
                 # closest encounter, circles, Gaussian overlap and survival: one loop
@@ -1205,12 +1221,12 @@ def cascade_agents(
                         if slot == PATH:
                             d = _polyline_distance(
                                 gx[e], gy[e], gn[e], gbox[e], gnb[e], ex[m], ey[m], en[m],
-                                ebox[m], nb[m], gaps, stop2, cut2,
+                                ebox[m], nb[m], gaps, stop2, cut2, INF,
                             )  # fmt: skip
                         else:
                             d = _polyline_distance(
                                 kx[e], ky[e], kn[e], kbox[e], knb[e], cx, cy, cn, cbox, cnb,
-                                gaps, stop2, cut2,
+                                gaps, stop2, cut2, INF,
                             )  # fmt: skip
                         if eps / (eps + d) >= thr:
                             keep = True
