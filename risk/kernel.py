@@ -448,22 +448,41 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
     ``above``: a squared distance known to lie above the minimum (inf if none), to prune
     with from the start; should nothing be nearer after all, the search runs again
     without it."""
-    gmin, amin, bmin = INF, 0, 0
+    # b's whole box, then a lower bound per chunk of a (its gap to that box): rows of
+    # chunk pairs are skipped whole, and the pair to start from is found without the
+    # full table of box gaps
+    blox, bloy, bhix, bhiy = bbox[0, 0], bbox[0, 1], bbox[0, 2], bbox[0, 3]
+    for j in range(1, ncb):
+        blox = min(blox, bbox[j, 0])
+        bloy = min(bloy, bbox[j, 1])
+        bhix = max(bhix, bbox[j, 2])
+        bhiy = max(bhiy, bbox[j, 3])
+    rmin, amin = INF, 0
     for i in range(nca):
-        for j in range(ncb):
-            g = _gap2(abox, i, bbox, j)
-            gaps[i * ncb + j] = g
-            if g < gmin:
-                gmin, amin, bmin = g, i, j
-    if gmin > cut2:
-        return math.sqrt(gmin)  # a lower bound beyond the cut: the caller drops
+        gx = max(max(blox - abox[i, 2], abox[i, 0] - bhix), 0.0)
+        gy = max(max(bloy - abox[i, 3], abox[i, 1] - bhiy), 0.0)
+        g = gx * gx + gy * gy
+        gaps[i] = g
+        if g < rmin:
+            rmin, amin = g, i
+    if rmin > cut2:
+        return math.sqrt(rmin)  # a lower bound beyond the cut: the caller drops
+    gmin, bmin = INF, 0
+    for j in range(ncb):
+        g = _gap2(abox, amin, bbox, j)
+        if g < gmin:
+            gmin, bmin = g, j
     for start in (above, INF):
-        best = _chunk_pair2(ax, ay, an, amin, bx, by, bn, bmin, start, gmin == 0.0, stop2)
-        if best == 0.0 or best <= stop2:
-            return math.sqrt(best)
+        best = start
+        if gmin <= cut2:
+            best = _chunk_pair2(ax, ay, an, amin, bx, by, bn, bmin, start, gmin == 0.0, stop2)
+            if best == 0.0 or best <= stop2:
+                return math.sqrt(best)
         for i in range(nca):
+            if gaps[i] >= best or gaps[i] > cut2:
+                continue  # no pair of this row is nearer than the best
             for j in range(ncb):
-                g = gaps[i * ncb + j]
+                g = _gap2(abox, i, bbox, j)
                 if g >= best or g > cut2 or (i == amin and j == bmin):
                     continue  # (a pair no nearer than the best cannot lower it)
                 d = _chunk_pair2(ax, ay, an, i, bx, by, bn, j, best, g == 0.0, stop2)
