@@ -188,13 +188,13 @@ def _extend(paths, m, npts, heading, min_len, seg, ex, ey, ecum, eux, euy):
     prediction's reach, ``v T``): the prediction reads no others."""
     p = paths.shape[1]
     p1 = p + 1
-    last = -1
-    for j in range(p - 1):
+    for j in range(p - 1):  # (a loop of plain arithmetic: vectorised)
         dx = paths[m, j + 1, 0] - paths[m, j, 0]
         dy = paths[m, j + 1, 1] - paths[m, j, 1]
         seg[j] = math.sqrt(dx * dx + dy * dy)
-        if seg[j] > 0:
-            last = j
+    last = p - 2
+    while last >= 0 and not seg[last] > 0:
+        last -= 1  # the last segment of non-zero length (padding has none)
     total = np_sum(seg, p - 1)
     if last >= 0:
         dirx = (paths[m, last + 1, 0] - paths[m, last, 0]) / seg[last]
