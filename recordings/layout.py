@@ -46,7 +46,7 @@ RISK_LOG10 = "risk_log10"  # risk_log10/<model>, for models whose values span ma
 THRESHOLDS = "/thresholds"  # /thresholds/<model>: a stage threshold in its model's view
 THRESHOLDS_LOG10 = "/thresholds_log10"
 FUNNEL = "/funnel"  # agents left after each step of the cascade
-FALSE_NEGATIVES = "/false_negatives"  # cumulative baseline agents dropped up to a stage
+FALSE_NEGATIVES = "/false_negatives"  # per frame: baseline agents dropped by stage k or earlier
 TIMING = "/timing_ms"  # compute time per stage, milliseconds
 SUMMARY = "/summary"  # markdown: scene, cascade settings, legend
 
@@ -363,7 +363,7 @@ def blueprint(
     legend = rrb.PlotLegend(corner=rrb.Corner2D.LeftTop, visible=True)
     funnel = rrb.TimeSeriesView(name="Funnel: agents left", origin=FUNNEL, plot_legend=legend)
     missed = rrb.TimeSeriesView(
-        name="False negatives (cumulative)", origin=FALSE_NEGATIVES, plot_legend=legend
+        name="False negatives per frame (up to stage k)", origin=FALSE_NEGATIVES, plot_legend=legend
     )
     timing = rrb.TimeSeriesView(name="Compute time (ms)", origin=TIMING, plot_legend=legend)
     risk_tabs = [

@@ -165,7 +165,7 @@ def _legend_section(info: SceneInfo) -> list[str]:
         "own subtree `/scene/agents/<id>/risk*` (drag one into a view, or right-click it "
         "in the streams panel, to add it). `log10` tabs: the values span many decades; "
         "zero risk is a gap. White: the stage threshold. Gaps: the agent is absent.",
-        "Funnel: agents left after each stage and per tier. False negatives: cumulative "
-        "per stage. Compute time: per stage, against survival analysis on all agents.",
+        "Funnel: agents left after each stage and per tier. False negatives: in each "
+        "frame, the baseline-important agents dropped by stage k or an earlier one. Compute time: per stage, against survival analysis on all agents.",
         "",
     ]

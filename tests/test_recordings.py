@@ -440,7 +440,7 @@ def test_blueprint_lays_out_views(recording):
     assert views["Scene (top-down, y north)"][:2] == ("2D", "/")
     assert views["Summary"][:2] == ("TextDocument", L.SUMMARY)
     assert views["Misses (click a row: select the agent)"][:2] == ("TextLog", L.AGENTS)
-    for name in ("Funnel: agents left", "Compute time (ms)", "False negatives (cumulative)",
+    for name in ("Funnel: agents left", "Compute time (ms)", "False negatives per frame (up to stage k)",
                  "near · stage", "log10 wide · stage", "log10 survival"):  # fmt: skip
         assert views[name][0] == "TimeSeries", name
     # The risk views open on the agents that matter: misses (2, 3) first, then tiers (1).
