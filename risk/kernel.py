@@ -1019,11 +1019,11 @@ def reachable(
 
 # ---------------------------------------------------------------------- fused cascade
 @intrinsic
-def _cycles(typingctx):  # type: ignore[no-untyped-def]
+def _cycles(typingctx):
     """The CPU's cycle counter (``llvm.readcyclecounter``: the TSC on x86; 0 where the
     target has none). Cacheable, unlike a call into C through ctypes."""
 
-    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+    def codegen(context, builder, signature, args):
         fnty = ir.FunctionType(ir.IntType(64), [])
         fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.readcyclecounter")
         return builder.call(fn, [])
