@@ -475,33 +475,28 @@ def _one_pass(
     in the same proportion)."""
     n_stages = len(config.stages)
     slots, thr, stop2, cut2 = _stage_vectors(config.stages, chosen)
-    agents = _ro(np.flatnonzero(frame.others))
     start = time.perf_counter()
-    code, survival, cyc = kernel.cascade_agents(  # type: ignore[call-arg]
-        *kernel.frame_arrays(frame), int(frame.ego), agents, steps, unc, fp, ip, slots, thr,
-        stop2, cut2, bool(reachability), _MAX_SPEEDS, float(config.baseline_threshold),
+    kept, dropped_at, unreachable, current, survival, cyc = kernel.cascade_agents(  # type: ignore[call-arg]
+        *kernel.frame_arrays(frame), int(frame.ego), kernel.ALL_AGENTS, steps, unc, fp, ip,
+        slots, thr, stop2, cut2, bool(reachability), _MAX_SPEEDS,
+        float(config.baseline_threshold),
     )  # fmt: skip
     wall = time.perf_counter() - start
-    parts = cyc[1:].astype(float)
-    total = parts.sum()
-    if total <= 0 and agents.size:  # no cycle counter on this CPU: time each stage
+    parts = cyc.tolist()[1:]
+    total = float(sum(parts))
+    if total <= 0 and frame.others.any():  # no cycle counter on this CPU: time each stage
         return _pass_per_stage(
             frame, config, chosen, settings, steps, unc, fp, ip, reachability,
             kernel.SLOTS.index(SURVIVAL_MODEL),
         )  # fmt: skip
-    share = parts * (wall / total) if total > 0 else np.zeros(parts.size)
-    kept = code[None, :] > np.arange(n_stages)[:, None]
-    dropped_at = np.where((code >= 0) & (code < n_stages), code, -1).astype(np.int8)
-    unreachable = code == -1
-    dropped_at[unreachable] = 0
-    current = np.flatnonzero(code == n_stages)
+    scale = wall / total if total > 0 else 0.0
     return (
         kept,
         dropped_at,
         unreachable,
         survival,
         current,
-        (float(share[0]), share[1 : 1 + n_stages].copy(), float(share[1 + n_stages])),
+        (parts[0] * scale, np.array(parts[1 : 1 + n_stages]) * scale, parts[1 + n_stages] * scale),
     )
 
 
@@ -746,13 +741,15 @@ def assign_tiers(survival: np.ndarray, tiers: Sequence[Tier]) -> np.ndarray:
     capped to the ``max_agents`` riskiest (ties: the lower index first).
     """
     risk = np.asarray(survival, dtype=np.float64)
-    risk = np.where(np.isnan(risk), -np.inf, risk)
-    order = np.argsort(-risk, kind="stable")  # riskiest first
+    neg = np.where(np.isnan(risk), np.inf, -risk)
+    order = np.argsort(neg, kind="stable")  # riskiest first
+    neg_sorted = neg[order]  # ascending
     result = np.full(risk.shape, -1, dtype=np.int8)
-    members = order
+    count = order.size
     for k, t in enumerate(tiers):
-        members = members[risk[members] >= t.min_survival_risk]  # stays sorted by risk
+        # the members stay a prefix of the order: those with risk >= the minimum
+        count = min(count, int(np.searchsorted(neg_sorted, -t.min_survival_risk, "right")))
         if t.max_agents is not None:
-            members = members[: t.max_agents]
-        result[members] = k
+            count = min(count, t.max_agents)
+        result[order[:count]] = k
     return result

@@ -1095,13 +1095,17 @@ def cascade_agents(
     ``l = s0_i^2 + s0_e^2`` (see :func:`reachable`) ``sqrt(det S) >= l`` (Minkowski's
     determinant inequality), so ``P_o <= exp(q) / (2 pi l) < thr`` there.
 
-    Returns ``code`` (N,) int64 (-2 not judged, -1 dropped by the bound, ``s`` dropped at
-    stage ``s``, ``S`` kept by every stage), the survival risk of the survivors (N,)
-    (NaN elsewhere) and the cycle counts (S + 3,) of the set-up (the ego's candidates),
-    the bound, each stage and the survival analysis (for the caller to share out the
-    call's measured time)."""
+    ``agents``: an empty array for every valid agent but the ego. Returns ``kept``
+    (S, N) bool (kept after stage ``s``), ``dropped_at`` (N,) int8 (the stage that dropped
+    the agent, 0 for the bound, -1 survived or not judged), ``unreachable`` (N,) bool
+    (dropped by the bound), the survivors' indices, the survival risk of the survivors
+    (N,) (NaN elsewhere) and the cycle counts (S + 3,) of the set-up (the ego's
+    candidates), the bound, each stage and the survival analysis (for the caller to
+    share out the call's measured time)."""
     n = xy.shape[0]
     n_st = st_slot.shape[0]
+    if agents.shape[0] == 0:
+        agents = np.array([i for i in range(n) if valid[i] and i != ego], dtype=np.int64)
     code = np.full(n, -2, np.int64)
     surv_out = np.full(n, np.nan)
     cyc = np.zeros(n_st + 3, np.int64)
@@ -1313,7 +1317,29 @@ def cascade_agents(
         t = _cycles()
         cyc[n_st + 2] += t - t_prev
         t_prev = t
-    return code, surv_out, cyc
+    # the result in the cascade's form
+    kept = np.zeros((n_st, n), np.bool_)
+    dropped_at = np.full(n, -1, np.int8)
+    unreachable = np.zeros(n, np.bool_)
+    n_surv = 0
+    for i in range(n):
+        c = code[i]
+        for s in range(min(max(c, 0), n_st)):
+            kept[s, i] = True
+        if c == -1:
+            unreachable[i] = True
+            dropped_at[i] = 0
+        elif 0 <= c < n_st:
+            dropped_at[i] = c
+        elif c == n_st:
+            n_surv += 1
+    survivors = np.empty(n_surv, np.int64)
+    n_surv = 0
+    for i in range(n):
+        if code[i] == n_st:
+            survivors[n_surv] = i
+            n_surv += 1
+    return kept, dropped_at, unreachable, survivors, surv_out, cyc
 
 
 # ---------------------------------------------------------------------- Python side
