@@ -31,6 +31,7 @@ ALLOWED_INNER_IMPORTS = {
     # optional dependency, installed with the 'ray' extra
     ("replay/batch/engines.py", "ray"),
     # rerun (about 1 s) only for workers that write a recording / on a failure
+    ("recordings/__init__.py", "recordings.recorder"),
     ("replay/worker.py", "recordings"),
     ("replay/batch/tasks.py", "recordings.errors"),
     # matplotlib (about 1 s) only in the driver, not in every spawned worker
