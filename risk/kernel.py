@@ -1489,3 +1489,9 @@ def warm_up() -> None:
     fa = frame_arrays(frame)
     speeds = _constant(np.full(4, 10.0))
     reachable(fa[7], fa[9], fa[2], fa[5], 0, _constant(np.array([1])), 1.0, 5, unc, speeds, 1e-25)
+    cascade_agents(  # type: ignore[call-arg]
+        *fa, 0, ALL_AGENTS, steps, unc, _constant(fp), _constant(ip),
+        _constant(np.array([PATH, TRAJ, GAUSS], dtype=np.int64)),
+        _constant(np.array([0.01, 0.01, 1e-30])), _constant(np.full(3, -1.0)),
+        _constant(np.full(3, np.inf)), True, speeds, 1e-25,
+    )  # fmt: skip

@@ -222,3 +222,28 @@ def test_cold_cache_compiles_once_then_loads(tmp_path):
     assert "compiling" not in runs[1].stderr
     assert runs[0].stdout == runs[1].stdout
     assert any(tmp_path.rglob("*.nbi")) and any(tmp_path.rglob("*.nbc"))
+
+
+def test_warm_up_covers_the_cascade(tmp_path):
+    """After warm_up in one process, a second process runs evaluate and the fused cascade
+    without compiling (so workers started after warm_up load every kernel)."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    first = subprocess.run(
+        [sys.executable, "-c", "from risk import kernel; kernel.warm_up()"],
+        env=env, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert first.returncode == 0, first.stderr
+    assert "compiling the risk kernels" in first.stderr
+    code = (
+        "import numpy as np; from risk import Frame, evaluate; "
+        "from risk.cascade import CascadeConfig, run_cascade; "
+        "f = Frame.from_arrays(np.array([[0.0, 0.0], [5.0, 0.0]]), np.zeros(2), np.ones(2), "
+        "np.ones(2), np.ones(2), [np.array([[0.0, 0.0], [1.0, 0.0]]), "
+        "np.array([[5.0, 0.0], [6.0, 0.0]])], ego=0); "
+        "evaluate(f); print(run_cascade(f, CascadeConfig.default()).tier)"
+    )
+    second = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600
+    )
+    assert second.returncode == 0, second.stderr
+    assert "compiling" not in second.stderr
