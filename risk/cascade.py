@@ -13,22 +13,28 @@ what each stage cost beside what survival analysis on all agents costs.
 Two implementations of the same job, one the oracle of the other:
 
 - **Fused** (the default, whenever ``run_cascade`` is given no ``evaluate`` or
-  ``risk.evaluate`` itself): one compiled kernel call per stage over the index list of the
-  remaining agents, no sub-frames. A reachability bound (:func:`risk.kernel.reachable`,
-  maximum speeds :data:`MAX_SPEED_MPS`) first drops, in O(1) each, the agents whose
-  survival risk cannot reach the baseline threshold even at their kind's maximum speed;
-  zero false negatives by construction. Distance stages are keep/drop tests that stop as
-  soon as the decision is certain; the Gaussian stage computes survival risk in the same
-  loop, and the tier sort reuses it.
+  ``risk.evaluate`` itself): no sub-frames. A reachability bound
+  (:func:`risk.kernel.reachable`, maximum speeds :data:`MAX_SPEED_MPS`) first drops, in
+  O(1) each, the agents whose survival risk cannot reach the baseline threshold even at
+  their kind's maximum speed; zero false negatives by construction. When every stage is a
+  path distance, trajectory distance or Gaussian stage (the default) the bound, the
+  stages and survival analysis of the survivors run in one compiled pass per agent
+  (:func:`risk.kernel.cascade_agents`): the path is extended and predicted once, an agent
+  leaves at the first stage that drops it, distance stages are keep/drop tests that stop
+  as soon as the decision is certain, and the Gaussian stage stops at the first step
+  that reaches its threshold. Each part's time is the call's wall time shared out by the
+  CPU cycles the kernel counted in it. Stages of other models run as one compiled call
+  each over the index list of the remaining agents.
 - **Staged** (when a custom ``evaluate`` is injected, e.g. a stand-in in tests): each stage
   is one ``evaluate`` call on a sub-frame of its survivors. The fused cascade keeps and
   drops exactly the same agents, except those the reachability bound drops first.
 
 Choices the spec leaves open (documented here, see also ``docs/cascade.md``):
 
-- Each stage's time includes its own share of the prediction; the survival-on-all
-  reference likewise includes its own prediction on all agents. Times are wall-clock
-  ``time.perf_counter``.
+- Each stage's time includes its own share of the prediction (in the one-pass kernel,
+  an agent's extension counts to the first stage that needs it, its prediction to the
+  Gaussian stage); the survival-on-all reference likewise includes its own prediction on
+  all agents. Times are wall-clock ``time.perf_counter``.
 - A stage with no agent left to judge is not run; its time is 0.
 - Tiers are nested: an agent reaches tier ``k`` when it reached tier ``k - 1``, its
   survival risk is ``>= tiers[k].min_survival_risk`` and it is among the ``max_agents``
