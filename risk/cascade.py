@@ -420,7 +420,7 @@ def _run_fused(
     survival_all_time_s = time.perf_counter() - start
     baseline = others & (survival_all >= config.baseline_threshold)  # NaN: False
 
-    if all(stage.model in _FUSED_MODELS for stage in config.stages):
+    if kernel.HAVE_CYCLE_COUNTER and all(st.model in _FUSED_MODELS for st in config.stages):
         parts = _one_pass(frame, config, chosen, settings, steps, unc, fp, ip, reachability)
     else:
         parts = _pass_per_stage(

@@ -31,6 +31,7 @@ import logging
 import math
 import os
 import pathlib
+import platform
 import sys
 from typing import Any
 
@@ -1018,6 +1019,12 @@ def reachable(
 
 
 # ---------------------------------------------------------------------- fused cascade
+#: Whether :func:`cascade_agents` may run here: it reads the cycle counter
+#: (``llvm.readcyclecounter``), which is the TSC on x86 but traps in user space on other
+#: CPUs (e.g. ``PMCCNTR_EL0`` on AArch64). Elsewhere the cascade times one call per stage.
+HAVE_CYCLE_COUNTER = platform.machine().lower() in {"x86_64", "amd64", "i386", "i686", "x86"}
+
+
 @intrinsic
 def _cycles(typingctx):
     """The CPU's cycle counter (``llvm.readcyclecounter``: the TSC on x86; 0 where the
@@ -1489,6 +1496,8 @@ def warm_up() -> None:
     fa = frame_arrays(frame)
     speeds = _constant(np.full(4, 10.0))
     reachable(fa[7], fa[9], fa[2], fa[5], 0, _constant(np.array([1])), 1.0, 5, unc, speeds, 1e-25)
+    if not HAVE_CYCLE_COUNTER:
+        return
     cascade_agents(  # type: ignore[call-arg]
         *fa, 0, ALL_AGENTS, steps, unc, _constant(fp), _constant(ip),
         _constant(np.array([PATH, TRAJ, GAUSS], dtype=np.int64)),

@@ -481,3 +481,18 @@ def test_keep_bounds_never_change_a_decision(threshold, eps, distances):
             assert risk >= threshold
         if d * d > cut2:
             assert risk < threshold
+
+
+def test_without_a_cycle_counter_the_cascade_times_each_stage(monkeypatch):
+    """Where the one-pass kernel may not read the cycle counter (non-x86), the fused
+    cascade runs one kernel call per stage: the same decisions, tiers and survival."""
+    from risk import kernel
+
+    frame = spread_frame(np.random.default_rng(9), 50, 40.0)
+    one_pass = run_cascade(frame, CONFIG)
+    monkeypatch.setattr(kernel, "HAVE_CYCLE_COUNTER", False)
+    per_stage = run_cascade(frame, CONFIG)
+    for name in ("kept", "dropped_at", "tier", "unreachable", "false_negatives", "survival"):
+        np.testing.assert_array_equal(
+            getattr(one_pass, name), getattr(per_stage, name), err_msg=name
+        )
