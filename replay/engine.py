@@ -31,6 +31,7 @@ from replay.reader import open_scene
 from risk.cascade import SURVIVAL_MODEL, CascadeConfig, CascadeResult, Evaluator, run_cascade
 from risk.frame import Frame, LaneMap, Scene
 from risk.hindsight import Tracks, tracks_from_frames
+from risk.kernel import warm_up
 from risk.registry import resolve_models
 
 
@@ -230,6 +231,9 @@ def _run(
         if callable(getattr(reader, "tracks", None))
         else None,
     )
+    # Load (or compile) every kernel now, so that the first frame's stage times measure
+    # the frame and not numba loading compiled code (tens of ms per kernel).
+    warm_up()
     totals = _Totals(len(cascade.stages), len(cascade.tiers))
     totals.read_time_s = read_first_s
     begun: list[Sink] = []
