@@ -680,34 +680,16 @@ def _row_starts(path_agent, n):
 
 
 @_jit
-def evaluate_agents(
-    xy, heading, speed, length, width, kinds, valid, paths, path_points, path_agent, ego,
-    agents, steps, unc, want, fp, ip, stop2, cut2,
-):  # fmt: skip
-    """Risks ``(9, N)`` of the requested models (``want``) for ``agents`` (an empty array:
-    every valid agent but the ego); NaN elsewhere.
-
-    ``stop2`` / ``cut2`` (9,): squared distances for the keep/drop mode of the distance
-    models (the cascade): stop at ``stop2``, prune beyond ``cut2``; ``-1`` / ``inf`` for
-    exact values."""
-    n = xy.shape[0]
-    if agents.shape[0] == 0:
-        agents = np.array([i for i in range(n) if valid[i] and i != ego], dtype=np.int64)
-    p = paths.shape[1]
-    p1 = p + 1
+def _ego_candidates(
+    xy, heading, speed, kinds, paths, path_points, ego, e0, ne, steps, unc, seg, nch
+):
+    """The ego's path candidates, shared by :func:`evaluate_agents` and
+    :func:`cascade_agents`: each extended to ``v T``, cut at ``v T``, boxed by chunks and
+    predicted with its covariances, with its segment data and the ego's arc position on
+    it."""
+    p1 = paths.shape[1] + 1
     ns = steps.shape[0]
     horizon = steps[ns - 1]
-    nch = (p1 - 1 + K - 1) // K + 1
-    out = np.full((N_MODELS, n), np.nan)
-    starts = _row_starts(path_agent, n)
-    want_path = want[PATH] or want[H2D]
-    want_pred = want[ENC] or want[HW] or want[H2D] or want[CIRC] or want[GAUSS] or want[SURV]
-    exact_path = want[H2D] or stop2[PATH] < 0
-    traj_exact = stop2[TRAJ] < 0 and cut2[TRAJ] == INF
-    # ------------------------------------------------ ego candidates
-    e0, e1 = starts[ego], starts[ego + 1]
-    ne = e1 - e0
-    seg = np.empty(max(p - 1, 1))
     gx = np.empty((ne, p1))
     gy = np.empty((ne, p1))
     gcum = np.empty((ne, p1))
@@ -752,6 +734,48 @@ def evaluate_agents(
             xy[ego, 0], xy[ego, 1], gx[e], gy[e], gcum[e], gn[e], g_inv2[e], g_len[e],
             gbox[e], gnb[e],
         )[1]  # fmt: skip
+    return (
+        gx, gy, gcum, gux, guy, gn, gbox, gnb, kx, ky, kn, kbox, knb,
+        g_tx, g_ty, g_dx, g_dy, g_sl, g_xx, g_xy, g_yy, g_l1, g_inv2, g_len,
+    )  # fmt: skip
+
+
+@_jit
+def evaluate_agents(
+    xy, heading, speed, length, width, kinds, valid, paths, path_points, path_agent, ego,
+    agents, steps, unc, want, fp, ip, stop2, cut2,
+):  # fmt: skip
+    """Risks ``(9, N)`` of the requested models (``want``) for ``agents`` (an empty array:
+    every valid agent but the ego); NaN elsewhere.
+
+    ``stop2`` / ``cut2`` (9,): squared distances for the keep/drop mode of the distance
+    models (the cascade): stop at ``stop2``, prune beyond ``cut2``; ``-1`` / ``inf`` for
+    exact values."""
+    n = xy.shape[0]
+    if agents.shape[0] == 0:
+        agents = np.array([i for i in range(n) if valid[i] and i != ego], dtype=np.int64)
+    p = paths.shape[1]
+    p1 = p + 1
+    ns = steps.shape[0]
+    horizon = steps[ns - 1]
+    nch = (p1 - 1 + K - 1) // K + 1
+    out = np.full((N_MODELS, n), np.nan)
+    starts = _row_starts(path_agent, n)
+    want_path = want[PATH] or want[H2D]
+    want_pred = want[ENC] or want[HW] or want[H2D] or want[CIRC] or want[GAUSS] or want[SURV]
+    exact_path = want[H2D] or stop2[PATH] < 0
+    traj_exact = stop2[TRAJ] < 0 and cut2[TRAJ] == INF
+    # ------------------------------------------------ ego candidates
+    e0, e1 = starts[ego], starts[ego + 1]
+    ne = e1 - e0
+    seg = np.empty(max(p - 1, 1))
+    v_e = speed[ego]
+    (
+        gx, gy, gcum, _, _, gn, gbox, gnb, kx, ky, kn, kbox, knb,
+        g_tx, g_ty, _, _, g_sl, g_xx, g_xy, g_yy, g_l1, g_inv2, g_len,
+    ) = _ego_candidates(
+        xy, heading, speed, kinds, paths, path_points, ego, e0, ne, steps, unc, seg, nch
+    )  # fmt: skip
     # ------------------------------------------------ per-row scratch
     ex = np.empty(p1)
     ey = np.empty(p1)
@@ -1131,42 +1155,13 @@ def cascade_agents(
     e0, e1 = starts[ego], starts[ego + 1]
     ne = e1 - e0
     seg = np.empty(max(p - 1, 1))
-    gx = np.empty((ne, p1))
-    gy = np.empty((ne, p1))
-    gcum = np.empty((ne, p1))
-    gux = np.empty((ne, p1))
-    guy = np.empty((ne, p1))
-    gn = np.empty(ne, np.int64)
-    gbox = np.empty((ne, nch, 4))
-    gnb = np.empty(ne, np.int64)
-    kx = np.empty((ne, p1))
-    ky = np.empty((ne, p1))
-    kn = np.empty(ne, np.int64)
-    kbox = np.empty((ne, nch, 4))
-    knb = np.empty(ne, np.int64)
-    g_tx = np.empty((ne, ns))
-    g_ty = np.empty((ne, ns))
-    g_dx = np.empty((ne, ns))
-    g_dy = np.empty((ne, ns))
-    g_sl = np.empty((ne, ns))
-    g_xx = np.empty((ne, ns))
-    g_xy = np.empty((ne, ns))
-    g_yy = np.empty((ne, ns))
-    v_e = speed[ego]
     u_e = unc[kinds[ego]]
-    for e in range(ne):
-        r = e0 + e
-        gn[e] = _extend(
-            paths, r, path_points[r], heading[ego], v_e * horizon, seg,
-            gx[e], gy[e], gcum[e], gux[e], guy[e],
-        )  # fmt: skip
-        gnb[e] = _boxes(gx[e], gy[e], gn[e], gbox[e])
-        kn[e] = _cut(gx[e], gy[e], gcum[e], v_e * horizon, kx[e], ky[e])
-        knb[e] = _boxes(kx[e], ky[e], kn[e], kbox[e])
-        _predict(
-            gx[e], gy[e], gcum[e], gux[e], guy[e], v_e, steps, u_e,
-            g_tx[e], g_ty[e], g_dx[e], g_dy[e], g_sl[e], g_xx[e], g_xy[e], g_yy[e],
-        )  # fmt: skip
+    (
+        gx, gy, _, _, _, gn, gbox, gnb, kx, ky, kn, kbox, knb,
+        g_tx, g_ty, _, _, _, g_xx, g_xy, g_yy, _, _, _,
+    ) = _ego_candidates(
+        xy, heading, speed, kinds, paths, path_points, ego, e0, ne, steps, unc, seg, nch
+    )  # fmt: skip
     s0_e = min(min(u_e[0], u_e[4]), min(u_e[1], u_e[5]))
     # ------------------------------------------------ per-agent scratch (rmax rows)
     ex = np.empty((rmax, p1))
