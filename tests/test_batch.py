@@ -80,18 +80,39 @@ def _drop_times(value):
 
 # ---------------------------------------------------------------------- discovery
 def test_discover_walks_folders_excludes_output_and_names_uniquely(tmp_path: pathlib.Path):
-    for rel in ("a/x.mcap", "b/x.mcap", "b/deep/y.mcap", "b/notes.txt", "out/scenes/z.mcap"):
+    for rel in ("a/x.mcap", "b/x.mcap", "b/deep/y.mcap", "b/notes.txt", "out/scenes/z.mcap",
+                "c/Q.mcap", "c/q.mcap"):  # fmt: skip
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / rel).write_bytes(b"")
     found = B.discover([tmp_path], exclude=tmp_path / "out")
     names = {f.path.relative_to(tmp_path).as_posix(): f.name for f in found}
-    assert set(names) == {"a/x.mcap", "b/x.mcap", "b/deep/y.mcap"}
-    assert names["b/deep/y.mcap"] == "y"
-    # Two files called x.mcap: both get a hash of their path, and the names differ.
-    assert names["a/x.mcap"].startswith("x-") and names["b/x.mcap"].startswith("x-")
-    assert names["a/x.mcap"] != names["b/x.mcap"]
+    assert set(names) == {"a/x.mcap", "b/x.mcap", "b/deep/y.mcap", "c/Q.mcap", "c/q.mcap"}
+    # Names keep the folders below the input folder (one output folder per dataset).
+    assert names["a/x.mcap"] == "a/x" and names["b/x.mcap"] == "b/x"
+    assert names["b/deep/y.mcap"] == "b/deep/y"
+    # Names that still collide (by case) get a hash of their path, and differ.
+    assert names["c/Q.mcap"].startswith("c/Q-") and names["c/q.mcap"].startswith("c/q-")
+    assert names["c/Q.mcap"] != names["c/q.mcap"]
     # Stable: the same inputs give the same names.
     assert B.discover([tmp_path], exclude=tmp_path / "out") == found
+
+
+def test_discover_names_below_the_deepest_input_folder_and_files_given_alone(
+    tmp_path: pathlib.Path,
+):
+    for rel in ("data/sind/s1.mcap", "data/ind/deep/s2.mcap", "alone/s3.mcap"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes(b"")
+    found = B.discover(
+        [tmp_path / "data", tmp_path / "data" / "ind", tmp_path / "alone" / "s3.mcap"]
+    )
+    names = {f.path.relative_to(tmp_path).as_posix(): f.name for f in found}
+    assert len(found) == 3  # s2, found through two inputs, is one input
+    assert names == {
+        "data/sind/s1.mcap": "sind/s1",
+        "data/ind/deep/s2.mcap": "deep/s2",  # under the deepest input folder, data/ind
+        "alone/s3.mcap": "s3",  # a file given by itself
+    }
 
 
 def test_discover_raw_files_and_waymo_shard_names(tmp_path: pathlib.Path):
@@ -296,10 +317,13 @@ def test_local_run_isolates_the_bad_scenes(local_run):
     failures = B.read_failures(out / "failures.csv")
     assert [(f.scene, f.stage, f.error_type) for f in failures] == [
         ("broken", "read", "SceneFormatError"),
-        ("no_ego", "replay", "ReplayError"),
+        ("sub/no_ego", "replay", "ReplayError"),
     ]
     scenes = pl.read_csv(out / "scenes.csv")
-    assert scenes["status"].to_list() == ["failed", "failed"] + ["replayed"] * N_GOOD
+    status = dict(zip(scenes["scene"].to_list(), scenes["status"].to_list(), strict=True))
+    assert status == {"broken": "failed", "sub/no_ego": "failed"} | {
+        f"scene_{i}": "replayed" for i in range(N_GOOD)
+    }
 
 
 @pytest.mark.slow
@@ -326,7 +350,7 @@ def test_resumed_run_recomputes_nothing_but_the_failures(local_run, dataset, set
     # Only the two failed scenes were tried again, and they fail again.
     assert [(f.scene, f.stage) for f in again.failures] == [
         ("broken", "read"),
-        ("no_ego", "replay"),
+        ("sub/no_ego", "replay"),
     ]
     assert {p: p.stat().st_mtime_ns for p in (out / "tables").glob("*.parquet")} == before
     assert _summary_without_times(out) == summary
@@ -407,7 +431,7 @@ def test_ray_gives_the_same_statistics_as_local(
     assert report.replayed == N_GOOD
     assert [(f.scene, f.stage) for f in report.failures] == [
         ("broken", "read"),
-        ("no_ego", "replay"),
+        ("sub/no_ego", "replay"),
     ]
     assert _summary_without_times(out) == summary_local
     for table in (out_local / "tables").glob("*.parquet"):

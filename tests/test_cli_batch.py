@@ -178,8 +178,10 @@ def test_detects_each_files_source_in_a_mixed_folder(shared_data: pathlib.Path, 
     result = _run(str(data), "-o", str(out), "--workers", "1", "--no-progress")
     assert result.exit_code == 0, result.output
     assert "converted 2 input(s)" in result.output
-    assert sorted(p.name for p in (out / "scenes").iterdir()) == [
-        "DEU_TestIntersectionInteract-3_1_T-1.mcap", "vehicle_tracks_000.mcap",
+    # Scenes keep the inputs' folders (one folder per dataset).
+    assert sorted(p.relative_to(out / "scenes").as_posix()
+                  for p in (out / "scenes").rglob("*.mcap")) == [
+        "cr/DEU_TestIntersectionInteract-3_1_T-1.mcap", "inter/vehicle_tracks_000.mcap",
     ]  # fmt: skip
     [failure] = read_failures(out / "failures.csv")
     assert failure.input == str(data / "cr" / "page.xml")

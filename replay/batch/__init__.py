@@ -32,7 +32,8 @@ culprit is reported; Ray retries the task once itself.
 
 Layout of ``OUT`` (``NAME`` is a scene's name, see :func:`discover`)::
 
-    scenes/NAME.mcap          converted scenes (only with --convert)
+    scenes/NAME.mcap          converted scenes (only with --convert); NAME keeps the
+                              input's sub-folders, e.g. sind/NAME
     tables/NAME.parquet       per-scene agents tables (replay.tables' columns + scene)
     frames/NAME.parquet       per-scene frames tables (replay.stats: cascade per frame)
     recordings/NAME.rrd       Rerun recordings (only with --rrd)

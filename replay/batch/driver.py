@@ -186,8 +186,12 @@ def discover(
     of it, unchecked (a file that is not one fails in its conversion).
 
     A name is the file name without its known suffix, restricted to letters, digits and
-    ``._-``; names that collide (same file name in two folders) get ``-`` and 8 hex
-    digits of a hash of the full path, so a rerun with the same inputs finds the same
+    ``._-``, under the sub-folders between the input folder that holds the file and the
+    file (``sind/NAME`` for ``recorded/sind/NAME.xml`` found in ``recorded``), so that the
+    outputs keep the inputs' folders: each dataset's scenes, tables and recordings stay
+    in a folder of their own, and ``replay evaluate OUT/scenes`` groups them by dataset.
+    Names that still collide (the same name twice in one folder, by case) get ``-`` and 8
+    hex digits of a hash of the full path, so a rerun with the same inputs finds the same
     names. Files under ``exclude`` (the output folder) are ignored. Raises ReplayError
     for a missing input or when nothing is found.
     """
@@ -210,8 +214,10 @@ def discover(
         shown = ", ".join(str(i) for i in inputs[:3]) + (", ..." if len(inputs) > 3 else "")
         bad = f"; {len(found.unreadable)} file(s) no converter reads" if found.unreadable else ""
         raise ReplayError(f"no input files ({', '.join(patterns)}) found in {shown}{bad}")
-    items.sort(key=lambda f: f.path)
-    names = _unique_names([f.path for f in items])
+    # A file found through two inputs (a folder and its sub-folder) is one input.
+    items = sorted({f.path: f for f in reversed(items)}.values(), key=lambda f: f.path)
+    roots = [pathlib.Path(i).expanduser().absolute() for i in inputs]
+    names = _unique_names([f.path for f in items], [r for r in roots if r.is_dir()])
     return [dataclasses.replace(f, name=n.name) for f, n in zip(items, names, strict=True)]
 
 
@@ -246,8 +252,8 @@ def _walk(
     return sorted(p for p in hits if ex is None or not p.is_relative_to(ex))
 
 
-def _unique_names(paths: list[pathlib.Path]) -> list[InputFile]:
-    base = [safe_name(_KNOWN_SUFFIX.sub("", p.name).replace(".tfrecord", "")) for p in paths]
+def _unique_names(paths: list[pathlib.Path], roots: Sequence[pathlib.Path] = ()) -> list[InputFile]:
+    base = [_folder_prefix(p, roots) + _file_name(p) for p in paths]
     counts: dict[str, int] = {}
     for b in base:
         counts[b.lower()] = counts.get(b.lower(), 0) + 1
@@ -257,6 +263,21 @@ def _unique_names(paths: list[pathlib.Path]) -> list[InputFile]:
             b = f"{b}-{hashlib.sha1(str(p).encode()).hexdigest()[:8]}"
         out.append(InputFile(p, b))
     return out
+
+
+def _file_name(path: pathlib.Path) -> str:
+    return safe_name(_KNOWN_SUFFIX.sub("", path.name).replace(".tfrecord", ""))
+
+
+def _folder_prefix(path: pathlib.Path, roots: Sequence[pathlib.Path]) -> str:
+    """``a/b/`` for a file in ``ROOT/a/b/`` under the deepest input folder ``ROOT`` that
+    holds it; empty for a file given by itself or directly in its input folder."""
+    holders = [r for r in roots if path.absolute().is_relative_to(r) and path.absolute() != r]
+    if not holders:
+        return ""
+    root = max(holders, key=lambda r: len(r.parts))
+    parts = path.absolute().parent.relative_to(root).parts
+    return "".join(f"{safe_name(part)}/" for part in parts)
 
 
 @dataclass
