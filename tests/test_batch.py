@@ -11,12 +11,14 @@ import json
 import os
 import pathlib
 import sys
+from types import SimpleNamespace
 
 import polars as pl
 import pytest
 
 from replay import batch as B
 from replay.batch.driver import _Run
+from replay.batch.tasks import _scene_name
 from replay.errors import ReplayError
 from risk.cascade import CascadeConfig
 
@@ -439,3 +441,22 @@ def test_ray_gives_the_same_statistics_as_local(
     assert ray_instance.is_initialized()  # an instance we did not start is left running
     resumed = B.run_batch([dataset], out, settings, engine="ray", progress=False)
     assert (resumed.replayed, resumed.skipped) == (0, N_GOOD)
+
+
+@pytest.mark.parametrize(
+    ("kind", "name", "scenario", "expected"),
+    [
+        # an AV2 Sensor log folder is its own scenario: no LOG/LOG, also under a folder
+        ("av2-sensor", "av2-sensor/LOG1", "LOG1", "av2-sensor/LOG1"),
+        ("av2-sensor", "LOG1", "LOG1", "LOG1"),
+        # a Waymo shard holds many scenarios: one sub-folder per shard
+        ("waymo", "womd/shard-0", "abc", "womd/shard-0/abc"),
+    ],
+)
+def test_scene_names_of_multi_scene_inputs(kind, name, scenario, expected):
+    task = B.ConvertTask(
+        input="x", name=name, kind=kind, paths="map", map_osm=None, scenes_dir="s",
+        marker="m", digest="d",
+    )  # fmt: skip
+    scene = SimpleNamespace(metadata={"scenario_id": scenario})
+    assert _scene_name(task, scene, f"{name}/record-0", set()) == expected

@@ -162,7 +162,9 @@ def _scene_name(task: ConvertTask, scene: Scene, label: str, used: set[str]) -> 
     if not SOURCES[task.kind].multi_scene:
         return task.name
     scenario = safe_name(scene.metadata.get("scenario_id", ""), label.rsplit("/", 1)[-1])
-    name = task.name if scenario == task.name else f"{task.name}/{scenario}"
+    # the input's own name is the last part of its task name (``av2-sensor/LOG``)
+    own = task.name.rsplit("/", 1)[-1]
+    name = task.name if scenario == own else f"{task.name}/{scenario}"
     if name in used:
         name = f"{name}-{label.rsplit('-', 1)[-1]}"
     used.add(name)
