@@ -305,13 +305,7 @@ def _cut_boxes(cx, cy, cn, ecum, length_m, ebox, en, box):
                 ebox[ci, 0], ebox[ci, 1], ebox[ci, 2], ebox[ci, 3]
             )  # fmt: skip
             continue
-        lox, loy, hix, hiy = cx[j0], cy[j0], cx[j0], cy[j0]
-        for j in range(j0 + 1, j1 + 1):
-            lox = min(lox, cx[j])
-            hix = max(hix, cx[j])
-            loy = min(loy, cy[j])
-            hiy = max(hiy, cy[j])
-        box[ci, 0], box[ci, 1], box[ci, 2], box[ci, 3] = lox, loy, hix, hiy
+        _chunk_box(cx, cy, j0, j1, box, ci)
     return nc
 
 
@@ -322,15 +316,20 @@ def _boxes(x, y, n, box):
     c = (nseg + K - 1) // K
     for ci in range(c):
         j0 = ci * K
-        j1 = min(j0 + K, n - 1)
-        lox, loy, hix, hiy = x[j0], y[j0], x[j0], y[j0]
-        for j in range(j0 + 1, j1 + 1):
-            lox = min(lox, x[j])
-            hix = max(hix, x[j])
-            loy = min(loy, y[j])
-            hiy = max(hiy, y[j])
-        box[ci, 0], box[ci, 1], box[ci, 2], box[ci, 3] = lox, loy, hix, hiy
+        _chunk_box(x, y, j0, min(j0 + K, n - 1), box, ci)
     return c
+
+
+@_jit
+def _chunk_box(x, y, j0, j1, box, ci):
+    """``box[ci]`` = the bounding box (lox, loy, hix, hiy) of points ``j0 .. j1``."""
+    lox, loy, hix, hiy = x[j0], y[j0], x[j0], y[j0]
+    for j in range(j0 + 1, j1 + 1):
+        lox = min(lox, x[j])
+        hix = max(hix, x[j])
+        loy = min(loy, y[j])
+        hiy = max(hiy, y[j])
+    box[ci, 0], box[ci, 1], box[ci, 2], box[ci, 3] = lox, loy, hix, hiy
 
 
 @_jit
