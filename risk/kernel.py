@@ -27,6 +27,7 @@ the folder. A cold start logs one warning that it is compiling. :func:`warm_up` 
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import math
 import os
@@ -63,6 +64,46 @@ def _configure_cache() -> str:
 
 
 CACHE_DIR = _configure_cache()
+
+
+def _answer_numba_blas_probe() -> bool:
+    """Spare each process numba's BLAS probe: 0.3-0.6 s of importing ``scipy.linalg``.
+
+    When the first kernel loads, numba's target set-up imports ``numba.np.arraymath``,
+    which imports ``scipy.linalg.cython_blas`` only to learn whether ``np.dot`` and
+    friends can be compiled. The kernels use no BLAS. This imports ``arraymath`` with the
+    probe answered from the installed files instead (the same yes or no), then puts the
+    real probe back, so that compiling code that does use BLAS still imports scipy's
+    BLAS as numba expects. Does nothing (and returns False) when numba's layout differs.
+    """
+    if "numba.np.arraymath" in sys.modules:
+        return False
+    try:
+        from numba.np import linalg as numba_linalg
+    except ImportError:
+        return False
+    real_probe = getattr(numba_linalg, "ensure_blas", None)
+    if real_probe is None:
+        return False
+    spec = importlib.util.find_spec("scipy")
+    folders = list(spec.submodule_search_locations or []) if spec else []
+    have_blas = any(any((pathlib.Path(f) / "linalg").glob("cython_blas.*")) for f in folders)
+
+    def installed_probe() -> None:
+        if not have_blas:
+            raise ImportError("scipy 0.16+ is required for linear algebra")
+
+    numba_linalg.ensure_blas = installed_probe
+    try:
+        from numba.np import arraymath
+    finally:
+        numba_linalg.ensure_blas = real_probe
+    if getattr(arraymath, "ensure_blas", None) is installed_probe:
+        arraymath.ensure_blas = real_probe
+    return True
+
+
+_answer_numba_blas_probe()
 
 
 class _CompileNotice(event.Listener):

@@ -247,3 +247,21 @@ def test_warm_up_covers_the_cascade(tmp_path):
     )
     assert second.returncode == 0, second.stderr
     assert "compiling" not in second.stderr
+
+
+def test_first_call_skips_numbas_blas_probe_but_blas_still_compiles():
+    """Loading the kernels does not import scipy.linalg (numba's BLAS probe, 0.3-0.6 s per
+    process, is answered from the installed files), and code that does use BLAS still
+    compiles and runs afterwards, importing scipy's BLAS then."""
+    code = (
+        "import sys, numpy as np, numba; from risk import Frame, evaluate; "
+        "f = Frame.from_arrays(np.array([[0.0, 0.0], [5.0, 0.0]]), np.zeros(2), np.ones(2), "
+        "np.ones(2), np.ones(2), [np.array([[0.0, 0.0], [1.0, 0.0]]), "
+        "np.array([[5.0, 0.0], [6.0, 0.0]])], ego=0); evaluate(f); "
+        "print('scipy.linalg' in sys.modules); "
+        "dot = numba.njit(lambda a, b: np.dot(a, b)); "
+        "print(dot(np.arange(3.0), np.ones(3)), 'scipy.linalg.cython_blas' in sys.modules)"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["False", "3.0", "True"]
