@@ -695,6 +695,126 @@ def _escape_track(ns, dt_tau, sl, se):
 
 
 @_jit
+def _pair_q(tx, ty, cxx, cxy, cyy, gtx, gty, gxx, gxy, gyy, ns, qs, dets):
+    """The exponent ``q_k = -1/2 dmu^T S^-1 dmu`` and ``det S`` of the Gaussian overlap
+    at every step of one prediction pair (``S`` the summed covariance), as
+    risk.stochastic._overlap computes them; returns the least ``det``."""
+    dmin = INF
+    for k in range(ns):
+        rx = tx[k] - gtx[k]
+        ry = ty[k] - gty[k]
+        sxx = cxx[k] + gxx[k]
+        sxy = cxy[k] + gxy[k]
+        syy = cyy[k] + gyy[k]
+        det = sxx * syy - sxy * sxy
+        q = syy * (rx * rx) - 2.0 * (sxy * (rx * ry))
+        qs[k] = (q + sxx * (ry * ry)) / det * -0.5
+        dets[k] = det
+        dmin = min(dmin, det)
+    return dmin
+
+
+@_jit
+def _overlap_risks(qs, dets, dmin, ns, dt_tau, terms, sl, se, lsk, defer, want_g, want_s):
+    """The Gaussian risk ``max_k P_o(k)`` and the survival risk ``sum_k P_o(k) S_k`` of one
+    prediction pair from ``q_k``, ``det_k`` and their least ``det`` (:func:`_pair_q`),
+    with ``exp`` only at the steps that can change them.
+
+    With ``l = sqrt(min_k det_k)``, ``P_o(k) = exp(q_k) / (2 pi sqrt(det_k)) <= exp(q_k) /
+    (2 pi l)`` at every step (the computed values; the rounding of ``P_o`` is covered by
+    the margins below). Hence:
+
+    1. In step order, ``log S`` is accumulated as ``log_s += P_o + dt/tau``. Where
+       ``q_k < q_a = log(2^-55 dt/tau 2 pi l)``, ``P_o < 2^-55 dt/tau`` is below half an
+       ulp of ``dt/tau``, so ``P_o + dt/tau == dt/tau`` in floating point: ``log S`` is
+       carried on without ``P_o``, bit for bit, and the step is put aside. The other
+       steps are computed as always.
+    2. Of the steps put aside, the one with the largest ``q`` (for the Gaussian) and the
+       one with the largest ``q - log S`` (for survival) are computed. With the steps of
+       1 they give ``G``, a lower bound of the Gaussian risk, and ``T``, of the largest
+       survival term.
+    3. Another step put aside is computed only when ``exp(q) / (2 pi l) >= G`` (it could
+       be the maximum; no other can, so the Gaussian risk stays exact) or when its
+       survival term's bound ``exp(q - log S) / (2 pi l) >= T e^-46``. The terms left
+       out count as 0; each is below ``1e-20`` of the sum, together below ``ns 1e-20``
+       of it, under the sum's own rounding for any horizon below 10^4 steps.
+
+    Without a positive finite ``min det`` every step is computed. Returns ``(gaussian,
+    survival)``; an unrequested one is not computed (its value is meaningless)."""
+    two_pi = 2.0 * math.pi
+    usable = dmin > 0 and dmin < INF  # (False for NaN)
+    log2pil = math.log(two_pi * math.sqrt(dmin)) if usable else 0.0
+    qa = -INF  # q below it: P_o + dt/tau == dt/tau; -inf: compute every step in 1
+    if usable:
+        qa = math.log(dt_tau * 2.0**-55) + log2pil if want_s else INF
+    gmax = -INF
+    tmax = 0.0
+    nd = 0
+    kq, qbest = -1, -INF
+    kz, zbest = -1, -INF
+    log_s = 0.0
+    for k in range(ns):
+        q = qs[k]
+        if q < qa:
+            defer[nd] = k
+            nd += 1
+            lsk[k] = log_s
+            terms[k] = 0.0
+            if q > qbest:
+                qbest, kq = q, k
+            z = q - log_s
+            if z > zbest:
+                zbest, kz = z, k
+            log_s += dt_tau  # (P_o + dt/tau == dt/tau)
+            continue
+        if q < EXP_ZERO:  # exp(q) is exactly 0: skip two exp and a root
+            po = 0.0
+            terms[k] = 0.0
+        else:
+            po = math.exp(q) / (math.sqrt(dets[k]) * two_pi)
+            if want_s:
+                t = po * (se[k] if log_s == sl[k] else math.exp(-log_s))
+                terms[k] = t
+                tmax = max(tmax, t)
+        gmax = max(gmax, po)
+        log_s += po + dt_tau
+    if nd == 0:
+        return gmax, np_sum(terms, ns) if want_s else 0.0
+    gthr, sthr = INF, INF
+    if want_g:
+        po = 0.0
+        if qbest >= EXP_ZERO:
+            po = math.exp(qbest) / (math.sqrt(dets[kq]) * two_pi)
+        gmax = max(gmax, po)
+        # exp(q) / (2 pi l) < gmax <=> q < log(gmax) + log(2 pi l); a margin for rounding
+        gthr = math.log(gmax) + log2pil - 1e-6 if gmax > 0 else EXP_ZERO
+    if want_s:
+        q = qs[kz]
+        if q >= EXP_ZERO:
+            ls = lsk[kz]
+            t = math.exp(q) / (math.sqrt(dets[kz]) * two_pi)
+            gmax = max(gmax, t)
+            t *= se[kz] if ls == sl[kz] else math.exp(-ls)
+            terms[kz] = t
+            tmax = max(tmax, t)
+        sthr = math.log(tmax) + log2pil - 46.0 if tmax > 0 else -INF
+    for d in range(nd):
+        k = defer[d]
+        q = qs[k]
+        if q < EXP_ZERO or k == kz:
+            continue
+        ls = lsk[k]
+        need_s = want_s and q - ls >= sthr
+        if not (need_s or q >= gthr):
+            continue
+        po = math.exp(q) / (math.sqrt(dets[k]) * two_pi)
+        gmax = max(gmax, po)
+        if need_s:
+            terms[k] = po * (se[k] if ls == sl[k] else math.exp(-ls))
+    return gmax, np_sum(terms, ns) if want_s else 0.0
+
+
+@_jit
 def _time_gap(arc, l1, v1):
     """(l2 - l1) / v1 ahead of the ego, inf behind it, for NaN or a standing ego."""
     if v1 <= 0:
@@ -836,6 +956,10 @@ def evaluate_agents(
     cxy = np.empty(ns)
     cyy = np.empty(ns)
     terms = np.empty(ns)
+    qs = np.empty(ns)
+    dets = np.empty(ns)
+    lsk = np.empty(ns)
+    defer = np.empty(ns, np.int64)
     n_circ = ip[I_NCIRC]
     scale = fp[F_SCALE_CIRC]
     dt_tau = fp[F_DT_TAU]
@@ -932,12 +1056,12 @@ def evaluate_agents(
                             path_done = True
                 if not want_pred:
                     continue
-                # closest encounter, circles, Gaussian overlap and survival: one loop
+                # closest encounter and circles in one loop; the Gaussian overlap and
+                # survival from the exponents of a second one (exp where it matters)
                 r_ego = 0.5 * (length[ego] if ip[I_RADIUS_RULE] == 0 else width[ego])
                 d2min = INF
                 circ = INF
-                gmax = -INF
-                log_s = 0.0
+                gmax, rsurv = -INF, 0.0
                 # loop invariants in registers, the circles' offsets once per agent
                 w_circ, w_stoch, w_surv = want[CIRC], want[GAUSS] or want[SURV], want[SURV]
                 half_w = 0.5 * width[i]
@@ -965,25 +1089,12 @@ def evaluate_agents(
                         lim = circ + reach
                         if lim > 0.0 and c2min <= lim * lim * (1.0 + 1e-9):
                             circ = min(circ, math.sqrt(max(c2min, 0.0)) - reach)
-                    if w_stoch:
-                        sxx = cxx[k] + gxx[k]
-                        sxy = cxy[k] + gxy[k]
-                        syy = cyy[k] + gyy[k]
-                        det = sxx * syy - sxy * sxy
-                        q = syy * (rx * rx) - 2.0 * (sxy * (rx * ry))
-                        q = (q + sxx * (ry * ry)) / det * -0.5
-                        if q < EXP_ZERO:  # exp(q) is exactly 0: skip two exp and a root
-                            po = 0.0
-                            terms[k] = 0.0
-                        else:
-                            po = math.exp(q) / (math.sqrt(det) * (2.0 * math.pi))
-                            if w_surv:
-                                if log_s == surv_l[k]:
-                                    terms[k] = po * surv_e[k]
-                                else:
-                                    terms[k] = po * math.exp(-log_s)
-                        gmax = max(gmax, po)
-                        log_s += po + dt_tau
+                if w_stoch:
+                    dmin = _pair_q(tx, ty, cxx, cxy, cyy, gtx, gty, gxx, gxy, gyy, ns, qs, dets)
+                    gmax, rsurv = _overlap_risks(
+                        qs, dets, dmin, ns, dt_tau, terms, surv_l, surv_e, lsk, defer,
+                        want[GAUSS], w_surv,
+                    )  # fmt: skip
                 if want[ENC] or want[HW] or want[H2D]:
                     d_e = math.sqrt(d2min)
                     tie = (d_e + TIE) ** 2
@@ -1023,7 +1134,7 @@ def evaluate_agents(
                 if want[GAUSS]:
                     best[GAUSS] = max(best[GAUSS], gmax)
                 if want[SURV]:
-                    best[SURV] = max(best[SURV], np_sum(terms, ns))
+                    best[SURV] = max(best[SURV], rsurv)
         for slot in range(N_MODELS):
             if want[slot]:
                 out[slot, i] = best[slot]
@@ -1100,30 +1211,6 @@ def _cycles(typingctx):
         return builder.call(fn, [])
 
     return types.int64(), codegen
-
-
-@_jit
-def _survival_pair(tx, ty, cxx, cxy, cyy, gtx, gty, gxx, gxy, gyy, ns, dt_tau, terms, sl, se):
-    """Survival risk of one prediction against one ego prediction, operation by operation
-    as in :func:`evaluate_agents` (so the values are the same)."""
-    log_s = 0.0
-    for k in range(ns):
-        rx = tx[k] - gtx[k]
-        ry = ty[k] - gty[k]
-        sxx = cxx[k] + gxx[k]
-        sxy = cxy[k] + gxy[k]
-        syy = cyy[k] + gyy[k]
-        det = sxx * syy - sxy * sxy
-        q = syy * (rx * rx) - 2.0 * (sxy * (rx * ry))
-        q = (q + sxx * (ry * ry)) / det * -0.5
-        if q < EXP_ZERO:
-            po = 0.0
-            terms[k] = 0.0
-        else:
-            po = math.exp(q) / (math.sqrt(det) * (2.0 * math.pi))
-            terms[k] = po * (se[k] if log_s == sl[k] else math.exp(-log_s))
-        log_s += po + dt_tau
-    return np_sum(terms, ns)
 
 
 @_jit
@@ -1225,6 +1312,10 @@ def cascade_agents(
     cxy = np.empty((rmax, ns))
     cyy = np.empty((rmax, ns))
     terms = np.empty(ns)
+    qs = np.empty(ns)
+    dets = np.empty(ns)
+    lsk = np.empty(ns)
+    defer = np.empty(ns, np.int64)
     extended = np.zeros(rmax, np.bool_)
     predicted = np.zeros(rmax, np.bool_)
     surv_l = np.empty(ns)
@@ -1347,14 +1438,15 @@ def cascade_agents(
                 )  # fmt: skip
                 predicted[m] = True
             for e in range(ne):
-                best = max(
-                    best,
-                    _survival_pair(
-                        tx[m], ty[m], cxx[m], cxy[m], cyy[m],
-                        g_tx[e], g_ty[e], g_xx[e], g_xy[e], g_yy[e], ns, fp[F_DT_TAU], terms,
-                        surv_l, surv_e,
-                    ),
+                dmin = _pair_q(
+                    tx[m], ty[m], cxx[m], cxy[m], cyy[m],
+                    g_tx[e], g_ty[e], g_xx[e], g_xy[e], g_yy[e], ns, qs, dets,
                 )  # fmt: skip
+                rsurv = _overlap_risks(
+                    qs, dets, dmin, ns, fp[F_DT_TAU], terms, surv_l, surv_e, lsk, defer,
+                    False, True,
+                )[1]  # fmt: skip
+                best = max(best, rsurv)
         surv_out[i] = best
         t = _cycles()
         cyc[n_st + 2] += t - t_prev
