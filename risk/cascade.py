@@ -394,6 +394,13 @@ def _kind_speeds() -> np.ndarray:
     return a
 
 
+def _readonly_float(a: np.ndarray) -> np.ndarray:
+    if a.flags.writeable:
+        a = a.view()
+        a.flags.writeable = False
+    return a
+
+
 def _ro(a: np.ndarray) -> np.ndarray:
     a = np.ascontiguousarray(a, dtype=np.int64)
     a.flags.writeable = False
@@ -411,98 +418,148 @@ def _run_fused(
     settings = resolve_prediction(prediction)
     steps, unc = kernel_settings(settings)
     fp, ip = kernel_params(chosen, settings)
-    n = frame.n_agents
+    plan = _plan(config, chosen)
     others = frame.others
-    surv_slot = kernel.SLOTS.index(SURVIVAL_MODEL)
 
     start = time.perf_counter()
-    survival_all = kernel.run(frame, _WANT[(surv_slot,)], fp, ip, steps, unc)[surv_slot]
+    survival_all = kernel.run(frame, _WANT[(_SURV_SLOT,)], fp, ip, steps, unc)[_SURV_SLOT]
     survival_all_time_s = time.perf_counter() - start
-    baseline = others & (survival_all >= config.baseline_threshold)  # NaN: False
 
-    if kernel.HAVE_CYCLE_COUNTER and all(st.model in _FUSED_MODELS for st in config.stages):
-        parts = _one_pass(frame, config, chosen, settings, steps, unc, fp, ip, reachability)
-    else:
+    parts = None
+    if plan.one_pass:
+        parts = _one_pass(frame, plan, steps, unc, fp, ip, reachability, survival_all)
+    if parts is None:
         parts = _pass_per_stage(
-            frame, config, chosen, settings, steps, unc, fp, ip, reachability, surv_slot
+            frame, config, chosen, settings, steps, unc, fp, ip, reachability, survival_all
         )
-    kept, dropped_at, unreachable, survival, current, times = parts
-    reach_time_s, stage_time_s, sort_time_s = times
-    false_negatives = (baseline[None, :] & ~kept).sum(axis=1).astype(np.int64)
-    tier = np.full(n, -1, dtype=np.int8)
-    if current.size:
-        start = time.perf_counter()
-        tier[current] = assign_tiers(survival[current], config.tiers)
-        sort_time_s += time.perf_counter() - start
-
+    kept, dropped_at, unreachable, survival, tier, baseline, false_negatives, times = parts
     return CascadeResult(
-        stage_names=config.stage_names,
+        stage_names=plan.stage_names,
         kept=kept,
         dropped_at=dropped_at,
         tier=tier,
         survival=survival,
         baseline=baseline,
         false_negatives=false_negatives,
-        stage_time_s=stage_time_s,
-        sort_time_s=sort_time_s,
+        stage_time_s=times[1],
+        sort_time_s=times[2],
         survival_all_time_s=survival_all_time_s,
         others=others,
         survival_all=survival_all,
         unreachable=unreachable,
-        reach_time_s=reach_time_s,
+        reach_time_s=times[0],
     )
 
 
 #: Stage models that the one-pass kernel (:func:`risk.kernel.cascade_agents`) runs.
 _FUSED_MODELS = ("path_distance", "trajectory_distance", "gaussian")
 
-#: kept (S, N), dropped_at, unreachable, survival, survivors, (reach, stage, sort times).
+#: kept (S, N), dropped_at, unreachable, survival, tier, baseline, false negatives (S,),
+#: (reach, stage, sort times).
 _Parts = tuple[
-    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[float, np.ndarray, float]
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    tuple[float, np.ndarray, float],
 ]
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """A cascade's kernel arguments for one choice of the stage models' parameters."""
+
+    params: tuple[Any, ...]  # the stage models' parameter objects (compared by identity)
+    stage_names: tuple[str, ...]
+    one_pass: bool  # every stage is one the one-pass kernel runs (and it can run here)
+    slots: np.ndarray
+    thr: np.ndarray
+    stop2: np.ndarray
+    cut2: np.ndarray
+    tier_min: np.ndarray
+    tier_cap: np.ndarray
+    baseline_threshold: float
+
+
+def _plan(config: CascadeConfig, chosen: Mapping[str, Any]) -> _Plan:
+    """The kernel arguments of ``config``, cached on the (immutable) configuration while
+    the stage models' parameter objects stay the same."""
+    objects = tuple(chosen[st.model] for st in config.stages)
+    plan = config.__dict__.get("_plan")
+    if plan is not None and all(a is b for a, b in zip(plan.params, objects, strict=True)):
+        return plan
+    slots, thr, stop2, cut2 = _stage_vectors(config.stages, chosen)
+    tier_min, tier_cap = _tier_vectors(config.tiers)
+    plan = _Plan(
+        params=objects,
+        stage_names=config.stage_names,
+        one_pass=kernel.HAVE_CYCLE_COUNTER
+        and all(st.model in _FUSED_MODELS for st in config.stages),
+        slots=slots,
+        thr=thr,
+        stop2=stop2,
+        cut2=cut2,
+        tier_min=tier_min,
+        tier_cap=tier_cap,
+        baseline_threshold=float(config.baseline_threshold),
+    )
+    object.__setattr__(config, "_plan", plan)
+    return plan
+
+
+def _tier_vectors(tiers: Sequence[Tier]) -> tuple[np.ndarray, np.ndarray]:
+    """Read-only minimum risks and caps (-1: none) of the tiers, for :func:`kernel.tiers`."""
+    tier_min = np.array([t.min_survival_risk for t in tiers], dtype=np.float64)
+    tier_cap = np.array([-1 if t.max_agents is None else t.max_agents for t in tiers])
+    tier_cap = tier_cap.astype(np.int64)
+    tier_min.flags.writeable = False
+    tier_cap.flags.writeable = False
+    return tier_min, tier_cap
 
 
 def _one_pass(
     frame: Frame,
-    config: CascadeConfig,
-    chosen: Mapping[str, Any],
-    settings: Any,
+    plan: _Plan,
     steps: np.ndarray,
     unc: np.ndarray,
     fp: np.ndarray,
     ip: np.ndarray,
     reachability: bool,
-) -> _Parts:
-    """The bound, every stage and survival of the survivors in one kernel call.
+    survival_all: np.ndarray,
+) -> _Parts | None:
+    """The bound, every stage, survival of the survivors and their tiers in one kernel
+    call; None when this CPU has no cycle counter (then run a pass per stage).
 
-    Each stage's time (and the bound's, and survival's in the sort time) is the call's
-    measured wall time shared out in proportion to the CPU cycles the kernel counted in
-    that part (its set-up, the ego's prediction, and the call overhead are so shared
-    in the same proportion)."""
-    n_stages = len(config.stages)
-    slots, thr, stop2, cut2 = _stage_vectors(config.stages, chosen)
+    Each stage's time (and the bound's, and survival's with the tiers in the sort time)
+    is the call's measured wall time shared out in proportion to the CPU cycles the
+    kernel counted in that part (its set-up, the ego's prediction, and the call overhead
+    are so shared in the same proportion)."""
+    n_stages = plan.slots.shape[0]
     start = time.perf_counter()
-    kept, dropped_at, unreachable, current, survival, cyc = kernel.cascade_agents(  # type: ignore[call-arg]
-        *kernel.frame_arrays(frame), int(frame.ego), kernel.ALL_AGENTS, steps, unc, fp, ip,
-        slots, thr, stop2, cut2, bool(reachability), _MAX_SPEEDS,
-        float(config.baseline_threshold),
+    kept, dropped_at, unreachable, _, survival, cyc, tier, baseline, false_neg = (
+        kernel.cascade_agents(  # type: ignore[call-arg]
+            *kernel.frame_arrays(frame), int(frame.ego), kernel.ALL_AGENTS, steps, unc, fp,
+            ip, plan.slots, plan.thr, plan.stop2, plan.cut2, bool(reachability), _MAX_SPEEDS,
+            plan.baseline_threshold, survival_all, plan.tier_min, plan.tier_cap,
+        )
     )  # fmt: skip
     wall = time.perf_counter() - start
-    parts = cyc.tolist()[1:]
-    total = float(sum(parts))
-    if total <= 0 and frame.others.any():  # no cycle counter on this CPU: time each stage
-        return _pass_per_stage(
-            frame, config, chosen, settings, steps, unc, fp, ip, reachability,
-            kernel.SLOTS.index(SURVIVAL_MODEL),
-        )  # fmt: skip
-    scale = wall / total if total > 0 else 0.0
+    total = int(cyc[1:].sum())
+    if total <= 0 and frame.others.any():
+        return None  # no cycle counter on this CPU: time each stage
+    times = cyc[1:] * (wall / total) if total > 0 else np.zeros(n_stages + 2)
     return (
         kept,
         dropped_at,
         unreachable,
         survival,
-        current,
-        (parts[0] * scale, np.array(parts[1 : 1 + n_stages]) * scale, parts[1 + n_stages] * scale),
+        tier,
+        baseline,
+        false_neg,
+        (float(times[0]), times[1 : 1 + n_stages], float(times[1 + n_stages])),
     )
 
 
@@ -541,11 +598,12 @@ def _pass_per_stage(
     fp: np.ndarray,
     ip: np.ndarray,
     reachability: bool,
-    surv_slot: int,
+    survival_all: np.ndarray,
 ) -> _Parts:
     """One kernel call for the bound, one per stage and one for survival, each timed
     (stages of any model)."""
     n, n_stages = frame.n_agents, len(config.stages)
+    surv_slot = _SURV_SLOT
     start = time.perf_counter()
     current = np.flatnonzero(frame.others)
     unreachable = np.zeros(n, dtype=bool)
@@ -579,6 +637,7 @@ def _pass_per_stage(
         current = current[keep]
         stage_time_s[s] = time.perf_counter() - start
     survival = np.full(n, np.nan)
+    tier = np.full(n, -1, dtype=np.int8)
     sort_time_s = 0.0
     if current.size:
         start = time.perf_counter()
@@ -586,13 +645,18 @@ def _pass_per_stage(
             out = kernel.run(frame, _WANT[(surv_slot,)], fp, ip, steps, unc, _ro(current))
             survival_known = out[surv_slot]
         survival[current] = survival_known[current]
+        tier[current] = assign_tiers(survival[current], config.tiers)
         sort_time_s = time.perf_counter() - start
+    baseline = frame.others & (survival_all >= config.baseline_threshold)  # NaN: False
+    false_negatives = (baseline[None, :] & ~kept).sum(axis=1).astype(np.int64)
     return (
         kept,
         dropped_at,
         unreachable,
         survival,
-        current,
+        tier,
+        baseline,
+        false_negatives,
         (reach_time_s, stage_time_s, sort_time_s),
     )
 
@@ -648,6 +712,7 @@ class _Wants(dict):
 
 
 _WANT = _Wants()
+_SURV_SLOT = kernel.SLOTS.index(SURVIVAL_MODEL)
 _MAX_SPEEDS = _kind_speeds()
 
 
@@ -744,18 +809,10 @@ def assign_tiers(survival: np.ndarray, tiers: Sequence[Tier]) -> np.ndarray:
     """Deepest tier of each agent, ``(K,)`` int8 from survival risks ``(K,)``; -1: none.
 
     Tier ``k`` holds the agents of tier ``k - 1`` whose risk is ``>= min_survival_risk``,
-    capped to the ``max_agents`` riskiest (ties: the lower index first).
+    capped to the ``max_agents`` riskiest (ties: the lower index first). Computed by
+    :func:`risk.kernel.tiers` (which the one-pass cascade calls too).
     """
-    risk = np.asarray(survival, dtype=np.float64)
-    neg = np.where(np.isnan(risk), np.inf, -risk)
-    order = np.argsort(neg, kind="stable")  # riskiest first
-    neg_sorted = neg[order]  # ascending
-    result = np.full(risk.shape, -1, dtype=np.int8)
-    count = order.size
-    for k, t in enumerate(tiers):
-        # the members stay a prefix of the order: those with risk >= the minimum
-        count = min(count, int(np.searchsorted(neg_sorted, -t.min_survival_risk, "right")))
-        if t.max_agents is not None:
-            count = min(count, t.max_agents)
-        result[order[:count]] = k
-    return result
+    risk = np.ascontiguousarray(survival, dtype=np.float64)
+    if risk.ndim != 1:
+        raise ValueError("survival must be one-dimensional")
+    return kernel.tiers(_readonly_float(risk), *_tier_vectors(tiers))

@@ -698,8 +698,8 @@ def _escape_track(ns, dt_tau, sl, se):
 def _pair_q(tx, ty, cxx, cxy, cyy, gtx, gty, gxx, gxy, gyy, ns, qs, dets):
     """The exponent ``q_k = -1/2 dmu^T S^-1 dmu`` and ``det S`` of the Gaussian overlap
     at every step of one prediction pair (``S`` the summed covariance), as
-    risk.stochastic._overlap computes them; returns the least ``det``."""
-    dmin = INF
+    risk.stochastic._overlap computes them; returns the least ``det`` (NaN ignored).
+    The loop has no reduction, so it compiles to SIMD code."""
     for k in range(ns):
         rx = tx[k] - gtx[k]
         ry = ty[k] - gty[k]
@@ -710,8 +710,18 @@ def _pair_q(tx, ty, cxx, cxy, cyy, gtx, gty, gxx, gxy, gyy, ns, qs, dets):
         q = syy * (rx * rx) - 2.0 * (sxy * (rx * ry))
         qs[k] = (q + sxx * (ry * ry)) / det * -0.5
         dets[k] = det
-        dmin = min(dmin, det)
-    return dmin
+    m0, m1, m2, m3 = INF, INF, INF, INF  # four chains: the minimum is latency-bound
+    k = 0
+    while k + 4 <= ns:
+        m0 = dets[k] if dets[k] < m0 else m0
+        m1 = dets[k + 1] if dets[k + 1] < m1 else m1
+        m2 = dets[k + 2] if dets[k + 2] < m2 else m2
+        m3 = dets[k + 3] if dets[k + 3] < m3 else m3
+        k += 4
+    while k < ns:
+        m0 = dets[k] if dets[k] < m0 else m0
+        k += 1
+    return min(min(m0, m1), min(m2, m3))
 
 
 @_jit
@@ -1236,16 +1246,44 @@ def _gauss_reaches(tx, ty, cxx, cxy, cyy, gtx, gty, gxx, gxy, gyy, ns, thr, qcut
 
 
 @_jit
+def tiers(risk, tier_min, tier_cap):
+    """Deepest tier of each agent, ``(K,)`` int8 from survival risks ``(K,)``; -1: none.
+
+    Tier ``k`` holds the agents of tier ``k - 1`` whose risk is ``>= tier_min[k]``,
+    capped to the ``tier_cap[k]`` riskiest (``-1``: no cap; ties: the lower index first,
+    by a stable sort; NaN ranks last and reaches no tier)."""
+    m = risk.shape[0]
+    neg = np.empty(m)
+    for j in range(m):
+        neg[j] = INF if math.isnan(risk[j]) else -risk[j]
+    order = np.argsort(neg, kind="mergesort")  # riskiest first; stable
+    out = np.full(m, -1, np.int8)
+    count = m
+    for k in range(tier_min.shape[0]):
+        # the members stay a prefix of the order: those with risk >= the minimum
+        c = 0
+        lim = -tier_min[k]
+        while c < count and neg[order[c]] <= lim:
+            c += 1
+        count = c
+        if tier_cap[k] >= 0:
+            count = min(count, tier_cap[k])
+        for j in range(count):
+            out[order[j]] = k
+    return out
+
+
+@_jit
 def cascade_agents(
     xy, heading, speed, length, width, kinds, valid, paths, path_points, path_agent, ego,
     agents, steps, unc, fp, ip, st_slot, st_thr, st_stop2, st_cut2, use_reach, max_speed,
-    base_thr,
+    base_thr, surv_all, tier_min, tier_cap,
 ):  # fmt: skip
     """The fused cascade: one pass per agent of ``agents`` through the reachability bound
     (when ``use_reach``) and the stages (model slot ``st_slot[s]``, one of PATH, TRAJ,
     GAUSS; kept when its risk reaches ``st_thr[s]``), then survival analysis for the
-    survivors. Each agent's path is extended once and predicted once, whatever the
-    stages.
+    survivors and their tiers (:func:`tiers`, with ``tier_min``, ``tier_cap``). Each
+    agent's path is extended once and predicted once, whatever the stages.
 
     Distance stages are keep/drop tests (``st_stop2``, ``st_cut2``: see
     ``risk.cascade.keep_bounds``), the Gaussian stage stops at the first step that
@@ -1257,9 +1295,12 @@ def cascade_agents(
     (S, N) bool (kept after stage ``s``), ``dropped_at`` (N,) int8 (the stage that dropped
     the agent, 0 for the bound, -1 survived or not judged), ``unreachable`` (N,) bool
     (dropped by the bound), the survivors' indices, the survival risk of the survivors
-    (N,) (NaN elsewhere) and the cycle counts (S + 3,) of the set-up (the ego's
-    candidates), the bound, each stage and the survival analysis (for the caller to
-    share out the call's measured time)."""
+    (N,) (NaN elsewhere), the cycle counts (S + 3,) of the set-up (the ego's
+    candidates), the bound, each stage and the survival analysis with the tiers (for the
+    caller to share out the call's measured time), the tiers (N,) int8 (-1: none), the
+    baseline (N,) bool (``surv_all >= base_thr``, the survival risk of every agent, for
+    agents of ``agents`` only) and the false negatives (S,) int64 (baseline agents not
+    kept after stage ``s``)."""
     n = xy.shape[0]
     n_st = st_slot.shape[0]
     if agents.shape[0] == 0:
@@ -1473,7 +1514,26 @@ def cascade_agents(
         if code[i] == n_st:
             survivors[n_surv] = i
             n_surv += 1
-    return kept, dropped_at, unreachable, survivors, surv_out, cyc
+    t_prev = _cycles()
+    tier = np.full(n, -1, np.int8)
+    if n_surv > 0:
+        risk = np.empty(n_surv)
+        for j in range(n_surv):
+            risk[j] = surv_out[survivors[j]]
+        levels = tiers(risk, tier_min, tier_cap)
+        for j in range(n_surv):
+            tier[survivors[j]] = levels[j]
+    cyc[n_st + 2] += _cycles() - t_prev
+    baseline = np.zeros(n, np.bool_)
+    false_neg = np.zeros(n_st, np.int64)
+    for a_idx in range(agents.shape[0]):
+        i = agents[a_idx]
+        if surv_all[i] >= base_thr:  # (False for NaN)
+            baseline[i] = True
+            for s in range(n_st):
+                if not kept[s, i]:
+                    false_neg[s] += 1
+    return kept, dropped_at, unreachable, survivors, surv_out, cyc, tier, baseline, false_neg
 
 
 # ---------------------------------------------------------------------- Python side
@@ -1629,5 +1689,6 @@ def warm_up() -> None:
         *fa, 0, ALL_AGENTS, steps, unc, _constant(fp), _constant(ip),
         _constant(np.array([PATH, TRAJ, GAUSS], dtype=np.int64)),
         _constant(np.array([0.01, 0.01, 1e-30])), _constant(np.full(3, -1.0)),
-        _constant(np.full(3, np.inf)), True, speeds, 1e-25,
+        _constant(np.full(3, np.inf)), True, speeds, 1e-25, _constant(np.zeros(2)),
+        _constant(np.array([1e-25])), _constant(np.array([-1])),
     )  # fmt: skip
