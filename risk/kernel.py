@@ -485,7 +485,9 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
 
     Chunk pairs whose boxes are farther apart than the best distance found so far (or than
     ``sqrt(cut2)``) are skipped, which never loses the minimum below ``sqrt(cut2)``. Returns
-    early once the squared distance is at most ``stop2`` (pass -1 for the exact value).
+    early once the squared distance is at most ``stop2`` (pass -1 for the exact value),
+    then with an upper bound of the distance (the distance of two points) at most
+    ``sqrt(stop2)``, not the minimum.
     ``above``: a squared distance known to lie above the minimum (inf if none), to prune
     with from the start; should nothing be nearer after all, the search runs again
     without it."""
@@ -513,6 +515,17 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
         g = _gap2(abox, amin, bbox, j)
         if g < gmin:
             gmin, bmin = g, j
+    if stop2 >= 0 and gmin <= stop2:
+        # Keep/drop mode: any two points bound the distance from above, so the ends of
+        # the nearest chunks, when close enough, settle "keep" without a search.
+        w2 = INF
+        for ia in (amin * K, min(amin * K + K // 2, an - 1), min(amin * K + K, an - 1)):
+            for jb in (bmin * K, min(bmin * K + K // 2, bn - 1), min(bmin * K + K, bn - 1)):
+                dx = ax[ia] - bx[jb]
+                dy = ay[ia] - by[jb]
+                w2 = min(w2, dx * dx + dy * dy)
+        if w2 <= stop2:
+            return math.sqrt(w2)
     for start in (above, INF):
         best = start
         if gmin <= cut2:
