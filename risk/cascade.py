@@ -487,10 +487,11 @@ class _Plan:
 def _plan(config: CascadeConfig, chosen: Mapping[str, Any]) -> _Plan:
     """The kernel arguments of ``config``, cached on the (immutable) configuration while
     the stage models' parameter objects stay the same."""
-    objects = tuple(chosen[st.model] for st in config.stages)
     plan = config.__dict__.get("_plan")
-    if plan is not None and all(a is b for a, b in zip(plan.params, objects, strict=True)):
+    # (a tuple compares its items by identity first; equal objects give equal vectors)
+    if plan is not None and tuple(map(chosen.__getitem__, plan.stage_names)) == plan.params:
         return plan
+    objects = tuple(chosen[st.model] for st in config.stages)
     slots, thr, stop2, cut2 = _stage_vectors(config.stages, chosen)
     tier_min, tier_cap = _tier_vectors(config.tiers)
     plan = _Plan(
@@ -547,10 +548,12 @@ def _one_pass(
         )
     )  # fmt: skip
     wall = time.perf_counter() - start
-    total = int(cyc[1:].sum())
+    parts = cyc.tolist()
+    total = sum(parts) - parts[0]
     if total <= 0 and frame.others.any():
         return None  # no cycle counter on this CPU: time each stage
-    times = cyc[1:] * (wall / total) if total > 0 else np.zeros(n_stages + 2)
+    scale = wall / total if total > 0 else 0.0
+    stage_times = cyc[2 : 2 + n_stages] * scale
     return (
         kept,
         dropped_at,
@@ -559,7 +562,7 @@ def _one_pass(
         tier,
         baseline,
         false_neg,
-        (float(times[0]), times[1 : 1 + n_stages], float(times[1 + n_stages])),
+        (parts[1] * scale, stage_times, parts[2 + n_stages] * scale),
     )
 
 
