@@ -140,6 +140,23 @@ def test_lane_frames_match_numpy_bit_for_bit():
             np.testing.assert_array_equal(fast[name], slow[name], err_msg=name)
 
 
+@pytest.mark.parametrize("gap_m", [10.0, 15.0, 20.0, 25.0])
+def test_tiny_overlaps_stay_exact(gap_m):
+    """Far apart, every step's P_o is tiny (the kernel computes exp at few of them): the
+    Gaussian risk is still the exact maximum (not 0) and survival the numpy value."""
+    f = Frame.from_arrays(
+        np.array([[0.0, 0.0], [0.0, gap_m]]), np.zeros(2), np.array([8.0, 8.0]),
+        np.full(2, 4.5), np.full(2, 1.9),
+        [np.array([[0.0, 0.0], [200.0, 0.0]]), np.array([[0.0, gap_m], [200.0, gap_m]])],
+        ego=0,
+    )  # fmt: skip
+    fast = evaluate(f, STOCHASTIC)
+    slow = evaluate_numpy(f, STOCHASTIC)
+    for name in STOCHASTIC:
+        assert 0.0 < slow[name][1] < 1e-20, name
+        assert fast[name][1] == slow[name][1], name
+
+
 # ---------------------------------------------------------------------- degenerate frames
 def test_ego_alone_and_all_invalid():
     alone = Frame.from_arrays(
