@@ -16,6 +16,7 @@ import sys
 import click
 
 from base.guard import target_of_temp
+from recordings import background
 from replay import __version__
 from replay.user_errors import user_errors
 
@@ -55,6 +56,13 @@ class LazyGroup(click.Group):
         module_name, attr = target.split(":")
         return getattr(importlib.import_module(module_name), attr)
 
+    def resolve_command(self, ctx: click.Context, args: list[str]):
+        if args and not ctx.resilient_parsing and _will_record(args):
+            # Before the command's module loads the models (about 1 s): a second process
+            # imports rerun meanwhile, and the command's recorder adopts it.
+            background.start_early()
+        return super().resolve_command(ctx, args)
+
     def invoke(self, ctx: click.Context):
         try:
             return super().invoke(ctx)
@@ -64,6 +72,22 @@ class LazyGroup(click.Group):
             quiet_broken_pipe()
         except user_errors() as exc:
             raise click.ClickException(str(exc) or type(exc).__name__) from None
+        finally:
+            background.discard_early()  # started for a recording that did not happen
+
+
+#: Commands that write a Rerun recording unless told not to.
+RECORDING_COMMANDS = frozenset({"run", "demo"})
+
+
+def _will_record(args: list[str]) -> bool:
+    """Whether ``replay ARGS`` will write a recording, judged from the words alone (a
+    wrong guess costs only an idle process): ``run`` or ``demo``, without ``--help``,
+    ``--no-rrd`` or ``--ego all``."""
+    if args[0] not in RECORDING_COMMANDS or {"--help", "-h", "--no-rrd"} & set(args):
+        return False
+    pairs = zip(args, [*args[1:], ""], strict=True)
+    return not any(a == "--ego=all" or (a == "--ego" and b == "all") for a, b in pairs)
 
 
 def _os_message(exc: OSError) -> str:

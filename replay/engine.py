@@ -231,9 +231,6 @@ def _run(
         if callable(getattr(reader, "tracks", None))
         else None,
     )
-    # Load (or compile) every kernel now, so that the first frame's stage times measure
-    # the frame and not numba loading compiled code (tens of ms per kernel).
-    warm_up()
     totals = _Totals(len(cascade.stages), len(cascade.tiers))
     totals.read_time_s = read_first_s
     begun: list[Sink] = []
@@ -241,6 +238,11 @@ def _run(
         for sink in sinks:
             _timed_sink(totals, sink, "begin", info)
             begun.append(sink)
+        # Load (or compile) every kernel now, so that the first frame's stage times
+        # measure the frame and not numba loading compiled code (tens of ms per kernel).
+        # After the sinks' begin(): a recorder writing in the background starts its
+        # process there, and it imports rerun while the kernels load.
+        warm_up()
         bar = tqdm(
             total=info.n_frames, disable=not progress, file=sys.stderr, unit="frame",
             desc=f"replay {path.name if path else 'scene'}", leave=False,

@@ -132,7 +132,9 @@ def make_sinks(rrd: pathlib.Path | None, table: pathlib.Path | None) -> list[Sin
     if rrd is not None:
         from recordings import SceneRecorder
 
-        sinks.append(SceneRecorder(rrd))
+        # In a second process when there is a second CPU: it imports rerun and writes
+        # while this one replays (recordings.recorder explains).
+        sinks.append(SceneRecorder(rrd, background=True))
     return sinks
 
 
