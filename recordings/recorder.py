@@ -5,11 +5,12 @@ every model's risk, the paths to draw); ``close()`` adds the hindsight labels an
 everything at once with :func:`recordings.writer.write_file` (batched, atomic: a
 temporary file renamed at the end; ``abort()`` or any error leaves nothing behind).
 
-This module does not import rerun. With ``background=True`` the writing runs in a second
-process (:mod:`recordings.background`), started by ``begin()`` or earlier by the command,
-which imports rerun (about 1 s) while the replay computes; ``close()`` hands it the
-collected frames and waits for the file. On one CPU, or where processes cannot be forked
-(Windows, macOS), the recorder writes in its own process.
+This module does not import rerun. With ``background=True`` the writing runs in the
+output process (:mod:`base.background`), started by ``begin()`` or earlier by the
+command, which imports rerun (about 1 s) while the replay computes; ``close()`` hands it
+the collected frames, waits for the temporary file and renames it into place. On one CPU,
+or where processes cannot be forked (Windows, macOS), the recorder writes in its own
+process.
 
 What each entity shows is described in ``docs/recording.md``; paths, colours and the
 blueprint live in :mod:`recordings.layout`, the Arrow batching in
@@ -25,15 +26,17 @@ from typing import Literal
 
 import numpy as np
 
-from base.atomic import temp_path_beside
+from base import background as output_process
+from base.atomic import commit, temp_path_beside
 from base.sinks import FrameResult, SceneInfo
-from recordings import background as background_writer
 from recordings.errors import RecordingError
 from risk.hindsight import LABEL_POSITIVE, LABEL_UNKNOWN, truth_for_rows
 
 LabelMode = Literal["kept", "all", "none"]
 LABEL_MODES: tuple[str, ...] = ("kept", "all", "none")
 APPLICATION_ID = "riskreplay"
+#: The module that writes the file (imports rerun).
+WRITER = "recordings.writer"
 
 
 @dataclass(frozen=True)
@@ -86,8 +89,8 @@ class SceneRecorder:
     kept after each stage (off by default: in dense traffic they cover the agents).
     ``log10_decades``: a model's risk view plots
     log10(risk) when its positive values in the scene span more than this many decades
-    (the raw values are always recorded under ``/risk``). ``background``: write in a
-    second process that imports rerun while the replay runs (see the module's text);
+    (the raw values are always recorded under ``/risk``). ``background``: write in the
+    output process, which imports rerun while the replay runs (see the module's text);
     ignored where that cannot help (one CPU) or cannot work (no ``fork``).
     """
 
@@ -110,12 +113,12 @@ class SceneRecorder:
         self.links = links
         self.log10_decades = float(log10_decades)
         self.application_id = application_id
-        self.background = bool(background) and background_writer.can_write_in_background()
+        self.background = bool(background) and output_process.available()
         self._info: SceneInfo | None = None
         self._frames: list[FrameRows] = []
         self._state = "new"  # new -> open -> closed | aborted
         self._tmp: pathlib.Path | None = None
-        self._writer: background_writer.WriterProcess | None = None
+        self._process: output_process.OutputProcess | None = None
 
     # ------------------------------------------------------------------ Sink protocol
     def begin(self, info: SceneInfo) -> None:
@@ -129,8 +132,8 @@ class SceneRecorder:
             raise RecordingError(f"cannot write {self.output}: folder {folder} is not writable")
         self._info = info
         self._state = "open"
-        if self.background:  # adopt a process the command started early, or start one
-            self._writer = background_writer.take_early() or background_writer.WriterProcess()
+        if self.background:  # the command's output process, or a new one
+            self._process = output_process.acquire(preload=(WRITER,))
 
     def add(self, result: FrameResult) -> None:
         """Keep what the recording needs from one frame (nothing is written yet)."""
@@ -147,19 +150,21 @@ class SceneRecorder:
         self._tmp = temp_path_beside(self.output)
         try:
             frames = _with_hindsight(self._frames, self._info)
-            if self._writer is not None:  # the tracks (a reader of the scene file) stay
-                info = replace(self._info, tracks=None)  # here; their labels are in frames
-                self._writer.write(self.output, self._tmp, info, frames, self._options())
+            if self._process is not None:  # the tracks (a reader of the scene file) stay
+                info = replace(self._info, tracks=None)  # here: their labels are in frames
+                self._process.run(f"{WRITER}:write_temp", self.output, self._tmp, info,
+                                  frames, self._options())  # fmt: skip
             else:
                 from recordings import writer  # rerun: about 1 s, only when writing
 
-                writer.write_file(self.output, self._tmp, self._info, frames, self._options())
+                writer.write_temp(self.output, self._tmp, self._info, frames, self._options())
+            commit(self._tmp, self.output)
         except BaseException:
             self._discard()
             self._state = "aborted"
             raise
         self._tmp = None
-        self._writer = None
+        self._release()
         self._frames = []
         self._state = "closed"
 
@@ -178,10 +183,12 @@ class SceneRecorder:
             application_id=self.application_id,
         )
 
+    def _release(self) -> None:
+        output_process.release(self._process)
+        self._process = None
+
     def _discard(self) -> None:
-        if self._writer is not None:
-            self._writer.stop()
-            self._writer = None
+        self._release()
         if self._tmp is not None:
             self._tmp.unlink(missing_ok=True)
             self._tmp = None

@@ -1,16 +1,15 @@
 """Writing a recorded replay into a Rerun ``.rrd`` file (the part that imports rerun).
 
 :class:`recordings.recorder.SceneRecorder` collects each frame's arrays during the replay;
-:func:`write_file` writes them at the end, all at once and batched: one ``send_columns``
+:func:`write_temp` writes them at the end, all at once and batched: one ``send_columns``
 call per scene layer for the whole scene (all agents of all frames, partitioned by frame)
 and one per timeline entity. Measured with rerun-sdk 0.41 (see ``docs/recording.md``,
 "Writing: batched, atomic"), this is 20-60x faster than one ``log`` call per agent or
-frame. The file appears atomically: it is written to a temporary file and renamed at the
-end; on any error the temporary file is removed.
+frame. The recorder renames the temporary file into place when it is complete.
 
-This module is kept apart from the recorder so that the recorder can run this part in a
-second process (importing rerun takes about 1 s) while the replay computes; see
-``SceneRecorder(background=True)``.
+This module is kept apart from the recorder so that the recorder can run it in the output
+process (:mod:`base.background`; importing rerun takes about 1 s) while the replay
+computes; see ``SceneRecorder(background=True)``.
 """
 
 from __future__ import annotations
@@ -24,7 +23,6 @@ import numpy as np
 import pyarrow as pa
 import rerun as rr
 
-from base.atomic import commit
 from base.guard import run_with_stall_timeout
 from base.sinks import SceneInfo
 from recordings import columns as C
@@ -51,25 +49,20 @@ class _Scene:
     grid: tuple[np.ndarray, ...] | None = None  # _agent_grid's result, computed once
 
 
-def write_file(
+def write_temp(
     output: pathlib.Path,
     tmp: pathlib.Path,
     info: SceneInfo,
     frames: Sequence[FrameRows],
     options: WriteOptions,
 ) -> None:
-    """Write the recording of ``frames`` to ``tmp``, then rename it to ``output``.
+    """Write the recording of ``frames`` (destined for ``output``) into the temporary file
+    ``tmp``; the caller renames it into place, or removes it.
 
-    ``tmp`` is removed on any error. A save that stops making progress (a full disk)
-    fails instead of hanging."""
-    try:
-        run_with_stall_timeout(
-            lambda: _write(output, tmp, info, frames, options), watch=tmp, target=output
-        )
-        commit(tmp, output)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    A save that stops making progress (a full disk) fails instead of hanging."""
+    run_with_stall_timeout(
+        lambda: _write(output, tmp, info, frames, options), watch=tmp, target=output
+    )
 
 
 def _write(

@@ -15,8 +15,8 @@ import sys
 
 import click
 
+from base import background
 from base.guard import target_of_temp
-from recordings import background
 from replay import __version__
 from replay.user_errors import user_errors
 
@@ -57,10 +57,12 @@ class LazyGroup(click.Group):
         return getattr(importlib.import_module(module_name), attr)
 
     def resolve_command(self, ctx: click.Context, args: list[str]):
-        if args and not ctx.resilient_parsing and _will_record(args):
-            # Before the command's module loads the models (about 1 s): a second process
-            # imports rerun meanwhile, and the command's recorder adopts it.
-            background.start_early()
+        preload = () if ctx.resilient_parsing else output_writers(args)
+        if preload:
+            # Before the command's module loads the models (about 1 s): the output
+            # process imports the writers meanwhile, and the command's outputs adopt it.
+            process = background.start(preload)
+            ctx.call_on_close(lambda: background.release(process))
         return super().resolve_command(ctx, args)
 
     def invoke(self, ctx: click.Context):
@@ -72,22 +74,27 @@ class LazyGroup(click.Group):
             quiet_broken_pipe()
         except user_errors() as exc:
             raise click.ClickException(str(exc) or type(exc).__name__) from None
-        finally:
-            background.discard_early()  # started for a recording that did not happen
 
 
-#: Commands that write a Rerun recording unless told not to.
-RECORDING_COMMANDS = frozenset({"run", "demo"})
+#: The modules that write a recording and a table (imported by the output process).
+RECORDING_WRITER = "recordings.writer"
+TABLE_WRITER = "replay.table_file"
 
 
-def _will_record(args: list[str]) -> bool:
-    """Whether ``replay ARGS`` will write a recording, judged from the words alone (a
-    wrong guess costs only an idle process): ``run`` or ``demo``, without ``--help``,
-    ``--no-rrd`` or ``--ego all``."""
-    if args[0] not in RECORDING_COMMANDS or {"--help", "-h", "--no-rrd"} & set(args):
-        return False
-    pairs = zip(args, [*args[1:], ""], strict=True)
-    return not any(a == "--ego=all" or (a == "--ego" and b == "all") for a, b in pairs)
+def output_writers(args: list[str]) -> tuple[str, ...]:
+    """The writer modules that ``replay ARGS`` will need, judged from the words alone (a
+    wrong guess costs only an idle import): ``demo`` writes a recording and a table,
+    ``run`` a recording unless ``--no-rrd`` or ``--ego all``, and a table with
+    ``--table`` or ``--ego all``. Nothing for ``--help``."""
+    if not args or args[0] not in ("run", "demo") or {"--help", "-h"} & set(args):
+        return ()
+    if args[0] == "demo":
+        return (TABLE_WRITER, RECORDING_WRITER)
+    pairs = list(zip(args, [*args[1:], ""], strict=True))
+    every_ego = any(a == "--ego=all" or (a == "--ego" and b == "all") for a, b in pairs)
+    table = every_ego or any(a == "--table" or a.startswith("--table=") for a in args)
+    record = not every_ego and "--no-rrd" not in args
+    return (TABLE_WRITER,) * table + (RECORDING_WRITER,) * record
 
 
 def _os_message(exc: OSError) -> str:

@@ -28,10 +28,10 @@ import risk
 from base.sinks import FrameResult, SceneInfo, Sink  # also importable from here, as before
 from replay.errors import ReplayError
 from replay.reader import open_scene
+from risk import kernel
 from risk.cascade import SURVIVAL_MODEL, CascadeConfig, CascadeResult, Evaluator, run_cascade
 from risk.frame import Frame, LaneMap, Scene
 from risk.hindsight import Tracks, tracks_from_frames
-from risk.kernel import warm_up
 from risk.registry import resolve_models
 
 
@@ -147,6 +147,11 @@ class _Totals:
         self.stage_time_s += res.stage_time_s
         self.sort_time_s += res.sort_time_s
         self.survival_all_time_s += res.survival_all_time_s
+
+
+def warm_up() -> None:
+    """Load (or compile) every risk kernel (:func:`risk.kernel.warm_up`)."""
+    kernel.warm_up()
 
 
 def run_scene(

@@ -56,12 +56,12 @@ from typing import Any
 
 import numpy as np
 
-from risk import kernel
 from risk.errors import RiskError
 from risk.frame import KIND_NAMES, Frame
 from risk.registry import (
     BASELINE_MODEL,
     BASELINE_THRESHOLD,
+    kernel,
     kernel_params,
     kernel_settings,
     resolve_params,
@@ -482,7 +482,7 @@ def _one_pass(
     n_stages = len(config.stages)
     slots, thr, stop2, cut2 = _stage_vectors(config.stages, chosen)
     start = time.perf_counter()
-    kept, dropped_at, unreachable, current, survival, cyc = kernel.cascade_agents(  # type: ignore[call-arg]
+    kept, dropped_at, unreachable, current, survival, cyc = kernel.cascade_agents(
         *kernel.frame_arrays(frame), int(frame.ego), kernel.ALL_AGENTS, steps, unc, fp, ip,
         slots, thr, stop2, cut2, bool(reachability), _MAX_SPEEDS,
         float(config.baseline_threshold),
