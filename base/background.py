@@ -17,8 +17,9 @@ With two CPUs the imports cost no wall time.
 - ``spawn``, not ``fork``: rerun and polars run native thread pools, which a forked copy
   of a process that has used them inherits in a broken state (a recording written in a
   fork of a process that had written one before hung, seen in the tests).
-- Only with a second CPU that is idle (:func:`available`); otherwise the outputs write in
-  the replay's own process, as they do with ``RISKREPLAY_OUTPUT_INLINE=1``.
+- ``RISKREPLAY_OUTPUT_PROCESS``: ``auto`` (the default) uses the process when a second
+  CPU is idle (:func:`available`), ``off`` never (the outputs write in the replay's own
+  process), ``on`` always.
 
 Standard library only, so that starting the process early costs nothing.
 """
@@ -36,8 +37,8 @@ import traceback
 from collections.abc import Iterable
 from typing import Any
 
-#: Set (to anything but 0) to write every output in the replay's own process.
-INLINE_VARIABLE = "RISKREPLAY_OUTPUT_INLINE"
+#: ``auto`` (default), ``on`` or ``off``: when to write outputs in the output process.
+MODE_VARIABLE = "RISKREPLAY_OUTPUT_PROCESS"
 
 
 class OutputProcessError(RuntimeError):
@@ -45,12 +46,14 @@ class OutputProcessError(RuntimeError):
 
 
 def available() -> bool:
-    """Whether an output process helps: a second CPU that is idle (the load average of the
-    last minute leaves one free), and not switched off by ``RISKREPLAY_OUTPUT_INLINE``.
-    On a busy machine the process only competes with the replay for a CPU and adds its
-    own start (measured: 0.5 s slower with a neighbour busy on the other CPU)."""
-    if os.environ.get(INLINE_VARIABLE, "") not in ("", "0"):
-        return False
+    """Whether to use an output process. ``RISKREPLAY_OUTPUT_PROCESS=on`` / ``off`` decide;
+    by default only when it helps: a second CPU that is idle (the load average of the
+    last minute leaves one free). On a busy machine the process only competes with the
+    replay for a CPU and adds its own start (measured: 0.5 s slower with a neighbour
+    busy on the other CPU)."""
+    mode = os.environ.get(MODE_VARIABLE, "auto").strip().lower()
+    if mode in ("on", "off"):
+        return mode == "on"
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     try:
         load = os.getloadavg()[0]
@@ -101,7 +104,7 @@ class OutputProcess:
             raise OutputProcessError(
                 f"the output process stopped (exit code {self._process.exitcode}) while "
                 f"running {function}; run again, and if it happens again set "
-                f"{INLINE_VARIABLE}=1 to write in the replay's own process"
+                f"{MODE_VARIABLE}=off to write in the replay's own process"
             )
         ok, value, text = reply
         if ok:

@@ -3,6 +3,7 @@ errors that say what happened, nothing left behind, and the CLI's early start.""
 
 from __future__ import annotations
 
+import os
 import pathlib
 import subprocess
 import sys
@@ -19,10 +20,12 @@ from replay import tables
 from replay.cli import RECORDING_WRITER, TABLE_WRITER, main, output_writers
 from replay.tables import TableSink
 
-needs_background = pytest.mark.skipif(
-    not background.available(),
-    reason="no second CPU or no fork here: outputs are written in process",
-)
+
+@pytest.fixture(autouse=True)
+def output_process_on(monkeypatch):
+    """Test the output process whatever the machine's load (the default, ``auto``, skips
+    it when no CPU is idle, e.g. under ``pytest -n 2``)."""
+    monkeypatch.setenv(background.MODE_VARIABLE, "on")
 
 
 def fill(sink, results_from=make_results):
@@ -66,7 +69,6 @@ def test_the_cli_and_the_sinks_name_the_same_writers():
     assert (RECORDING_WRITER, TABLE_WRITER) == (WRITER, SINK_TABLE_WRITER)
 
 
-@needs_background
 def test_background_recording_is_the_recording_written_in_process(tmp_path):
     inline, behind = tmp_path / "inline.rrd", tmp_path / "background.rrd"
     fill(SceneRecorder(inline)).close()
@@ -83,7 +85,6 @@ def test_background_recording_is_the_recording_written_in_process(tmp_path):
     assert leftovers(tmp_path) == ["background.rrd", "inline.rrd"]
 
 
-@needs_background
 @pytest.mark.parametrize("suffix", [".parquet", ".csv"])
 def test_background_table_is_the_table_written_in_process(tmp_path, suffix):
     inline, behind = tmp_path / f"inline{suffix}", tmp_path / f"background{suffix}"
@@ -94,7 +95,6 @@ def test_background_table_is_the_table_written_in_process(tmp_path, suffix):
     assert a.height > 0 and a.equals(b, null_equal=True)
 
 
-@needs_background
 def test_a_failed_write_raises_its_error_and_leaves_nothing(tmp_path, monkeypatch):
     fake_writer(monkeypatch, tmp_path, recorder, "tmp.write_bytes(b'partial'); "
                 "raise RecordingError('could not write a.rrd: No space left on device')")  # fmt: skip
@@ -105,7 +105,6 @@ def test_a_failed_write_raises_its_error_and_leaves_nothing(tmp_path, monkeypatc
     assert leftovers(tmp_path) == []
 
 
-@needs_background
 def test_a_bug_in_the_writer_keeps_its_type_and_traceback(tmp_path, monkeypatch):
     fake_writer(monkeypatch, tmp_path, tables, "raise ValueError('a bug in the writer')")
     table = fill(TableSink(tmp_path / "b.parquet", background=True))
@@ -115,16 +114,14 @@ def test_a_bug_in_the_writer_keeps_its_type_and_traceback(tmp_path, monkeypatch)
     assert leftovers(tmp_path) == []
 
 
-@needs_background
 def test_an_output_process_that_dies_is_reported(tmp_path, monkeypatch):
     fake_writer(monkeypatch, tmp_path, recorder, "tmp.write_bytes(b'partial'); os._exit(9)")
     rec = fill(SceneRecorder(tmp_path / "c.rrd", background=True))
-    with pytest.raises(background.OutputProcessError, match=r"exit code 9.*OUTPUT_INLINE"):
+    with pytest.raises(background.OutputProcessError, match=r"exit code 9.*OUTPUT_PROCESS=off"):
         rec.close()
     assert leftovers(tmp_path) == []  # the parent removes the temporary file it named
 
 
-@needs_background
 def test_outputs_share_one_process_which_ends_with_its_last_user(tmp_path):
     rec = fill(SceneRecorder(tmp_path / "d.rrd", background=True))
     table = fill(TableSink(tmp_path / "d.parquet", background=True))
@@ -136,8 +133,19 @@ def test_outputs_share_one_process_which_ends_with_its_last_user(tmp_path):
     assert not process.alive() and leftovers(tmp_path) == ["d.parquet"]
 
 
-def test_inline_variable_switches_the_background_off(monkeypatch, tmp_path):
-    monkeypatch.setenv(background.INLINE_VARIABLE, "1")
+def test_the_mode_variable_and_the_load_decide(monkeypatch, tmp_path):
+    monkeypatch.setenv(background.MODE_VARIABLE, "auto")
+    monkeypatch.setattr(background.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    monkeypatch.setattr(background.os, "getloadavg", lambda: (0.4, 0.0, 0.0))
+    assert background.available()  # two CPUs, one idle
+    monkeypatch.setattr(background.os, "getloadavg", lambda: (1.6, 0.0, 0.0))
+    assert not background.available()  # a neighbour keeps a CPU busy
+    monkeypatch.setattr(background.os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    monkeypatch.setattr(background.os, "getloadavg", lambda: (0.0, 0.0, 0.0))
+    assert not background.available()  # one CPU
+    monkeypatch.setenv(background.MODE_VARIABLE, "on")
+    assert background.available()
+    monkeypatch.setenv(background.MODE_VARIABLE, "off")
     assert not background.available() and background.acquire(("json",)) is None
     rec = fill(SceneRecorder(tmp_path / "e.rrd", background=True))
     assert rec._process is None
@@ -166,7 +174,6 @@ def test_which_commands_start_the_output_process_early(args, writers):
     assert output_writers(args) == writers
 
 
-@needs_background
 def test_run_uses_the_early_process_and_bad_input_stops_it(tmp_path):
     scene = tmp_path / "s.mcap"
     runner = CliRunner()
@@ -184,7 +191,6 @@ def test_run_uses_the_early_process_and_bad_input_stops_it(tmp_path):
     assert background._shared is None and not (tmp_path / "t.rrd").exists()
 
 
-@needs_background
 def test_demo_outputs_appear_together_or_not_at_all(tmp_path, monkeypatch):
     """The output process writes temporary files only; the command's OutputGuard renames
     them together, so a table that fails takes the recording with it."""
@@ -199,16 +205,19 @@ def test_demo_outputs_appear_together_or_not_at_all(tmp_path, monkeypatch):
 
 def test_the_replay_process_imports_neither_rerun_nor_polars(tmp_path):
     """With the output process, `replay demo` imports rerun and polars only there; without
-    a second CPU it imports them itself."""
-    code = (
-        "import sys; from replay.cli import main; "
-        f"main.main(['demo', '-o', {str(tmp_path / 'd')!r}, '--agents', '5', '--no-progress'],"
-        " standalone_mode=False); "
-        "print('rerun' in sys.modules, 'polars' in sys.modules)"
-    )
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr
-    inline = str(not background.available())
-    assert run.stdout.split()[-2:] == [inline, inline]
-    assert (tmp_path / "d" / "intersection.rrd").stat().st_size > 0
-    assert (tmp_path / "d" / "intersection.parquet").stat().st_size > 0
+    it, itself."""
+    for mode, imported in (("on", "False"), ("off", "True")):
+        code = (
+            "import sys; from replay.cli import main; "
+            f"main.main(['demo', '-o', {str(tmp_path / mode)!r}, '--agents', '5', "
+            "'--no-progress'], standalone_mode=False); "
+            "print('rerun' in sys.modules, 'polars' in sys.modules)"
+        )
+        env = {**os.environ, background.MODE_VARIABLE: mode}
+        run = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env
+        )
+        assert run.returncode == 0, run.stderr
+        assert run.stdout.split()[-2:] == [imported, imported], mode
+        assert (tmp_path / mode / "intersection.rrd").stat().st_size > 0
+        assert (tmp_path / mode / "intersection.parquet").stat().st_size > 0
