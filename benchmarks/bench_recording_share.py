@@ -8,7 +8,12 @@ Two shares per scene, each over ``--repeat`` runs (medians, with the range):
   time of ``run_scene``. Start-up is left out, so this is the stricter share.
 - **end to end**: ``replay run SCENE -o OUT.rrd --no-progress`` in a new process (warm
   kernel cache); the recorder's time is the one the command prints, the run's time the
-  process's wall time, start-up and imports included: what a user waits for.
+  process's wall time, start-up and imports included: what a user waits for. With the
+  output process (``base.background``) the printed time is the replay's wait for the
+  process to finish the file, after its frames;
+- **added by recording**: the wall time of that command minus the same command with
+  ``--no-rrd`` (runs in turns), against the former: what writing the recording adds to
+  the user's wait, rerun's import included wherever it happens.
 
 Usage::
 
@@ -60,7 +65,7 @@ def main() -> None:
                 runs.append(time.perf_counter() - start)
                 recs.append(result.sink_time_s["SceneRecorder"])
                 size = out.stat().st_size
-            cli_recs, cli_runs = [], []
+            cli_recs, cli_runs, bare_runs = [], [], []
             for _ in range(args.repeat):
                 start = time.perf_counter()
                 done = subprocess.run(
@@ -69,9 +74,17 @@ def main() -> None:
                 )  # fmt: skip
                 cli_runs.append(time.perf_counter() - start)
                 cli_recs.append(float(PRINTED.findall(done.stdout + done.stderr)[-1]))
+                start = time.perf_counter()
+                subprocess.run(
+                    [REPLAY, "run", str(path), "--no-rrd", "--no-progress"],
+                    capture_output=True, text=True, check=True,
+                )  # fmt: skip
+                bare_runs.append(time.perf_counter() - start)
+            added = [max(w - b, 0.0) for w, b in zip(cli_runs, bare_runs, strict=True)]
             print(f"{path} (.rrd {size / 1e6:.1f} MB):")
             print(summary("in process", recs, runs))
             print(summary("end to end (`replay run`, new process)", cli_recs, cli_runs))
+            print(summary("added by recording (run minus run --no-rrd)", added, cli_runs))
     print(f"load average after: {os.getloadavg()[0]:.1f}")
 
 

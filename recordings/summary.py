@@ -16,7 +16,7 @@ from base.sinks import SceneInfo
 from recordings import layout as L
 
 if TYPE_CHECKING:
-    from recordings.recorder import _Scene
+    from recordings.writer import _Scene
 
 
 def recording_name(info: SceneInfo) -> str:

@@ -15,6 +15,7 @@ import sys
 
 import click
 
+from base import background
 from base.guard import target_of_temp
 from replay import __version__
 from replay.user_errors import user_errors
@@ -55,6 +56,15 @@ class LazyGroup(click.Group):
         module_name, attr = target.split(":")
         return getattr(importlib.import_module(module_name), attr)
 
+    def resolve_command(self, ctx: click.Context, args: list[str]):
+        preload = () if ctx.resilient_parsing else output_writers(args)
+        if preload:
+            # Before the command's module loads the models (about 1 s): the output
+            # process imports the writers meanwhile, and the command's outputs adopt it.
+            process = background.start(preload)
+            ctx.call_on_close(lambda: background.release(process))
+        return super().resolve_command(ctx, args)
+
     def invoke(self, ctx: click.Context):
         try:
             return super().invoke(ctx)
@@ -64,6 +74,27 @@ class LazyGroup(click.Group):
             quiet_broken_pipe()
         except user_errors() as exc:
             raise click.ClickException(str(exc) or type(exc).__name__) from None
+
+
+#: The modules that write a recording and a table (imported by the output process).
+RECORDING_WRITER = "recordings.writer"
+TABLE_WRITER = "replay.table_file"
+
+
+def output_writers(args: list[str]) -> tuple[str, ...]:
+    """The writer modules that ``replay ARGS`` will need, judged from the words alone (a
+    wrong guess costs only an idle import): ``demo`` writes a recording and a table,
+    ``run`` a recording unless ``--no-rrd`` or ``--ego all``, and a table with
+    ``--table`` or ``--ego all``. Nothing for ``--help``."""
+    if not args or args[0] not in ("run", "demo") or {"--help", "-h"} & set(args):
+        return ()
+    if args[0] == "demo":
+        return (TABLE_WRITER, RECORDING_WRITER)
+    pairs = list(zip(args, [*args[1:], ""], strict=True))
+    every_ego = any(a == "--ego=all" or (a == "--ego" and b == "all") for a, b in pairs)
+    table = every_ego or any(a == "--table" or a.startswith("--table=") for a in args)
+    record = not every_ego and "--no-rrd" not in args
+    return (TABLE_WRITER,) * table + (RECORDING_WRITER,) * record
 
 
 def _os_message(exc: OSError) -> str:

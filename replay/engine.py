@@ -28,10 +28,10 @@ import risk
 from base.sinks import FrameResult, SceneInfo, Sink  # also importable from here, as before
 from replay.errors import ReplayError
 from replay.reader import open_scene
+from risk import kernel
 from risk.cascade import SURVIVAL_MODEL, CascadeConfig, CascadeResult, Evaluator, run_cascade
 from risk.frame import Frame, LaneMap, Scene
 from risk.hindsight import Tracks, tracks_from_frames
-from risk.kernel import warm_up
 from risk.registry import resolve_models
 
 
@@ -149,6 +149,11 @@ class _Totals:
         self.survival_all_time_s += res.survival_all_time_s
 
 
+def warm_up() -> None:
+    """Load (or compile) every risk kernel (:func:`risk.kernel.warm_up`)."""
+    kernel.warm_up()
+
+
 def run_scene(
     source: str | os.PathLike[str] | SceneSource | Scene,
     *,
@@ -231,9 +236,6 @@ def _run(
         if callable(getattr(reader, "tracks", None))
         else None,
     )
-    # Load (or compile) every kernel now, so that the first frame's stage times measure
-    # the frame and not numba loading compiled code (tens of ms per kernel).
-    warm_up()
     totals = _Totals(len(cascade.stages), len(cascade.tiers))
     totals.read_time_s = read_first_s
     begun: list[Sink] = []
@@ -241,6 +243,11 @@ def _run(
         for sink in sinks:
             _timed_sink(totals, sink, "begin", info)
             begun.append(sink)
+        # Load (or compile) every kernel now, so that the first frame's stage times
+        # measure the frame and not numba loading compiled code (tens of ms per kernel).
+        # After the sinks' begin(): a recorder writing in the background starts its
+        # process there, and it imports rerun while the kernels load.
+        warm_up()
         bar = tqdm(
             total=info.n_frames, disable=not progress, file=sys.stderr, unit="frame",
             desc=f"replay {path.name if path else 'scene'}", leave=False,

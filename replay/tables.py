@@ -25,17 +25,37 @@ from __future__ import annotations
 
 import os
 import pathlib
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import polars as pl
 
-from base.atomic import atomic_output
+from base import background as background_process
+from base.atomic import commit, temp_path_beside
 from base.sinks import FrameResult, SceneInfo
 from replay.errors import ReplayError
-from risk.frame import KIND_NAMES
-from risk.hindsight import LABEL_POSITIVE, LABEL_UNKNOWN, HindsightSettings, truth_for_rows
+from risk.hindsight import LABEL_UNKNOWN, HindsightSettings, truth_for_rows
+
+if TYPE_CHECKING:
+    import polars as pl
 
 TRUTH_COLUMNS = ("truth_gap_m", "truth_pet_s", "truth_label")
+#: The module that builds and writes the table with polars (replay.table_file).
+TABLE_WRITER = "replay.table_file"
+
+
+@dataclass(frozen=True, eq=False)
+class TableColumns:
+    """The table as numpy columns: what :mod:`replay.table_file` turns into the file."""
+
+    keys: tuple[str, ...]  # the collected columns, in order (codes for kind, stage, tier)
+    data: dict[str, Any]  # name -> (rows,) array ([] when there are no rows)
+    stage_names: tuple[str, ...]
+    tier_names: tuple[str, ...]
+    truth_gap_m: np.ndarray  # NaN: unknown
+    truth_pet_s: np.ndarray  # NaN: the footprints do not meet, or unknown
+    truth_label: np.ndarray  # int8 risk.hindsight labels
+
 
 SUFFIXES = (".parquet", ".csv")
 
@@ -44,7 +64,9 @@ class TableSink:
     """A :class:`replay.engine.Sink` that collects per-agent rows and writes one table.
 
     With ``path=None`` nothing is written: the rows stay in memory for :meth:`dataframe`
-    (what ``replay stats`` uses).
+    (what ``replay stats`` uses). ``background``: write the file in the output process
+    (:mod:`base.background`), which imports polars while the replay runs; ignored where
+    that cannot help (one CPU) or cannot work (no ``fork``).
     """
 
     def __init__(
@@ -52,8 +74,11 @@ class TableSink:
         path: str | os.PathLike[str] | None,
         *,
         hindsight: HindsightSettings | None = None,
+        background: bool = False,
     ):
         self.hindsight = hindsight or HindsightSettings()
+        self.background = bool(background)
+        self._process: background_process.OutputProcess | None = None
         self._info: SceneInfo | None = None
         self._chunks: list[dict[str, np.ndarray]] = []
         self.path = None if path is None else pathlib.Path(path)
@@ -70,6 +95,8 @@ class TableSink:
     def begin(self, info: SceneInfo) -> None:
         # Rows accumulate over begin() calls (one per ego with ``--ego all``) until close().
         self._info = info
+        if self.background and self.path is not None and self._process is None:
+            self._process = background_process.acquire(preload=(TABLE_WRITER,))
 
     def add(self, result: FrameResult) -> None:
         info = self._require_info()
@@ -95,28 +122,36 @@ class TableSink:
         chunk["baseline"] = res.baseline[rows]
         self._chunks.append(chunk)
 
-    def dataframe(self) -> pl.DataFrame:
-        """Everything added so far as one DataFrame (the columns of the module docstring)."""
+    def columns(self) -> TableColumns:
+        """Everything added so far as numpy columns, the hindsight truth included."""
         info = self._require_info()
         keys = self._columns(info)
-        data = {
+        data: dict[str, Any] = {
             k: np.concatenate([c[k] for c in self._chunks]) if self._chunks else [] for k in keys
         }
-        df = pl.DataFrame(
-            {k: v for k, v in data.items() if k not in ("kind", "dropped_at", "tier")}
+        gap, pet, label = self._truth(data["t_s"], data["ego_id"], data["agent_id"])
+        return TableColumns(
+            keys=tuple(keys),
+            data=data,
+            stage_names=tuple(info.cascade.stage_names),
+            tier_names=tuple(t.name for t in info.cascade.tiers),
+            truth_gap_m=gap,
+            truth_pet_s=pet,
+            truth_label=label,
         )
-        stage_names = list(info.cascade.stage_names)
-        tier_names = [t.name for t in info.cascade.tiers]
-        df = df.with_columns(
-            _names(data["kind"], list(KIND_NAMES), "kind"),
-            _names(data["dropped_at"], stage_names, "dropped_by"),
-            _names(data["tier"], tier_names, "tier"),
-        )
-        df = df.with_columns(self._truth(data["t_s"], data["ego_id"], data["agent_id"]))
-        return df.select([*keys[:5], *keys[5:-3], "dropped_by", "tier", "baseline", *TRUTH_COLUMNS])
 
-    def _truth(self, t_s: np.ndarray, ego_id: np.ndarray, agent_id: np.ndarray) -> list[pl.Series]:
-        """The hindsight columns for rows (t_s, ego_id, agent_id), from the scene's tracks."""
+    def dataframe(self) -> pl.DataFrame:
+        """Everything added so far as one polars DataFrame (the columns of the module
+        docstring)."""
+        from replay import table_file  # polars: about 0.3 s, only when asked for
+
+        return table_file.dataframe(self.columns())
+
+    def _truth(
+        self, t_s: np.ndarray, ego_id: np.ndarray, agent_id: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The hindsight gap, PET and label of rows (t_s, ego_id, agent_id), from the
+        scene's tracks (NaN, NaN, unknown without them)."""
         n = len(t_s)
         gap, pet = np.full(n, np.nan), np.full(n, np.nan)
         label = np.full(n, LABEL_UNKNOWN, dtype=np.int8)
@@ -125,32 +160,35 @@ class TableSink:
             gap, pet, label = truth_for_rows(
                 get_tracks(), t_s, ego_id, agent_id, settings=self.hindsight
             )
-        labels = np.array([None, False, True], dtype=object)[
-            np.where(label == LABEL_UNKNOWN, 0, np.where(label == LABEL_POSITIVE, 2, 1))
-        ]
-        return [
-            pl.Series("truth_gap_m", gap).fill_nan(None),
-            pl.Series("truth_pet_s", pet).fill_nan(None),
-            pl.Series("truth_label", labels.tolist(), dtype=pl.Boolean),
-        ]
+        return gap, pet, label
 
     def close(self) -> None:
         if self.path is None:
             return  # in memory: the rows stay available through dataframe()
-        df = self.dataframe()
+        columns = self.columns()
+        tmp = temp_path_beside(self.path)
         try:
-            with atomic_output(self.path) as tmp:
-                if self.path.suffix.lower() == ".csv":
-                    df.write_csv(tmp)
-                else:
-                    df.write_parquet(tmp, compression="zstd")
-        except pl.exceptions.PolarsError as exc:  # e.g. a full disk ("os error 28")
-            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-            raise ReplayError(f"could not write {self.path}: {first}") from None
+            if self._process is not None:
+                self._process.run(f"{TABLE_WRITER}:write_temp", self.path, tmp, columns)
+            else:
+                from replay import table_file  # polars: about 0.3 s, only when writing
+
+                table_file.write_temp(self.path, tmp, columns)
+            commit(tmp, self.path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            self._release()
+            raise
+        self._release()
         self._chunks = []
 
     def abort(self) -> None:
         self._chunks = []  # nothing is on disk before close()
+        self._release()
+
+    def _release(self) -> None:
+        background_process.release(self._process)
+        self._process = None
 
     def _require_info(self) -> SceneInfo:
         if self._info is None:
@@ -165,11 +203,3 @@ class TableSink:
             *(f"kept_{s}" for s in info.cascade.stage_names),
             "dropped_at", "tier", "baseline",
         ]  # fmt: skip
-
-
-def _names(codes: np.ndarray | list, names: list[str], column: str) -> pl.Series:
-    """Integer codes as an Enum column; -1 (or any code outside ``names``) becomes null."""
-    codes = np.asarray(codes, dtype=np.int64)
-    labels = np.array([*names, None], dtype=object)
-    idx = np.where((codes >= 0) & (codes < len(names)), codes, len(names))
-    return pl.Series(column, labels[idx].tolist(), dtype=pl.Enum(names))

@@ -3,7 +3,8 @@ without a traceback, and ``replay batch`` records them without the code location
 
 from __future__ import annotations
 
-from base.guard import OutputError  # standard library only: cheap to import here
+from base.background import OutputProcessError  # standard library only: cheap to import
+from base.guard import OutputError
 
 
 def user_errors() -> tuple[type[BaseException], ...]:
@@ -17,4 +18,7 @@ def user_errors() -> tuple[type[BaseException], ...]:
     from replay.errors import ReplayError
     from risk.errors import RiskError
 
-    return (RiskError, ConversionError, ReplayError, RecordingError, OutputError, OSError)
+    return (
+        RiskError, ConversionError, ReplayError, RecordingError, OutputError,
+        OutputProcessError, OSError,
+    )  # fmt: skip

@@ -29,6 +29,10 @@ from risk.registry import (
     evaluate,
 )
 
+# The compiled kernel's module, loaded (numba) on first use: bound here so that
+# ``from risk import kernel`` does not make the import system load it (risk/lazy.py).
+from risk.registry import kernel as kernel
+
 __all__ = [
     "BASELINE_MODEL",
     "BASELINE_THRESHOLD",

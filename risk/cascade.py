@@ -56,12 +56,13 @@ from typing import Any
 
 import numpy as np
 
-from risk import kernel
 from risk.errors import RiskError
 from risk.frame import KIND_NAMES, Frame
 from risk.registry import (
     BASELINE_MODEL,
     BASELINE_THRESHOLD,
+    MODELS,
+    kernel,
     kernel_params,
     kernel_settings,
     resolve_params,
@@ -541,7 +542,7 @@ def _one_pass(
     n_stages = plan.slots.shape[0]
     start = time.perf_counter()
     kept, dropped_at, unreachable, _, survival, cyc, tier, baseline, false_neg = (
-        kernel.cascade_agents(  # type: ignore[call-arg]
+        kernel.cascade_agents(
             *kernel.frame_arrays(frame), int(frame.ego), kernel.ALL_AGENTS, steps, unc, fp,
             ip, plan.slots, plan.thr, plan.stop2, plan.cut2, bool(reachability), _MAX_SPEEDS,
             plan.baseline_threshold, survival_all, plan.tier_min, plan.tier_cap,
@@ -715,7 +716,7 @@ class _Wants(dict):
 
 
 _WANT = _Wants()
-_SURV_SLOT = kernel.SLOTS.index(SURVIVAL_MODEL)
+_SURV_SLOT = list(MODELS).index(SURVIVAL_MODEL)  # (registry order = the kernel's slots)
 _MAX_SPEEDS = _kind_speeds()
 
 

@@ -1696,12 +1696,17 @@ def warm_up() -> None:
     fa = frame_arrays(frame)
     speeds = _constant(np.full(4, 10.0))
     reachable(fa[7], fa[9], fa[2], fa[5], 0, _constant(np.array([1])), 1.0, 5, unc, speeds, 1e-25)
+    tiers(  # (risk.cascade.assign_tiers)
+        _constant(np.zeros(2)), _constant(np.array([1e-25])),
+        _constant(np.array([-1], dtype=np.int64)),
+    )  # fmt: skip
     if not HAVE_CYCLE_COUNTER:
         return
     cascade_agents(  # type: ignore[call-arg]
         *fa, 0, ALL_AGENTS, steps, unc, _constant(fp), _constant(ip),
         _constant(np.array([PATH, TRAJ, GAUSS], dtype=np.int64)),
         _constant(np.array([0.01, 0.01, 1e-30])), _constant(np.full(3, -1.0)),
-        _constant(np.full(3, np.inf)), True, speeds, 1e-25, _constant(np.zeros(2)),
-        _constant(np.array([1e-25])), _constant(np.array([-1])),
+        _constant(np.full(3, np.inf)), True, speeds, 1e-25,
+        np.zeros(2),  # (writable: a row of evaluate_agents' result in the cascade)
+        _constant(np.array([1e-25])), _constant(np.array([-1], dtype=np.int64)),
     )  # fmt: skip

@@ -18,9 +18,10 @@ from typing import Any, Literal
 
 import numpy as np
 
-from risk import distance, kernel, stochastic, temporal
+from risk import distance, stochastic, temporal
 from risk.errors import RiskError, UnknownModelError
 from risk.frame import Frame
+from risk.lazy import lazy_module
 from risk.prediction import FrameContext, PredictionSettings
 
 Family = Literal["distance", "time", "stochastic"]
@@ -159,8 +160,9 @@ BASELINE_MODEL = "survival"
 #: default of every ``threshold`` argument; pass another value to study its influence.
 BASELINE_THRESHOLD = 1e-25
 
-if tuple(MODELS) != kernel.SLOTS:
-    raise RuntimeError("risk.kernel.SLOTS must list the models in registry order")
+#: The compiled kernel, loaded (numba: about 0.5 s) when a model first runs; that
+#: ``kernel.SLOTS`` lists MODELS in this order is tested (tests/test_kernel.py).
+kernel = lazy_module("risk.kernel")
 
 
 def baseline_mask(risks: np.ndarray, threshold: float = BASELINE_THRESHOLD) -> np.ndarray:

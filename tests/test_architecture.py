@@ -22,6 +22,9 @@ ALLOWED_INNER_IMPORTS = {
     # to write a cascade file
     ("risk/cascade.py", "risk"),
     ("risk/cascade.py", "tomli_w"),
+    # numba's BLAS probe answered before numba's own import of arraymath (0.3-0.6 s saved
+    # per process; risk/kernel.py explains)
+    ("risk/kernel.py", "numba.np"),
     # the per-source dispatch of batch conversions, each converter loaded when its
     # dataset is converted (a failure to load is the task's "setup" failure)
     ("replay/batch/tasks.py", "converters"),
@@ -32,6 +35,10 @@ ALLOWED_INNER_IMPORTS = {
     ("replay/batch/engines.py", "ray"),
     # rerun (about 1 s) only for workers that write a recording / on a failure
     ("recordings/__init__.py", "recordings.recorder"),
+    # the writer (rerun, about 1 s): only when writing, or in the writer process
+    ("recordings/recorder.py", "recordings"),
+    # polars (about 0.3 s): only to build or write a table, else in the output process
+    ("replay/tables.py", "replay"),
     ("replay/worker.py", "recordings"),
     ("replay/batch/tasks.py", "recordings.errors"),
     # matplotlib (about 1 s) only in the driver, not in every spawned worker

@@ -16,7 +16,7 @@ from test_recordings import TIMES, make_results, read_rrd, rgba
 from base.sinks import FrameResult
 from recordings import SceneRecorder
 from recordings import layout as L
-from recordings import recorder as R
+from recordings import writer as W
 from replay.cli import main
 from replay.tables import TableSink
 from risk import MODELS
@@ -140,13 +140,13 @@ def test_truth_label_of_the_wrong_length_is_refused(tmp_path):
     info, results = make_results()
     rec = SceneRecorder(tmp_path / "x.rrd")
     rec.begin(info)
-    with pytest.raises(R.RecordingError, match="truth_label has 2 values, expected 5"):
+    with pytest.raises(W.RecordingError, match="truth_label has 2 values, expected 5"):
         rec.add(with_truth(results, {0: [True, False]})[0])
 
 
-def toy_scene(xy: np.ndarray, frame_of: np.ndarray) -> R._Scene:
+def toy_scene(xy: np.ndarray, frame_of: np.ndarray) -> W._Scene:
     n_frames = int(frame_of.max()) + 1
-    scene = R._Scene(
+    scene = W._Scene(
         times_s=np.arange(n_frames, dtype=float), frame_index=np.arange(n_frames),
         frame_of=frame_of, false_negatives=np.zeros((n_frames, 1), int),
         stage_time_ms=np.zeros((n_frames, 1)), sort_time_ms=np.zeros(n_frames),
@@ -165,10 +165,10 @@ def test_declutter_by_hand():
     frame_of = np.array([0, 0, 0, 0, 1])
     wanted = np.array([True, True, True, True, True])
     priority = np.array([5, 1, 1, 100, 1])
-    shown = R._declutter(toy_scene(xy, frame_of), wanted, priority, 4.5)
+    shown = W._declutter(toy_scene(xy, frame_of), wanted, priority, 4.5)
     assert shown.tolist() == [True, False, False, True, True]
     # Unwanted rows never show, and do not push others away.
-    shown = R._declutter(toy_scene(xy, frame_of), np.array([False, True, True, True, True]),
+    shown = W._declutter(toy_scene(xy, frame_of), np.array([False, True, True, True, True]),
                          priority, 4.5)  # fmt: skip
     assert shown.tolist() == [False, True, False, True, True]
 
@@ -178,7 +178,7 @@ def test_shown_labels_keep_their_distance():
     xy = rng.uniform(0, 60, size=(400, 2))
     frame_of = np.repeat(np.arange(4), 100)
     priority = rng.integers(0, 4, size=400)
-    shown = R._declutter(toy_scene(xy, frame_of), np.ones(400, bool), priority, 7.0)
+    shown = W._declutter(toy_scene(xy, frame_of), np.ones(400, bool), priority, 7.0)
     for f in range(4):
         pts = xy[shown & (frame_of == f)]
         d = np.linalg.norm(pts[:, None] - pts[None, :], axis=-1) + np.eye(len(pts)) * 1e9

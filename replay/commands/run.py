@@ -121,18 +121,18 @@ def format_egos_summary(egos: EgosSummary) -> str:
 def make_sinks(rrd: pathlib.Path | None, table: pathlib.Path | None) -> list[Sink]:
     """The sinks of a run: the Rerun recording and/or the table (both checked before the
     replay starts, so a bad path fails at once)."""
-    # Each output's library is loaded only when it is asked for: rerun takes about 1 s
-    # and polars 0.6 s to import (python -X importtime), a run without --table or with
-    # --no-rrd need not pay them.
+    # Each output's library is loaded only when it is asked for, and where there is a
+    # second CPU by the output process (base.background), while this one replays: rerun
+    # takes about 1 s and polars 0.3 s to import (python -X importtime).
     sinks: list[Sink] = []
     if table is not None:
         from replay.tables import TableSink
 
-        sinks.append(TableSink(table))
+        sinks.append(TableSink(table, background=True))
     if rrd is not None:
         from recordings import SceneRecorder
 
-        sinks.append(SceneRecorder(rrd))
+        sinks.append(SceneRecorder(rrd, background=True))
     return sinks
 
 

@@ -1,0 +1,194 @@
+"""Output files written by a second process while the replay computes.
+
+Importing rerun takes about 1 s and polars about 0.3 s, and writing a recording or a table
+a few tenths more; all of it used to come on top of the replay. The outputs' ``close()``
+can instead hand their collected arrays to an **output process**: a new Python process
+(``spawn``) that imports the writers' modules as soon as it starts, then runs one job per output
+(``"module:function"`` with its arguments) and sends back the result or the exception.
+With two CPUs the imports cost no wall time.
+
+- A command that knows what it will write starts the process before it loads the models
+  (:func:`start`, ``replay run`` / ``replay demo`` do); outputs adopt it with
+  :func:`acquire`, which starts one if none runs, and give it back with :func:`release`.
+  The process ends when the last user releases it, or when its parent dies.
+- Jobs write temporary files only. The parent names them, renames them into place
+  (so that ``base.guard.OutputGuard`` still commits a command's outputs together) and
+  removes them when a job fails or the process dies.
+- ``spawn``, not ``fork``: rerun and polars run native thread pools, which a forked copy
+  of a process that has used them inherits in a broken state (a recording written in a
+  fork of a process that had written one before hung, seen in the tests).
+- ``RISKREPLAY_OUTPUT_PROCESS``: ``auto`` (the default) uses the process when a second
+  CPU is idle (:func:`available`), ``off`` never (the outputs write in the replay's own
+  process), ``on`` always.
+
+Standard library only, so that starting the process early costs nothing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import multiprocessing
+import multiprocessing.connection
+import os
+import signal
+import threading
+import traceback
+from collections.abc import Iterable
+from typing import Any
+
+#: ``auto`` (default), ``on`` or ``off``: when to write outputs in the output process.
+MODE_VARIABLE = "RISKREPLAY_OUTPUT_PROCESS"
+
+
+class OutputProcessError(RuntimeError):
+    """The output process ended before it finished a job (it was killed, or crashed)."""
+
+
+def available() -> bool:
+    """Whether to use an output process. ``RISKREPLAY_OUTPUT_PROCESS=on`` / ``off`` decide;
+    by default only when it helps: a second CPU that is idle (the load average of the
+    last minute leaves one free). On a busy machine the process only competes with the
+    replay for a CPU and adds its own start (measured: 0.5 s slower with a neighbour
+    busy on the other CPU)."""
+    mode = os.environ.get(MODE_VARIABLE, "auto").strip().lower()
+    if mode in ("on", "off"):
+        return mode == "on"
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    try:
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):  # Windows has no load average
+        load = 0.0
+    return (cpus or 1) >= 2 and load <= (cpus or 1) - 1
+
+
+class OutputProcess:
+    """A new process that imports ``preload`` at once, then runs jobs one at a time."""
+
+    def __init__(self, preload: Iterable[str]) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child_end = ctx.Pipe()
+        self._lock = threading.Lock()
+        self.users = 0
+        self._process = ctx.Process(
+            target=_serve,
+            args=(child_end, tuple(preload)),
+            name="riskreplay-output",
+            daemon=True,
+        )
+        self._process.start()
+        child_end.close()
+
+    def alive(self) -> bool:
+        return self._process.is_alive()
+
+    def run(self, function: str, *args: Any) -> Any:
+        """Run ``function`` (``"module:name"``) on ``args`` in the process and return its
+        result, or raise its exception (with the process's traceback as a note, unless
+        the exception says all: see :func:`_quiet`). Waits as long as the job takes, and
+        raises :class:`OutputProcessError` if the process dies meanwhile."""
+        with self._lock:
+            with contextlib.suppress(OSError):  # a dead process: its exit code says why
+                self._conn.send((function, args))
+            reply = None
+            while reply is None:
+                if self._conn.poll(0.2):
+                    try:
+                        reply = self._conn.recv()
+                    except EOFError:
+                        break
+                elif not self._process.is_alive():
+                    break
+        if reply is None:
+            self.stop()
+            raise OutputProcessError(
+                f"the output process stopped (exit code {self._process.exitcode}) while "
+                f"running {function}; run again, and if it happens again set "
+                f"{MODE_VARIABLE}=off to write in the replay's own process"
+            )
+        ok, value, text = reply
+        if ok:
+            return value
+        if text:
+            value.add_note(f"in the output process:\n{text}")
+        raise value
+
+    def stop(self) -> None:
+        """End the process, whatever it is doing."""
+        with contextlib.suppress(OSError):
+            self._conn.close()  # an idle process sees EOF and leaves
+        self._process.join(timeout=2.0)
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join(timeout=5.0)
+
+
+_shared: OutputProcess | None = None
+_shared_lock = threading.Lock()
+
+
+def start(preload: Iterable[str]) -> OutputProcess | None:
+    """Start the shared output process now, importing ``preload``, and hold it until
+    :func:`release` (None when :func:`available` says no). A running one is reused."""
+    return acquire(preload)
+
+
+def acquire(preload: Iterable[str] = ()) -> OutputProcess | None:
+    """The shared output process, started (importing ``preload``) if none runs; each call
+    must be paired with :func:`release`. None when :func:`available` says no."""
+    global _shared
+    if not available():
+        return None
+    with _shared_lock:
+        if _shared is None or not _shared.alive():
+            _shared = OutputProcess(preload)
+        _shared.users += 1
+        return _shared
+
+
+def release(process: OutputProcess | None) -> None:
+    """Give back a process from :func:`acquire`; the last user's release stops it."""
+    global _shared
+    if process is None:
+        return
+    with _shared_lock:
+        process.users -= 1
+        if process.users > 0:
+            return
+        if process is _shared:
+            _shared = None
+    process.stop()
+
+
+def _quiet(exc: BaseException) -> bool:
+    """Errors whose message is the whole story (the user's, not the program's): no
+    traceback note. Judged by name, so that this module imports nothing of the project."""
+    return any(k.__name__ in ("RecordingError", "ReplayError") for k in type(exc).__mro__)
+
+
+def _serve(conn: multiprocessing.connection.Connection, preload: tuple[str, ...]) -> None:
+    # Ctrl-C goes to the whole process group: the parent handles it and stops this one.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    failures: dict[str, BaseException] = {}
+    for name in preload:
+        try:
+            importlib.import_module(name)
+        except BaseException as exc:  # reported when a job needs the module
+            failures[name] = exc
+    while True:
+        try:
+            function, args = conn.recv()
+        except (EOFError, OSError):
+            return
+        module, _, attr = function.partition(":")
+        try:
+            if module in failures:
+                raise failures[module]
+            value = getattr(importlib.import_module(module), attr)(*args)
+            reply: tuple[bool, Any, str] = (True, value, "")
+        except BaseException as exc:
+            reply = (False, exc, "" if _quiet(exc) else traceback.format_exc())
+        try:
+            conn.send(reply)
+        except Exception:  # a result or exception that does not pickle: send its text
+            conn.send((False, RuntimeError(repr(reply[1])), reply[2]))
