@@ -824,7 +824,7 @@ def _overlap_risks(qs, dets, dmin, ns, dt_tau, terms, sl, se, lsk, defer, want_g
     for d in range(nd):
         k = defer[d]
         q = qs[k]
-        if q < EXP_ZERO or k == kz:
+        if q < EXP_ZERO or (want_s and k == kz):  # (kz: computed above)
             continue
         ls = lsk[k]
         need_s = want_s and q - ls >= sthr

@@ -157,6 +157,19 @@ def test_tiny_overlaps_stay_exact(gap_m):
         assert fast[name][1] == slow[name][1], name
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_each_stochastic_model_alone_equals_it_with_the_other(seed):
+    """Asked alone, the Gaussian (and survival) skip exp at other steps than asked
+    together: the values stay the same, bit for bit, and follow numpy."""
+    f = random_frame(np.random.default_rng(seed))
+    both = evaluate(f, STOCHASTIC)
+    for name in STOCHASTIC:
+        alone = evaluate(f, [name])[name]
+        np.testing.assert_array_equal(alone, both[name], err_msg=name)
+    assert_close(both, evaluate_numpy(f, STOCHASTIC))
+
+
 # ---------------------------------------------------------------------- degenerate frames
 def test_ego_alone_and_all_invalid():
     alone = Frame.from_arrays(
