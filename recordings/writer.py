@@ -15,9 +15,15 @@ computes; see ``SceneRecorder(background=True)``.
 from __future__ import annotations
 
 import math
+import os
 import pathlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+
+# rerun's native log: its I/O errors (a full disk) also reach us as exceptions, which the
+# CLI reports in one line; without this they print two more lines of Rust log first.
+# Set RUST_LOG to see them.
+os.environ.setdefault("RUST_LOG", "off")
 
 import numpy as np
 import pyarrow as pa
