@@ -47,9 +47,15 @@ def dataframe(columns: TableColumns) -> pl.DataFrame:
 def write_temp(path: pathlib.Path, tmp: pathlib.Path, columns: TableColumns) -> None:
     """Write the table destined for ``path`` (Parquet, or CSV by its suffix) into the
     temporary file ``tmp``; the caller renames it into place, or removes it."""
-    df = dataframe(columns)
+    write_dataframe(dataframe(columns), tmp, path)
+
+
+def write_dataframe(df: pl.DataFrame, tmp: str | pathlib.Path, path: str | pathlib.Path) -> None:
+    """Write ``df`` to ``tmp`` as the table file ``path`` will be: CSV when ``path`` ends
+    in .csv, else zstd Parquet. A polars error (e.g. a full disk) becomes a one-line
+    ``ReplayError`` naming ``path``."""
     try:
-        if path.suffix.lower() == ".csv":
+        if pathlib.Path(path).suffix.lower() == ".csv":
             df.write_csv(tmp)
         else:
             df.write_parquet(tmp, compression="zstd")

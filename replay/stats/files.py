@@ -14,7 +14,7 @@ import numpy as np
 import polars as pl
 
 from base.atomic import atomic_write, write_text
-from base.guard import target_of_temp
+from replay import table_file
 from replay.errors import StatsError
 from replay.stats.compute import DatasetStats
 from replay.stats.sink import (
@@ -125,7 +125,9 @@ def write_stats(stats: DatasetStats, out_dir: str | os.PathLike[str]) -> dict[st
     for name, df in tables.items():
         for suffix in (".parquet", ".csv"):
             path = out / f"{name}{suffix}"
-            atomic_write(path, lambda tmp, df=df, suffix=suffix: _write_table(df, tmp, suffix))
+            atomic_write(
+                path, lambda tmp, df=df, path=path: table_file.write_dataframe(df, tmp, path)
+            )
             written[f"{name}{suffix}"] = path
     summary = {**stats.summary, "files": sorted(p.name for p in written.values())}
     path = out / "summary.json"
@@ -133,17 +135,6 @@ def write_stats(stats: DatasetStats, out_dir: str | os.PathLike[str]) -> dict[st
     write_text(path, text + "\n")
     written["summary.json"] = path
     return written
-
-
-def _write_table(df: pl.DataFrame, tmp: str, suffix: str) -> None:
-    try:
-        if suffix == ".csv":
-            df.write_csv(tmp)
-        else:
-            df.write_parquet(tmp, compression="zstd")
-    except pl.exceptions.PolarsError as exc:  # e.g. a full disk ("os error 28")
-        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise StatsError(f"could not write {target_of_temp(tmp)}: {first}") from None
 
 
 def _jsonable(value: Any) -> Any:
