@@ -228,16 +228,22 @@ def test_baseline_threshold_is_a_parameter():
 
 
 # ---------------------------------------------------------------------- compile cost
+#: Source that builds ``f``, a two-agent frame, for the tests that run a new process.
+TWO_AGENTS = (
+    "f = Frame.from_arrays(np.array([[0.0, 0.0], [5.0, 0.0]]), np.zeros(2), np.ones(2), "
+    "np.ones(2), np.ones(2), [np.array([[0.0, 0.0], [1.0, 0.0]]), "
+    "np.array([[5.0, 0.0], [6.0, 0.0]])], ego=0); "
+)
+
+
 @pytest.mark.slow
 def test_cold_cache_compiles_once_then_loads(tmp_path):
     """A fresh NUMBA_CACHE_DIR: the first process says it compiles and fills the folder;
     the second loads the kernels silently."""
     code = (
         "import numpy as np; from risk import Frame, evaluate; "
-        "f = Frame.from_arrays(np.array([[0.0, 0.0], [5.0, 0.0]]), np.zeros(2), np.ones(2), "
-        "np.ones(2), np.ones(2), [np.array([[0.0, 0.0], [1.0, 0.0]]), "
-        "np.array([[5.0, 0.0], [6.0, 0.0]])], ego=0); "
-        "print(repr(evaluate(f)['survival'][1]))"
+        + TWO_AGENTS
+        + "print(repr(evaluate(f)['survival'][1]))"
     )
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
     runs = [
@@ -267,10 +273,8 @@ def test_warm_up_covers_the_cascade(tmp_path):
     code = (
         "import numpy as np; from risk import Frame, evaluate; "
         "from risk.cascade import CascadeConfig, run_cascade; "
-        "f = Frame.from_arrays(np.array([[0.0, 0.0], [5.0, 0.0]]), np.zeros(2), np.ones(2), "
-        "np.ones(2), np.ones(2), [np.array([[0.0, 0.0], [1.0, 0.0]]), "
-        "np.array([[5.0, 0.0], [6.0, 0.0]])], ego=0); "
-        "evaluate(f); print(run_cascade(f, CascadeConfig.default()).tier)"
+        + TWO_AGENTS
+        + "evaluate(f); print(run_cascade(f, CascadeConfig.default()).tier)"
     )
     second = subprocess.run(
         [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600
@@ -285,9 +289,8 @@ def test_first_call_skips_numbas_blas_probe_but_blas_still_compiles():
     compiles and runs afterwards, importing scipy's BLAS then."""
     code = (
         "import sys, numpy as np, numba; from risk import Frame, evaluate; "
-        "f = Frame.from_arrays(np.array([[0.0, 0.0], [5.0, 0.0]]), np.zeros(2), np.ones(2), "
-        "np.ones(2), np.ones(2), [np.array([[0.0, 0.0], [1.0, 0.0]]), "
-        "np.array([[5.0, 0.0], [6.0, 0.0]])], ego=0); evaluate(f); "
+        + TWO_AGENTS
+        + "evaluate(f); "
         "print('scipy.linalg' in sys.modules); "
         "dot = numba.njit(lambda a, b: np.dot(a, b)); "
         "print(dot(np.arange(3.0), np.ones(3)), 'scipy.linalg.cython_blas' in sys.modules)"

@@ -6,6 +6,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
+from test_kernel import TWO_AGENTS
+
 import risk
 from risk import MODELS, kernel
 
@@ -24,10 +26,8 @@ def test_importing_does_not_load_numba_and_the_first_call_does():
         "recordings.writer, replay.table_file, replay.commands.run; "
         "print('numba' in sys.modules); "
         "import numpy as np; from risk import Frame, evaluate; "
-        "f = Frame.from_arrays(np.array([[0.0, 0.0], [5.0, 0.0]]), np.zeros(2), np.ones(2), "
-        "np.ones(2), np.ones(2), [np.array([[0.0, 0.0], [1.0, 0.0]]), "
-        "np.array([[5.0, 0.0], [6.0, 0.0]])], ego=0); "
-        "r = evaluate(f)['survival'][1]; print('numba' in sys.modules, r > 0)"
+        + TWO_AGENTS
+        + "r = evaluate(f)['survival'][1]; print('numba' in sys.modules, r > 0)"
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
