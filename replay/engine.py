@@ -150,8 +150,10 @@ class _Totals:
 
 
 def warm_up() -> None:
-    """Load (or compile) every risk kernel (:func:`risk.kernel.warm_up`)."""
-    kernel.warm_up()
+    """Load (or compile) every risk kernel (:func:`risk.kernel.warm_up`). On the
+    just-in-time form, also start the ahead-of-time build in the background, so that
+    later processes start about 0.9 s faster (:mod:`risk.kernel_aot`)."""
+    kernel.warm_up(build_ahead_of_time=True)
 
 
 def run_scene(

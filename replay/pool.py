@@ -81,7 +81,9 @@ class LocalEngine:
         self._alone = False  # one suspect is running alone
 
     def _new_pool(self) -> cf.ProcessPoolExecutor:
-        kernel.warm_up()  # compile once here; the workers load the cached kernels
+        kernel.warm_up(
+            build_ahead_of_time=True
+        )  # compile once here; the workers load the cached kernels
         return cf.ProcessPoolExecutor(
             max_workers=self.workers,
             mp_context=multiprocessing.get_context("spawn"),

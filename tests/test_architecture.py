@@ -23,8 +23,13 @@ ALLOWED_INNER_IMPORTS = {
     ("risk/cascade.py", "risk"),
     ("risk/cascade.py", "tomli_w"),
     # numba's BLAS probe answered before numba's own import of arraymath (0.3-0.6 s saved
-    # per process; risk/kernel.py explains)
-    ("risk/kernel.py", "numba.np"),
+    # per process; risk/kernel_numba.py explains)
+    ("risk/kernel_numba.py", "numba.np"),
+    # numba (about 0.9 s with its set-up) only when the ahead-of-time kernel is not built,
+    # and only to build it (risk/kernel_aot.py)
+    ("risk/kernel.py", "risk"),
+    ("risk/kernel_aot.py", "risk"),
+    ("risk/kernel_aot.py", "numba.pycc"),
     # the per-source dispatch of batch conversions, each converter loaded when its
     # dataset is converted (a failure to load is the task's "setup" failure)
     ("replay/batch/tasks.py", "converters"),

@@ -59,7 +59,9 @@ class RayEngine:
         self._started = False
         if address:
             _check_reachable(address)
-        kernel.warm_up()  # compile once here; workers on this machine load the cache
+        kernel.warm_up(
+            build_ahead_of_time=True
+        )  # compile once here; workers on this machine load the cache
         if not ray.is_initialized():
             kwargs: dict[str, Any] = {"logging_level": logging.WARNING, "log_to_driver": False}
             try:
