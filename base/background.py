@@ -87,9 +87,41 @@ class OutputProcess:
         result, or raise its exception (with the process's traceback as a note, unless
         the exception says all: see :func:`_quiet`). Waits as long as the job takes, and
         raises :class:`OutputProcessError` if the process dies meanwhile."""
-        with self._lock:
-            with contextlib.suppress(OSError):  # a dead process: its exit code says why
+        return self.submit(function, *args).result()
+
+    def submit(self, function: str, *args: Any) -> Pending:
+        """Send a job and return at once; :meth:`Pending.result` waits for it (as
+        :meth:`run`). One job at a time: the next waits until this one's result is read.
+
+        The job is sent by a thread: a pipe takes only about 64 kB until the process
+        reads, and it reads only once its imports are done."""
+        self._lock.acquire()
+        sent: list[BaseException] = []
+
+        def send() -> None:
+            try:
                 self._conn.send((function, args))
+            except OSError:
+                pass  # a dead process: its exit code says why
+            except BaseException as exc:  # (does not pickle)
+                sent.append(exc)
+
+        sender = threading.Thread(target=send, name="riskreplay-output-send", daemon=True)
+        try:
+            sender.start()
+        except BaseException:
+            self._lock.release()
+            raise
+        return Pending(self, function, sender, sent)
+
+    def _reply(self, function: str, sender: threading.Thread, sent: list[BaseException]) -> Any:
+        try:
+            while sender.is_alive():
+                sender.join(0.2)
+                if not self._process.is_alive():
+                    break
+            if sent:
+                raise sent[0]
             reply = None
             while reply is None:
                 if self._conn.poll(0.2):
@@ -99,6 +131,8 @@ class OutputProcess:
                         break
                 elif not self._process.is_alive():
                     break
+        finally:
+            self._lock.release()
         if reply is None:
             self.stop()
             raise OutputProcessError(
@@ -113,14 +147,42 @@ class OutputProcess:
             value.add_note(f"in the output process:\n{text}")
         raise value
 
-    def stop(self) -> None:
-        """End the process, whatever it is doing."""
+    def stop(self, *, wait: bool = True) -> None:
+        """End the process, whatever it is doing. ``wait=False`` (an idle process, its
+        jobs all answered): only tell it to leave; it does on its own, and a command's
+        own exit does not wait for its interpreter's shutdown (about 0.15 s with rerun)."""
         with contextlib.suppress(OSError):
             self._conn.close()  # an idle process sees EOF and leaves
+        if not wait:
+            return
         self._process.join(timeout=2.0)
         if self._process.is_alive():
             self._process.terminate()
             self._process.join(timeout=5.0)
+
+
+class Pending:
+    """A job sent to the output process (:meth:`OutputProcess.submit`)."""
+
+    def __init__(
+        self,
+        process: OutputProcess,
+        function: str,
+        sender: threading.Thread,
+        sent: list[BaseException],
+    ) -> None:
+        self._process = process
+        self._function = function
+        self._sender = sender
+        self._sent = sent
+        self._done = False
+
+    def result(self) -> Any:
+        """Wait for the job; its result, or its exception (read once)."""
+        if self._done:
+            raise RuntimeError(f"the result of {self._function} was read already")
+        self._done = True
+        return self._process._reply(self._function, self._sender, self._sent)
 
 
 _shared: OutputProcess | None = None
@@ -157,7 +219,7 @@ def release(process: OutputProcess | None) -> None:
             return
         if process is _shared:
             _shared = None
-    process.stop()
+    process.stop(wait=False)
 
 
 def _quiet(exc: BaseException) -> bool:

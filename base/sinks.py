@@ -60,3 +60,7 @@ class Sink(Protocol):
     def close(self) -> None: ...  # finalise atomically
 
     def abort(self) -> None: ...  # discard partial output
+
+    # Optional: ``start_close()``, called on every sink before any close(), for a sink
+    # that writes in another process (the recorder with the output process), so that its
+    # writing overlaps the other sinks' close().

@@ -19,6 +19,7 @@ blueprint live in :mod:`recordings.layout`, the Arrow batching in
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pathlib
 from dataclasses import dataclass, replace
@@ -119,6 +120,7 @@ class SceneRecorder:
         self._state = "new"  # new -> open -> closed | aborted
         self._tmp: pathlib.Path | None = None
         self._process: output_process.OutputProcess | None = None
+        self._pending: output_process.Pending | None = None  # (start_close)
 
     # ------------------------------------------------------------------ Sink protocol
     def begin(self, info: SceneInfo) -> None:
@@ -142,22 +144,44 @@ class SceneRecorder:
         assert self._info is not None
         self._frames.append(_collect(result, self._info, keep_paths=self.paths))
 
+    def start_close(self) -> None:
+        """With the output process: send it the recording to write now, so that it
+        writes while the other sinks close (:meth:`close` then waits for it). Does nothing
+        otherwise, or when sent already."""
+        if self._state != "open" or self._process is None or self._pending is not None:
+            return
+        assert self._info is not None
+        self._tmp = temp_path_beside(self.output)
+        try:
+            frames = _with_hindsight(self._frames, self._info)
+            # the tracks (a reader of the scene file) stay here: their labels are in frames
+            info = replace(self._info, tracks=None)
+            self._pending = self._process.submit(
+                f"{WRITER}:write_temp", self.output, self._tmp, info, frames, self._options()
+            )
+        except BaseException:
+            self._discard()
+            self._state = "aborted"
+            raise
+
     def close(self) -> None:
         """Write the whole recording atomically (temp file, then rename) and finish."""
         if self._state != "open":
             raise RecordingError(f"close() on a recorder that is {self._state}")
         assert self._info is not None
-        self._tmp = temp_path_beside(self.output)
         try:
-            frames = _with_hindsight(self._frames, self._info)
-            if self._process is not None:  # the tracks (a reader of the scene file) stay
-                info = replace(self._info, tracks=None)  # here: their labels are in frames
-                self._process.run(f"{WRITER}:write_temp", self.output, self._tmp, info,
-                                  frames, self._options())  # fmt: skip
+            if self._process is not None:
+                self.start_close()
+                pending, self._pending = self._pending, None
+                assert pending is not None
+                pending.result()
             else:
+                self._tmp = temp_path_beside(self.output)
+                frames = _with_hindsight(self._frames, self._info)
                 from recordings import writer  # rerun: about 1 s, only when writing
 
                 writer.write_temp(self.output, self._tmp, self._info, frames, self._options())
+            assert self._tmp is not None
             commit(self._tmp, self.output)
         except BaseException:
             self._discard()
@@ -188,6 +212,10 @@ class SceneRecorder:
         self._process = None
 
     def _discard(self) -> None:
+        if self._pending is not None:  # let the process finish its file before removing it
+            pending, self._pending = self._pending, None
+            with contextlib.suppress(Exception):
+                pending.result()
         self._release()
         if self._tmp is not None:
             self._tmp.unlink(missing_ok=True)

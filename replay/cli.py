@@ -83,18 +83,19 @@ TABLE_WRITER = "replay.table_file"
 
 def output_writers(args: list[str]) -> tuple[str, ...]:
     """The writer modules that ``replay ARGS`` will need, judged from the words alone (a
-    wrong guess costs only an idle import): ``demo`` writes a recording and a table,
-    ``run`` a recording unless ``--no-rrd`` or ``--ego all``, and a table with
-    ``--table`` or ``--ego all``. Nothing for ``--help``."""
+    wrong guess costs only an idle import): the recording's writer when there is a
+    recording (``demo``; ``run`` unless ``--no-rrd`` or ``--ego all``), else the table's
+    (``--table`` or ``--ego all``). Nothing for ``--help``."""
     if not args or args[0] not in ("run", "demo") or {"--help", "-h"} & set(args):
         return ()
     if args[0] == "demo":
-        return (TABLE_WRITER, RECORDING_WRITER)
+        return (RECORDING_WRITER,)
     pairs = list(zip(args, [*args[1:], ""], strict=True))
     every_ego = any(a == "--ego=all" or (a == "--ego" and b == "all") for a, b in pairs)
     table = every_ego or any(a == "--table" or a.startswith("--table=") for a in args)
     record = not every_ego and "--no-rrd" not in args
-    return (TABLE_WRITER,) * table + (RECORDING_WRITER,) * record
+    # (with both, the table is written in the replay's process: make_sinks says why)
+    return (RECORDING_WRITER,) if record else (TABLE_WRITER,) * table
 
 
 def _os_message(exc: OSError) -> str:

@@ -23,6 +23,7 @@ renamed into place, so a failed run never leaves a half-written table.
 
 from __future__ import annotations
 
+import importlib
 import os
 import pathlib
 from dataclasses import dataclass
@@ -170,10 +171,8 @@ class TableSink:
         try:
             if self._process is not None:
                 self._process.run(f"{TABLE_WRITER}:write_temp", self.path, tmp, columns)
-            else:
-                from replay import table_file  # polars: about 0.3 s, only when writing
-
-                table_file.write_temp(self.path, tmp, columns)
+            else:  # polars: about 0.3 s, only when writing
+                importlib.import_module(TABLE_WRITER).write_temp(self.path, tmp, columns)
             commit(tmp, self.path)
         except BaseException:
             tmp.unlink(missing_ok=True)

@@ -1,6 +1,7 @@
 """Driving risk models for importance filtering (Puphal et al., ICRAE 2022).
 
-numpy and a compiled numba kernel (risk.kernel), no I/O but the kernel cache. The notebook
+numpy and a compiled numba kernel (risk.kernel: ahead of time when built, else just in
+time), no I/O but the kernel cache. The notebook
 entry point::
 
     from risk import Frame, evaluate, MODELS

@@ -1,6 +1,7 @@
 """Modules loaded on first use, with the standard library's ``importlib.util.LazyLoader``.
 
-``risk.kernel`` imports numba (about 0.5 s) and builds its compiled functions; most
+``risk.kernel`` loads the compiled kernel (1 ms ahead of time, 0.9 s with numba just in
+time); most
 commands' start-up (``--help``, the converters, a process that writes output files for
 the replay) never calls a model. :func:`lazy_module` gives a module object that
 executes the module the first time one of its attributes is used.

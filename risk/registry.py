@@ -160,7 +160,7 @@ BASELINE_MODEL = "survival"
 #: default of every ``threshold`` argument; pass another value to study its influence.
 BASELINE_THRESHOLD = 1e-25
 
-#: The compiled kernel, loaded (numba: about 0.5 s) when a model first runs; that
+#: The compiled kernel, loaded when a model first runs (risk/kernel.py); that
 #: ``kernel.SLOTS`` lists MODELS in this order is tested (tests/test_kernel.py).
 kernel = lazy_module("risk.kernel")
 

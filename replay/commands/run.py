@@ -123,12 +123,15 @@ def make_sinks(rrd: pathlib.Path | None, table: pathlib.Path | None) -> list[Sin
     replay starts, so a bad path fails at once)."""
     # Each output's library is loaded only when it is asked for, and where there is a
     # second CPU by the output process (base.background), while this one replays: rerun
-    # takes about 1 s and polars 0.3 s to import (python -X importtime).
+    # takes about 1 s and polars 0.3 s to import (python -X importtime). With both, the
+    # output process takes the recording and this one the table: it is idle by then, and
+    # the process's imports and writes one after the other made it the critical path
+    # (`replay demo` 0.3 s slower, measured).
     sinks: list[Sink] = []
     if table is not None:
         from replay.tables import TableSink
 
-        sinks.append(TableSink(table, background=True))
+        sinks.append(TableSink(table, background=rrd is None))
     if rrd is not None:
         from recordings import SceneRecorder
 
