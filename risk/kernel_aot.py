@@ -115,7 +115,10 @@ def load(cache_dir: str | os.PathLike[str]) -> types.ModuleType | None:
     """The built module for this installation, or None when there is none (or it does not
     load: then the just-in-time form is used, with a warning)."""
     path = module_path(cache_dir)
-    if not path.is_file():
+    try:
+        if not path.is_file():
+            return None
+    except OSError:  # (an unreadable cache folder: numba's own caching will say so)
         return None
     if MODULE_NAME in sys.modules:
         return sys.modules[MODULE_NAME]
@@ -241,9 +244,9 @@ def start_background_build(cache_dir: str | os.PathLike[str]) -> bool:
     started. Its output goes to ``<cache>/aot/build.log``."""
     key = build_key()
     lock = _lock_path(cache_dir, key)
-    if module_path(cache_dir, key).is_file() or _failed_marker(cache_dir, key).exists():
-        return False
     try:
+        if module_path(cache_dir, key).is_file() or _failed_marker(cache_dir, key).exists():
+            return False
         if lock.exists() and time.time() - lock.stat().st_mtime <= STALE_LOCK_S:
             return False
         builds_dir(cache_dir).mkdir(parents=True, exist_ok=True)
