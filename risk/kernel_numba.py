@@ -127,7 +127,7 @@ class _CompileNotice(event.Listener):
         if not _CompileNotice.said:
             _CompileNotice.said = True
             log.warning(
-                "riskreplay: compiling the risk kernels once (about 10-30 s); "
+                "riskreplay: compiling the risk kernels once (about 30-45 s); "
                 "later runs load them from %s",
                 CACHE_DIR,
             )
