@@ -73,6 +73,7 @@ def built_cache(tmp_path_factory) -> pathlib.Path:
     return cache
 
 
+@pytest.mark.slow  # (the build: about 10 s)
 def test_built_module_loads_without_numba_and_agrees_bit_for_bit(built_cache, tmp_path):
     path = kernel_aot.module_path(built_cache)
     assert path.is_file() and path.stat().st_size > 0
@@ -90,6 +91,7 @@ def test_built_module_loads_without_numba_and_agrees_bit_for_bit(built_cache, tm
             np.testing.assert_array_equal(a[name], b[name], err_msg=name)  # NaN == NaN
 
 
+@pytest.mark.slow
 def test_building_again_is_a_no_op(built_cache):
     before = kernel_aot.module_path(built_cache).stat().st_mtime_ns
     assert kernel_aot.build(built_cache) == kernel_aot.module_path(built_cache)
