@@ -164,16 +164,12 @@ def _project(p: Point, path: list[Point]) -> tuple[float, float]:
 
 
 def _first_crossing(agent: list[Point], ego: list[Point]) -> tuple[float, float] | None:
-    """(agent arc, ego arc) of the first point along ``agent`` that lies on ``ego``.
-
-    Segments meet where their distance (:func:`_seg_seg`) is 0, as for path distance: a
-    path that passes through the other's end point within rounding touches it both here
-    and in :func:`_polyline_distance` (the orientation test alone can say it misses)."""
+    """(agent arc, ego arc) of the first point along ``agent`` that lies on ``ego``."""
     a_arcs, e_arcs = _arc_lengths(agent), _arc_lengths(ego)
     best: tuple[float, float] | None = None
     for j, (p, q) in enumerate(_segments(agent)):
         for i, (e0, e1) in enumerate(_segments(ego)):
-            if _seg_seg(p, q, e0, e1) != 0.0:
+            if not _intersect(p, q, e0, e1):
                 continue
             dx, dy = q[0] - p[0], q[1] - p[1]
             ex, ey = e1[0] - e0[0], e1[1] - e0[1]

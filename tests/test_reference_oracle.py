@@ -115,14 +115,3 @@ def test_real_waymo_frames_agree(shared_data):
         r = assert_agree(sub)
         for name in MODELS:  # same agents, same values as in the full frame
             np.testing.assert_allclose(r[name][1:], full[name][nearest], rtol=1e-12, err_msg=name)
-
-
-def test_a_path_through_the_ego_paths_end_point_within_rounding():
-    """Seed 235345 (found by hypothesis): agent 2's extended path passes through the ego
-    path's end point (40, 5) to the last bit. Its path distance is 0 in both, so both
-    count the touch as the crossing of the 2D headway (the reference used to test the
-    crossing by orientation alone and miss it)."""
-    frame = mixed_frame(np.random.default_rng(235345))
-    risks = assert_agree(frame, prediction=PredictionSettings(3.0, 0.25))
-    assert risks["path_distance"][2] == 1.0  # touching
-    assert risks["headway_2d"][2] > risks["headway"][2]  # the crossing's headway counts
