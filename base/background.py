@@ -69,6 +69,7 @@ class OutputProcess:
         ctx = multiprocessing.get_context("spawn")
         self._conn, child_end = ctx.Pipe()
         self._lock = threading.Lock()
+        self._idle = True  # no job sent whose reply is not read
         self.users = 0
         self._process = ctx.Process(
             target=_serve,
@@ -96,6 +97,7 @@ class OutputProcess:
         The job is sent by a thread: a pipe takes only about 64 kB until the process
         reads, and it reads only once its imports are done."""
         self._lock.acquire()
+        self._idle = False
         sent: list[BaseException] = []
 
         def send() -> None:
@@ -133,6 +135,8 @@ class OutputProcess:
                     break
         finally:
             self._lock.release()
+        if reply is not None:
+            self._idle = True
         if reply is None:
             self.stop()
             raise OutputProcessError(
@@ -148,12 +152,14 @@ class OutputProcess:
         raise value
 
     def stop(self, *, wait: bool = True) -> None:
-        """End the process, whatever it is doing. ``wait=False`` (an idle process, its
-        jobs all answered): only tell it to leave; it does on its own, and a command's
-        own exit does not wait for its interpreter's shutdown (about 0.15 s with rerun)."""
+        """End the process, whatever it is doing. ``wait=False``: when it is idle (every
+        reply read), only tell it to leave; it does on its own, and a command's own exit
+        does not wait for its interpreter's shutdown (about 0.15 s with rerun). A busy
+        process (a job abandoned: an error, Ctrl-C) is waited for or ended either way, so
+        that it writes no file after its user has cleaned up."""
         with contextlib.suppress(OSError):
             self._conn.close()  # an idle process sees EOF and leaves
-        if not wait:
+        if not wait and self._idle:
             return
         self._process.join(timeout=2.0)
         if self._process.is_alive():

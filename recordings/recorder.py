@@ -212,14 +212,16 @@ class SceneRecorder:
         self._process = None
 
     def _discard(self) -> None:
-        if self._pending is not None:  # let the process finish its file before removing it
-            pending, self._pending = self._pending, None
-            with contextlib.suppress(Exception):
-                pending.result()
-        self._release()
-        if self._tmp is not None:
-            self._tmp.unlink(missing_ok=True)
-            self._tmp = None
+        try:
+            if self._pending is not None:  # let the process finish its file first
+                pending, self._pending = self._pending, None
+                with contextlib.suppress(Exception):
+                    pending.result()
+        finally:  # (also on Ctrl-C: releasing a busy process ends it before the unlink)
+            self._release()
+            if self._tmp is not None:
+                self._tmp.unlink(missing_ok=True)
+                self._tmp = None
 
 
 # ---------------------------------------------------------------------- collection

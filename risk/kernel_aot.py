@@ -188,8 +188,9 @@ def build(cache_dir: str | os.PathLike[str]) -> pathlib.Path:
     lock = _lock_path(cache_dir, key)
     if not _take_lock(lock):
         raise FileExistsError(f"another process is building {target.parent} ({lock})")
-    work = pathlib.Path(tempfile.mkdtemp(prefix=".build-", dir=builds_dir(cache_dir)))
+    work: pathlib.Path | None = None
     try:
+        work = pathlib.Path(tempfile.mkdtemp(prefix=".build-", dir=builds_dir(cache_dir)))
         # numba only here: the module itself imports neither numba nor LLVM
         from risk import kernel, kernel_numba
 
@@ -224,7 +225,8 @@ def build(cache_dir: str | os.PathLike[str]) -> pathlib.Path:
         _prune(cache_dir, keep=target.parent)
         return target
     finally:
-        shutil.rmtree(work, ignore_errors=True)
+        if work is not None:
+            shutil.rmtree(work, ignore_errors=True)
         lock.unlink(missing_ok=True)
 
 

@@ -125,6 +125,17 @@ def test_an_abort_after_start_close_waits_for_the_file_then_removes_it(tmp_path,
     assert leftovers(tmp_path) == ["g.rrd"]
 
 
+def test_releasing_a_busy_process_ends_it_before_returning():
+    """A job abandoned (an error elsewhere, Ctrl-C) leaves the process busy: its release
+    waits for it or ends it, so that it cannot write after its user cleaned up; an idle
+    one is only told to leave."""
+    process = background.acquire()
+    assert process is not None
+    process.submit("time:sleep", 0.5)  # (its reply is never read)
+    background.release(process)
+    assert not process.alive()
+
+
 def test_a_bug_in_the_writer_keeps_its_type_and_traceback(tmp_path, monkeypatch):
     fake_writer(monkeypatch, tmp_path, tables, "raise ValueError('a bug in the writer')")
     table = fill(TableSink(tmp_path / "b.parquet", background=True))
