@@ -127,6 +127,16 @@ def _intersect(p1: Point, q1: Point, p2: Point, q2: Point) -> bool:
     )
 
 
+def _segments_meet(p1: Point, q1: Point, p2: Point, q2: Point) -> bool:
+    """Whether two segments cross or touch (the 2D headway's crossing test).
+
+    Decided by orientation signs. Where an end point lies on the other segment to the
+    last bit, the signs, and so the verdict, depend on rounding, and the kernel, whose
+    expressions are ordered differently, may decide the other way. The oracle tests accept
+    either verdict there and nowhere else (``tests/oracle_ties.py``)."""
+    return _intersect(p1, q1, p2, q2)
+
+
 def _seg_seg(p1: Point, q1: Point, p2: Point, q2: Point) -> float:
     if _intersect(p1, q1, p2, q2):
         return 0.0
@@ -169,7 +179,7 @@ def _first_crossing(agent: list[Point], ego: list[Point]) -> tuple[float, float]
     best: tuple[float, float] | None = None
     for j, (p, q) in enumerate(_segments(agent)):
         for i, (e0, e1) in enumerate(_segments(ego)):
-            if not _intersect(p, q, e0, e1):
+            if not _segments_meet(p, q, e0, e1):
                 continue
             dx, dy = q[0] - p[0], q[1] - p[1]
             ex, ey = e1[0] - e0[0], e1[1] - e0[1]
