@@ -395,13 +395,6 @@ def _kind_speeds() -> np.ndarray:
     return a
 
 
-def _readonly_float(a: np.ndarray) -> np.ndarray:
-    if a.flags.writeable:
-        a = a.view()
-        a.flags.writeable = False
-    return a
-
-
 def _ro(a: np.ndarray) -> np.ndarray:
     a = np.ascontiguousarray(a, dtype=np.int64)
     a.flags.writeable = False
@@ -816,7 +809,9 @@ def assign_tiers(survival: np.ndarray, tiers: Sequence[Tier]) -> np.ndarray:
     capped to the ``max_agents`` riskiest (ties: the lower index first). Computed by
     :func:`risk.kernel.tiers` (which the one-pass cascade calls too).
     """
-    risk = np.ascontiguousarray(survival, dtype=np.float64)
+    # A writable copy: the one-pass cascade calls the kernel with a writable array, so
+    # both calls share one compiled specialisation.
+    risk = np.array(survival, dtype=np.float64, order="C")
     if risk.ndim != 1:
         raise ValueError("survival must be one-dimensional")
-    return kernel.tiers(_readonly_float(risk), *_tier_vectors(tiers))
+    return kernel.tiers(risk, *_tier_vectors(tiers))

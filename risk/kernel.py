@@ -25,6 +25,9 @@ from __future__ import annotations
 
 import logging
 import os
+import pathlib
+import subprocess
+import sys
 import types
 from typing import Any
 
@@ -254,6 +257,55 @@ def warm_up(compiled: types.ModuleType | None = None, *, build_ahead_of_time: bo
 
 
 def _warm_up_calls(c: types.ModuleType) -> None:
+    beside = _compile_cascade_beside(c)
+    try:
+        _warm_up_evaluate(c)
+    except BaseException:  # (Ctrl-C too): end the helper rather than wait for it
+        if beside is not None:
+            beside.kill()
+            beside.wait()
+        raise
+    if beside is not None:
+        beside.wait()  # its kernels are in the cache now (or it failed: compiled below)
+    _warm_up_cascade(c)
+
+
+def _cache_is_cold(dispatcher: Any) -> bool:
+    """Whether numba's cache holds no entry for this source of ``dispatcher`` (False
+    when numba's layout differs: then nothing is compiled beside)."""
+    try:
+        return not dispatcher._cache._cache_file._load_index()
+    except Exception:  # numba internals: any change means "don't know"
+        return False
+
+
+def _compile_cascade_beside(c: types.ModuleType) -> subprocess.Popen[bytes] | None:
+    """On a cold just-in-time cache and two or more cores, start a process that compiles
+    the cascade's kernels (:func:`_warm_up_cascade`) while this one compiles
+    ``evaluate_agents``: the two are the largest compiles (about 25 s and 15 s of CPU)
+    and numba compiles one function at a time per process. None when not started."""
+    if getattr(c, "__name__", "") != "risk.kernel_numba" or (os.cpu_count() or 1) < 2:
+        return None
+    if not HAVE_CYCLE_COUNTER or not _cache_is_cold(c.cascade_agents):
+        return None
+    code = "from risk import kernel, kernel_numba; kernel._warm_up_cascade(kernel_numba)"
+    try:
+        return subprocess.Popen(
+            [sys.executable, "-c", code],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            env={**os.environ, "NUMBA_CACHE_DIR": str(CACHE_DIR), KERNEL_ENV: "jit"},
+            cwd=pathlib.Path(__file__).resolve().parent.parent,
+        )
+    except OSError:
+        return None  # this process compiles them after evaluate_agents
+
+
+def _warm_up_arguments() -> tuple[
+    tuple[np.ndarray, ...], np.ndarray, np.ndarray, np.ndarray, np.ndarray
+]:
+    """A two-agent frame's arrays and parameters, of the types the replay passes."""
     frame = Frame.from_arrays(
         np.array([[0.0, 0.0], [8.0, 1.0]]),
         np.zeros(2),
@@ -267,17 +319,25 @@ def _warm_up_calls(c: types.ModuleType) -> None:
     unc = _constant(np.tile([0.5, 0.3, 0.1, 0.1, 2.0, 1.0, 0.0, 0.0], (4, 1)))
     fp = np.ones(N_FLOAT)
     fp[F_DT_TAU] = 0.25
-    fp = _constant(fp)
     ip = _constant(np.array([3, 0], dtype=np.int64))
-    fa = frame_arrays(frame)
+    return frame_arrays(frame), steps, unc, _constant(fp), ip
+
+
+def _warm_up_evaluate(c: types.ModuleType) -> None:
+    fa, steps, unc, fp, ip = _warm_up_arguments()
     c.evaluate_agents(  # (run)
         *fa, 0, ALL_AGENTS, steps, unc, _constant(np.ones(N_MODELS, dtype=np.bool_)), fp, ip,
         NO_STOP, NO_CUT,
     )  # fmt: skip
+
+
+def _warm_up_cascade(c: types.ModuleType) -> None:
+    """The reachability bound, the tier sort and the one-pass cascade."""
+    fa, steps, unc, fp, ip = _warm_up_arguments()
     speeds = _constant(np.full(4, 10.0))
     c.reachable(fa[7], fa[9], fa[2], fa[5], 0, _constant(np.array([1])), 1.0, 5, unc, speeds, 1e-25)
-    c.tiers(  # (risk.cascade.assign_tiers)
-        _constant(np.zeros(2)), _constant(np.array([1e-25])),
+    c.tiers(  # (risk.cascade.assign_tiers; a writable copy of the risks)
+        np.zeros(2), _constant(np.array([1e-25])),
         _constant(np.array([-1], dtype=np.int64)),
     )  # fmt: skip
     if not HAVE_CYCLE_COUNTER:

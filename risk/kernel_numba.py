@@ -142,6 +142,9 @@ event.register("numba:compile", _CompileNotice())
 #: inf or NaN, as in the numpy oracle, instead of a Python ZeroDivisionError check
 #: around every division).
 _jit = numba.njit(cache=True, error_model="numpy")
+# Constants passed to kernel functions are written np.int64(0) and np.bool_(False): a bare
+# literal (or a variable that starts as one) makes numba compile the callee once more for
+# the type Literal[int](0) or Literal[bool](False), seconds of compile time for nothing.
 
 
 # ---------------------------------------------------------------------- summation
@@ -177,7 +180,7 @@ def _pw_leaf(a: np.ndarray, s: int, n: int) -> float:
 def np_sum(a: np.ndarray, n: int) -> float:
     """``a[:n].sum()`` exactly as numpy adds (pairwise), without recursion."""
     if n <= PW_BLOCK:
-        return _pw_leaf(a, 0, n)
+        return _pw_leaf(a, 0, n)  # (the literal 0: a second, faster specialisation)
     fs = np.empty(64, np.int64)
     fn = np.empty(64, np.int64)
     stage = np.empty(64, np.int64)
@@ -488,7 +491,7 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
         bloy = min(bloy, bbox[j, 1])
         bhix = max(bhix, bbox[j, 2])
         bhiy = max(bhiy, bbox[j, 3])
-    rmin, amin = INF, 0
+    rmin, amin = INF, np.int64(0)
     for i in range(nca):
         gx = max(max(blox - abox[i, 2], abox[i, 0] - bhix), 0.0)
         gy = max(max(bloy - abox[i, 3], abox[i, 1] - bhiy), 0.0)
@@ -498,7 +501,7 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
             rmin, amin = g, i
     if rmin > cut2:
         return math.sqrt(rmin)  # a lower bound beyond the cut: the caller drops
-    gmin, bmin = INF, 0
+    gmin, bmin = INF, np.int64(0)
     for j in range(ncb):
         g = _gap2(abox, amin, bbox, j)
         if g < gmin:
@@ -663,7 +666,7 @@ def _first_crossing(bx, by, bcum, bn, bbox, ncb, ax, ay, acum, an, abox, nca):
 def _predict(ex, ey, ecum, eux, euy, v, steps, u, tx, ty, dxs, dys, slon, cxx, cxy, cyy):
     """Constant-speed prediction along the extended path, and the covariances
     (risk.prediction.FrameContext._trajectory, uncertainty_sigmas, covariances)."""
-    j = 0
+    j = np.int64(0)
     for k in range(steps.shape[0]):
         travelled = v * steps[k]
         x, y, seg, j = _interp(ex, ey, ecum, travelled, j)
@@ -1482,7 +1485,7 @@ def cascade_agents(
                 )  # fmt: skip
                 rsurv = _overlap_risks(
                     qs, dets, dmin, ns, fp[F_DT_TAU], terms, surv_l, surv_e, lsk, defer,
-                    False, True,
+                    np.bool_(False), np.bool_(True),
                 )[1]  # fmt: skip
                 best = max(best, rsurv)
         surv_out[i] = best
