@@ -180,7 +180,7 @@ def _pw_leaf(a: np.ndarray, s: int, n: int) -> float:
 def np_sum(a: np.ndarray, n: int) -> float:
     """``a[:n].sum()`` exactly as numpy adds (pairwise), without recursion."""
     if n <= PW_BLOCK:
-        return _pw_leaf(a, 0, n)  # (the literal 0: a second, faster specialisation)
+        return _pw_leaf(a, 0, n)
     fs = np.empty(64, np.int64)
     fn = np.empty(64, np.int64)
     stage = np.empty(64, np.int64)
