@@ -252,7 +252,12 @@ def warm_up(compiled: types.ModuleType | None = None, *, build_ahead_of_time: bo
     start about 0.9 s faster. The replay's commands pass True."""
     c = _compiled if compiled is None else compiled
     _warm_up_calls(c)
-    if build_ahead_of_time and IMPLEMENTATION == "jit" and kernel_mode() == "auto":
+    if (
+        build_ahead_of_time
+        and IMPLEMENTATION == "jit"
+        and kernel_mode() == "auto"
+        and getattr(_compiled, "CACHE_PROBLEM", None) is None  # (the notice said why)
+    ):
         kernel_aot.start_background_build(CACHE_DIR)
 
 
@@ -286,6 +291,8 @@ def _compile_cascade_beside(c: types.ModuleType) -> subprocess.Popen[bytes] | No
     and numba compiles one function at a time per process. None when not started."""
     if getattr(c, "__name__", "") != "risk.kernel_numba" or (os.cpu_count() or 1) < 2:
         return None
+    if c.CACHE_PROBLEM is not None:
+        return None  # nothing it compiles could be loaded from the cache
     if not HAVE_CYCLE_COUNTER or not _cache_is_cold(c.cascade_agents):
         return None
     code = "from risk import kernel, kernel_numba; kernel._warm_up_cascade(kernel_numba)"

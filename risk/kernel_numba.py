@@ -69,6 +69,7 @@ from risk.kernel_shared import (
     TRAJ,
     K,
     cache_dir,
+    cache_problem,
 )
 
 log = logging.getLogger("risk")
@@ -76,6 +77,8 @@ log = logging.getLogger("risk")
 
 CACHE_DIR = cache_dir()
 numba.config.CACHE_DIR = CACHE_DIR  # type: ignore[attr-defined]  # read by the decorators
+#: Why the cache folder cannot be written (None: it can); the compile notice says so.
+CACHE_PROBLEM = cache_problem(CACHE_DIR)
 
 
 def _answer_numba_blas_probe() -> bool:
@@ -126,11 +129,20 @@ class _CompileNotice(event.Listener):
     def on_start(self, ev: event.Event) -> None:
         if not _CompileNotice.said:
             _CompileNotice.said = True
-            log.warning(
-                "riskreplay: compiling the risk kernels once (about 30-45 s); "
-                "later runs load them from %s",
-                CACHE_DIR,
-            )
+            if CACHE_PROBLEM is None:
+                log.warning(
+                    "riskreplay: compiling the risk kernels once (about 30-45 s); "
+                    "later runs load them from %s",
+                    CACHE_DIR,
+                )
+            else:
+                log.warning(
+                    "riskreplay: compiling the risk kernels (about 30-45 s) in every run: "
+                    "the cache folder %s cannot be written (%s); set NUMBA_CACHE_DIR to a "
+                    "writable folder",
+                    CACHE_DIR,
+                    CACHE_PROBLEM,
+                )
 
     def on_end(self, ev: event.Event) -> None:
         pass

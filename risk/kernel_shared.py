@@ -13,6 +13,7 @@ import os
 import pathlib
 import platform
 import sys
+import tempfile
 
 # Model slots, in registry order.
 CUR, PATH, TRAJ, ENC, HW, H2D, CIRC, GAUSS, SURV = range(9)
@@ -59,3 +60,16 @@ def cache_dir() -> str:
     path = os.environ.get("NUMBA_CACHE_DIR") or str(default_cache_dir())
     os.environ["NUMBA_CACHE_DIR"] = path
     return path
+
+
+def cache_problem(path: str) -> str | None:
+    """Why the cache folder ``path`` cannot be written, or None when it can. numba then
+    caches nothing, silently, and compiles the kernels again in every process."""
+    try:
+        os.makedirs(path, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".riskreplay-probe-", dir=path)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        return exc.strerror or type(exc).__name__
+    return None

@@ -52,3 +52,33 @@ def test_a_cold_cache_starts_the_cascade_compile_beside(tmp_path):
     )
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "ok"
+
+
+def test_the_cache_folder_probe(tmp_path):
+    from risk.kernel_shared import cache_problem
+
+    assert cache_problem(str(tmp_path / "new" / "cache")) is None
+    assert list((tmp_path / "new" / "cache").iterdir()) == []  # the probe is removed
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    assert cache_problem(str(blocker / "cache")) == "Not a directory"
+
+
+def test_an_unwritable_cache_is_named_in_the_notice_and_compiles_nothing_beside(
+    monkeypatch, caplog
+):
+    """numba caches nothing there, silently: the notice says every run will compile, and
+    no second process compiles what could not be loaded from the cache."""
+    from risk import kernel_numba
+
+    monkeypatch.setattr(kernel_numba, "CACHE_PROBLEM", "Permission denied")
+    monkeypatch.setattr(kernel_numba._CompileNotice, "said", False)
+    monkeypatch.setattr(kernel, "_cache_is_cold", lambda dispatcher: True)
+    with caplog.at_level("WARNING", logger="risk"):
+        kernel_numba._CompileNotice().on_start(None)
+        kernel_numba._CompileNotice().on_start(None)  # once per process
+    assert len(caplog.records) == 1
+    message = caplog.records[0].getMessage()
+    assert "in every run" in message and "Permission denied" in message
+    assert kernel_numba.CACHE_DIR in message and "NUMBA_CACHE_DIR" in message
+    assert kernel._compile_cascade_beside(kernel_numba) is None
