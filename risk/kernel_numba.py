@@ -154,9 +154,11 @@ event.register("numba:compile", _CompileNotice())
 #: inf or NaN, as in the numpy oracle, instead of a Python ZeroDivisionError check
 #: around every division).
 _jit = numba.njit(cache=True, error_model="numpy")
-# Constants passed to kernel functions are written np.int64(0) and np.bool_(False): a bare
-# literal (or a variable that starts as one) makes numba compile the callee once more for
-# the type Literal[int](0) or Literal[bool](False), seconds of compile time for nothing.
+# A bare literal passed to a kernel function (or a variable that starts as one) makes
+# numba compile the callee once more, for Literal[int](0) or Literal[bool](False): seconds
+# of cold compile. Where the callee is compiled for int64/bool anyway, such constants are
+# written np.int64(0) / np.bool_(False). Two literal calls stay (_pw_leaf(a, 0, n) in
+# np_sum, _interp(..., 0) in _cut): their speed against the plain form was within noise.
 
 
 # ---------------------------------------------------------------------- summation
