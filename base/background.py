@@ -2,8 +2,8 @@
 
 Importing rerun takes about 1 s and polars about 0.3 s, and writing a recording or a table
 a few tenths more; all of it used to come on top of the replay. The outputs' ``close()``
-can instead hand their collected arrays to an **output process**: a new Python process
-(``spawn``) that imports the writers' modules as soon as it starts, then runs one job per output
+can instead hand their collected arrays to an **output process**: a new Python interpreter
+that imports the writers' modules as soon as it starts, then runs one job per output
 (``"module:function"`` with its arguments) and sends back the result or the exception.
 With two CPUs the imports cost no wall time.
 
@@ -14,9 +14,15 @@ With two CPUs the imports cost no wall time.
 - Jobs write temporary files only. The parent names them, renames them into place
   (so that ``base.guard.OutputGuard`` still commits a command's outputs together) and
   removes them when a job fails or the process dies.
-- ``spawn``, not ``fork``: rerun and polars run native thread pools, which a forked copy
-  of a process that has used them inherits in a broken state (a recording written in a
-  fork of a process that had written one before hung, seen in the tests).
+- A new interpreter, not ``fork``: rerun and polars run native thread pools, which a
+  forked copy of a process that has used them inherits in a broken state (a recording
+  written in a fork of a process that had written one before hung, seen in the tests).
+- Started with :mod:`subprocess` and one end of a socket pair (a
+  :class:`multiprocessing.connection.Connection`: pickled messages), not with
+  multiprocessing's ``spawn``. ``spawn`` first starts its resource tracker (one more
+  interpreter), and its child runs the parent's main script again: for ``replay``, the
+  console script's ``from replay.cli import main`` (click and the CLI, 0.1-0.2 s measured
+  on the output process's path before it reaches its own imports).
 - ``RISKREPLAY_OUTPUT_PROCESS``: ``auto`` (the default) uses the process when a second
   CPU is idle (:func:`available`), ``off`` never (the outputs write in the replay's own
   process), ``on`` always.
@@ -28,10 +34,13 @@ from __future__ import annotations
 
 import contextlib
 import importlib
-import multiprocessing
+import json
 import multiprocessing.connection
 import os
 import signal
+import socket
+import subprocess
+import sys
 import threading
 import traceback
 from collections.abc import Iterable
@@ -66,22 +75,28 @@ class OutputProcess:
     """A new process that imports ``preload`` at once, then runs jobs one at a time."""
 
     def __init__(self, preload: Iterable[str]) -> None:
-        ctx = multiprocessing.get_context("spawn")
-        self._conn, child_end = ctx.Pipe()
         self._lock = threading.Lock()
         self._idle = True  # no job sent whose reply is not read
         self.users = 0
-        self._process = ctx.Process(
-            target=_serve,
-            args=(child_end, tuple(preload)),
-            name="riskreplay-output",
-            daemon=True,
-        )
-        self._process.start()
-        child_end.close()
+        ours, theirs = socket.socketpair()
+        try:
+            # (the parent's sys.path, as multiprocessing passes it: modules found there,
+            # e.g. a test's, are found in the process too)
+            self._process = subprocess.Popen(
+                [sys.executable, "-c", _CHILD, json.dumps(sys.path), str(theirs.fileno()),
+                 *preload],
+                pass_fds=(theirs.fileno(),),
+                stdin=subprocess.DEVNULL,
+            )  # fmt: skip
+        except BaseException:
+            ours.close()
+            raise
+        finally:
+            theirs.close()
+        self._conn = multiprocessing.connection.Connection(ours.detach())
 
     def alive(self) -> bool:
-        return self._process.is_alive()
+        return self._process.poll() is None
 
     def run(self, function: str, *args: Any) -> Any:
         """Run ``function`` (``"module:name"``) on ``args`` in the process and return its
@@ -120,7 +135,7 @@ class OutputProcess:
         try:
             while sender.is_alive():
                 sender.join(0.2)
-                if not self._process.is_alive():
+                if not self.alive():
                     break
             if sent:
                 raise sent[0]
@@ -131,7 +146,7 @@ class OutputProcess:
                         reply = self._conn.recv()
                     except EOFError:
                         break
-                elif not self._process.is_alive():
+                elif not self.alive():
                     break
         finally:
             self._lock.release()
@@ -140,7 +155,7 @@ class OutputProcess:
         if reply is None:
             self.stop()
             raise OutputProcessError(
-                f"the output process stopped (exit code {self._process.exitcode}) while "
+                f"the output process stopped (exit code {self._process.returncode}) while "
                 f"running {function}; run again, and if it happens again set "
                 f"{MODE_VARIABLE}=off to write in the replay's own process"
             )
@@ -160,11 +175,20 @@ class OutputProcess:
         with contextlib.suppress(OSError):
             self._conn.close()  # an idle process sees EOF and leaves
         if not wait and self._idle:
+            # reaped by a thread, so that no exited process lingers as a zombie while
+            # this one goes on (tests, batch)
+            threading.Thread(target=self._process.wait, name="riskreplay-output-reap",
+                             daemon=True).start()  # fmt: skip
             return
-        self._process.join(timeout=2.0)
-        if self._process.is_alive():
+        try:
+            self._process.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:
             self._process.terminate()
-            self._process.join(timeout=5.0)
+            try:
+                self._process.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
+                self._process.kill()
+                self._process.wait()
 
 
 class Pending:
@@ -234,9 +258,20 @@ def _quiet(exc: BaseException) -> bool:
     return any(k.__name__ in ("RecordingError", "ReplayError") for k in type(exc).__mro__)
 
 
-def _serve(conn: multiprocessing.connection.Connection, preload: tuple[str, ...]) -> None:
+#: What the output process runs: ``python -c _CHILD SYS_PATH FD MODULE...``.
+_CHILD = (
+    "import json, sys; sys.path[:] = json.loads(sys.argv[1]); "
+    "from base.background import _child_main; _child_main(int(sys.argv[2]), sys.argv[3:])"
+)
+
+
+def _child_main(fd: int, preload: list[str]) -> None:
     # Ctrl-C goes to the whole process group: the parent handles it and stops this one.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _serve(multiprocessing.connection.Connection(fd), tuple(preload))
+
+
+def _serve(conn: multiprocessing.connection.Connection, preload: tuple[str, ...]) -> None:
     failures: dict[str, BaseException] = {}
     for name in preload:
         try:

@@ -77,7 +77,7 @@ def main() -> None:
         for _ in range(max(3, args.repeat // 2)):
             t0 = time.perf_counter()
             subprocess.run(
-                [sys.executable, "-m", "replay.cli", "convert", "waymo", str(args.file),
+                [sys.executable, "-m", "replay", "convert", "waymo", str(args.file),
                  "-o", str(Path(tmp) / "cli"), "--paths", args.paths],
                 check=True, capture_output=True, cwd=ROOT,
             )  # fmt: skip

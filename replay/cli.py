@@ -17,8 +17,10 @@ import click
 
 from base import background
 from base.guard import target_of_temp
-from replay import __version__
+from replay.early_output import RECORDING_WRITER, TABLE_WRITER, output_writers
 from replay.user_errors import user_errors
+
+__all__ = ["RECORDING_WRITER", "TABLE_WRITER", "main", "output_writers"]
 
 # name -> "module:attribute"; the order is the order of ``replay --help``.
 COMMANDS: dict[str, str] = {
@@ -60,7 +62,8 @@ class LazyGroup(click.Group):
         preload = () if ctx.resilient_parsing else output_writers(args)
         if preload:
             # Before the command's module loads the models (about 1 s): the output
-            # process imports the writers meanwhile, and the command's outputs adopt it.
+            # process imports the writers meanwhile, and the command's outputs adopt it
+            # (the one ``replay.__main__`` started, if it did).
             process = background.start(preload)
             ctx.call_on_close(lambda: background.release(process))
         return super().resolve_command(ctx, args)
@@ -74,28 +77,6 @@ class LazyGroup(click.Group):
             quiet_broken_pipe()
         except user_errors() as exc:
             raise click.ClickException(str(exc) or type(exc).__name__) from None
-
-
-#: The modules that write a recording and a table (imported by the output process).
-RECORDING_WRITER = "recordings.writer"
-TABLE_WRITER = "replay.table_file"
-
-
-def output_writers(args: list[str]) -> tuple[str, ...]:
-    """The writer modules that ``replay ARGS`` will need, judged from the words alone (a
-    wrong guess costs only an idle import): the recording's writer when there is a
-    recording (``demo``; ``run`` unless ``--no-rrd`` or ``--ego all``), else the table's
-    (``--table`` or ``--ego all``). Nothing for ``--help``."""
-    if not args or args[0] not in ("run", "demo") or {"--help", "-h"} & set(args):
-        return ()
-    if args[0] == "demo":
-        return (RECORDING_WRITER,)
-    pairs = list(zip(args, [*args[1:], ""], strict=True))
-    every_ego = any(a == "--ego=all" or (a == "--ego" and b == "all") for a, b in pairs)
-    table = every_ego or any(a == "--table" or a.startswith("--table=") for a in args)
-    record = not every_ego and "--no-rrd" not in args
-    # (with both, the table is written in the replay's process: make_sinks says why)
-    return (RECORDING_WRITER,) if record else (TABLE_WRITER,) * table
 
 
 def _os_message(exc: OSError) -> str:
@@ -132,7 +113,7 @@ def _module_exists(target: str) -> bool:
     cls=LazyGroup,
     context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100},
 )
-@click.version_option(__version__, "--version", "-V", prog_name="replay")
+@click.version_option(None, "--version", "-V", package_name="riskreplay", prog_name="replay")
 def main() -> None:
     """Importance filtering with driving risk models, on recorded and synthetic traffic.
 
@@ -146,7 +127,3 @@ def main() -> None:
       replay run scene.mcap            the cascade over every frame -> scene.rrd
       replay models                    the nine risk models and their parameters
     """
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

@@ -55,6 +55,7 @@ class Kind(enum.IntEnum):
 
 
 KIND_NAMES: tuple[str, ...] = tuple(k.name.lower() for k in Kind)
+_MAX_KIND = int(max(Kind))
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:
@@ -200,10 +201,14 @@ class Frame:
         points_a = _vector("path_points", path_points, m, np.int64)
         agent_a = _vector("path_agent", path_agent, m, np.int64)
 
-        if len(np.unique(ids_a)) != n:
-            dup = ids_a[np.flatnonzero(np.diff(np.sort(ids_a)) == 0)[0]]
+        # (array methods rather than np.any / np.unique: this runs on every frame read,
+        # and their Python-level dispatch was most of its cost at N = 100)
+        sorted_ids = np.sort(ids_a)
+        repeated = np.diff(sorted_ids) == 0
+        if repeated.any():
+            dup = sorted_ids[int(repeated.argmax())]
             raise FrameError("ids", f"agent id {int(dup)} appears more than once")
-        bad_kind = np.flatnonzero((kinds_a < 0) | (kinds_a > max(Kind)))
+        bad_kind = np.flatnonzero((kinds_a < 0) | (kinds_a > _MAX_KIND))
         if bad_kind.size:
             i = int(bad_kind[0])
             raise FrameError(
@@ -220,15 +225,16 @@ class Frame:
             raise FrameError("t", f"frame time must be finite, got {t}")
 
         # Path ownership: sorted, in range, every agent has at least one candidate.
-        if m < n or np.any(agent_a < 0) or np.any(agent_a >= n) or np.any(np.diff(agent_a) < 0):
+        if m < n or agent_a[0] < 0 or agent_a[-1] >= n or (np.diff(agent_a) < 0).any():
             raise FrameError("path_agent", "must be non-decreasing agent indices in [0, N)")
         has_path = np.zeros(n, dtype=bool)
         has_path[agent_a] = True
         if not has_path.all():
             i = int(np.flatnonzero(~has_path)[0])
             raise FrameError("paths", "agent has no path", index=i, agent_id=int(ids_a[i]))
-        if np.any(points_a < 1) or np.any(points_a > paths_a.shape[1]):
-            r = int(np.flatnonzero((points_a < 1) | (points_a > paths_a.shape[1]))[0])
+        bad_points = (points_a < 1) | (points_a > paths_a.shape[1])
+        if bad_points.any():
+            r = int(bad_points.argmax())
             i = int(agent_a[r])
             raise FrameError(
                 "paths", "a path needs at least one point", index=i, agent_id=int(ids_a[i])
@@ -249,7 +255,9 @@ class Frame:
                 i = int(np.flatnonzero(bad)[0])
                 raise FrameError(name, problem, index=i, agent_id=int(ids_a[i]))
         real_point = np.arange(paths_a.shape[1])[None, :] < points_a[:, None]
-        bad_path = (~np.isfinite(paths_a).all(axis=2) & real_point).any(axis=1) & valid_a[agent_a]
+        # (x and y apart: numpy reduces a length-2 last axis about 15x slower)
+        finite_point = np.isfinite(paths_a[..., 0]) & np.isfinite(paths_a[..., 1])
+        bad_path = (real_point & ~finite_point).any(axis=1) & valid_a[agent_a]
         if bad_path.any():
             i = int(agent_a[np.flatnonzero(bad_path)[0]])
             raise FrameError(
@@ -259,7 +267,10 @@ class Frame:
         # Re-pad with the last real point so that padding never adds a segment, and
         # sanitise invalid agents so that vectorised maths stays finite.
         last = paths_a[np.arange(m), points_a - 1]
-        paths_a = np.where(real_point[:, :, None], paths_a, last[:, None, :])
+        padded = np.empty_like(paths_a)  # (x and y apart: 4x faster than one broadcast)
+        for c in (0, 1):
+            padded[..., c] = np.where(real_point, paths_a[..., c], last[:, c, None])
+        paths_a = padded
         inv = ~valid_a
         if inv.any():
             xy_a[inv] = 0.0

@@ -42,7 +42,7 @@ from test_convert_commonroad import RECT, _obstacle, scenario_xml  # noqa: E402
 from test_convert_interaction import HEADER, osm_text, vehicle_csv  # noqa: E402
 from test_convert_waymo import scenario as waymo_scenario  # noqa: E402
 
-REPLAY = [sys.executable, "-m", "replay.cli"]
+REPLAY = [sys.executable, "-m", "replay"]
 TIME_LIMIT_S = 120.0
 
 

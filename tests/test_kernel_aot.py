@@ -171,7 +171,7 @@ def test_a_failed_build_is_remembered_and_reported(tmp_path, monkeypatch):
 
 def test_an_unknown_kernel_setting_is_a_one_line_error(tmp_path, monkeypatch):
     run = subprocess.run(
-        [sys.executable, "-m", "replay.cli", "demo", "-o", str(tmp_path / "demo"), "--no-progress"],
+        [sys.executable, "-m", "replay", "demo", "-o", str(tmp_path / "demo"), "--no-progress"],
         env={**os.environ, "RISKREPLAY_KERNEL": "fast"},
         capture_output=True, text=True, timeout=300, cwd=ROOT,
     )  # fmt: skip

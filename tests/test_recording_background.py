@@ -257,3 +257,38 @@ def test_the_replay_process_imports_no_rerun_with_the_output_process(tmp_path):
         assert run.stdout.split()[-2:] == imported, mode
         assert (tmp_path / mode / "intersection.rrd").stat().st_size > 0
         assert (tmp_path / mode / "intersection.parquet").stat().st_size > 0
+
+
+def test_the_output_process_runs_neither_the_main_script_nor_the_cli():
+    """A new interpreter that imports only what its jobs need: multiprocessing's spawn
+    ran the parent's main script again (for ``replay``, click and the CLI; for pytest,
+    pytest) and started a resource tracker before it."""
+    process = background.acquire()
+    assert process is not None
+    try:
+        loaded = process.run(
+            "builtins:eval",
+            "sorted(m for m in ('pytest', 'click', 'replay.cli', 'multiprocessing.resource_tracker')"
+            " if m in __import__('sys').modules)",
+        )
+    finally:
+        background.release(process)
+    assert loaded == []
+
+
+def test_replay_starts_the_output_process_before_it_imports_the_cli():
+    code = (
+        "import sys; from replay import early_output; from base import background; "
+        "p = early_output.start_for(sys.argv[1:]); "
+        "print(p is not None, 'click' in sys.modules); background.release(p)"
+    )
+    env = {**os.environ, background.MODE_VARIABLE: "on"}
+    for args, started in ((["demo"], "True"), (["demo", "--help"], "False")):
+        run = subprocess.run([sys.executable, "-c", code, *args], capture_output=True,
+                             text=True, timeout=60, env=env)  # fmt: skip
+        assert run.returncode == 0, run.stderr
+        assert run.stdout.split() == [started, "False"], args
+    completing = {**env, "_REPLAY_COMPLETE": "bash_complete"}
+    run = subprocess.run([sys.executable, "-c", code, "demo"], capture_output=True, text=True,
+                         timeout=60, env=completing)  # fmt: skip
+    assert run.stdout.split() == ["False", "False"]
