@@ -227,22 +227,32 @@ def np_sum(a: np.ndarray, n: int) -> float:
 
 # ---------------------------------------------------------------------- paths
 @_jit
-def _extend(paths, m, npts, heading, min_len, seg, ex, ey, ecum, eux, euy):
-    """risk.geometry.extend_paths, cumulative_lengths and segment_unit_vectors for row m.
-
-    Writes the padded extended path (P+1 points) and returns its real point count. The
-    unit vectors are written only for the segments that start within ``min_len`` (the
-    prediction's reach, ``v T``): the prediction reads no others."""
+def _segment_lengths(paths, m, seg):
+    """``seg[j]``: the length of segment ``j`` of path row ``m`` (for :func:`_extend`)."""
     p = paths.shape[1]
-    p1 = p + 1
     for j in range(p - 1):  # (a loop of plain arithmetic: vectorised)
         dx = paths[m, j + 1, 0] - paths[m, j, 0]
         dy = paths[m, j + 1, 1] - paths[m, j, 1]
         seg[j] = math.sqrt(dx * dx + dy * dy)
+
+
+@_jit
+def _extend(paths, m, npts, heading, min_len, seg, total, ex, ey, ecum, eux, euy):
+    """risk.geometry.extend_paths, cumulative_lengths and segment_unit_vectors for row m,
+    from its segment lengths ``seg`` (:func:`_segment_lengths`) and their sum ``total``
+    (:func:`np_sum`).
+
+    Writes the padded extended path (P+1 points) and returns its real point count. The
+    unit vectors are written only for the segments that start within ``min_len`` (the
+    prediction's reach, ``v T``): the prediction reads no others.
+
+    The caller sums: numba keeps an atomic reference-count increment and decrement per
+    array argument around each call that LLVM does not inline (such as np_sum)."""
+    p = paths.shape[1]
+    p1 = p + 1
     last = p - 2
     while last >= 0 and not seg[last] > 0:
         last -= 1  # the last segment of non-zero length (padding has none)
-    total = np_sum(seg, p - 1)
     if last >= 0:
         dirx = (paths[m, last + 1, 0] - paths[m, last, 0]) / seg[last]
         diry = (paths[m, last + 1, 1] - paths[m, last, 1]) / seg[last]
@@ -403,88 +413,6 @@ def _pseg2(px, py, ox, oy, sx, sy, inv2):
 
 
 @_jit
-def _cross_any(ax, ay, an, ca, bx, by, bn, cb):
-    """Whether a segment of chunk ``ca`` of polyline a crosses or touches a segment of
-    chunk ``cb`` of b by the orientation test of risk.geometry._fine (collinear overlaps
-    excluded: their distance is 0 anyway). Only segment pairs whose boxes touch are
-    tested; the others cannot meet."""
-    sa = max(an - 1, 1)
-    sb = max(bn - 1, 1)
-    for i in range(ca * K, min(ca * K + K, sa)):
-        i1 = min(i + 1, an - 1)
-        p1x, p1y = ax[i], ay[i]
-        q1x, q1y = ax[i1], ay[i1]
-        s1x, s1y = q1x - p1x, q1y - p1y
-        lo1x, hi1x = min(p1x, q1x), max(p1x, q1x)
-        lo1y, hi1y = min(p1y, q1y), max(p1y, q1y)
-        for j in range(cb * K, min(cb * K + K, sb)):
-            j1 = min(j + 1, bn - 1)
-            p2x, p2y = bx[j], by[j]
-            q2x, q2y = bx[j1], by[j1]
-            if min(p2x, q2x) > hi1x or lo1x > max(p2x, q2x):
-                continue
-            if min(p2y, q2y) > hi1y or lo1y > max(p2y, q2y):
-                continue
-            s2x, s2y = q2x - p2x, q2y - p2y
-            o1 = _sign(s1x * (p2y - p1y) - s1y * (p2x - p1x))
-            o2 = _sign(s1x * (q2y - p1y) - s1y * (q2x - p1x))
-            if o1 * o2 > 0:
-                continue
-            o3 = _sign(s2x * (p1y - p2y) - s2y * (p1x - p2x))
-            o4 = _sign(s2x * (q1y - p2y) - s2y * (q1x - p2x))
-            collinear = o1 == 0 and o2 == 0 and o3 == 0 and o4 == 0
-            if o3 * o4 <= 0 and not collinear:
-                return True
-    return False
-
-
-@_jit
-def _points_to_segments2(ax, ay, an, ca, bx, by, bn, cb, best):
-    """Least squared distance from the vertices of chunk ``cb`` of b to the segments of
-    chunk ``ca`` of a, or ``best`` when none is nearer. A vertex whose distance to a
-    segment's box is at least ``best`` is skipped (it cannot be nearer)."""
-    sa = max(an - 1, 1)
-    sb = max(bn - 1, 1)
-    j0 = cb * K
-    j1 = min(cb * K + K, sb)  # the chunk's last vertex (its last segment's end)
-    for i in range(ca * K, min(ca * K + K, sa)):
-        i1 = min(i + 1, an - 1)
-        ox, oy = ax[i], ay[i]
-        qx, qy = ax[i1], ay[i1]
-        sx, sy = qx - ox, qy - oy
-        lox, hix = min(ox, qx), max(ox, qx)
-        loy, hiy = min(oy, qy), max(oy, qy)
-        len2 = sx * sx + sy * sy
-        inv2 = 1.0 / len2 if len2 > 1e-300 else 0.0
-        for j in range(j0, j1 + 1):
-            jj = min(j, bn - 1)
-            px, py = bx[jj], by[jj]
-            gx = max(max(lox - px, px - hix), 0.0)
-            gy = max(max(loy - py, py - hiy), 0.0)
-            if gx * gx + gy * gy > best:
-                continue
-            best = min(best, _pseg2(px, py, ox, oy, sx, sy, inv2))
-    return best
-
-
-@_jit
-def _chunk_pair2(ax, ay, an, ca, bx, by, bn, cb, best, touch, stop2):
-    """Least squared distance between the segments of chunk ``ca`` of polyline a and chunk
-    ``cb`` of b, or ``best`` when none is nearer; 0 when two segments cross
-    (risk.geometry._fine). As there, the distance of two segments that do not cross is
-    the least of their vertex-to-segment distances, so each vertex-segment distance is
-    computed once per chunk pair, not once per segment pair. ``touch``: whether the chunk
-    boxes touch (otherwise no segments can cross). Returns early, with a squared distance
-    at most ``stop2``, once one is found (the keep/drop mode)."""
-    if touch and _cross_any(ax, ay, an, ca, bx, by, bn, cb):
-        return 0.0
-    best = _points_to_segments2(ax, ay, an, ca, bx, by, bn, cb, best)
-    if best <= stop2:
-        return best  # the caller stops here
-    return _points_to_segments2(bx, by, bn, cb, ax, ay, an, ca, best)
-
-
-@_jit
 def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2, cut2, above):
     """Exact least distance between polylines a and b (risk.geometry.polyline_distances).
 
@@ -495,7 +423,11 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
     ``sqrt(stop2)``, not the minimum.
     ``above``: a squared distance known to lie above the minimum (inf if none), to prune
     with from the start; should nothing be nearer after all, the search runs again
-    without it."""
+    without it.
+
+    One function without calls that are not inlined: numba keeps a reference-count
+    increment and decrement (atomic) per array argument around every such call, which
+    cost more than the search of a typical chunk pair."""
     # b's whole box, then a lower bound per chunk of a (its gap to that box): rows of
     # chunk pairs are skipped whole, and the pair to start from is found without the
     # full table of box gaps
@@ -531,27 +463,109 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
                 w2 = min(w2, dx * dx + dy * dy)
         if w2 <= stop2:
             return math.sqrt(w2)
-    for start in (above, INF):
+    start = above
+    while True:  # (returns inside: a break out of it would cost reference counting)
         best = start
-        if gmin <= cut2:
-            best = _chunk_pair2(ax, ay, an, amin, bx, by, bn, bmin, start, gmin == 0.0, stop2)
-            if best == 0.0 or best <= stop2:
-                return math.sqrt(best)
-        for i in range(nca):
-            if gaps[i] >= best or gaps[i] > cut2:
-                continue  # no pair of this row is nearer than the best
-            for j in range(ncb):
-                g = _gap2(abox, i, bbox, j)
-                if g >= best or g > cut2 or (i == amin and j == bmin):
-                    continue  # (a pair no nearer than the best cannot lower it)
-                d = _chunk_pair2(ax, ay, an, i, bx, by, bn, j, best, g == 0.0, stop2)
-                if d < best:
+        # The chunk pairs in search order: (amin, bmin) when within the cut, then the
+        # others row by row, each only while its box gap is below the best so far.
+        ca, cb, g = amin, bmin, gmin
+        first = True
+        run = gmin <= cut2
+        ri, rj = np.int64(0), np.int64(0)  # the row-by-row scan's next pair
+        while True:
+            if run:
+                # As risk.geometry._fine: 0 when two segments cross; else the least
+                # distance of two segments is the least of their vertex-to-segment
+                # distances, so each vertex-segment distance is computed once per chunk
+                # pair, not once per segment pair (a's segments to b's vertices, then
+                # the other way unless already at most stop2).
+                crossed = False
+                if g == 0.0:  # (chunk boxes apart: no segments can cross)
+                    # A segment of chunk ca of a crosses or touches one of chunk cb of b
+                    # by the orientation test of _fine (collinear overlaps excluded:
+                    # their distance is 0 anyway); only pairs whose boxes touch.
+                    for i in range(ca * K, min(ca * K + K, max(an - 1, 1))):
+                        i1 = min(i + 1, an - 1)
+                        p1x, p1y = ax[i], ay[i]
+                        q1x, q1y = ax[i1], ay[i1]
+                        s1x, s1y = q1x - p1x, q1y - p1y
+                        lo1x, hi1x = min(p1x, q1x), max(p1x, q1x)
+                        lo1y, hi1y = min(p1y, q1y), max(p1y, q1y)
+                        for j in range(cb * K, min(cb * K + K, max(bn - 1, 1))):
+                            j1 = min(j + 1, bn - 1)
+                            p2x, p2y = bx[j], by[j]
+                            q2x, q2y = bx[j1], by[j1]
+                            if min(p2x, q2x) > hi1x or lo1x > max(p2x, q2x):
+                                continue
+                            if min(p2y, q2y) > hi1y or lo1y > max(p2y, q2y):
+                                continue
+                            s2x, s2y = q2x - p2x, q2y - p2y
+                            o1 = _sign(s1x * (p2y - p1y) - s1y * (p2x - p1x))
+                            o2 = _sign(s1x * (q2y - p1y) - s1y * (q2x - p1x))
+                            if o1 * o2 > 0:
+                                continue
+                            o3 = _sign(s2x * (p1y - p2y) - s2y * (p1x - p2x))
+                            o4 = _sign(s2x * (q1y - p2y) - s2y * (q1x - p2x))
+                            collinear = o1 == 0 and o2 == 0 and o3 == 0 and o4 == 0
+                            if o3 * o4 <= 0 and not collinear:
+                                crossed = True
+                                break
+                        if crossed:
+                            break
+                d = 0.0
+                if not crossed:
+                    d = best
+                    for side in range(2):
+                        if side == 1 and d <= stop2:
+                            break  # the caller stops here
+                        ux, uy, un, cu, vx, vy, vn, cv = ax, ay, an, ca, bx, by, bn, cb
+                        if side == 1:
+                            ux, uy, un, cu, vx, vy, vn, cv = bx, by, bn, cb, ax, ay, an, ca
+                        # the vertices of chunk cv of v to the segments of chunk cu of u
+                        su = max(un - 1, 1)
+                        j0 = cv * K
+                        j1 = min(cv * K + K, max(vn - 1, 1))  # (its last segment's end)
+                        for i in range(cu * K, min(cu * K + K, su)):
+                            i1 = min(i + 1, un - 1)
+                            ox, oy = ux[i], uy[i]
+                            qx, qy = ux[i1], uy[i1]
+                            sx, sy = qx - ox, qy - oy
+                            lox, hix = min(ox, qx), max(ox, qx)
+                            loy, hiy = min(oy, qy), max(oy, qy)
+                            len2 = sx * sx + sy * sy
+                            inv2 = 1.0 / len2 if len2 > 1e-300 else 0.0
+                            for j in range(j0, j1 + 1):
+                                jj = min(j, vn - 1)
+                                px, py = vx[jj], vy[jj]
+                                hx = max(max(lox - px, px - hix), 0.0)
+                                hy = max(max(loy - py, py - hiy), 0.0)
+                                if hx * hx + hy * hy > d:
+                                    continue  # no nearer than the box: skipped
+                                d = min(d, _pseg2(px, py, ox, oy, sx, sy, inv2))
+                if first or d < best:
                     best = d
                     if best == 0.0 or best <= stop2:
                         return math.sqrt(best)
-        if best < start:
-            break  # found below the bound: the minimum
-    return math.sqrt(best)
+            first = False
+            run = False
+            while ri < nca:
+                if rj == 0 and (gaps[ri] >= best or gaps[ri] > cut2):
+                    ri += 1
+                    continue  # no pair of this row is nearer than the best
+                if rj == ncb:
+                    ri, rj = ri + 1, np.int64(0)
+                    continue
+                ca, cb = ri, rj
+                rj += 1
+                g = _gap2(abox, ca, bbox, cb)
+                if not (g >= best or g > cut2 or (ca == amin and cb == bmin)):
+                    run = True  # (a pair no nearer than the best cannot lower it)
+                    break
+            if not run:
+                break
+        if best < start or start == INF:
+            return math.sqrt(best)  # found below the bound: the minimum
+        start = INF  # nothing nearer than the bound after all: again without it
 
 
 @_jit
@@ -767,8 +781,11 @@ def _overlap_risks(qs, dets, dmin, ns, dt_tau, terms, sl, se, lsk, defer, want_g
        out count as 0; each is below ``1e-20`` of the sum, together below ``ns 1e-20``
        of it, under the sum's own rounding for any horizon below 10^4 steps.
 
-    Without a positive finite ``min det`` every step is computed. Returns ``(gaussian,
-    survival)``; an unrequested one is not computed (its value is meaningless)."""
+    Without a positive finite ``min det`` every step is computed. Returns the Gaussian
+    risk (meaningless when not requested) and leaves the survival terms in ``terms``:
+    the survival risk is ``np_sum(terms, ns)``, summed by the caller (numba keeps an
+    atomic reference-count increment and decrement per array argument around each call
+    that LLVM does not inline)."""
     two_pi = 2.0 * math.pi
     usable = dmin > 0 and dmin < INF  # (False for NaN)
     log2pil = math.log(two_pi * math.sqrt(dmin)) if usable else 0.0
@@ -807,7 +824,7 @@ def _overlap_risks(qs, dets, dmin, ns, dt_tau, terms, sl, se, lsk, defer, want_g
         gmax = max(gmax, po)
         log_s += po + dt_tau
     if nd == 0:
-        return gmax, np_sum(terms, ns) if want_s else 0.0
+        return gmax
     gthr, sthr = INF, INF
     if want_g:
         po = 0.0
@@ -839,7 +856,7 @@ def _overlap_risks(qs, dets, dmin, ns, dt_tau, terms, sl, se, lsk, defer, want_g
         gmax = max(gmax, po)
         if need_s:
             terms[k] = po * (se[k] if ls == sl[k] else math.exp(-ls))
-    return gmax, np_sum(terms, ns) if want_s else 0.0
+    return gmax
 
 
 @_jit
@@ -875,7 +892,8 @@ def _ego_candidates(
     :func:`cascade_agents`: each extended to ``v T``, cut at ``v T``, boxed by chunks and
     predicted with its covariances, with its segment data and the ego's arc position on
     it."""
-    p1 = paths.shape[1] + 1
+    p = paths.shape[1]
+    p1 = p + 1
     ns = steps.shape[0]
     horizon = steps[ns - 1]
     gx = np.empty((ne, p1))
@@ -906,8 +924,9 @@ def _ego_candidates(
     u_e = unc[kinds[ego]]
     for e in range(ne):
         r = e0 + e
+        _segment_lengths(paths, r, seg)
         gn[e] = _extend(
-            paths, r, path_points[r], heading[ego], v_e * horizon, seg,
+            paths, r, path_points[r], heading[ego], v_e * horizon, seg, np_sum(seg, p - 1),
             gx[e], gy[e], gcum[e], gux[e], guy[e],
         )  # fmt: skip
         gnb[e] = _boxes(gx[e], gy[e], gn[e], gbox[e])
@@ -1037,9 +1056,11 @@ def evaluate_agents(
         for r in range(starts[i], starts[i + 1]):
             if not ((want_path and not path_done) or (want[TRAJ] and not traj_done) or want_pred):
                 break
+            _segment_lengths(paths, r, seg)
             en = _extend(
-                paths, r, path_points[r], heading[i], v * horizon, seg, ex, ey, ecum, eux, euy
-            )
+                paths, r, path_points[r], heading[i], v * horizon, seg, np_sum(seg, p - 1),
+                ex, ey, ecum, eux, euy,
+            )  # fmt: skip
             nb = _boxes(ex, ey, en, ebox) if want_path else 0
             if want[TRAJ] and not traj_done:
                 cn = _cut(ex, ey, ecum, v * horizon, cx, cy)
@@ -1119,10 +1140,12 @@ def evaluate_agents(
                             circ = min(circ, math.sqrt(max(c2min, 0.0)) - reach)
                 if w_stoch:
                     dmin = _pair_q(tx, ty, cxx, cxy, cyy, gtx, gty, gxx, gxy, gyy, ns, qs, dets)
-                    gmax, rsurv = _overlap_risks(
+                    gmax = _overlap_risks(
                         qs, dets, dmin, ns, dt_tau, terms, surv_l, surv_e, lsk, defer,
                         want[GAUSS], w_surv,
                     )  # fmt: skip
+                    if w_surv:
+                        rsurv = np_sum(terms, ns)
                 if want[ENC] or want[HW] or want[H2D]:
                     d_e = math.sqrt(d2min)
                     tie = (d_e + TIE) ** 2
@@ -1419,9 +1442,10 @@ def cascade_agents(
                         break
                     m = r - r0
                     if not extended[m]:
+                        _segment_lengths(paths, r, seg)
                         en[m] = _extend(
                             paths, r, path_points[r], heading[i], v * horizon, seg,
-                            ex[m], ey[m], ecum[m], eux[m], euy[m],
+                            np_sum(seg, p - 1), ex[m], ey[m], ecum[m], eux[m], euy[m],
                         )  # fmt: skip
                         nb[m] = _boxes(ex[m], ey[m], en[m], ebox[m])
                         extended[m] = True
@@ -1450,9 +1474,10 @@ def cascade_agents(
                         break
                     m = r - r0
                     if not extended[m]:
+                        _segment_lengths(paths, r, seg)
                         en[m] = _extend(
                             paths, r, path_points[r], heading[i], v * horizon, seg,
-                            ex[m], ey[m], ecum[m], eux[m], euy[m],
+                            np_sum(seg, p - 1), ex[m], ey[m], ecum[m], eux[m], euy[m],
                         )  # fmt: skip
                         nb[m] = _boxes(ex[m], ey[m], en[m], ebox[m])
                         extended[m] = True
@@ -1481,9 +1506,10 @@ def cascade_agents(
         for r in range(r0, r1):
             m = r - r0
             if not extended[m]:
+                _segment_lengths(paths, r, seg)
                 en[m] = _extend(
                     paths, r, path_points[r], heading[i], v * horizon, seg,
-                    ex[m], ey[m], ecum[m], eux[m], euy[m],
+                    np_sum(seg, p - 1), ex[m], ey[m], ecum[m], eux[m], euy[m],
                 )  # fmt: skip
                 extended[m] = True
             if not predicted[m]:
@@ -1497,10 +1523,11 @@ def cascade_agents(
                     tx[m], ty[m], cxx[m], cxy[m], cyy[m],
                     g_tx[e], g_ty[e], g_xx[e], g_xy[e], g_yy[e], ns, qs, dets,
                 )  # fmt: skip
-                rsurv = _overlap_risks(
+                _overlap_risks(
                     qs, dets, dmin, ns, fp[F_DT_TAU], terms, surv_l, surv_e, lsk, defer,
                     np.bool_(False), np.bool_(True),
-                )[1]  # fmt: skip
+                )  # fmt: skip
+                rsurv = np_sum(terms, ns)
                 best = max(best, rsurv)
         surv_out[i] = best
         t = _cycles()
