@@ -519,8 +519,15 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
                         if side == 1 and d <= stop2:
                             break  # the caller stops here
                         ux, uy, un, cu, vx, vy, vn, cv = ax, ay, an, ca, bx, by, bn, cb
+                        vlox, vloy, vhix, vhiy = bbox[cb, 0], bbox[cb, 1], bbox[cb, 2], bbox[cb, 3]
                         if side == 1:
                             ux, uy, un, cu, vx, vy, vn, cv = bx, by, bn, cb, ax, ay, an, ca
+                            vlox, vloy, vhix, vhiy = (
+                                abox[ca, 0],
+                                abox[ca, 1],
+                                abox[ca, 2],
+                                abox[ca, 3],
+                            )
                         # the vertices of chunk cv of v to the segments of chunk cu of u
                         su = max(un - 1, 1)
                         j0 = cv * K
@@ -529,9 +536,17 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
                             i1 = min(i + 1, un - 1)
                             ox, oy = ux[i], uy[i]
                             qx, qy = ux[i1], uy[i1]
-                            sx, sy = qx - ox, qy - oy
                             lox, hix = min(ox, qx), max(ox, qx)
                             loy, hiy = min(oy, qy), max(oy, qy)
+                            # The chunk's vertices lie in its box (whose bounds are
+                            # vertices), so each one's gap below is at least this one
+                            # (rounding is monotone): a segment this far from the box is
+                            # skipped whole, as each of its vertices would be.
+                            hx = max(max(lox - vhix, vlox - hix), 0.0)
+                            hy = max(max(loy - vhiy, vloy - hiy), 0.0)
+                            if hx * hx + hy * hy > d:
+                                continue
+                            sx, sy = qx - ox, qy - oy
                             len2 = sx * sx + sy * sy
                             inv2 = 1.0 / len2 if len2 > 1e-300 else 0.0
                             for j in range(j0, j1 + 1):
