@@ -706,18 +706,23 @@ def _first_crossing(bx, by, bcum, bn, bbox, ncb, ax, ay, acum, an, abox, nca):
 
 # ---------------------------------------------------------------------- prediction
 @_jit
-def _predict(ex, ey, ecum, eux, euy, v, steps, u, tx, ty, dxs, dys, slon, cxx, cxy, cyy):
+def _predict(ex, ey, ecum, eux, euy, v, steps, unc, kind, tx, ty, dxs, dys, slon, cxx, cxy, cyy):
     """Constant-speed prediction along the extended path, and the covariances
-    (risk.prediction.FrameContext._trajectory, uncertainty_sigmas, covariances)."""
+    (risk.prediction.FrameContext._trajectory, uncertainty_sigmas, covariances), with
+    the uncertainties ``unc[kind]``."""
+    # the uncertainties in registers (the stores below might alias them otherwise)
+    u0, u1, u2, u3 = unc[kind, 0], unc[kind, 1], unc[kind, 2], unc[kind, 3]
+    u4, u5, u6, u7 = unc[kind, 4], unc[kind, 5], unc[kind, 6], unc[kind, 7]
     j = np.int64(0)
     for k in range(steps.shape[0]):
-        travelled = v * steps[k]
+        t = steps[k]
+        travelled = v * t
         x, y, seg, j = _interp(ex, ey, ecum, travelled, j)
         tx[k], ty[k] = x, y
         c, s = eux[seg], euy[seg]
         dxs[k], dys[k] = c, s
-        lon = min(u[0] + u[2] * travelled + u[6] * steps[k], u[4])
-        lat = min(u[1] + u[3] * travelled + u[7] * steps[k], u[5])
+        lon = min(u0 + u2 * travelled + u6 * t, u4)
+        lat = min(u1 + u3 * travelled + u7 * t, u5)
         slon[k] = lon
         a = lon * lon
         b = lat * lat
@@ -742,17 +747,17 @@ def _escape_track(ns, dt_tau, sl, se):
 
 
 @_jit
-def _pair_q(tx, ty, cxx, cxy, cyy, gtx, gty, gxx, gxy, gyy, ns, qs, dets):
+def _pair_q(tx, ty, cxx, cxy, cyy, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs, dets):
     """The exponent ``q_k = -1/2 dmu^T S^-1 dmu`` and ``det S`` of the Gaussian overlap
     at every step of one prediction pair (``S`` the summed covariance), as
     risk.stochastic._overlap computes them; returns the least ``det`` (NaN ignored).
     The loop has no reduction, so it compiles to SIMD code."""
     for k in range(ns):
-        rx = tx[k] - gtx[k]
-        ry = ty[k] - gty[k]
-        sxx = cxx[k] + gxx[k]
-        sxy = cxy[k] + gxy[k]
-        syy = cyy[k] + gyy[k]
+        rx = tx[k] - g_tx[e, k]
+        ry = ty[k] - g_ty[e, k]
+        sxx = cxx[k] + g_xx[e, k]
+        sxy = cxy[k] + g_xy[e, k]
+        syy = cyy[k] + g_yy[e, k]
         det = sxx * syy - sxy * sxy
         q = syy * (rx * rx) - 2.0 * (sxy * (rx * ry))
         qs[k] = (q + sxx * (ry * ry)) / det * -0.5
@@ -936,7 +941,6 @@ def _ego_candidates(
     g_inv2 = np.empty((ne, p1))
     g_len = np.empty((ne, p1))
     v_e = speed[ego]
-    u_e = unc[kinds[ego]]
     for e in range(ne):
         r = e0 + e
         _segment_lengths(paths, r, seg)
@@ -948,7 +952,7 @@ def _ego_candidates(
         kn[e] = _cut(gx[e], gy[e], gcum[e], v_e * horizon, kx[e], ky[e])
         knb[e] = _boxes(kx[e], ky[e], kn[e], kbox[e])
         _predict(
-            gx[e], gy[e], gcum[e], gux[e], guy[e], v_e, steps, u_e,
+            gx[e], gy[e], gcum[e], gux[e], guy[e], v_e, steps, unc, kinds[ego],
             g_tx[e], g_ty[e], g_dx[e], g_dy[e], g_sl[e], g_xx[e], g_xy[e], g_yy[e],
         )  # fmt: skip
         _segments(gx[e], gy[e], gn[e], g_inv2[e], g_len[e])
@@ -1048,7 +1052,6 @@ def evaluate_agents(
                     gbox[e], gnb[e],
                 )  # fmt: skip
         v = speed[i]
-        u = unc[kinds[i]]
         path_done = False
         traj_done = False
         if (want[PATH] and not exact_path) or (want[TRAJ] and stop2[TRAJ] >= 0):
@@ -1085,7 +1088,7 @@ def evaluate_agents(
                     cnb = _boxes(cx, cy, cn, cbox)
             if want_pred:
                 _predict(
-                    ex, ey, ecum, eux, euy, v, steps, u,
+                    ex, ey, ecum, eux, euy, v, steps, unc, kinds[i],
                     tx, ty, dxs, dys, slon, cxx, cxy, cyy,
                 )  # fmt: skip
             for e in range(ne):
@@ -1126,23 +1129,22 @@ def evaluate_agents(
                 d2min = INF
                 circ = INF
                 gmax, rsurv = -INF, 0.0
-                # loop invariants in registers, the circles' offsets once per agent
+                # loop invariants in registers, the circles' offsets once per agent; the
+                # ego's rows indexed in place (a row view costs an atomic reference count)
                 w_circ, w_stoch, w_surv = want[CIRC], want[GAUSS] or want[SURV], want[SURV]
                 half_w = 0.5 * width[i]
-                gtx, gty, gsl = g_tx[e], g_ty[e], g_sl[e]
-                gxx, gxy, gyy = g_xx[e], g_xy[e], g_yy[e]
                 if w_circ:
                     for c in range(n_circ):
                         o = length[i] * ((c + 0.5) / n_circ - 0.5)
                         o2[c] = 2.0 * o
                         oo[c] = o * o
                 for k in range(ns):
-                    rx = tx[k] - gtx[k]
-                    ry = ty[k] - gty[k]
+                    rx = tx[k] - g_tx[e, k]
+                    ry = ty[k] - g_ty[e, k]
                     d2 = rx * rx + ry * ry
                     d2min = min(d2min, d2)
                     if w_circ and circ > 0.0:  # (once <= 0, the risk is 1)
-                        reach = (r_ego + scale * gsl[k]) + (half_w + scale * slon[k])
+                        reach = (r_ego + scale * g_sl[e, k]) + (half_w + scale * slon[k])
                         along = rx * dxs[k] + ry * dys[k]
                         c2min = INF
                         for c in range(n_circ):
@@ -1154,7 +1156,9 @@ def evaluate_agents(
                         if lim > 0.0 and c2min <= lim * lim * (1.0 + 1e-9):
                             circ = min(circ, math.sqrt(max(c2min, 0.0)) - reach)
                 if w_stoch:
-                    dmin = _pair_q(tx, ty, cxx, cxy, cyy, gtx, gty, gxx, gxy, gyy, ns, qs, dets)
+                    dmin = _pair_q(
+                        tx, ty, cxx, cxy, cyy, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs, dets
+                    )
                     gmax = _overlap_risks(
                         qs, dets, dmin, ns, dt_tau, terms, surv_l, surv_e, lsk, defer,
                         want[GAUSS], w_surv,
@@ -1498,7 +1502,7 @@ def cascade_agents(
                         extended[m] = True
                     if not predicted[m]:
                         _predict(
-                            ex[m], ey[m], ecum[m], eux[m], euy[m], v, steps, u,
+                            ex[m], ey[m], ecum[m], eux[m], euy[m], v, steps, unc, kinds[i],
                             tx[m], ty[m], dxs, dys, slon, cxx[m], cxy[m], cyy[m],
                         )  # fmt: skip
                         predicted[m] = True
@@ -1529,14 +1533,14 @@ def cascade_agents(
                 extended[m] = True
             if not predicted[m]:
                 _predict(
-                    ex[m], ey[m], ecum[m], eux[m], euy[m], v, steps, u,
+                    ex[m], ey[m], ecum[m], eux[m], euy[m], v, steps, unc, kinds[i],
                     tx[m], ty[m], dxs, dys, slon, cxx[m], cxy[m], cyy[m],
                 )  # fmt: skip
                 predicted[m] = True
             for e in range(ne):
                 dmin = _pair_q(
                     tx[m], ty[m], cxx[m], cxy[m], cyy[m],
-                    g_tx[e], g_ty[e], g_xx[e], g_xy[e], g_yy[e], ns, qs, dets,
+                    g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs, dets,
                 )  # fmt: skip
                 _overlap_risks(
                     qs, dets, dmin, ns, fp[F_DT_TAU], terms, surv_l, surv_e, lsk, defer,
