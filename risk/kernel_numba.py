@@ -601,12 +601,34 @@ def _project(px, py, ex, ey, ecum, n, inv2, slen, box, nb):
     first along the path on ties (risk.geometry.project_points). ``inv2``, ``slen``: from
     :func:`_segments`; ``box``, ``nb``: the chunk boxes. Chunks are walked in order and
     one whose box is farther than the best so far is skipped (it holds no nearer point,
-    and a later tie never wins)."""
+    and a later tie never wins).
+
+    A bound first: the least distance ``b`` to the segments of the chunk whose box is
+    nearest. A chunk whose box is farther than ``b + 1 um`` holds no point as near as the
+    minimum (the margin covers the rounding of both), so it is skipped from the start:
+    the same chunks decide the result, in the same order."""
+    cb, gb = np.int64(0), INF
+    for c in range(nb):
+        gx = max(max(box[c, 0] - px, px - box[c, 2]), 0.0)
+        gy = max(max(box[c, 1] - py, py - box[c, 3]), 0.0)
+        if gx * gx + gy * gy < gb:
+            cb, gb = c, gx * gx + gy * gy
+    bound = INF
+    for j in range(cb * K, min(cb * K + K, n - 1)):
+        abx = ex[j + 1] - ex[j]
+        aby = ey[j + 1] - ey[j]
+        rx = px - ex[j]
+        ry = py - ey[j]
+        t = min(max((rx * abx + ry * aby) * inv2[j], 0.0), 1.0)
+        rx -= t * abx
+        ry -= t * aby
+        bound = min(bound, rx * rx + ry * ry)
+    bound = (math.sqrt(bound) + 1e-6) ** 2
     best, arc = INF, 0.0
     for c in range(nb):
         gx = max(max(box[c, 0] - px, px - box[c, 2]), 0.0)
         gy = max(max(box[c, 1] - py, py - box[c, 3]), 0.0)
-        if gx * gx + gy * gy > best:
+        if gx * gx + gy * gy > best or gx * gx + gy * gy > bound:
             continue
         for j in range(c * K, min(c * K + K, n - 1)):
             abx = ex[j + 1] - ex[j]
