@@ -728,10 +728,13 @@ def _first_crossing(bx, by, bcum, bn, bbox, ncb, ax, ay, acum, an, abox, nca):
 
 # ---------------------------------------------------------------------- prediction
 @_jit
-def _predict(ex, ey, ecum, eux, euy, v, steps, unc, kind, tx, ty, dxs, dys, slon, cxx, cxy, cyy):
+def _predict(
+    ex, ey, ecum, eux, euy, v, steps, unc, kind, row, tx, ty, dxs, dys, slon, cxx, cxy, cyy
+):
     """Constant-speed prediction along the extended path, and the covariances
     (risk.prediction.FrameContext._trajectory, uncertainty_sigmas, covariances), with
-    the uncertainties ``unc[kind]``."""
+    the uncertainties ``unc[kind]``, into row ``row`` of the outputs (rows indexed in
+    place: a row view costs an atomic reference count where it outlives a call)."""
     # the uncertainties in registers (the stores below might alias them otherwise)
     u0, u1, u2, u3 = unc[kind, 0], unc[kind, 1], unc[kind, 2], unc[kind, 3]
     u4, u5, u6, u7 = unc[kind, 4], unc[kind, 5], unc[kind, 6], unc[kind, 7]
@@ -740,19 +743,19 @@ def _predict(ex, ey, ecum, eux, euy, v, steps, unc, kind, tx, ty, dxs, dys, slon
         t = steps[k]
         travelled = v * t
         x, y, seg, j = _interp(ex, ey, ecum, travelled, j)
-        tx[k], ty[k] = x, y
+        tx[row, k], ty[row, k] = x, y
         c, s = eux[seg], euy[seg]
-        dxs[k], dys[k] = c, s
+        dxs[row, k], dys[row, k] = c, s
         lon = min(u0 + u2 * travelled + u6 * t, u4)
         lat = min(u1 + u3 * travelled + u7 * t, u5)
-        slon[k] = lon
+        slon[row, k] = lon
         a = lon * lon
         b = lat * lat
         cc = c * c
         ss = s * s
-        cxx[k] = a * cc + b * ss
-        cxy[k] = (a - b) * c * s
-        cyy[k] = a * ss + b * cc
+        cxx[row, k] = a * cc + b * ss
+        cxy[row, k] = (a - b) * c * s
+        cyy[row, k] = a * ss + b * cc
 
 
 @_jit
@@ -769,17 +772,18 @@ def _escape_track(ns, dt_tau, sl, se):
 
 
 @_jit
-def _pair_q(tx, ty, cxx, cxy, cyy, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs, dets):
+def _pair_q(tx, ty, cxx, cxy, cyy, m, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs, dets):
     """The exponent ``q_k = -1/2 dmu^T S^-1 dmu`` and ``det S`` of the Gaussian overlap
-    at every step of one prediction pair (``S`` the summed covariance), as
+    at every step of one prediction pair (the agent's row ``m``, the ego's row ``e``;
+    ``S`` the summed covariance), as
     risk.stochastic._overlap computes them; returns the least ``det`` (NaN ignored).
     The loop has no reduction, so it compiles to SIMD code."""
     for k in range(ns):
-        rx = tx[k] - g_tx[e, k]
-        ry = ty[k] - g_ty[e, k]
-        sxx = cxx[k] + g_xx[e, k]
-        sxy = cxy[k] + g_xy[e, k]
-        syy = cyy[k] + g_yy[e, k]
+        rx = tx[m, k] - g_tx[e, k]
+        ry = ty[m, k] - g_ty[e, k]
+        sxx = cxx[m, k] + g_xx[e, k]
+        sxy = cxy[m, k] + g_xy[e, k]
+        syy = cyy[m, k] + g_yy[e, k]
         det = sxx * syy - sxy * sxy
         q = syy * (rx * rx) - 2.0 * (sxy * (rx * ry))
         qs[k] = (q + sxx * (ry * ry)) / det * -0.5
@@ -974,8 +978,8 @@ def _ego_candidates(
         kn[e] = _cut(gx[e], gy[e], gcum[e], v_e * horizon, kx[e], ky[e])
         knb[e] = _boxes(kx[e], ky[e], kn[e], kbox[e])
         _predict(
-            gx[e], gy[e], gcum[e], gux[e], guy[e], v_e, steps, unc, kinds[ego],
-            g_tx[e], g_ty[e], g_dx[e], g_dy[e], g_sl[e], g_xx[e], g_xy[e], g_yy[e],
+            gx[e], gy[e], gcum[e], gux[e], guy[e], v_e, steps, unc, kinds[ego], e,
+            g_tx, g_ty, g_dx, g_dy, g_sl, g_xx, g_xy, g_yy,
         )  # fmt: skip
         _segments(gx[e], gy[e], gn[e], g_inv2[e], g_len[e])
         g_l1[e] = _project(
@@ -1035,14 +1039,14 @@ def evaluate_agents(
     ebox = np.empty((nch, 4))
     cbox = np.empty((nch, 4))
     gaps = np.empty(nch * nch)
-    tx = np.empty(ns)
-    ty = np.empty(ns)
-    dxs = np.empty(ns)
-    dys = np.empty(ns)
-    slon = np.empty(ns)
-    cxx = np.empty(ns)
-    cxy = np.empty(ns)
-    cyy = np.empty(ns)
+    tx = np.empty((1, ns))  # (one row: the functions shared with cascade_agents index rows)
+    ty = np.empty((1, ns))
+    dxs = np.empty((1, ns))
+    dys = np.empty((1, ns))
+    slon = np.empty((1, ns))
+    cxx = np.empty((1, ns))
+    cxy = np.empty((1, ns))
+    cyy = np.empty((1, ns))
     terms = np.empty(ns)
     qs = np.empty(ns)
     dets = np.empty(ns)
@@ -1110,7 +1114,7 @@ def evaluate_agents(
                     cnb = _boxes(cx, cy, cn, cbox)
             if want_pred:
                 _predict(
-                    ex, ey, ecum, eux, euy, v, steps, unc, kinds[i],
+                    ex, ey, ecum, eux, euy, v, steps, unc, kinds[i], 0,
                     tx, ty, dxs, dys, slon, cxx, cxy, cyy,
                 )  # fmt: skip
             for e in range(ne):
@@ -1161,13 +1165,13 @@ def evaluate_agents(
                         o2[c] = 2.0 * o
                         oo[c] = o * o
                 for k in range(ns):
-                    rx = tx[k] - g_tx[e, k]
-                    ry = ty[k] - g_ty[e, k]
+                    rx = tx[0, k] - g_tx[e, k]
+                    ry = ty[0, k] - g_ty[e, k]
                     d2 = rx * rx + ry * ry
                     d2min = min(d2min, d2)
                     if w_circ and circ > 0.0:  # (once <= 0, the risk is 1)
-                        reach = (r_ego + scale * g_sl[e, k]) + (half_w + scale * slon[k])
-                        along = rx * dxs[k] + ry * dys[k]
+                        reach = (r_ego + scale * g_sl[e, k]) + (half_w + scale * slon[0, k])
+                        along = rx * dxs[0, k] + ry * dys[0, k]
                         c2min = INF
                         for c in range(n_circ):
                             c2min = min(c2min, d2 + o2[c] * along + oo[c])
@@ -1179,7 +1183,7 @@ def evaluate_agents(
                             circ = min(circ, math.sqrt(max(c2min, 0.0)) - reach)
                 if w_stoch:
                     dmin = _pair_q(
-                        tx, ty, cxx, cxy, cyy, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs, dets
+                        tx, ty, cxx, cxy, cyy, 0, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs, dets
                     )
                     gmax = _overlap_risks(
                         qs, dets, dmin, ns, dt_tau, terms, surv_l, surv_e, lsk, defer,
@@ -1192,8 +1196,8 @@ def evaluate_agents(
                     tie = (d_e + TIE) ** 2
                     k_e = 0
                     for k in range(ns):
-                        rx = tx[k] - g_tx[e, k]
-                        ry = ty[k] - g_ty[e, k]
+                        rx = tx[0, k] - g_tx[e, k]
+                        ry = ty[0, k] - g_ty[e, k]
                         if rx * rx + ry * ry <= tie:
                             k_e = k
                             break
@@ -1302,16 +1306,17 @@ def _cycles(typingctx):
 
 
 @_jit
-def _gauss_reaches(tx, ty, cxx, cxy, cyy, gtx, gty, gxx, gxy, gyy, ns, thr, qcut):
-    """Whether the Gaussian overlap of one prediction pair reaches ``thr`` at some step
+def _gauss_reaches(tx, ty, cxx, cxy, cyy, m, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, thr, qcut):
+    """Whether the Gaussian overlap of one prediction pair (rows ``m``, ``e``, as in
+    :func:`_pair_q`) reaches ``thr`` at some step
     (:func:`evaluate_agents`' ``P_o``). Steps with ``q < qcut`` are skipped without
     ``exp``: there ``P_o < thr`` certainly (see :func:`cascade_agents`)."""
     for k in range(ns):
-        rx = tx[k] - gtx[k]
-        ry = ty[k] - gty[k]
-        sxx = cxx[k] + gxx[k]
-        sxy = cxy[k] + gxy[k]
-        syy = cyy[k] + gyy[k]
+        rx = tx[m, k] - g_tx[e, k]
+        ry = ty[m, k] - g_ty[e, k]
+        sxx = cxx[m, k] + g_xx[e, k]
+        sxy = cxy[m, k] + g_xy[e, k]
+        syy = cyy[m, k] + g_yy[e, k]
         det = sxx * syy - sxy * sxy
         q = syy * (rx * rx) - 2.0 * (sxy * (rx * ry))
         q = (q + sxx * (ry * ry)) / det * -0.5
@@ -1424,9 +1429,9 @@ def cascade_agents(
     gaps = np.empty(nch * nch)
     tx = np.empty((rmax, ns))
     ty = np.empty((rmax, ns))
-    dxs = np.empty(ns)
-    dys = np.empty(ns)
-    slon = np.empty(ns)
+    dxs = np.empty((rmax, ns))
+    dys = np.empty((rmax, ns))
+    slon = np.empty((rmax, ns))
     cxx = np.empty((rmax, ns))
     cxy = np.empty((rmax, ns))
     cyy = np.empty((rmax, ns))
@@ -1524,14 +1529,14 @@ def cascade_agents(
                         extended[m] = True
                     if not predicted[m]:
                         _predict(
-                            ex[m], ey[m], ecum[m], eux[m], euy[m], v, steps, unc, kinds[i],
-                            tx[m], ty[m], dxs, dys, slon, cxx[m], cxy[m], cyy[m],
+                            ex[m], ey[m], ecum[m], eux[m], euy[m], v, steps, unc, kinds[i], m,
+                            tx, ty, dxs, dys, slon, cxx, cxy, cyy,
                         )  # fmt: skip
                         predicted[m] = True
                     for e in range(ne):
                         if _gauss_reaches(
-                            tx[m], ty[m], cxx[m], cxy[m], cyy[m],
-                            g_tx[e], g_ty[e], g_xx[e], g_xy[e], g_yy[e], ns, thr, qcut,
+                            tx, ty, cxx, cxy, cyy, m, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, thr,
+                            qcut,
                         ):  # fmt: skip
                             keep = True
                             break
@@ -1555,14 +1560,13 @@ def cascade_agents(
                 extended[m] = True
             if not predicted[m]:
                 _predict(
-                    ex[m], ey[m], ecum[m], eux[m], euy[m], v, steps, unc, kinds[i],
-                    tx[m], ty[m], dxs, dys, slon, cxx[m], cxy[m], cyy[m],
+                    ex[m], ey[m], ecum[m], eux[m], euy[m], v, steps, unc, kinds[i], m,
+                    tx, ty, dxs, dys, slon, cxx, cxy, cyy,
                 )  # fmt: skip
                 predicted[m] = True
             for e in range(ne):
                 dmin = _pair_q(
-                    tx[m], ty[m], cxx[m], cxy[m], cyy[m],
-                    g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs, dets,
+                    tx, ty, cxx, cxy, cyy, m, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs, dets,
                 )  # fmt: skip
                 _overlap_risks(
                     qs, dets, dmin, ns, fp[F_DT_TAU], terms, surv_l, surv_e, lsk, defer,
