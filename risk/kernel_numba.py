@@ -425,9 +425,10 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
     with from the start; should nothing be nearer after all, the search runs again
     without it.
 
-    One function without calls that are not inlined: numba keeps a reference-count
-    increment and decrement (atomic) per array argument around every such call, which
-    cost more than the search of a typical chunk pair."""
+    No calls that LLVM does not inline, and one return at the end: otherwise numba keeps
+    an atomic reference-count increment and decrement per array argument per call (its
+    pruning pass gives up on such control flow), which cost more than the search of a
+    typical chunk pair. (Counted in the LLVM code: ``inspect_llvm``, ``NRT_incref``.)"""
     # b's whole box, then a lower bound per chunk of a (its gap to that box): rows of
     # chunk pairs are skipped whole, and the pair to start from is found without the
     # full table of box gaps
@@ -445,142 +446,151 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
         gaps[i] = g
         if g < rmin:
             rmin, amin = g, i
+    out = -1.0  # the result once set
     if rmin > cut2:
-        return math.sqrt(rmin)  # a lower bound beyond the cut: the caller drops
-    gmin, bmin = INF, np.int64(0)
-    for j in range(ncb):
-        g = _gap2(abox, amin, bbox, j)
-        if g < gmin:
-            gmin, bmin = g, j
-    if stop2 >= 0 and gmin <= stop2:
-        # Keep/drop mode: any two points bound the distance from above, so the ends of
-        # the nearest chunks, when close enough, settle "keep" without a search.
-        w2 = INF
-        for ia in (amin * K, min(amin * K + K // 2, an - 1), min(amin * K + K, an - 1)):
-            for jb in (bmin * K, min(bmin * K + K // 2, bn - 1), min(bmin * K + K, bn - 1)):
-                dx = ax[ia] - bx[jb]
-                dy = ay[ia] - by[jb]
-                w2 = min(w2, dx * dx + dy * dy)
-        if w2 <= stop2:
-            return math.sqrt(w2)
-    start = above
-    while True:  # (returns inside: a break out of it would cost reference counting)
-        best = start
-        # The chunk pairs in search order: (amin, bmin) when within the cut, then the
-        # others row by row, each only while its box gap is below the best so far.
-        ca, cb, g = amin, bmin, gmin
-        first = True
-        run = gmin <= cut2
-        ri, rj = np.int64(0), np.int64(0)  # the row-by-row scan's next pair
-        while True:
-            if run:
-                # As risk.geometry._fine: 0 when two segments cross; else the least
-                # distance of two segments is the least of their vertex-to-segment
-                # distances, so each vertex-segment distance is computed once per chunk
-                # pair, not once per segment pair (a's segments to b's vertices, then
-                # the other way unless already at most stop2).
-                crossed = False
-                if g == 0.0:  # (chunk boxes apart: no segments can cross)
-                    # A segment of chunk ca of a crosses or touches one of chunk cb of b
-                    # by the orientation test of _fine (collinear overlaps excluded:
-                    # their distance is 0 anyway); only pairs whose boxes touch.
-                    for i in range(ca * K, min(ca * K + K, max(an - 1, 1))):
-                        i1 = min(i + 1, an - 1)
-                        p1x, p1y = ax[i], ay[i]
-                        q1x, q1y = ax[i1], ay[i1]
-                        s1x, s1y = q1x - p1x, q1y - p1y
-                        lo1x, hi1x = min(p1x, q1x), max(p1x, q1x)
-                        lo1y, hi1y = min(p1y, q1y), max(p1y, q1y)
-                        for j in range(cb * K, min(cb * K + K, max(bn - 1, 1))):
-                            j1 = min(j + 1, bn - 1)
-                            p2x, p2y = bx[j], by[j]
-                            q2x, q2y = bx[j1], by[j1]
-                            if min(p2x, q2x) > hi1x or lo1x > max(p2x, q2x):
-                                continue
-                            if min(p2y, q2y) > hi1y or lo1y > max(p2y, q2y):
-                                continue
-                            s2x, s2y = q2x - p2x, q2y - p2y
-                            o1 = _sign(s1x * (p2y - p1y) - s1y * (p2x - p1x))
-                            o2 = _sign(s1x * (q2y - p1y) - s1y * (q2x - p1x))
-                            if o1 * o2 > 0:
-                                continue
-                            o3 = _sign(s2x * (p1y - p2y) - s2y * (p1x - p2x))
-                            o4 = _sign(s2x * (q1y - p2y) - s2y * (q1x - p2x))
-                            collinear = o1 == 0 and o2 == 0 and o3 == 0 and o4 == 0
-                            if o3 * o4 <= 0 and not collinear:
-                                crossed = True
+        out = math.sqrt(rmin)  # a lower bound beyond the cut: the caller drops
+    if out < 0:  # (not "else": then numba keeps the reference counts, see above)
+        gmin, bmin = INF, np.int64(0)
+        for j in range(ncb):
+            g = _gap2(abox, amin, bbox, j)
+            if g < gmin:
+                gmin, bmin = g, j
+        if stop2 >= 0 and gmin <= stop2:
+            # Keep/drop mode: any two points bound the distance from above, so the ends of
+            # the nearest chunks, when close enough, settle "keep" without a search.
+            w2 = INF
+            for ia in (amin * K, min(amin * K + K // 2, an - 1), min(amin * K + K, an - 1)):
+                for jb in (bmin * K, min(bmin * K + K // 2, bn - 1), min(bmin * K + K, bn - 1)):
+                    dx = ax[ia] - bx[jb]
+                    dy = ay[ia] - by[jb]
+                    w2 = min(w2, dx * dx + dy * dy)
+            if w2 <= stop2:
+                out = math.sqrt(w2)
+        start = above
+        while out < 0:
+            best = start
+            # The chunk pairs in search order: (amin, bmin) when within the cut, then the
+            # others row by row, each only while its box gap is below the best so far.
+            ca, cb, g = amin, bmin, gmin
+            first = True
+            run = gmin <= cut2
+            ri, rj = np.int64(0), np.int64(0)  # the row-by-row scan's next pair
+            while True:
+                if run:
+                    # As risk.geometry._fine: 0 when two segments cross; else the least
+                    # distance of two segments is the least of their vertex-to-segment
+                    # distances, so each vertex-segment distance is computed once per chunk
+                    # pair, not once per segment pair (a's segments to b's vertices, then
+                    # the other way unless already at most stop2).
+                    crossed = False
+                    if g == 0.0:  # (chunk boxes apart: no segments can cross)
+                        # A segment of chunk ca of a crosses or touches one of chunk cb of b
+                        # by the orientation test of _fine (collinear overlaps excluded:
+                        # their distance is 0 anyway); only pairs whose boxes touch.
+                        for i in range(ca * K, min(ca * K + K, max(an - 1, 1))):
+                            i1 = min(i + 1, an - 1)
+                            p1x, p1y = ax[i], ay[i]
+                            q1x, q1y = ax[i1], ay[i1]
+                            s1x, s1y = q1x - p1x, q1y - p1y
+                            lo1x, hi1x = min(p1x, q1x), max(p1x, q1x)
+                            lo1y, hi1y = min(p1y, q1y), max(p1y, q1y)
+                            for j in range(cb * K, min(cb * K + K, max(bn - 1, 1))):
+                                j1 = min(j + 1, bn - 1)
+                                p2x, p2y = bx[j], by[j]
+                                q2x, q2y = bx[j1], by[j1]
+                                if min(p2x, q2x) > hi1x or lo1x > max(p2x, q2x):
+                                    continue
+                                if min(p2y, q2y) > hi1y or lo1y > max(p2y, q2y):
+                                    continue
+                                s2x, s2y = q2x - p2x, q2y - p2y
+                                o1 = _sign(s1x * (p2y - p1y) - s1y * (p2x - p1x))
+                                o2 = _sign(s1x * (q2y - p1y) - s1y * (q2x - p1x))
+                                if o1 * o2 > 0:
+                                    continue
+                                o3 = _sign(s2x * (p1y - p2y) - s2y * (p1x - p2x))
+                                o4 = _sign(s2x * (q1y - p2y) - s2y * (q1x - p2x))
+                                collinear = o1 == 0 and o2 == 0 and o3 == 0 and o4 == 0
+                                if o3 * o4 <= 0 and not collinear:
+                                    crossed = True
+                                    break
+                            if crossed:
                                 break
-                        if crossed:
-                            break
-                d = 0.0
-                if not crossed:
-                    d = best
-                    for side in range(2):
-                        if side == 1 and d <= stop2:
-                            break  # the caller stops here
-                        ux, uy, un, cu, vx, vy, vn, cv = ax, ay, an, ca, bx, by, bn, cb
-                        vlox, vloy, vhix, vhiy = bbox[cb, 0], bbox[cb, 1], bbox[cb, 2], bbox[cb, 3]
-                        if side == 1:
-                            ux, uy, un, cu, vx, vy, vn, cv = bx, by, bn, cb, ax, ay, an, ca
+                    d = 0.0
+                    if not crossed:
+                        d = best
+                        for side in range(2):
+                            if side == 1 and d <= stop2:
+                                break  # the caller stops here
+                            ux, uy, un, cu, vx, vy, vn, cv = ax, ay, an, ca, bx, by, bn, cb
                             vlox, vloy, vhix, vhiy = (
-                                abox[ca, 0],
-                                abox[ca, 1],
-                                abox[ca, 2],
-                                abox[ca, 3],
+                                bbox[cb, 0],
+                                bbox[cb, 1],
+                                bbox[cb, 2],
+                                bbox[cb, 3],
                             )
-                        # the vertices of chunk cv of v to the segments of chunk cu of u
-                        su = max(un - 1, 1)
-                        j0 = cv * K
-                        j1 = min(cv * K + K, max(vn - 1, 1))  # (its last segment's end)
-                        for i in range(cu * K, min(cu * K + K, su)):
-                            i1 = min(i + 1, un - 1)
-                            ox, oy = ux[i], uy[i]
-                            qx, qy = ux[i1], uy[i1]
-                            lox, hix = min(ox, qx), max(ox, qx)
-                            loy, hiy = min(oy, qy), max(oy, qy)
-                            # The chunk's vertices lie in its box (whose bounds are
-                            # vertices), so each one's gap below is at least this one
-                            # (rounding is monotone): a segment this far from the box is
-                            # skipped whole, as each of its vertices would be.
-                            hx = max(max(lox - vhix, vlox - hix), 0.0)
-                            hy = max(max(loy - vhiy, vloy - hiy), 0.0)
-                            if hx * hx + hy * hy > d:
-                                continue
-                            sx, sy = qx - ox, qy - oy
-                            len2 = sx * sx + sy * sy
-                            inv2 = 1.0 / len2 if len2 > 1e-300 else 0.0
-                            for j in range(j0, j1 + 1):
-                                jj = min(j, vn - 1)
-                                px, py = vx[jj], vy[jj]
-                                hx = max(max(lox - px, px - hix), 0.0)
-                                hy = max(max(loy - py, py - hiy), 0.0)
+                            if side == 1:
+                                ux, uy, un, cu, vx, vy, vn, cv = bx, by, bn, cb, ax, ay, an, ca
+                                vlox, vloy, vhix, vhiy = (
+                                    abox[ca, 0],
+                                    abox[ca, 1],
+                                    abox[ca, 2],
+                                    abox[ca, 3],
+                                )
+                            # the vertices of chunk cv of v to the segments of chunk cu of u
+                            su = max(un - 1, 1)
+                            j0 = cv * K
+                            j1 = min(cv * K + K, max(vn - 1, 1))  # (its last segment's end)
+                            for i in range(cu * K, min(cu * K + K, su)):
+                                i1 = min(i + 1, un - 1)
+                                ox, oy = ux[i], uy[i]
+                                qx, qy = ux[i1], uy[i1]
+                                lox, hix = min(ox, qx), max(ox, qx)
+                                loy, hiy = min(oy, qy), max(oy, qy)
+                                # The chunk's vertices lie in its box (whose bounds are
+                                # vertices), so each one's gap below is at least this one
+                                # (rounding is monotone): a segment this far from the box is
+                                # skipped whole, as each of its vertices would be.
+                                hx = max(max(lox - vhix, vlox - hix), 0.0)
+                                hy = max(max(loy - vhiy, vloy - hiy), 0.0)
                                 if hx * hx + hy * hy > d:
-                                    continue  # no nearer than the box: skipped
-                                d = min(d, _pseg2(px, py, ox, oy, sx, sy, inv2))
-                if first or d < best:
-                    best = d
-                    if best == 0.0 or best <= stop2:
-                        return math.sqrt(best)
-            first = False
-            run = False
-            while ri < nca:
-                if rj == 0 and (gaps[ri] >= best or gaps[ri] > cut2):
-                    ri += 1
-                    continue  # no pair of this row is nearer than the best
-                if rj == ncb:
-                    ri, rj = ri + 1, np.int64(0)
-                    continue
-                ca, cb = ri, rj
-                rj += 1
-                g = _gap2(abox, ca, bbox, cb)
-                if not (g >= best or g > cut2 or (ca == amin and cb == bmin)):
-                    run = True  # (a pair no nearer than the best cannot lower it)
+                                    continue
+                                sx, sy = qx - ox, qy - oy
+                                len2 = sx * sx + sy * sy
+                                inv2 = 1.0 / len2 if len2 > 1e-300 else 0.0
+                                for j in range(j0, j1 + 1):
+                                    jj = min(j, vn - 1)
+                                    px, py = vx[jj], vy[jj]
+                                    hx = max(max(lox - px, px - hix), 0.0)
+                                    hy = max(max(loy - py, py - hiy), 0.0)
+                                    if hx * hx + hy * hy > d:
+                                        continue  # no nearer than the box: skipped
+                                    d = min(d, _pseg2(px, py, ox, oy, sx, sy, inv2))
+                    if first or d < best:
+                        best = d
+                        if best == 0.0 or best <= stop2:
+                            out = math.sqrt(best)
+                            break
+                first = False
+                run = False
+                while ri < nca:
+                    if rj == 0 and (gaps[ri] >= best or gaps[ri] > cut2):
+                        ri += 1
+                        continue  # no pair of this row is nearer than the best
+                    if rj == ncb:
+                        ri, rj = ri + 1, np.int64(0)
+                        continue
+                    ca, cb = ri, rj
+                    rj += 1
+                    g = _gap2(abox, ca, bbox, cb)
+                    if not (g >= best or g > cut2 or (ca == amin and cb == bmin)):
+                        run = True  # (a pair no nearer than the best cannot lower it)
+                        break
+                if not run:
                     break
-            if not run:
-                break
-        if best < start or start == INF:
-            return math.sqrt(best)  # found below the bound: the minimum
-        start = INF  # nothing nearer than the bound after all: again without it
+            if out < 0 and (best < start or start == INF):
+                out = math.sqrt(best)  # found below the bound: the minimum
+            start = INF  # nothing nearer than the bound after all: again without it
+    return out
 
 
 @_jit
