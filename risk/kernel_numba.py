@@ -606,10 +606,12 @@ def _segments(ex, ey, n, inv2, slen):
 
 
 @_jit
-def _project(px, py, ex, ey, ecum, n, inv2, slen, box, nb):
+def _project(px, py, ex, ey, ecum, n, inv2, slen, box, nb, e):
     """Distance from a point to a polyline and the arc length of the nearest point, the
-    first along the path on ties (risk.geometry.project_points). ``inv2``, ``slen``: from
-    :func:`_segments`; ``box``, ``nb``: the chunk boxes. Chunks are walked in order and
+    first along the path on ties (risk.geometry.project_points), for the polyline in row
+    ``e`` of the array arguments (indexed in place: a row view costs an atomic reference
+    count where it outlives a call). ``inv2``, ``slen``: from :func:`_segments`; ``box``,
+    ``nb``: the chunk boxes. Chunks are walked in order and
     one whose box is farther than the best so far is skipped (it holds no nearer point,
     and a later tie never wins).
 
@@ -619,39 +621,39 @@ def _project(px, py, ex, ey, ecum, n, inv2, slen, box, nb):
     the same chunks decide the result, in the same order."""
     cb, gb = np.int64(0), INF
     for c in range(nb):
-        gx = max(max(box[c, 0] - px, px - box[c, 2]), 0.0)
-        gy = max(max(box[c, 1] - py, py - box[c, 3]), 0.0)
+        gx = max(max(box[e, c, 0] - px, px - box[e, c, 2]), 0.0)
+        gy = max(max(box[e, c, 1] - py, py - box[e, c, 3]), 0.0)
         if gx * gx + gy * gy < gb:
             cb, gb = c, gx * gx + gy * gy
     bound = INF
     for j in range(cb * K, min(cb * K + K, n - 1)):
-        abx = ex[j + 1] - ex[j]
-        aby = ey[j + 1] - ey[j]
-        rx = px - ex[j]
-        ry = py - ey[j]
-        t = min(max((rx * abx + ry * aby) * inv2[j], 0.0), 1.0)
+        abx = ex[e, j + 1] - ex[e, j]
+        aby = ey[e, j + 1] - ey[e, j]
+        rx = px - ex[e, j]
+        ry = py - ey[e, j]
+        t = min(max((rx * abx + ry * aby) * inv2[e, j], 0.0), 1.0)
         rx -= t * abx
         ry -= t * aby
         bound = min(bound, rx * rx + ry * ry)
     bound = (math.sqrt(bound) + 1e-6) ** 2
     best, arc = INF, 0.0
     for c in range(nb):
-        gx = max(max(box[c, 0] - px, px - box[c, 2]), 0.0)
-        gy = max(max(box[c, 1] - py, py - box[c, 3]), 0.0)
+        gx = max(max(box[e, c, 0] - px, px - box[e, c, 2]), 0.0)
+        gy = max(max(box[e, c, 1] - py, py - box[e, c, 3]), 0.0)
         if gx * gx + gy * gy > best or gx * gx + gy * gy > bound:
             continue
         for j in range(c * K, min(c * K + K, n - 1)):
-            abx = ex[j + 1] - ex[j]
-            aby = ey[j + 1] - ey[j]
-            rx = px - ex[j]
-            ry = py - ey[j]
-            t = min(max((rx * abx + ry * aby) * inv2[j], 0.0), 1.0)
+            abx = ex[e, j + 1] - ex[e, j]
+            aby = ey[e, j + 1] - ey[e, j]
+            rx = px - ex[e, j]
+            ry = py - ey[e, j]
+            t = min(max((rx * abx + ry * aby) * inv2[e, j], 0.0), 1.0)
             rx -= t * abx
             ry -= t * aby
             d2 = rx * rx + ry * ry
             if d2 < best:
                 best = d2
-                arc = ecum[j] + t * slen[j]
+                arc = ecum[e, j] + t * slen[e, j]
     return math.sqrt(best), arc
 
 
@@ -993,9 +995,8 @@ def _ego_candidates(
         )  # fmt: skip
         _segments(gx[e], gy[e], gn[e], g_inv2[e], g_len[e])
         g_l1[e] = _project(
-            xy[ego, 0], xy[ego, 1], gx[e], gy[e], gcum[e], gn[e], g_inv2[e], g_len[e],
-            gbox[e], gnb[e],
-        )[1]  # fmt: skip
+            xy[ego, 0], xy[ego, 1], gx, gy, gcum, gn[e], g_inv2, g_len, gbox, gnb[e], e
+        )[1]
     return (
         gx, gy, gcum, gux, guy, gn, gbox, gnb, kx, ky, kn, kbox, knb,
         g_tx, g_ty, g_dx, g_dy, g_sl, g_xx, g_xy, g_yy, g_l1, g_inv2, g_len,
@@ -1084,9 +1085,8 @@ def evaluate_agents(
         if want[HW] or want[H2D]:
             for e in range(ne):
                 lateral[e], arc_on[e] = _project(
-                    xy[i, 0], xy[i, 1], gx[e], gy[e], gcum[e], gn[e], g_inv2[e], g_len[e],
-                    gbox[e], gnb[e],
-                )  # fmt: skip
+                    xy[i, 0], xy[i, 1], gx, gy, gcum, gn[e], g_inv2, g_len, gbox, gnb[e], e
+                )
         v = speed[i]
         path_done = False
         traj_done = False
