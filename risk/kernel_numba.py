@@ -1051,6 +1051,7 @@ def evaluate_agents(
     cbox = np.empty((nch, 4))
     gaps = np.empty(nch * nch)
     tx = np.empty((1, ns))  # (one row: the functions shared with cascade_agents index rows)
+    row = np.int64(0)  # (that row; not a literal 0: see _jit)
     ty = np.empty((1, ns))
     dxs = np.empty((1, ns))
     dys = np.empty((1, ns))
@@ -1124,7 +1125,7 @@ def evaluate_agents(
                     cnb = _boxes(cx, cy, cn, cbox)
             if want_pred:
                 _predict(
-                    ex, ey, ecum, eux, euy, v, steps, unc, kinds[i], 0,
+                    ex, ey, ecum, eux, euy, v, steps, unc, kinds[i], row,
                     tx, ty, dxs, dys, slon, cxx, cxy, cyy,
                 )  # fmt: skip
             for e in range(ne):
@@ -1193,7 +1194,7 @@ def evaluate_agents(
                             circ = min(circ, math.sqrt(max(c2min, 0.0)) - reach)
                 if w_stoch:
                     dmin = _pair_q(
-                        tx, ty, cxx, cxy, cyy, 0, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs, dets
+                        tx, ty, cxx, cxy, cyy, row, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs, dets
                     )
                     gmax = _overlap_risks(
                         qs, dets, dmin, ns, dt_tau, terms, surv_l, surv_e, lsk, defer,
