@@ -34,7 +34,7 @@ from base.sinks import SceneInfo
 from recordings import columns as C
 from recordings import layout as L
 from recordings.errors import RecordingError
-from recordings.recorder import FrameRows, WriteOptions
+from recordings.recorder import FrameRows, PackedFrames, WriteOptions
 from recordings.summary import recording_name, summary_markdown
 from risk.cascade import SURVIVAL_MODEL
 from risk.registry import MODELS
@@ -59,13 +59,16 @@ def write_temp(
     output: pathlib.Path,
     tmp: pathlib.Path,
     info: SceneInfo,
-    frames: Sequence[FrameRows],
+    frames: Sequence[FrameRows] | PackedFrames,
     options: WriteOptions,
 ) -> None:
     """Write the recording of ``frames`` (destined for ``output``) into the temporary file
     ``tmp``; the caller renames it into place, or removes it.
 
-    A save that stops making progress (a full disk) fails instead of hanging."""
+    A save that stops making progress (a full disk) fails instead of hanging.
+    ``frames`` may come packed (the output process gets them so)."""
+    if isinstance(frames, PackedFrames):
+        frames = frames.unpack()
     run_with_stall_timeout(
         lambda: _write(output, tmp, info, frames, options), watch=tmp, target=output
     )

@@ -28,6 +28,7 @@ import os
 import pathlib
 import subprocess
 import sys
+import time
 import types
 from typing import Any
 
@@ -61,6 +62,7 @@ from risk.kernel_shared import (
     PATH,
     SURV,
     TRAJ,
+    K,
     cache_dir,
 )
 
@@ -264,6 +266,8 @@ def warm_up(compiled: types.ModuleType | None = None, *, build_ahead_of_time: bo
 def _warm_up_calls(c: types.ModuleType) -> None:
     beside = _compile_cascade_beside(c)
     try:
+        if beside is not None:
+            _warm_up_inner(c, HERE)  # (the process beside compiles BESIDE meanwhile)
         _warm_up_evaluate(c)
     except BaseException:  # (Ctrl-C too): end the helper rather than wait for it
         if beside is not None:
@@ -272,6 +276,86 @@ def _warm_up_calls(c: types.ModuleType) -> None:
         raise
     if beside is not None:
         beside.wait()  # its kernels are in the cache now (or it failed: compiled below)
+    _warm_up_cascade(c)
+
+
+#: The inner kernel functions compiled first on a cold cache, in this process (HERE) and
+#: in the one beside (BESIDE), so that the entry points, compiled next, find them in the
+#: cache and each is compiled once (numba compiles one function at a time per process;
+#: seconds each). Split for similar times, measured with numba's compile events.
+HERE = "here"
+BESIDE = "beside"
+_INNER = {
+    HERE: ("_ego_candidates", "_cut_boxes", "_overlap_risks", "_row_starts"),
+    BESIDE: (
+        "_polyline_distance", "_first_crossing", "_pair_q", "_gauss_reaches",
+        "_escape_track", "_time_gap",
+    ),
+}  # fmt: skip
+
+
+def _warm_up_inner(c: types.ModuleType, part: str) -> None:
+    """Compile the inner functions of ``_INNER[part]`` by calling them with the argument
+    types the entry points pass them (contiguous float64 scratch arrays and their rows,
+    int64 counts, float64 scalars, read-only frame arrays). A type that differed would
+    compile a second, unused version; ``tests/test_kernel.py`` checks that none is."""
+    fa, steps, unc, fp, _ = _warm_up_arguments()
+    xy, heading, speed, _, _, kinds, _, paths, path_points, path_agent = fa
+    p1 = paths.shape[1] + 1
+    ns = steps.shape[0]
+    nch = (p1 - 1 + K - 1) // K + 1
+    dt_tau = float(fp[F_DT_TAU])
+
+    def line() -> np.ndarray:
+        return np.zeros(p1)
+
+    def track() -> np.ndarray:
+        return np.zeros(ns)
+
+    def boxes() -> np.ndarray:
+        return np.zeros((nch, 4))
+
+    if part == HERE:
+        c._ego_candidates(
+            xy, heading, speed, kinds, paths, path_points, 0, 0, 1, steps, unc,
+            np.zeros(max(p1 - 2, 1)), nch,
+        )  # fmt: skip
+        c._cut_boxes(line(), line(), 2, line(), 1.0, boxes(), 2, boxes())
+        c._overlap_risks(
+            track(), track(), 1.0, ns, dt_tau, track(), track(), track(), track(),
+            np.zeros(ns, np.int64), True, True,
+        )  # fmt: skip
+        c._row_starts(path_agent, xy.shape[0])
+        return
+    pair = [track() for _ in range(10)]
+    c._polyline_distance(
+        line(), line(), 2, boxes(), 1, line(), line(), 2, boxes(), 1, np.zeros(nch * nch),
+        -1.0, np.inf, np.inf,
+    )  # fmt: skip
+    c._first_crossing(line(), line(), line(), 2, boxes(), 1, line(), line(), line(), 2, boxes(), 1)
+    c._pair_q(*pair, ns, track(), track())
+    c._gauss_reaches(*pair, ns, 0.5, 0.0)
+    c._escape_track(ns, dt_tau, track(), track())
+    c._time_gap(1.0, 0.0, 1.0)
+
+
+def _wait_until_cached(c: types.ModuleType, part: str, timeout_s: float = 300.0) -> None:
+    """Wait until the other process has cached the inner functions of ``part`` (or
+    ``timeout_s`` has passed: then whatever is missing compiles here)."""
+    deadline = time.monotonic() + timeout_s
+    names = list(_INNER[part])
+    while names and time.monotonic() < deadline:
+        names = [n for n in names if _cache_is_cold(getattr(c, n))]
+        if names:
+            time.sleep(0.1)
+
+
+def _compile_beside(c: types.ModuleType) -> None:
+    """What the process beside compiles: its inner functions, the bound and the tier
+    sort, then (once this process has cached its own inner functions) the cascade."""
+    _warm_up_inner(c, BESIDE)
+    _warm_up_sorting(c)
+    _wait_until_cached(c, HERE)
     _warm_up_cascade(c)
 
 
@@ -286,16 +370,19 @@ def _cache_is_cold(dispatcher: Any) -> bool:
 
 def _compile_cascade_beside(c: types.ModuleType) -> subprocess.Popen[bytes] | None:
     """On a cold just-in-time cache and two or more cores, start a process that compiles
-    the cascade's kernels (:func:`_warm_up_cascade`) while this one compiles
-    ``evaluate_agents``: the two are the largest compiles (about 25 s and 15 s of CPU)
-    and numba compiles one function at a time per process. None when not started."""
+    half of the inner functions, the bound, the tier sort and then the cascade
+    (:func:`_compile_beside`), while this one compiles the other half and then
+    ``evaluate_agents``. numba compiles one function at a time per process, and each
+    entry point would otherwise compile every inner function it calls itself (the two
+    processes compiled most of them twice: 57-70 s of CPU in all, 47-53 s now, measured
+    on a busy machine). None when not started."""
     if getattr(c, "__name__", "") != "risk.kernel_numba" or (os.cpu_count() or 1) < 2:
         return None
     if c.CACHE_PROBLEM is not None:
         return None  # nothing it compiles could be loaded from the cache
     if not HAVE_CYCLE_COUNTER or not _cache_is_cold(c.cascade_agents):
         return None
-    code = "from risk import kernel, kernel_numba; kernel._warm_up_cascade(kernel_numba)"
+    code = "from risk import kernel, kernel_numba; kernel._compile_beside(kernel_numba)"
     try:
         return subprocess.Popen(
             [sys.executable, "-c", code],
@@ -338,22 +425,32 @@ def _warm_up_evaluate(c: types.ModuleType) -> None:
     )  # fmt: skip
 
 
-def _warm_up_cascade(c: types.ModuleType) -> None:
-    """The reachability bound, the tier sort and the one-pass cascade."""
-    fa, steps, unc, fp, ip = _warm_up_arguments()
-    speeds = _constant(np.full(4, 10.0))
-    c.reachable(fa[7], fa[9], fa[2], fa[5], 0, _constant(np.array([1])), 1.0, 5, unc, speeds, 1e-25)
+_MAX_SPEEDS = _constant(np.full(4, 10.0))
+
+
+def _warm_up_sorting(c: types.ModuleType) -> None:
+    """The reachability bound and the tier sort."""
+    fa, _, unc, _, _ = _warm_up_arguments()
+    c.reachable(
+        fa[7], fa[9], fa[2], fa[5], 0, _constant(np.array([1])), 1.0, 5, unc, _MAX_SPEEDS, 1e-25
+    )
     c.tiers(  # (risk.cascade.assign_tiers; a writable copy of the risks)
         np.zeros(2), _constant(np.array([1e-25])),
         _constant(np.array([-1], dtype=np.int64)),
     )  # fmt: skip
+
+
+def _warm_up_cascade(c: types.ModuleType) -> None:
+    """The reachability bound, the tier sort and the one-pass cascade."""
+    _warm_up_sorting(c)
     if not HAVE_CYCLE_COUNTER:
         return
+    fa, steps, unc, fp, ip = _warm_up_arguments()
     c.cascade_agents(
         *fa, 0, ALL_AGENTS, steps, unc, fp, ip,
         _constant(np.array([PATH, TRAJ, GAUSS], dtype=np.int64)),
         _constant(np.array([0.01, 0.01, 1e-30])), _constant(np.full(3, -1.0)),
-        _constant(np.full(3, np.inf)), True, speeds, 1e-25,
+        _constant(np.full(3, np.inf)), True, _MAX_SPEEDS, 1e-25,
         np.zeros(2),  # (writable: a row of evaluate_agents' result in the cascade)
         _constant(np.array([1e-25])), _constant(np.array([-1], dtype=np.int64)),
     )  # fmt: skip

@@ -33,6 +33,24 @@ def test_reader_tracks_match_the_decoded_frames(scene_file):
     np.testing.assert_allclose(a.heading[a.valid], b.heading[b.valid])
 
 
+def test_tracks_after_a_replay_pass_are_the_tracks_read_from_the_file(scene_file):
+    """After a complete pass of entries() the reader builds the tracks from the states it
+    decoded instead of reading the file again: the same tracks, field by field. After a
+    partial pass it still reads every frame."""
+    fresh = open_scene(scene_file).tracks()
+    whole = open_scene(scene_file)
+    assert sum(1 for _ in whole.entries()) == whole.n_frames
+    assert whole._agent_states is not None
+    partial = open_scene(scene_file)
+    next(iter(partial.entries()))
+    assert partial._agent_states is None
+    for reader in (whole, partial):
+        got = reader.tracks()
+        for name in ("ids", "kinds", "valid", "xy", "heading", "length", "width"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(fresh, name), name)
+        assert (got.t0_s, got.dt_s) == (fresh.t0_s, fresh.dt_s)
+
+
 def test_run_table_carries_the_hindsight_truth(scene_file, tmp_path):
     table = tmp_path / "t.parquet"
     result = CliRunner().invoke(

@@ -9,6 +9,7 @@ benchmark's lane frames the kernel also agrees with numpy bit for bit.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import subprocess
@@ -30,6 +31,7 @@ from risk import (
     UncertaintyTable,
     baseline_mask,
     evaluate,
+    kernel,
 )
 from risk.reference import reference_evaluate
 from risk.registry import evaluate_numpy
@@ -285,6 +287,22 @@ def test_warm_up_covers_the_cascade(tmp_path):
     )
     assert second.returncode == 0, second.stderr
     assert "compiling" not in second.stderr
+    # Each kernel function was compiled once per signature its callers use: the inner
+    # functions that warm_up compiles first (risk.kernel._INNER) had the callers' types.
+    # _pw_leaf and _interp are also called with a literal 0 (kernel_numba says why).
+    code = (
+        "import json, numba; from risk import kernel_numba as k; print(json.dumps({n: "
+        "len(d._cache._cache_file._load_index()) for n, d in vars(k).items() "
+        "if isinstance(d, numba.core.registry.CPUDispatcher)}))"
+    )
+    counts = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600
+    )
+    assert counts.returncode == 0, counts.stderr
+    compiled = json.loads(counts.stdout)
+    assert {n for names in kernel._INNER.values() for n in names} <= set(compiled)
+    two = {"_pw_leaf", "_interp"}
+    assert {n: c for n, c in compiled.items() if c != (2 if n in two else 1)} == {}
 
 
 def test_first_call_skips_numbas_blas_probe_but_blas_still_compiles():

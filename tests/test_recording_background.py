@@ -3,12 +3,14 @@ errors that say what happened, nothing left behind, and the CLI's early start.""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import pathlib
 import subprocess
 import sys
 import time
 
+import numpy as np
 import polars as pl
 import pytest
 from click.testing import CliRunner
@@ -84,6 +86,31 @@ def test_background_recording_is_the_recording_written_in_process(tmp_path):
         assert repr(a[path].static) == repr(b[path].static), path
         assert sorted(map(repr, a[path].rows)) == sorted(map(repr, b[path].rows)), path
     assert leftovers(tmp_path) == ["background.rrd", "inline.rrd"]
+
+
+def test_packed_frames_unpack_to_the_same_frames():
+    """The form the frames travel in to the output process gives every field back with
+    its values, dtype and shape (lists and dicts included)."""
+    rec = fill(SceneRecorder(pathlib.Path("unused.rrd"), paths=True))
+    frames = rec._frames
+    rec.abort()
+    assert any(f.survivor_paths.size for f in frames) and any(f.ego_paths for f in frames)
+    back = recorder.PackedFrames.pack(frames).unpack()
+    assert len(back) == len(frames)
+
+    def same(a, b) -> bool:
+        if isinstance(a, dict):
+            return a.keys() == b.keys() and all(same(a[k], b[k]) for k in a)
+        if isinstance(a, list):
+            return len(a) == len(b) and all(same(x, y) for x, y in zip(a, b, strict=True))
+        if isinstance(a, np.ndarray):
+            return a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+        return type(a) is type(b) and a == b
+
+    for f, g in zip(frames, back, strict=True):
+        for field in dataclasses.fields(f):
+            assert same(getattr(f, field.name), getattr(g, field.name)), field.name
+    assert recorder.PackedFrames.pack([]).unpack() == []
 
 
 @pytest.mark.parametrize("suffix", [".parquet", ".csv"])
