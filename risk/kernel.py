@@ -327,7 +327,8 @@ def _warm_up_inner(c: types.ModuleType, part: str) -> None:
         )  # fmt: skip
         c._row_starts(path_agent, xy.shape[0])
         return
-    pair = [track() for _ in range(10)]
+    rows = [np.zeros((1, ns)) for _ in range(5)]  # (x, y, cov: the agent's, the ego's rows)
+    pair = (*rows, 0, *rows, 0)
     c._polyline_distance(
         line(), line(), 2, boxes(), 1, line(), line(), 2, boxes(), 1, np.zeros(nch * nch),
         -1.0, np.inf, np.inf,
