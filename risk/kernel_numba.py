@@ -617,8 +617,9 @@ def _project(px, py, ex, ey, ecum, n, inv2, slen, box, nb, e):
 
     A bound first: the least distance ``b`` to the segments of the chunk whose box is
     nearest. A chunk whose box is farther than ``b + 1 um`` holds no point as near as the
-    minimum (the margin covers the rounding of both), so it is skipped from the start:
-    the same chunks decide the result, in the same order."""
+    minimum (the margin covers the rounding of both distances for coordinates up to about
+    1e8 m), so it is skipped from the start: the same chunks decide the result, in the
+    same order."""
     cb, gb = np.int64(0), INF
     for c in range(nb):
         gx = max(max(box[e, c, 0] - px, px - box[e, c, 2]), 0.0)
