@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from risk import hindsight
 from risk.errors import RiskError
 from risk.hindsight import (
     LABEL_NEGATIVE,
@@ -349,3 +350,37 @@ def test_pet_matches_slow_loops_on_random_tracks(seed):
                 want = _slow_pet(tracks, e, a, f, 5)
                 got = t.pet_s[f, e, a]
                 assert (np.isnan(got) and want == math.inf) or got == pytest.approx(want)
+
+
+def test_rows_of_the_same_tracks_share_one_truth(monkeypatch):
+    """A replay's recording and table label their rows from the same tracks: the truth is
+    computed once per egos and settings, and the rows get the same labels as alone."""
+    tracks = _crossing()
+    t_s = np.arange(tracks.n_frames) * DT
+    ego, agent = np.full(t_s.size, 1), np.full(t_s.size, 2)
+    alone = hindsight.truth_for_rows(_crossing(), t_s, ego, agent, settings=HORIZON)
+    calls = []
+    real = hindsight.hindsight_truth
+    monkeypatch.setattr(
+        hindsight, "hindsight_truth", lambda *a, **k: calls.append(k) or real(*a, **k)
+    )
+    first = hindsight.truth_for_rows(tracks, t_s, ego, agent, settings=HORIZON)
+    again = hindsight.truth_for_rows(tracks, t_s[::2], ego[::2], agent[::2], settings=HORIZON)
+    wider = HindsightSettings(horizon_s=5.0, gap_m=20.0, pet_s=1.0)
+    other = hindsight.truth_for_rows(tracks, t_s, ego, agent, settings=wider)
+    assert len(calls) == 2
+    for a, b in zip(alone, first, strict=True):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(first, again, strict=True):
+        np.testing.assert_array_equal(a[::2], b)
+    assert not np.array_equal(first[2], other[2])  # (a wider gap: more positives)
+
+
+def test_tracks_refuse_repeated_agent_ids():
+    shape = (2, 3)
+    with pytest.raises(RiskError, match="ids must be unique"):
+        Tracks(
+            ids=np.array([3, 1, 3]), kinds=np.zeros(3, np.int8), xy=np.zeros((*shape, 2)),
+            heading=np.zeros(shape), length=np.ones(shape), width=np.ones(shape),
+            valid=np.ones(shape, bool), t0_s=0.0, dt_s=0.1,
+        )  # fmt: skip
