@@ -628,14 +628,9 @@ def _project(px, py, ex, ey, ecum, n, inv2, slen, box, nb, e):
             cb, gb = c, gx * gx + gy * gy
     bound = INF
     for j in range(cb * K, min(cb * K + K, n - 1)):
-        abx = ex[e, j + 1] - ex[e, j]
-        aby = ey[e, j + 1] - ey[e, j]
-        rx = px - ex[e, j]
-        ry = py - ey[e, j]
-        t = min(max((rx * abx + ry * aby) * inv2[e, j], 0.0), 1.0)
-        rx -= t * abx
-        ry -= t * aby
-        bound = min(bound, rx * rx + ry * ry)
+        ox, oy = ex[e, j], ey[e, j]
+        sx, sy = ex[e, j + 1] - ox, ey[e, j + 1] - oy
+        bound = min(bound, _pseg2(px, py, ox, oy, sx, sy, inv2[e, j]))
     bound = (math.sqrt(bound) + 1e-6) ** 2
     best, arc = INF, 0.0
     for c in range(nb):
