@@ -131,15 +131,15 @@ class _CompileNotice(event.Listener):
             _CompileNotice.said = True
             if CACHE_PROBLEM is None:
                 log.warning(
-                    "riskreplay: compiling the risk kernels once (about 30-45 s); "
+                    "riskreplay: compiling the risk kernels once (about 25-30 s on two cores); "
                     "later runs load them from %s",
                     CACHE_DIR,
                 )
             else:
                 log.warning(
-                    "riskreplay: compiling the risk kernels (about 30-45 s) in every run: "
-                    "the cache folder %s cannot be written (%s); set NUMBA_CACHE_DIR to a "
-                    "writable folder",
+                    "riskreplay: compiling the risk kernels (about 25-30 s on two cores) in "
+                    "every run: the cache folder %s cannot be written (%s); set "
+                    "NUMBA_CACHE_DIR to a writable folder",
                     CACHE_DIR,
                     CACHE_PROBLEM,
                 )
