@@ -422,6 +422,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--skip-cold", action="store_true", help="skip the cold compile row")
     ap.add_argument(
+        "--max-wait", type=float, default=60.0,
+        help="seconds to wait at most for the fast state before each group (default 60)",
+    )  # fmt: skip
+    ap.add_argument(
         "--no-settle", action="store_true",
         help="do not wait for the machine's fast state before each group (MachineSpeed)",
     )  # fmt: skip
@@ -443,7 +447,7 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(7)
     rows: list[tuple[str, ...]] = []
     load = [os.getloadavg()[0]]
-    machine = MachineSpeed(settle=not args.no_settle)
+    machine = MachineSpeed(settle=not args.no_settle, max_wait_s=args.max_wait)
 
     @contextlib.contextmanager
     def group() -> Iterator[None]:
