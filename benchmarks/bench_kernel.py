@@ -373,6 +373,15 @@ print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
 """
 
 
+def startup(rows: list[tuple[str, ...]], subcommand: str) -> tuple[float, float]:
+    """``replay SUBCOMMAND --help`` in a new process (the CLI and that subcommand's
+    imports): its row, and its median wall and CPU time."""
+    wall, cpu = command([REPLAY, subcommand, "--help"], 3)
+    label = f"start-up of `replay {subcommand}` (`replay {subcommand} --help`)"
+    rows.append((label, f"{cpu:.2f} s", f"{wall:.2f} s", ""))
+    return wall, cpu
+
+
 def demo_beyond_startup(
     tmp: Path, whole: tuple[float, float], repeat: int
 ) -> list[tuple[str, str, str, str]]:
@@ -507,11 +516,7 @@ def main(argv: list[str] | None = None) -> int:
         # --help`` imports every subcommand (scipy.stats, matplotlib, ...), which neither
         # ``run`` nor ``demo`` does.
         with group():
-            run_start = command([REPLAY, "run", "--help"], 3)
-            rows.append(
-                ("start-up of `replay run` (`replay run --help`)", f"{run_start[1]:.2f} s",
-                 f"{run_start[0]:.2f} s", "")
-            )  # fmt: skip
+            startup(rows, "run")
         if WAYMO.is_file():
             scene = tmp_p / "waymo.mcap"
             subprocess.run(
@@ -534,11 +539,7 @@ def main(argv: list[str] | None = None) -> int:
                         )
                     )
         with group():
-            demo_start = command([REPLAY, "demo", "--help"], 3)
-            rows.append(
-                ("start-up of `replay demo` (`replay demo --help`)", f"{demo_start[1]:.2f} s",
-                 f"{demo_start[0]:.2f} s", "")
-            )  # fmt: skip
+            demo_start = startup(rows, "demo")
         with group():
             demos = command_modes(
                 [REPLAY, "demo", "-o", str(tmp_p / "demo"), "--no-progress"], args.repeat,
