@@ -2,8 +2,14 @@
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_kernel.py              # every row (about 5 min)
+    .venv/bin/python benchmarks/bench_kernel.py              # every row (5-10 min)
     .venv/bin/python benchmarks/bench_kernel.py --skip-cold  # without the cold compile
+    .venv/bin/python benchmarks/bench_kernel.py --no-settle  # no waiting for the fast state
+
+The last column is the machine's speed just before and after each group of rows
+(:class:`MachineSpeed`: this shared machine has slow phases, about 1.7 times slower);
+by default the benchmark first probes it for 30 s and then waits (up to ``--max-wait``
+seconds) before each group until it runs at its fast speed.
 
 Rows:
 
