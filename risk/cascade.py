@@ -312,6 +312,16 @@ class CascadeResult:
         """(S,) number of agents kept after each stage."""
         return self.kept.sum(axis=1)
 
+    @classmethod
+    def _make(cls, **values: Any) -> CascadeResult:
+        """The result from a value for every field (all of them: not checked here, see
+        ``tests/test_cascade.py``), without the frozen ``__init__``'s
+        ``object.__setattr__`` per field: several microseconds a frame, right after the
+        kernel has cooled Python's caches."""
+        result = object.__new__(cls)
+        result.__dict__.update(values)
+        return result
+
     def tier_counts(self, n_tiers: int) -> np.ndarray:
         """(n_tiers,) number of agents that reached each tier (nested counts)."""
         return np.array([(self.tier >= k).sum() for k in range(n_tiers)], dtype=np.int64)
@@ -408,10 +418,13 @@ def _run_fused(
     prediction: Any,
     reachability: bool,
 ) -> CascadeResult:
-    chosen = resolve_params(params)
-    settings = resolve_prediction(prediction)
-    steps, unc = kernel_settings(settings)
-    fp, ip = kernel_params(chosen, settings)
+    if params is None and prediction is None:
+        chosen, settings, steps, unc, fp, ip = _default_inputs()
+    else:
+        chosen = resolve_params(params)
+        settings = resolve_prediction(prediction)
+        steps, unc = kernel_settings(settings)
+        fp, ip = kernel_params(chosen, settings)
     plan = _plan(config, chosen)
     others = frame.others
 
@@ -427,7 +440,7 @@ def _run_fused(
             frame, config, chosen, settings, steps, unc, fp, ip, reachability, survival_all
         )
     kept, dropped_at, unreachable, survival, tier, baseline, false_negatives, times = parts
-    return CascadeResult(
+    return CascadeResult._make(
         stage_names=plan.stage_names,
         kept=kept,
         dropped_at=dropped_at,
@@ -443,6 +456,17 @@ def _run_fused(
         unreachable=unreachable,
         reach_time_s=times[0],
     )
+
+
+@functools.cache
+def _default_inputs() -> tuple[dict[str, Any], Any, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every model's default parameters, the default prediction settings and their kernel
+    arrays (all immutable): the cascade's usual call resolves nothing per frame."""
+    chosen = resolve_params(None)
+    settings = resolve_prediction(None)
+    steps, unc = kernel_settings(settings)
+    fp, ip = kernel_params(chosen, settings)
+    return chosen, settings, steps, unc, fp, ip
 
 
 #: Stage models that the one-pass kernel (:func:`risk.kernel.cascade_agents`) runs.

@@ -335,7 +335,7 @@ def _warm_up_inner(c: types.ModuleType, part: str) -> None:
     )  # fmt: skip
     c._first_crossing(line(), line(), line(), 2, boxes(), 1, line(), line(), line(), 2, boxes(), 1)
     c._pair_q(*pair, ns, track(), track())
-    c._gauss_reaches(*pair, ns, 0.5, 0.0)
+    c._gauss_reaches(track(), track(), ns, 0.5, 0.0)
     c._escape_track(ns, dt_tau, track(), track())
     c._time_gap(1.0, 0.0, 1.0)
 

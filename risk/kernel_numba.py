@@ -1313,23 +1313,16 @@ def _cycles(typingctx):
 
 
 @_jit
-def _gauss_reaches(tx, ty, cxx, cxy, cyy, m, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, thr, qcut):
-    """Whether the Gaussian overlap of one prediction pair (rows ``m``, ``e``, as in
-    :func:`_pair_q`) reaches ``thr`` at some step
-    (:func:`evaluate_agents`' ``P_o``). Steps with ``q < qcut`` are skipped without
-    ``exp``: there ``P_o < thr`` certainly (see :func:`cascade_agents`)."""
+def _gauss_reaches(qs, dets, ns, thr, qcut):
+    """Whether the Gaussian overlap of one prediction pair reaches ``thr`` at some step,
+    from its ``q_k`` and ``det_k`` (:func:`_pair_q`; ``P_o`` as :func:`_overlap_risks`
+    computes it). Steps with ``q < qcut`` are skipped without ``exp``: there
+    ``P_o < thr`` certainly (see :func:`cascade_agents`)."""
     for k in range(ns):
-        rx = tx[m, k] - g_tx[e, k]
-        ry = ty[m, k] - g_ty[e, k]
-        sxx = cxx[m, k] + g_xx[e, k]
-        sxy = cxy[m, k] + g_xy[e, k]
-        syy = cyy[m, k] + g_yy[e, k]
-        det = sxx * syy - sxy * sxy
-        q = syy * (rx * rx) - 2.0 * (sxy * (rx * ry))
-        q = (q + sxx * (ry * ry)) / det * -0.5
+        q = qs[k]
         if q < qcut:
             continue
-        po = 0.0 if q < EXP_ZERO else math.exp(q) / (math.sqrt(det) * (2.0 * math.pi))
+        po = 0.0 if q < EXP_ZERO else math.exp(q) / (math.sqrt(dets[k]) * (2.0 * math.pi))
         if po >= thr:
             return True
     return False
@@ -1473,6 +1466,8 @@ def cascade_agents(
         u = unc[kinds[i]]
         extended[:] = False
         predicted[:] = False
+        q_pair = -1  # the pair (m ne + e) whose q and det qs, dets hold; -1: none
+        q_dmin = INF
         code[i] = n_st
         for s in range(n_st):
             slot = st_slot[s]
@@ -1541,10 +1536,14 @@ def cascade_agents(
                         )  # fmt: skip
                         predicted[m] = True
                     for e in range(ne):
-                        if _gauss_reaches(
-                            tx, ty, cxx, cxy, cyy, m, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, thr,
-                            qcut,
-                        ):  # fmt: skip
+                        # q and det at every step, kept for survival when this pair is
+                        # the first it computes (then the two models share this loop)
+                        q_dmin = _pair_q(
+                            tx, ty, cxx, cxy, cyy, m, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs,
+                            dets,
+                        )  # fmt: skip
+                        q_pair = m * ne + e
+                        if _gauss_reaches(qs, dets, ns, thr, qcut):
                             keep = True
                             break
             t = _cycles()
@@ -1572,9 +1571,14 @@ def cascade_agents(
                 )  # fmt: skip
                 predicted[m] = True
             for e in range(ne):
-                dmin = _pair_q(
-                    tx, ty, cxx, cxy, cyy, m, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs, dets,
-                )  # fmt: skip
+                if m * ne + e == q_pair:  # q and det of this pair are still in qs, dets
+                    dmin = q_dmin
+                else:
+                    dmin = _pair_q(
+                        tx, ty, cxx, cxy, cyy, m, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs,
+                        dets,
+                    )  # fmt: skip
+                    q_pair = m * ne + e
                 _overlap_risks(
                     qs, dets, dmin, ns, fp[F_DT_TAU], terms, surv_l, surv_e, lsk, defer,
                     np.bool_(False), np.bool_(True),

@@ -304,20 +304,25 @@ def test_prediction_settings_reach_every_evaluation():
 
 
 # ---------------------------------------------------------------------- fused cascade
-def spread_frame(rng: np.random.Generator, n: int, spread: float) -> Frame:
+def spread_frame(rng: np.random.Generator, n: int, spread: float, *, forks: bool = False) -> Frame:
     """Agents of every kind scattered up to ``spread`` m from the ego, random headings,
-    speeds and straight or bent paths (some long, some a single point)."""
+    speeds and straight or bent paths (some long, some a single point); ``forks``: the
+    ego and about a third of the agents have two or three candidate paths."""
     xy = rng.uniform(-spread, spread, (n, 2))
     xy[0] = 0.0
     heading = rng.uniform(-np.pi, np.pi, n)
-    paths = []
+    paths: list[np.ndarray | list[np.ndarray]] = []
     for i in range(n):
-        pts = [xy[i]]
-        h = heading[i]
-        for _ in range(int(rng.integers(0, 4))):
-            h += rng.normal(0, 0.5)
-            pts.append(pts[-1] + rng.uniform(1, 60) * np.array([np.cos(h), np.sin(h)]))
-        paths.append(np.array(pts))
+        n_paths = int(rng.integers(2, 4)) if forks and (i == 0 or rng.random() < 0.35) else 1
+        candidates = []
+        for _ in range(n_paths):
+            pts = [xy[i]]
+            h = heading[i]
+            for _ in range(int(rng.integers(0, 4))):
+                h += rng.normal(0, 0.5)
+                pts.append(pts[-1] + rng.uniform(1, 60) * np.array([np.cos(h), np.sin(h)]))
+            candidates.append(np.array(pts))
+        paths.append(candidates if forks else candidates[0])
     speed = rng.uniform(0, 30, n) * (rng.random(n) > 0.2)
     kinds = rng.integers(0, 4, n)
     valid = rng.random(n) > 0.05
@@ -372,14 +377,16 @@ def test_reachability_bound_drops_far_agents():
 
 
 @settings(max_examples=25, deadline=None)
-@given(st.integers(0, 2**32 - 1), st.sampled_from([30.0, 400.0]))
-def test_fused_cascade_matches_the_staged_oracle(seed, spread):
-    """Same kept sets, drops, tiers and survival as the staged cascade on sub-frames, except
-    the agents the reachability bound drops first (none of them important)."""
+@given(st.integers(0, 2**32 - 1), st.sampled_from([30.0, 400.0]), st.booleans())
+def test_fused_cascade_matches_the_staged_oracle(seed, spread, forks):
+    """Same kept sets, drops, tiers and survival (bit for bit) as the staged cascade on
+    sub-frames, except the agents the reachability bound drops first (none of them
+    important); also with several candidate paths per agent and for the ego (the
+    Gaussian stage hands the pair it computed last to survival)."""
     from risk import PredictionSettings, evaluate
 
     rng = np.random.default_rng(seed)
-    frame = spread_frame(rng, 50, spread)
+    frame = spread_frame(rng, 50, spread, forks=forks)
     pred = PredictionSettings(horizon_s=4.0, dt_s=0.25)
     config = CascadeConfig(
         stages=(
@@ -449,6 +456,20 @@ def test_one_pass_stage_times_share_the_measured_call():
     assert res.stage_time_s[2] == 0.0  # nobody reached the Gaussian stage
     parts = res.reach_time_s + res.stage_time_s.sum() + res.sort_time_s
     assert parts + res.survival_all_time_s <= whole
+
+
+def test_the_fused_result_has_every_field_as_the_constructor_sets_them():
+    """``CascadeResult._make`` (the fused cascade's fast constructor) sets every field."""
+    import dataclasses
+
+    from risk.cascade import CascadeResult
+
+    res = run_cascade(spread_frame(np.random.default_rng(5), 30, 40.0), CONFIG)
+    values = {f.name: getattr(res, f.name) for f in dataclasses.fields(CascadeResult)}
+    assert vars(res) == values
+    assert vars(CascadeResult(**values)) == vars(res)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        res.sort_time_s = 0.0  # type: ignore[misc]
 
 
 def test_engine_style_partial_uses_the_fused_cascade():
