@@ -315,6 +315,12 @@ def _warm_up_inner(c: types.ModuleType, part: str) -> None:
     def boxes() -> np.ndarray:
         return np.zeros((nch, 4))
 
+    def rows2() -> np.ndarray:  # (a path per row)
+        return np.zeros((1, p1))
+
+    def boxes3() -> np.ndarray:  # (chunk boxes per row)
+        return np.zeros((1, nch, 4))
+
     if part == HERE:
         c._ego_candidates(
             xy, heading, speed, kinds, paths, path_points, 0, 0, 1, steps, unc,
@@ -330,10 +336,12 @@ def _warm_up_inner(c: types.ModuleType, part: str) -> None:
     rows = [np.zeros((1, ns)) for _ in range(5)]  # (x, y, cov: the agent's, the ego's rows)
     pair = (*rows, 0, *rows, 0)
     c._polyline_distance(
-        line(), line(), 2, boxes(), 1, line(), line(), 2, boxes(), 1, np.zeros(nch * nch),
-        -1.0, np.inf, np.inf,
+        rows2(), rows2(), 0, 2, boxes3(), 1, rows2(), rows2(), 0, 2, boxes3(), 1,
+        np.zeros(nch * nch), -1.0, np.inf, np.inf,
     )  # fmt: skip
-    c._first_crossing(line(), line(), line(), 2, boxes(), 1, line(), line(), line(), 2, boxes(), 1)
+    c._first_crossing(
+        rows2(), rows2(), rows2(), 0, 2, boxes3(), 1, rows2(), rows2(), rows2(), 0, 2, boxes3(), 1
+    )
     c._pair_q(*pair, ns, track(), track())
     c._gauss_reaches(track(), track(), ns, 0.5, 0.0)
     c._escape_track(ns, dt_tau, track(), track())

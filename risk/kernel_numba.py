@@ -237,17 +237,21 @@ def _segment_lengths(paths, m, seg):
 
 
 @_jit
-def _extend(paths, m, npts, heading, min_len, seg, total, ex, ey, ecum, eux, euy):
+def _extend(paths, m, npts, heading, min_len, seg, total, ex_rows, ey_rows, ecum_rows,
+            eux_rows, euy_rows, row):  # fmt: skip
     """risk.geometry.extend_paths, cumulative_lengths and segment_unit_vectors for row m,
     from its segment lengths ``seg`` (:func:`_segment_lengths`) and their sum ``total``
     (:func:`np_sum`).
 
-    Writes the padded extended path (P+1 points) and returns its real point count. The
-    unit vectors are written only for the segments that start within ``min_len`` (the
-    prediction's reach, ``v T``): the prediction reads no others.
+    Writes the padded extended path (P+1 points) into row ``row`` of the ``*_rows``
+    (rows, not row views: see :func:`_polyline_distance`) and returns its real point
+    count. The unit vectors are written only for the segments that start within
+    ``min_len`` (the prediction's reach, ``v T``): the prediction reads no others.
 
     The caller sums: numba keeps an atomic reference-count increment and decrement per
     array argument around each call that LLVM does not inline (such as np_sum)."""
+    ex, ey, ecum = ex_rows[row], ey_rows[row], ecum_rows[row]
+    eux, euy = eux_rows[row], euy_rows[row]
     p = paths.shape[1]
     p1 = p + 1
     last = p - 2
@@ -413,8 +417,15 @@ def _pseg2(px, py, ox, oy, sx, sy, inv2):
 
 
 @_jit
-def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2, cut2, above):
-    """Exact least distance between polylines a and b (risk.geometry.polyline_distances).
+def _polyline_distance(
+    ax_rows, ay_rows, ra, an, abox_rows, nca, bx_rows, by_rows, rb, bn, bbox_rows, ncb, gaps,
+    stop2, cut2, above,
+):  # fmt: skip
+    """Exact least distance between polylines a and b (risk.geometry.polyline_distances):
+    a is row ``ra`` of ``ax_rows``, ``ay_rows`` (its chunk boxes ``abox_rows[ra]``), b
+    row ``rb`` of the others. The caller passes rows, not row views: a view made there
+    costs an atomic reference-count increment and decrement per call, while the views
+    made here are pruned (no call in between).
 
     Chunk pairs whose boxes are farther apart than the best distance found so far (or than
     ``sqrt(cut2)``) are skipped, which never loses the minimum below ``sqrt(cut2)``. Returns
@@ -429,6 +440,8 @@ def _polyline_distance(ax, ay, an, abox, nca, bx, by, bn, bbox, ncb, gaps, stop2
     an atomic reference-count increment and decrement per array argument per call (its
     pruning pass gives up on such control flow), which cost more than the search of a
     typical chunk pair. (Counted in the LLVM code: ``inspect_llvm``, ``NRT_incref``.)"""
+    ax, ay, abox = ax_rows[ra], ay_rows[ra], abox_rows[ra]
+    bx, by, bbox = bx_rows[rb], by_rows[rb], bbox_rows[rb]
     # b's whole box, then a lower bound per chunk of a (its gap to that box): rows of
     # chunk pairs are skipped whole, and the pair to start from is found without the
     # full table of box gaps
@@ -667,9 +680,16 @@ def _touch0(px, py, ax, ay, bx, by):
 
 
 @_jit
-def _first_crossing(bx, by, bcum, bn, bbox, ncb, ax, ay, acum, an, abox, nca):
+def _first_crossing(
+    bx_rows, by_rows, bcum_rows, rb, bn, bbox_rows, ncb, ax_rows, ay_rows, acum_rows, ra, an,
+    abox_rows, nca,
+):  # fmt: skip
     """Arc lengths (along b, along a) of the first point along polyline b that lies on a
-    (risk.geometry.first_intersections); NaN, NaN when they never meet."""
+    (risk.geometry.first_intersections); NaN, NaN when they never meet. b is row ``rb``
+    of the ``b*_rows``, a row ``ra`` of the others (rows, as in
+    :func:`_polyline_distance`)."""
+    bx, by, bcum, bbox = bx_rows[rb], by_rows[rb], bcum_rows[rb], bbox_rows[rb]
+    ax, ay, acum, abox = ax_rows[ra], ay_rows[ra], acum_rows[ra], abox_rows[ra]
     best_b, best_a = INF, INF
     for cb in range(ncb):
         if bcum[min(cb * K, bn - 1)] > best_b:
@@ -980,7 +1000,7 @@ def _ego_candidates(
         _segment_lengths(paths, r, seg)
         gn[e] = _extend(
             paths, r, path_points[r], heading[ego], v_e * horizon, seg, np_sum(seg, p - 1),
-            gx[e], gy[e], gcum[e], gux[e], guy[e],
+            gx, gy, gcum, gux, guy, e,
         )  # fmt: skip
         gnb[e] = _boxes(gx[e], gy[e], gn[e], gbox[e])
         kn[e] = _cut(gx[e], gy[e], gcum[e], v_e * horizon, kx[e], ky[e])
@@ -1045,6 +1065,11 @@ def evaluate_agents(
     cy = np.empty(p1)
     ebox = np.empty((nch, 4))
     cbox = np.empty((nch, 4))
+    # one-row views of the above for the functions that take rows (made once per call:
+    # each view costs an atomic reference count)
+    ex2, ey2, ebox3 = ex.reshape((1, p1)), ey.reshape((1, p1)), ebox.reshape((1, nch, 4))
+    ecum2, eux2, euy2 = ecum.reshape((1, p1)), eux.reshape((1, p1)), euy.reshape((1, p1))
+    cx2, cy2, cbox3 = cx.reshape((1, p1)), cy.reshape((1, p1)), cbox.reshape((1, nch, 4))
     gaps = np.empty(nch * nch)
     tx = np.empty((1, ns))  # (one row: the functions shared with cascade_agents index rows)
     row = np.int64(0)  # (that row; not a literal 0: see _jit)
@@ -1110,7 +1135,7 @@ def evaluate_agents(
             _segment_lengths(paths, r, seg)
             en = _extend(
                 paths, r, path_points[r], heading[i], v * horizon, seg, np_sum(seg, p - 1),
-                ex, ey, ecum, eux, euy,
+                ex2, ey2, ecum2, eux2, euy2, row,
             )  # fmt: skip
             nb = _boxes(ex, ey, en, ebox) if want_path else 0
             if want[TRAJ] and not traj_done:
@@ -1129,7 +1154,7 @@ def evaluate_agents(
                 d_traj = INF
                 if want[TRAJ] and not traj_done:
                     d_traj = _polyline_distance(
-                        kx[e], ky[e], kn[e], kbox[e], knb[e], cx, cy, cn, cbox, cnb, gaps,
+                        kx, ky, e, kn[e], kbox, knb[e], cx2, cy2, row, cn, cbox3, cnb, gaps,
                         stop2[TRAJ], cut2[TRAJ], INF,
                     )  # fmt: skip
                     eps = fp[F_EPS + TRAJ]
@@ -1145,7 +1170,7 @@ def evaluate_agents(
                     if traj_exact and d_traj < INF:
                         bound = (d_traj + 1e-6) ** 2
                     d_path = _polyline_distance(
-                        gx[e], gy[e], gn[e], gbox[e], gnb[e], ex, ey, en, ebox, nb, gaps,
+                        gx, gy, e, gn[e], gbox, gnb[e], ex2, ey2, row, en, ebox3, nb, gaps,
                         -1.0 if exact_path else stop2[PATH], INF if exact_path else cut2[PATH],
                         bound,
                     )  # fmt: skip
@@ -1225,8 +1250,8 @@ def evaluate_agents(
                         th = _time_gap(arc_on[e], g_l1[e], v_e)
                     elif d_path == 0.0:
                         s_b, s_a = _first_crossing(
-                            ex, ey, ecum, en, ebox, nb, gx[e], gy[e], gcum[e], gn[e],
-                            gbox[e], gnb[e],
+                            ex2, ey2, ecum2, row, en, ebox3, nb, gx, gy, gcum, e, gn[e], gbox,
+                            gnb[e],
                         )  # fmt: skip
                         th = _time_gap(s_a - s_b, g_l1[e], v_e)
                     tau = fp[F_TAU_H2D]
@@ -1245,26 +1270,41 @@ def evaluate_agents(
 
 
 @_jit
-def _reach_keep(paths, starts, i, ego, speed, kinds, horizon, n_steps, unc, max_speed, log_thr):
-    """The reachability bound for agent ``i`` (see :func:`reachable`); ``log_thr`` is
-    ``log(threshold / 1000)``."""
-    ue = unc[kinds[ego]]
-    sm_e = max(ue[4], ue[5])
-    s0_e = min(min(ue[0], ue[4]), min(ue[1], ue[5]))
-    d0 = INF
+def _reach_limits(unc, kinds, ego, n_steps, threshold):
+    """Per agent kind, the squared distance ``d^2`` up to which the reachability bound
+    (see :func:`reachable`) keeps an agent of that kind: ``2 L (log(n / (2 pi l)) -
+    log(threshold / 1000))``, from ``log bound >= log(threshold / 1000)`` (-1: none;
+    ``inf`` when ``threshold`` is not positive)."""
+    n_kinds = unc.shape[0]
+    lim = np.empty(n_kinds)
+    if not threshold > 0:
+        lim[:] = INF
+        return lim
+    log_thr = math.log(threshold / 1000.0)
+    k_e = kinds[ego]
+    sm_e = max(unc[k_e, 4], unc[k_e, 5])
+    s0_e = min(min(unc[k_e, 0], unc[k_e, 4]), min(unc[k_e, 1], unc[k_e, 5]))
+    for k in range(n_kinds):
+        big = max(unc[k, 4], unc[k, 5]) ** 2 + sm_e**2
+        small = min(min(unc[k, 0], unc[k, 4]), min(unc[k, 1], unc[k, 5])) ** 2 + s0_e**2
+        room = math.log(n_steps / (2.0 * math.pi * small)) - log_thr
+        lim[k] = 2.0 * big * room if room >= 0 else -1.0
+    return lim
+
+
+@_jit
+def _reach_keep(paths, starts, i, ego, speed, kinds, horizon, max_speed, limits):
+    """The reachability bound for agent ``i`` (see :func:`reachable`), with the limits of
+    :func:`_reach_limits`: O(1) per pair of path rows."""
+    d2 = INF
     for r in range(starts[i], starts[i + 1]):
         for re in range(starts[ego], starts[ego + 1]):
-            d0 = min(
-                d0,
-                math.hypot(paths[r, 0, 0] - paths[re, 0, 0], paths[r, 0, 1] - paths[re, 0, 1]),
-            )
-    u = unc[kinds[i]]
+            dx = paths[r, 0, 0] - paths[re, 0, 0]
+            dy = paths[r, 0, 1] - paths[re, 0, 1]
+            d2 = min(d2, dx * dx + dy * dy)
     w = max(speed[i], max_speed[kinds[i]]) + speed[ego]
-    d = max(d0 - w * horizon, 0.0)
-    big = max(u[4], u[5]) ** 2 + sm_e**2
-    small = min(min(u[0], u[4]), min(u[1], u[5])) ** 2 + s0_e**2
-    log_bound = math.log(n_steps / (2.0 * math.pi * small)) - d * d / (2.0 * big)
-    return log_bound >= log_thr
+    d = max(math.sqrt(d2) - w * horizon, 0.0)
+    return d * d <= limits[kinds[i]]
 
 
 @_jit
@@ -1281,18 +1321,18 @@ def reachable(
     ``sigma_max`` of the kind) and ``det(S) >= l^2``, ``l = s0_i^2 + s0_e^2`` (``s0`` the
     least of ``min(sigma0, sigma_max)``), so ``P_o <= exp(-d^2 / (2 L)) / (2 pi l)`` and
     ``R_S <= sum_k P_o(s_k) <= n exp(-d^2 / (2 L)) / (2 pi l)``. The agent is dropped when
-    that bound is below ``threshold / 1000`` (the margin covers rounding)."""
+    that bound is below ``threshold / 1000`` (the margin covers rounding), i.e. when
+    ``d^2`` exceeds its kind's limit (:func:`_reach_limits`)."""
     n = speed.shape[0]
     starts = _row_starts(path_agent, n)
     keep = np.ones(agents.shape[0], np.bool_)
     if not threshold > 0:
         return keep
-    log_thr = math.log(threshold / 1000.0)
+    limits = _reach_limits(unc, kinds, ego, n_steps, threshold)
     for a_idx in range(agents.shape[0]):
         keep[a_idx] = _reach_keep(
-            paths, starts, agents[a_idx], ego, speed, kinds, horizon, n_steps, unc, max_speed,
-            log_thr,
-        )  # fmt: skip
+            paths, starts, agents[a_idx], ego, speed, kinds, horizon, max_speed, limits
+        )
     return keep
 
 
@@ -1426,6 +1466,8 @@ def cascade_agents(
     cx = np.empty(p1)
     cy = np.empty(p1)
     cbox = np.empty((nch, 4))
+    cx2, cy2, cbox3 = cx.reshape((1, p1)), cy.reshape((1, p1)), cbox.reshape((1, nch, 4))
+    row = np.int64(0)  # (their row)
     gaps = np.empty(nch * nch)
     tx = np.empty((rmax, ns))
     ty = np.empty((rmax, ns))
@@ -1445,16 +1487,14 @@ def cascade_agents(
     surv_l = np.empty(ns)
     surv_e = np.empty(ns)
     _escape_track(ns, fp[F_DT_TAU], surv_l, surv_e)
-    log_thr = math.log(base_thr / 1000.0) if base_thr > 0 else -INF
+    limits = _reach_limits(unc, kinds, ego, ns, base_thr)
     t = _cycles()
     cyc[0] += t - t_prev
     t_prev = t
     for a_idx in range(agents.shape[0]):
         i = agents[a_idx]
         if use_reach and base_thr > 0:
-            ok = _reach_keep(
-                paths, starts, i, ego, speed, kinds, horizon, ns, unc, max_speed, log_thr
-            )
+            ok = _reach_keep(paths, starts, i, ego, speed, kinds, horizon, max_speed, limits)
             t = _cycles()
             cyc[1] += t - t_prev
             t_prev = t
@@ -1463,9 +1503,10 @@ def cascade_agents(
                 continue
         r0, r1 = starts[i], starts[i + 1]
         v = speed[i]
-        u = unc[kinds[i]]
-        extended[:] = False
-        predicted[:] = False
+        ki = kinds[i]
+        for m in range(r1 - r0):  # (no row or slice views: each costs reference counts)
+            extended[m] = False
+            predicted[m] = False
         q_pair = -1  # the pair (m ne + e) whose q and det qs, dets hold; -1: none
         q_dmin = INF
         code[i] = n_st
@@ -1493,7 +1534,7 @@ def cascade_agents(
                         _segment_lengths(paths, r, seg)
                         en[m] = _extend(
                             paths, r, path_points[r], heading[i], v * horizon, seg,
-                            np_sum(seg, p - 1), ex[m], ey[m], ecum[m], eux[m], euy[m],
+                            np_sum(seg, p - 1), ex, ey, ecum, eux, euy, m,
                         )  # fmt: skip
                         nb[m] = _boxes(ex[m], ey[m], en[m], ebox[m])
                         extended[m] = True
@@ -1503,19 +1544,20 @@ def cascade_agents(
                     for e in range(ne):
                         if slot == PATH:
                             d = _polyline_distance(
-                                gx[e], gy[e], gn[e], gbox[e], gnb[e], ex[m], ey[m], en[m],
-                                ebox[m], nb[m], gaps, stop2, cut2, INF,
+                                gx, gy, e, gn[e], gbox, gnb[e], ex, ey, m, en[m], ebox, nb[m],
+                                gaps, stop2, cut2, INF,
                             )  # fmt: skip
                         else:
                             d = _polyline_distance(
-                                kx[e], ky[e], kn[e], kbox[e], knb[e], cx, cy, cn, cbox, cnb,
+                                kx, ky, e, kn[e], kbox, knb[e], cx2, cy2, row, cn, cbox3, cnb,
                                 gaps, stop2, cut2, INF,
                             )  # fmt: skip
                         if eps / (eps + d) >= thr:
                             keep = True
                             break
             else:  # GAUSS
-                small = min(min(u[0], u[4]), min(u[1], u[5])) ** 2 + s0_e**2
+                small = min(min(unc[ki, 0], unc[ki, 4]), min(unc[ki, 1], unc[ki, 5])) ** 2
+                small += s0_e**2
                 qcut = math.log(thr * (2.0 * math.pi) * small) - 1.0 if thr > 0 else -INF
                 for r in range(r0, r1):
                     if keep:
@@ -1525,7 +1567,7 @@ def cascade_agents(
                         _segment_lengths(paths, r, seg)
                         en[m] = _extend(
                             paths, r, path_points[r], heading[i], v * horizon, seg,
-                            np_sum(seg, p - 1), ex[m], ey[m], ecum[m], eux[m], euy[m],
+                            np_sum(seg, p - 1), ex, ey, ecum, eux, euy, m,
                         )  # fmt: skip
                         nb[m] = _boxes(ex[m], ey[m], en[m], ebox[m])
                         extended[m] = True
@@ -1561,7 +1603,7 @@ def cascade_agents(
                 _segment_lengths(paths, r, seg)
                 en[m] = _extend(
                     paths, r, path_points[r], heading[i], v * horizon, seg,
-                    np_sum(seg, p - 1), ex[m], ey[m], ecum[m], eux[m], euy[m],
+                    np_sum(seg, p - 1), ex, ey, ecum, eux, euy, m,
                 )  # fmt: skip
                 extended[m] = True
             if not predicted[m]:
