@@ -339,9 +339,7 @@ def _warm_up_inner(c: types.ModuleType, part: str) -> None:
         rows2(), rows2(), 0, 2, boxes3(), 1, rows2(), rows2(), 0, 2, boxes3(), 1,
         np.zeros(nch * nch), -1.0, np.inf, np.inf,
     )  # fmt: skip
-    c._first_crossing(
-        rows2(), rows2(), rows2(), 0, 2, boxes3(), 1, rows2(), rows2(), rows2(), 0, 2, boxes3(), 1
-    )
+    c._first_crossing(line(), line(), line(), 2, boxes(), 1, line(), line(), line(), 2, boxes(), 1)
     c._pair_q(*pair, ns, track(), track())
     c._gauss_reaches(track(), track(), ns, 0.5, 0.0)
     c._escape_track(ns, dt_tau, track(), track())

@@ -680,16 +680,9 @@ def _touch0(px, py, ax, ay, bx, by):
 
 
 @_jit
-def _first_crossing(
-    bx_rows, by_rows, bcum_rows, rb, bn, bbox_rows, ncb, ax_rows, ay_rows, acum_rows, ra, an,
-    abox_rows, nca,
-):  # fmt: skip
+def _first_crossing(bx, by, bcum, bn, bbox, ncb, ax, ay, acum, an, abox, nca):
     """Arc lengths (along b, along a) of the first point along polyline b that lies on a
-    (risk.geometry.first_intersections); NaN, NaN when they never meet. b is row ``rb``
-    of the ``b*_rows``, a row ``ra`` of the others (rows, as in
-    :func:`_polyline_distance`)."""
-    bx, by, bcum, bbox = bx_rows[rb], by_rows[rb], bcum_rows[rb], bbox_rows[rb]
-    ax, ay, acum, abox = ax_rows[ra], ay_rows[ra], acum_rows[ra], abox_rows[ra]
+    (risk.geometry.first_intersections); NaN, NaN when they never meet."""
     best_b, best_a = INF, INF
     for cb in range(ncb):
         if bcum[min(cb * K, bn - 1)] > best_b:
@@ -1250,8 +1243,8 @@ def evaluate_agents(
                         th = _time_gap(arc_on[e], g_l1[e], v_e)
                     elif d_path == 0.0:
                         s_b, s_a = _first_crossing(
-                            ex2, ey2, ecum2, row, en, ebox3, nb, gx, gy, gcum, e, gn[e], gbox,
-                            gnb[e],
+                            ex, ey, ecum, en, ebox, nb, gx[e], gy[e], gcum[e], gn[e],
+                            gbox[e], gnb[e],
                         )  # fmt: skip
                         th = _time_gap(s_a - s_b, g_l1[e], v_e)
                     tau = fp[F_TAU_H2D]
