@@ -1049,20 +1049,14 @@ def evaluate_agents(
         xy, heading, speed, kinds, paths, path_points, ego, e0, ne, steps, unc, seg, nch
     )  # fmt: skip
     # ------------------------------------------------ per-row scratch
-    ex = np.empty(p1)
-    ey = np.empty(p1)
-    ecum = np.empty(p1)
-    eux = np.empty(p1)
-    euy = np.empty(p1)
-    cx = np.empty(p1)
-    cy = np.empty(p1)
-    ebox = np.empty((nch, 4))
-    cbox = np.empty((nch, 4))
-    # one-row views of the above for the functions that take rows (made once per call:
-    # each view costs an atomic reference count)
-    ex2, ey2, ebox3 = ex.reshape((1, p1)), ey.reshape((1, p1)), ebox.reshape((1, nch, 4))
-    ecum2, eux2, euy2 = ecum.reshape((1, p1)), eux.reshape((1, p1)), euy.reshape((1, p1))
-    cx2, cy2, cbox3 = cx.reshape((1, p1)), cy.reshape((1, p1)), cbox.reshape((1, nch, 4))
+    # one row each, for the functions that take rows (ex2 ... with row 0), and that row's
+    # views for the others (made once per call: each view costs an atomic reference count)
+    ex2, ey2, ecum2 = np.empty((1, p1)), np.empty((1, p1)), np.empty((1, p1))
+    eux2, euy2 = np.empty((1, p1)), np.empty((1, p1))
+    cx2, cy2 = np.empty((1, p1)), np.empty((1, p1))
+    ebox3, cbox3 = np.empty((1, nch, 4)), np.empty((1, nch, 4))
+    ex, ey, ecum, eux, euy = ex2[0], ey2[0], ecum2[0], eux2[0], euy2[0]
+    cx, cy, ebox, cbox = cx2[0], cy2[0], ebox3[0], cbox3[0]
     gaps = np.empty(nch * nch)
     tx = np.empty((1, ns))  # (one row: the functions shared with cascade_agents index rows)
     row = np.int64(0)  # (that row; not a literal 0: see _jit)
@@ -1456,10 +1450,8 @@ def cascade_agents(
     en = np.empty(rmax, np.int64)
     ebox = np.empty((rmax, nch, 4))
     nb = np.empty(rmax, np.int64)
-    cx = np.empty(p1)
-    cy = np.empty(p1)
-    cbox = np.empty((nch, 4))
-    cx2, cy2, cbox3 = cx.reshape((1, p1)), cy.reshape((1, p1)), cbox.reshape((1, nch, 4))
+    cx2, cy2, cbox3 = np.empty((1, p1)), np.empty((1, p1)), np.empty((1, nch, 4))
+    cx, cy, cbox = cx2[0], cy2[0], cbox3[0]  # (row 0, also viewed once)
     row = np.int64(0)  # (their row)
     gaps = np.empty(nch * nch)
     tx = np.empty((rmax, ns))
