@@ -33,12 +33,7 @@ from bench_models import random_frame  # noqa: E402
 
 from risk import cascade as cascade_module  # noqa: E402
 from risk import evaluate, kernel  # noqa: E402
-from risk.registry import (  # noqa: E402
-    kernel_params,
-    kernel_settings,
-    resolve_params,
-    resolve_prediction,
-)
+from risk.registry import kernel_inputs  # noqa: E402
 
 
 def main() -> None:
@@ -49,9 +44,7 @@ def main() -> None:
     rng = np.random.default_rng(7)  # (bench_kernel.py's N = 100 frames)
     frames = [random_frame(100, rng) for _ in range(3)]
     config = cascade_module.CascadeConfig.default()
-    chosen, settings = resolve_params(None), resolve_prediction(None)
-    steps, unc = kernel_settings(settings)
-    fp, ip = kernel_params(chosen, settings)
+    chosen, _, steps, unc, fp, ip = kernel_inputs(None, None)
     plan = cascade_module._plan(config, chosen)
     want_survival = cascade_module._WANT[(cascade_module._SURV_SLOT,)]
     names = ["set-up", "bound", *plan.stage_names, "survival + tiers"]

@@ -63,9 +63,8 @@ from risk.registry import (
     BASELINE_THRESHOLD,
     MODELS,
     kernel,
-    kernel_params,
+    kernel_inputs,
     kernel_settings,
-    resolve_params,
     resolve_prediction,
 )
 from risk.registry import evaluate as risk_evaluate
@@ -418,13 +417,7 @@ def _run_fused(
     prediction: Any,
     reachability: bool,
 ) -> CascadeResult:
-    if params is None and prediction is None:
-        chosen, settings, steps, unc, fp, ip = _default_inputs()
-    else:
-        chosen = resolve_params(params)
-        settings = resolve_prediction(prediction)
-        steps, unc = kernel_settings(settings)
-        fp, ip = kernel_params(chosen, settings)
+    chosen, settings, steps, unc, fp, ip = kernel_inputs(params, prediction)
     plan = _plan(config, chosen)
     others = frame.others
 
@@ -456,17 +449,6 @@ def _run_fused(
         unreachable=unreachable,
         reach_time_s=times[0],
     )
-
-
-@functools.cache
-def _default_inputs() -> tuple[dict[str, Any], Any, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every model's default parameters, the default prediction settings and their kernel
-    arrays (all immutable): the cascade's usual call resolves nothing per frame."""
-    chosen = resolve_params(None)
-    settings = resolve_prediction(None)
-    steps, unc = kernel_settings(settings)
-    fp, ip = kernel_params(chosen, settings)
-    return chosen, settings, steps, unc, fp, ip
 
 
 #: Stage models that the one-pass kernel (:func:`risk.kernel.cascade_agents`) runs.

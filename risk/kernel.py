@@ -30,6 +30,7 @@ import subprocess
 import sys
 import time
 import types
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -173,7 +174,7 @@ def frame_arrays(frame: Any) -> tuple[np.ndarray, ...]:
     return cached
 
 
-def pack_params(chosen: dict[str, Any], horizon_s: float, dt_s: float) -> tuple[np.ndarray, ...]:
+def pack_params(chosen: Mapping[str, Any], horizon_s: float, dt_s: float) -> tuple[np.ndarray, ...]:
     """Float and integer parameter vectors of the kernel from the parameter objects."""
     fp = np.zeros(N_FLOAT)
     for slot, name in enumerate(SLOTS[:7]):

@@ -12,6 +12,7 @@ differently.)
 from __future__ import annotations
 
 import functools
+import types
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, fields
 from typing import Any, Literal
@@ -239,7 +240,7 @@ _PACKED: dict[tuple[int, ...], tuple[Any, np.ndarray, np.ndarray]] = {}
 
 
 def kernel_params(
-    chosen: dict[str, Any], settings: PredictionSettings
+    chosen: Mapping[str, Any], settings: PredictionSettings
 ) -> tuple[np.ndarray, np.ndarray]:
     """The kernel's parameter vectors, cached by the identity of the (immutable) parameter
     objects; the cache holds them, so an identity is never reused while cached."""
@@ -252,6 +253,33 @@ def kernel_params(
         fp, ip = kernel.pack_params(chosen, settings.horizon_s, settings.dt_s)
         hit = _PACKED[key] = (objects, fp, ip)
     return hit[1], hit[2]
+
+
+def kernel_inputs(
+    params: Mapping[str, Any] | None, prediction: PredictionSettings | None
+) -> tuple[Mapping[str, Any], PredictionSettings, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every model's parameter objects, the prediction settings and the kernel's arrays
+    (steps, uncertainties, parameter vectors) for ``params`` and ``prediction``; resolved
+    once per process for the defaults (both None), the usual call (then the parameter
+    mapping is read-only: it is shared)."""
+    if params is None and prediction is None:
+        return _default_kernel_inputs()
+    chosen = resolve_params(params)
+    settings = resolve_prediction(prediction)
+    steps, unc = kernel_settings(settings)
+    fp, ip = kernel_params(chosen, settings)
+    return chosen, settings, steps, unc, fp, ip
+
+
+@functools.cache
+def _default_kernel_inputs() -> tuple[
+    Mapping[str, Any], PredictionSettings, np.ndarray, np.ndarray, np.ndarray, np.ndarray
+]:
+    chosen = resolve_params(None)
+    settings = resolve_prediction(None)
+    steps, unc = kernel_settings(settings)
+    fp, ip = kernel_params(chosen, settings)
+    return types.MappingProxyType(chosen), settings, steps, unc, fp, ip
 
 
 @functools.lru_cache(maxsize=256)
@@ -282,10 +310,7 @@ def evaluate(
     reused by every requested model.
     """
     names = resolve_models(models)
-    chosen = resolve_params(params)
-    settings = resolve_prediction(prediction)
-    steps, unc = kernel_settings(settings)
-    fp, ip = kernel_params(chosen, settings)
+    _, _, steps, unc, fp, ip = kernel_inputs(params, prediction)
     out = kernel.run(frame, _want(tuple(names)), fp, ip, steps, unc)
     return {name: out[kernel.SLOTS.index(name)] for name in names}
 
