@@ -226,6 +226,8 @@ def run(
         agents = ALL_AGENTS
     elif agents.size == 0:
         return np.full((N_MODELS, frame.n_agents), np.nan)
+    if _first_evaluate:
+        _before_first_evaluate()
     return evaluate_agents(
         *frame_arrays(frame),
         int(frame.ego),
@@ -265,43 +267,89 @@ def warm_up(compiled: types.ModuleType | None = None, *, build_ahead_of_time: bo
 
 
 def _warm_up_calls(c: types.ModuleType) -> None:
-    beside = _compile_cascade_beside(c)
+    beside = _compile_split(c, cascade=True)
     try:
-        if beside is not None:
-            _warm_up_inner(c, HERE)  # (the process beside compiles BESIDE meanwhile)
         _warm_up_evaluate(c)
+        _warm_up_sorting(c)  # (while the process beside compiles the cascade)
     except BaseException:  # (Ctrl-C too): end the helper rather than wait for it
-        if beside is not None:
-            beside.kill()
-            beside.wait()
+        _stop(beside)
         raise
     if beside is not None:
         beside.wait()  # its kernels are in the cache now (or it failed: compiled below)
     _warm_up_cascade(c)
 
 
-#: The inner kernel functions compiled first on a cold cache, in this process (HERE) and
-#: in the one beside (BESIDE), so that the entry points, compiled next, find them in the
-#: cache and each is compiled once (numba compiles one function at a time per process;
-#: seconds each). Split for similar times, measured with numba's compile events.
+def _compile_split(c: types.ModuleType, *, cascade: bool) -> subprocess.Popen[bytes] | None:
+    """On a cold just-in-time cache (and two or more cores), compile the inner functions
+    in two processes: start the process beside (:func:`_start_beside`), compile
+    ``HERE``'s (and ``CASCADE``'s when ``cascade``) here, and wait until ``BESIDE``'s are
+    cached. Then returns the process beside, which goes on to compile the cascade when
+    ``cascade`` (else it has ended). None when no process was started: the entry points
+    then compile their inner functions here."""
+    beside = _start_beside(c, cascade=cascade)
+    if beside is None:
+        return None
+    try:
+        _warm_up_inner(c, HERE)
+        if cascade:
+            _warm_up_inner(c, CASCADE)
+            _wait_until_cached(c, BESIDE, beside)
+        else:
+            beside.wait()
+    except BaseException:
+        _stop(beside)
+        raise
+    return beside
+
+
+def _stop(beside: subprocess.Popen[bytes] | None) -> None:
+    if beside is not None:
+        beside.kill()
+        beside.wait()
+
+
+#: Whether this process is yet to make its first ``evaluate_agents`` call on the
+#: just-in-time form (see :func:`_before_first_evaluate`).
+_first_evaluate = IMPLEMENTATION == "jit"
+
+
+def _before_first_evaluate() -> None:
+    """Before this process's first :func:`run`: on a cold just-in-time cache, compile the
+    inner functions in two processes (:func:`_compile_split`), so that the call compiles
+    only ``evaluate_agents`` itself. The cold first call of :func:`risk.evaluate` takes
+    about 18 s of wall time instead of about 27 s; the process beside has ended when this
+    returns, so that no compile outlives a short script."""
+    global _first_evaluate
+    _first_evaluate = False
+    _compile_split(_compiled, cascade=False)
+
+
+#: The inner kernel functions compiled first on a cold cache, in this process (HERE, and
+#: CASCADE before the whole warm-up) and in the one beside (BESIDE), so that the entry
+#: points, compiled next, find them in the cache and each is compiled once (numba
+#: compiles one function at a time per process; seconds each). Split for similar times,
+#: measured with numba's compile events: ``_ego_candidates`` alone (with the path and
+#: prediction functions it calls) takes as long as BESIDE.
 HERE = "here"
 BESIDE = "beside"
+CASCADE = "cascade"  # (the cascade's own: evaluate_agents calls none of them)
 _INNER = {
-    HERE: ("_ego_candidates", "_cut_boxes", "_overlap_risks", "_row_starts"),
+    HERE: ("_ego_candidates",),
     BESIDE: (
-        "_polyline_distance", "_first_crossing", "_pair_q", "_gauss_reaches",
-        "_escape_track", "_time_gap",
+        "_polyline_distance", "_first_crossing", "_pair_q", "_escape_track", "_time_gap",
+        "_overlap_risks", "_cut_boxes", "_row_starts", "_others",
     ),
+    CASCADE: ("_gauss_reaches", "_reach_limits", "_reach_keep"),
 }  # fmt: skip
 
 
 def _warm_up_inner(c: types.ModuleType, part: str) -> None:
-    """Compile the inner functions of ``_INNER[part]`` by calling them with the argument
-    types the entry points pass them (contiguous float64 scratch arrays and their rows,
+    """Compile the inner functions of ``_INNER[part]`` for the argument types the entry
+    points pass them (contiguous float64 scratch arrays and their rows,
     int64 counts, float64 scalars, read-only frame arrays). A type that differed would
     compile a second, unused version; ``tests/test_kernel.py`` checks that none is."""
     fa, steps, unc, fp, _ = _warm_up_arguments()
-    xy, heading, speed, _, _, kinds, _, paths, path_points, path_agent = fa
+    xy, heading, speed, _, _, kinds, valid, paths, path_points, path_agent = fa
     p1 = paths.shape[1] + 1
     ns = steps.shape[0]
     nch = (p1 - 1 + K - 1) // K + 1
@@ -322,49 +370,69 @@ def _warm_up_inner(c: types.ModuleType, part: str) -> None:
     def boxes3() -> np.ndarray:  # (chunk boxes per row)
         return np.zeros((1, nch, 4))
 
+    compile_like = c.compile_like
     if part == HERE:
-        c._ego_candidates(
-            xy, heading, speed, kinds, paths, path_points, 0, 0, 1, steps, unc,
-            np.zeros(max(p1 - 2, 1)), nch,
+        compile_like(
+            c._ego_candidates, xy, heading, speed, kinds, paths, path_points, 0, 0, 1, steps,
+            unc, np.zeros(max(p1 - 2, 1)), nch,
         )  # fmt: skip
-        c._cut_boxes(line(), line(), 2, line(), 1.0, boxes(), 2, boxes())
-        c._overlap_risks(
-            track(), track(), 1.0, ns, dt_tau, track(), track(), track(), track(),
-            np.zeros(ns, np.int64), True, True,
+    elif part == CASCADE:
+        compile_like(c._gauss_reaches, track(), track(), ns, 0.5, 0.0)
+        compile_like(c._reach_limits, unc, kinds, 0, ns, 1e-25)
+        limits = np.zeros(unc.shape[0])
+        starts = np.zeros(xy.shape[0] + 1, np.int64)
+        compile_like(c._reach_keep, paths, starts, 0, 0, speed, kinds, 1.0, _MAX_SPEEDS, limits)
+    else:
+        rows = [np.zeros((1, ns)) for _ in range(5)]  # (x, y, cov: an agent's, the ego's)
+        pair = (*rows, 0, *rows, 0)
+        compile_like(
+            c._polyline_distance, rows2(), rows2(), 0, 2, boxes3(), 1, rows2(), rows2(), 0,
+            2, boxes3(), 1, np.zeros(nch * nch), -1.0, np.inf, np.inf,
         )  # fmt: skip
-        c._row_starts(path_agent, xy.shape[0])
-        return
-    rows = [np.zeros((1, ns)) for _ in range(5)]  # (x, y, cov: the agent's, the ego's rows)
-    pair = (*rows, 0, *rows, 0)
-    c._polyline_distance(
-        rows2(), rows2(), 0, 2, boxes3(), 1, rows2(), rows2(), 0, 2, boxes3(), 1,
-        np.zeros(nch * nch), -1.0, np.inf, np.inf,
-    )  # fmt: skip
-    c._first_crossing(line(), line(), line(), 2, boxes(), 1, line(), line(), line(), 2, boxes(), 1)
-    c._pair_q(*pair, ns, track(), track())
-    c._gauss_reaches(track(), track(), ns, 0.5, 0.0)
-    c._escape_track(ns, dt_tau, track(), track())
-    c._time_gap(1.0, 0.0, 1.0)
+        compile_like(
+            c._first_crossing, line(), line(), line(), 2, boxes(), 1, line(), line(), line(),
+            2, boxes(), 1,
+        )  # fmt: skip
+        compile_like(c._pair_q, *pair, ns, track(), track())
+        compile_like(c._escape_track, ns, dt_tau, track(), track())
+        compile_like(c._time_gap, 1.0, 0.0, 1.0)
+        compile_like(
+            c._overlap_risks, track(), track(), 1.0, ns, dt_tau, track(), track(), track(),
+            track(), np.zeros(ns, np.int64), True, True,
+        )  # fmt: skip
+        compile_like(c._cut_boxes, line(), line(), 2, line(), 1.0, boxes(), 2, boxes())
+        compile_like(c._row_starts, path_agent, xy.shape[0])
+        compile_like(c._others, valid, 0)
 
 
-def _wait_until_cached(c: types.ModuleType, part: str, timeout_s: float = 300.0) -> None:
-    """Wait until the other process has cached the inner functions of ``part`` (or
-    ``timeout_s`` has passed: then whatever is missing compiles here)."""
+def _wait_until_cached(
+    c: types.ModuleType,
+    part: str,
+    other: subprocess.Popen[bytes] | None = None,
+    timeout_s: float = 300.0,
+) -> None:
+    """Wait until the other process has cached the inner functions of ``part`` (or has
+    ended, when it is ``other``, or ``timeout_s`` has passed: then whatever is missing
+    compiles here)."""
     deadline = time.monotonic() + timeout_s
     names = list(_INNER[part])
     while names and time.monotonic() < deadline:
         names = [n for n in names if _cache_is_cold(getattr(c, n))]
         if names:
+            if other is not None and other.poll() is not None:
+                return
             time.sleep(0.1)
 
 
-def _compile_beside(c: types.ModuleType) -> None:
-    """What the process beside compiles: its inner functions, the bound and the tier
-    sort, then (once this process has cached its own inner functions) the cascade."""
+def _compile_beside(c: types.ModuleType, cascade: bool) -> None:
+    """What the process beside compiles: its inner functions; when ``cascade``, then
+    (once the other process has cached its own inner functions) the one-pass cascade,
+    while the other compiles ``evaluate_agents``, the bound and the tier sort."""
     _warm_up_inner(c, BESIDE)
-    _warm_up_sorting(c)
-    _wait_until_cached(c, HERE)
-    _warm_up_cascade(c)
+    if cascade:
+        _wait_until_cached(c, HERE)
+        _wait_until_cached(c, CASCADE)
+        _warm_up_fused(c)
 
 
 def _cache_is_cold(dispatcher: Any) -> bool:
@@ -376,21 +444,27 @@ def _cache_is_cold(dispatcher: Any) -> bool:
         return False
 
 
-def _compile_cascade_beside(c: types.ModuleType) -> subprocess.Popen[bytes] | None:
+def _start_beside(c: types.ModuleType, *, cascade: bool) -> subprocess.Popen[bytes] | None:
     """On a cold just-in-time cache and two or more cores, start a process that compiles
-    half of the inner functions, the bound, the tier sort and then the cascade
-    (:func:`_compile_beside`), while this one compiles the other half and then
-    ``evaluate_agents``. numba compiles one function at a time per process, and each
+    half of the inner functions and, when ``cascade``, the bound, the tier sort and then
+    the cascade (:func:`_compile_beside`), while this one compiles the other half and
+    then ``evaluate_agents``. numba compiles one function at a time per process, and each
     entry point would otherwise compile every inner function it calls itself (the two
-    processes compiled most of them twice: 57-70 s of CPU in all, 47-53 s now, measured
-    on a busy machine). None when not started."""
+    processes compiled most of them twice: 57-70 s of CPU in all, 47-53 s without,
+    measured on a busy machine). None when not started (or nothing to compile: the
+    entry point it leads to, ``cascade_agents`` or ``evaluate_agents``, is cached)."""
     if getattr(c, "__name__", "") != "risk.kernel_numba" or (os.cpu_count() or 1) < 2:
         return None
     if c.CACHE_PROBLEM is not None:
         return None  # nothing it compiles could be loaded from the cache
-    if not HAVE_CYCLE_COUNTER or not _cache_is_cold(c.cascade_agents):
+    if cascade and not HAVE_CYCLE_COUNTER:
         return None
-    code = "from risk import kernel, kernel_numba; kernel._compile_beside(kernel_numba)"
+    if not _cache_is_cold(c.cascade_agents if cascade else c.evaluate_agents):
+        return None
+    code = (
+        "from risk import kernel, kernel_numba; "
+        f"kernel._compile_beside(kernel_numba, cascade={cascade})"
+    )
     try:
         return subprocess.Popen(
             [sys.executable, "-c", code],
@@ -401,7 +475,7 @@ def _compile_cascade_beside(c: types.ModuleType) -> subprocess.Popen[bytes] | No
             cwd=pathlib.Path(__file__).resolve().parent.parent,
         )
     except OSError:
-        return None  # this process compiles them after evaluate_agents
+        return None  # this process compiles them with the entry points
 
 
 def _warm_up_arguments() -> tuple[
@@ -451,6 +525,11 @@ def _warm_up_sorting(c: types.ModuleType) -> None:
 def _warm_up_cascade(c: types.ModuleType) -> None:
     """The reachability bound, the tier sort and the one-pass cascade."""
     _warm_up_sorting(c)
+    _warm_up_fused(c)
+
+
+def _warm_up_fused(c: types.ModuleType) -> None:
+    """The one-pass cascade (none where the CPU has no cycle counter)."""
     if not HAVE_CYCLE_COUNTER:
         return
     fa, steps, unc, fp, ip = _warm_up_arguments()

@@ -154,6 +154,10 @@ event.register("numba:compile", _CompileNotice())
 #: inf or NaN, as in the numpy oracle, instead of a Python ZeroDivisionError check
 #: around every division).
 _jit = numba.njit(cache=True, error_model="numpy")
+#: The same for the inner functions, which only kernel code calls: without the Python and
+#: C wrappers that numba otherwise generates and optimises for every function (0.05-0.15 s
+#: of cold compile each, 3-4 s in all). Python compiles them with :func:`compile_like`.
+_inner = numba.njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 # A bare literal passed to a kernel function (or a variable that starts as one) makes
 # numba compile the callee once more, for Literal[int](0) or Literal[bool](False): seconds
 # of cold compile. Where the callee is compiled for int64/bool anyway, such constants are
@@ -161,8 +165,15 @@ _jit = numba.njit(cache=True, error_model="numpy")
 # np_sum, _interp(..., 0) in _cut): their speed against the plain form was within noise.
 
 
+def compile_like(function: numba.core.registry.CPUDispatcher, *args: object) -> None:
+    """Compile (or load from the cache) ``function`` for the types that a call with
+    ``args`` would have, without calling it (an inner function cannot be called from
+    Python: it has no Python wrapper)."""
+    function.compile(tuple(numba.typeof(a) for a in args))
+
+
 # ---------------------------------------------------------------------- summation
-@_jit
+@_inner
 def _pw_leaf(a: np.ndarray, s: int, n: int) -> float:
     if n < 8:
         res = 0.0
@@ -190,7 +201,7 @@ def _pw_leaf(a: np.ndarray, s: int, n: int) -> float:
     return res
 
 
-@_jit
+@_inner
 def np_sum(a: np.ndarray, n: int) -> float:
     """``a[:n].sum()`` exactly as numpy adds (pairwise), without recursion."""
     if n <= PW_BLOCK:
@@ -226,7 +237,7 @@ def np_sum(a: np.ndarray, n: int) -> float:
 
 
 # ---------------------------------------------------------------------- paths
-@_jit
+@_inner
 def _segment_lengths(paths, m, seg):
     """``seg[j]``: the length of segment ``j`` of path row ``m`` (for :func:`_extend`)."""
     p = paths.shape[1]
@@ -236,7 +247,7 @@ def _segment_lengths(paths, m, seg):
         seg[j] = math.sqrt(dx * dx + dy * dy)
 
 
-@_jit
+@_inner
 def _extend(paths, m, npts, heading, min_len, seg, total, ex_rows, ey_rows, ecum_rows,
             eux_rows, euy_rows, row):  # fmt: skip
     """risk.geometry.extend_paths, cumulative_lengths and segment_unit_vectors for row m,
@@ -305,7 +316,7 @@ def _extend(paths, m, npts, heading, min_len, seg, total, ex_rows, ey_rows, ecum
     return npts + 1
 
 
-@_jit
+@_inner
 def _interp(ex, ey, ecum, s, j):
     """Point at arc ``s`` of a padded path (risk.geometry.interpolate_components).
 
@@ -325,7 +336,7 @@ def _interp(ex, ey, ecum, s, j):
     return x, y, seg, j
 
 
-@_jit
+@_inner
 def _cut(ex, ey, ecum, length_m, cx, cy):
     """risk.geometry.cut_paths for one padded path; returns the cut's point count."""
     p1 = ex.shape[0]
@@ -344,7 +355,7 @@ def _cut(ex, ey, ecum, length_m, cx, cy):
     return n
 
 
-@_jit
+@_inner
 def _cut_boxes(cx, cy, cn, ecum, length_m, ebox, en, box):
     """:func:`_boxes` of a cut made by :func:`_cut` from a path with chunk boxes ``ebox``
     (``en`` points): a chunk whose points are all points of that path, at the same
@@ -369,7 +380,7 @@ def _cut_boxes(cx, cy, cn, ecum, length_m, ebox, en, box):
     return nc
 
 
-@_jit
+@_inner
 def _boxes(x, y, n, box):
     """Bounding boxes (lox, loy, hix, hiy) of chunks of K segments; returns the count."""
     nseg = max(n - 1, 1)
@@ -380,7 +391,7 @@ def _boxes(x, y, n, box):
     return c
 
 
-@_jit
+@_inner
 def _chunk_box(x, y, j0, j1, box, ci):
     """``box[ci]`` = the bounding box (lox, loy, hix, hiy) of points ``j0 .. j1``."""
     lox, loy, hix, hiy = x[j0], y[j0], x[j0], y[j0]
@@ -392,19 +403,19 @@ def _chunk_box(x, y, j0, j1, box, ci):
     box[ci, 0], box[ci, 1], box[ci, 2], box[ci, 3] = lox, loy, hix, hiy
 
 
-@_jit
+@_inner
 def _gap2(a, ia, b, ib):
     gx = max(max(b[ib, 0] - a[ia, 2], a[ia, 0] - b[ib, 2]), 0.0)
     gy = max(max(b[ib, 1] - a[ia, 3], a[ia, 1] - b[ib, 3]), 0.0)
     return gx * gx + gy * gy
 
 
-@_jit
+@_inner
 def _sign(v):
     return 1.0 if v > 0 else (-1.0 if v < 0 else 0.0)
 
 
-@_jit
+@_inner
 def _pseg2(px, py, ox, oy, sx, sy, inv2):
     """Squared distance from a point to a segment (as risk.geometry._side_and_distance2)."""
     rx = px - ox
@@ -416,7 +427,7 @@ def _pseg2(px, py, ox, oy, sx, sy, inv2):
     return rx * rx + ry * ry
 
 
-@_jit
+@_inner
 def _polyline_distance(
     ax_rows, ay_rows, ra, an, abox_rows, nca, bx_rows, by_rows, rb, bn, bbox_rows, ncb, gaps,
     stop2, cut2, above,
@@ -606,7 +617,7 @@ def _polyline_distance(
     return out
 
 
-@_jit
+@_inner
 def _segments(ex, ey, n, inv2, slen):
     """Per segment of a polyline: ``1 / length^2`` (0 for a zero-length one) and the
     length, as risk.geometry.project_points computes them."""
@@ -618,7 +629,7 @@ def _segments(ex, ey, n, inv2, slen):
         slen[j] = math.sqrt(len2)
 
 
-@_jit
+@_inner
 def _project(px, py, ex, ey, ecum, n, inv2, slen, box, nb, e):
     """Distance from a point to a polyline and the arc length of the nearest point, the
     first along the path on ties (risk.geometry.project_points), for the polyline in row
@@ -666,7 +677,7 @@ def _project(px, py, ex, ey, ecum, n, inv2, slen, box, nb, e):
     return math.sqrt(best), arc
 
 
-@_jit
+@_inner
 def _touch0(px, py, ax, ay, bx, by):
     """Whether risk.geometry._point_segment_distance is exactly 0."""
     abx = bx - ax
@@ -679,7 +690,7 @@ def _touch0(px, py, ax, ay, bx, by):
     return rx - t * abx == 0.0 and ry - t * aby == 0.0
 
 
-@_jit
+@_inner
 def _first_crossing(bx, by, bcum, bn, bbox, ncb, ax, ay, acum, an, abox, nca):
     """Arc lengths (along b, along a) of the first point along polyline b that lies on a
     (risk.geometry.first_intersections); NaN, NaN when they never meet."""
@@ -748,7 +759,7 @@ def _first_crossing(bx, by, bcum, bn, bbox, ncb, ax, ay, acum, an, abox, nca):
 
 
 # ---------------------------------------------------------------------- prediction
-@_jit
+@_inner
 def _predict(
     ex, ey, ecum, eux, euy, v, steps, unc, kind, row, tx, ty, dxs, dys, slon, cxx, cxy, cyy
 ):
@@ -779,7 +790,7 @@ def _predict(
         cyy[row, k] = a * ss + b * cc
 
 
-@_jit
+@_inner
 def _escape_track(ns, dt_tau, sl, se):
     """``sl[k]``: the survival loop's ``log_s`` before step ``k`` when every earlier
     ``P_o + dt/tau`` rounds to ``dt/tau`` (always so far from the ego); ``se[k] =
@@ -792,7 +803,7 @@ def _escape_track(ns, dt_tau, sl, se):
         log_s += 0.0 + dt_tau
 
 
-@_jit
+@_inner
 def _pair_q(tx, ty, cxx, cxy, cyy, m, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs, dets):
     """The exponent ``q_k = -1/2 dmu^T S^-1 dmu`` and ``det S`` of the Gaussian overlap
     at every step of one prediction pair (the agent's row ``m``, the ego's row ``e``;
@@ -823,7 +834,7 @@ def _pair_q(tx, ty, cxx, cxy, cyy, m, g_tx, g_ty, g_xx, g_xy, g_yy, e, ns, qs, d
     return min(min(m0, m1), min(m2, m3))
 
 
-@_jit
+@_inner
 def _overlap_risks(qs, dets, dmin, ns, dt_tau, terms, sl, se, lsk, defer, want_g, want_s):
     """The Gaussian risk ``max_k P_o(k)`` and the survival risk ``sum_k P_o(k) S_k`` of one
     prediction pair from ``q_k``, ``det_k`` and their least ``det`` (:func:`_pair_q`),
@@ -926,7 +937,7 @@ def _overlap_risks(qs, dets, dmin, ns, dt_tau, terms, sl, se, lsk, defer, want_g
     return gmax
 
 
-@_jit
+@_inner
 def _time_gap(arc, l1, v1):
     """(l2 - l1) / v1 ahead of the ego, inf behind it, for NaN or a standing ego."""
     if v1 <= 0:
@@ -938,7 +949,20 @@ def _time_gap(arc, l1, v1):
 
 
 # ---------------------------------------------------------------------- the kernel
-@_jit
+@_inner
+def _others(valid, ego):
+    """Every valid agent but the ego, in order (a loop: the list comprehension it replaces
+    cost about a second of cold compile in each entry point, in numba's closure inlining)."""
+    out = np.empty(valid.shape[0], np.int64)
+    k = 0
+    for i in range(valid.shape[0]):
+        if valid[i] and i != ego:
+            out[k] = i
+            k += 1
+    return out[:k]
+
+
+@_inner
 def _row_starts(path_agent, n):
     start = np.full(n + 1, -1, np.int64)
     m = path_agent.shape[0]
@@ -951,7 +975,7 @@ def _row_starts(path_agent, n):
     return start
 
 
-@_jit
+@_inner
 def _ego_candidates(
     xy, heading, speed, kinds, paths, path_points, ego, e0, ne, steps, unc, seg, nch
 ):
@@ -1025,7 +1049,7 @@ def evaluate_agents(
     exact values."""
     n = xy.shape[0]
     if agents.shape[0] == 0:
-        agents = np.array([i for i in range(n) if valid[i] and i != ego], dtype=np.int64)
+        agents = _others(valid, ego)
     p = paths.shape[1]
     p1 = p + 1
     ns = steps.shape[0]
@@ -1256,7 +1280,7 @@ def evaluate_agents(
     return out
 
 
-@_jit
+@_inner
 def _reach_limits(unc, kinds, ego, n_steps, threshold):
     """Per agent kind, the squared distance ``d^2`` up to which the reachability bound
     (see :func:`reachable`) keeps an agent of that kind: ``2 L (log(n / (2 pi l)) -
@@ -1279,7 +1303,7 @@ def _reach_limits(unc, kinds, ego, n_steps, threshold):
     return lim
 
 
-@_jit
+@_inner
 def _reach_keep(paths, starts, i, ego, speed, kinds, horizon, max_speed, limits):
     """The reachability bound for agent ``i`` (see :func:`reachable`), with the limits of
     :func:`_reach_limits`: O(1) per pair of path rows."""
@@ -1339,7 +1363,7 @@ def _cycles(typingctx):
     return types.int64(), codegen
 
 
-@_jit
+@_inner
 def _gauss_reaches(qs, dets, ns, thr, qcut):
     """Whether the Gaussian overlap of one prediction pair reaches ``thr`` at some step,
     from its ``q_k`` and ``det_k`` (:func:`_pair_q`; ``P_o`` as :func:`_overlap_risks`
@@ -1414,7 +1438,7 @@ def cascade_agents(
     n = xy.shape[0]
     n_st = st_slot.shape[0]
     if agents.shape[0] == 0:
-        agents = np.array([i for i in range(n) if valid[i] and i != ego], dtype=np.int64)
+        agents = _others(valid, ego)
     code = np.full(n, -2, np.int64)
     surv_out = np.full(n, np.nan)
     cyc = np.zeros(n_st + 3, np.int64)

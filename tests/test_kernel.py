@@ -242,16 +242,42 @@ TWO_AGENTS = (
 )
 
 
+#: Prints, as JSON, how many compiled versions the cache folder holds per kernel function
+#: (0: none).
+COUNT_COMPILED = (
+    "import json, numba; from risk import kernel_numba as k; print(json.dumps({n: "
+    "len(d._cache._cache_file._load_index()) for n, d in vars(k).items() "
+    "if isinstance(d, numba.core.registry.CPUDispatcher)}))"
+)
+#: _pw_leaf and _interp are also called with a literal 0 (risk/kernel_numba.py says why).
+TWO_VERSIONS = {"_pw_leaf", "_interp"}
+
+
+def compiled_versions(env: dict[str, str]) -> dict[str, int]:
+    counts = subprocess.run(
+        [sys.executable, "-c", COUNT_COMPILED], env=env, capture_output=True, text=True,
+        timeout=600,
+    )  # fmt: skip
+    assert counts.returncode == 0, counts.stderr
+    return {name: n for name, n in json.loads(counts.stdout).items() if n}
+
+
 @pytest.mark.slow
 def test_cold_cache_compiles_once_then_loads(tmp_path):
-    """A fresh NUMBA_CACHE_DIR: the first process says it compiles and fills the folder;
-    the second loads the kernels silently."""
+    """A fresh NUMBA_CACHE_DIR: the first process says it compiles and fills the folder,
+    half of the inner functions in a process beside it (on two or more cores), which has
+    ended when evaluate returns; the second loads the kernels silently."""
     code = (
-        "import numpy as np; from risk import Frame, evaluate; "
-        + TWO_AGENTS
-        + "print(repr(evaluate(f)['survival'][1]))"
+        "import numpy as np; from risk import Frame, evaluate, kernel; " + TWO_AGENTS + "\n"
+        "started = []\n"
+        "def spy(c, cascade):\n"
+        "    started.append(kernel_start(c, cascade=cascade))\n"
+        "    return started[-1]\n"
+        "kernel_start, kernel._start_beside = kernel._start_beside, spy\n"
+        "print(repr(evaluate(f)['survival'][1]))\n"
+        "print([None if p is None else p.poll() for p in started])"
     )
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "RISKREPLAY_KERNEL": "jit"}
     runs = [
         subprocess.run(
             [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600
@@ -262,8 +288,18 @@ def test_cold_cache_compiles_once_then_loads(tmp_path):
         assert run.returncode == 0, run.stderr
     assert "compiling the risk kernels" in runs[0].stderr
     assert "compiling" not in runs[1].stderr
-    assert runs[0].stdout == runs[1].stdout
+    risks = [run.stdout.splitlines()[0] for run in runs]
+    assert risks[0] == risks[1]
+    beside = [run.stdout.splitlines()[1] for run in runs]
+    assert beside == (["[0]", "[None]"] if (os.cpu_count() or 1) >= 2 else ["[None]"] * 2)
     assert any(tmp_path.rglob("*.nbi")) and any(tmp_path.rglob("*.nbc"))
+    # Each function evaluate_agents calls was compiled once (in one of the two processes),
+    # with the types it passes; the cascade's own were not compiled.
+    compiled = compiled_versions(env)
+    inner = set(kernel._INNER[kernel.HERE] + kernel._INNER[kernel.BESIDE])
+    assert inner <= set(compiled)
+    assert not set(kernel._INNER[kernel.CASCADE]) & set(compiled)
+    assert {n: c for n, c in compiled.items() if c != (2 if n in TWO_VERSIONS else 1)} == {}
 
 
 def test_warm_up_covers_the_cascade(tmp_path):
@@ -289,20 +325,9 @@ def test_warm_up_covers_the_cascade(tmp_path):
     assert "compiling" not in second.stderr
     # Each kernel function was compiled once per signature its callers use: the inner
     # functions that warm_up compiles first (risk.kernel._INNER) had the callers' types.
-    # _pw_leaf and _interp are also called with a literal 0 (kernel_numba says why).
-    code = (
-        "import json, numba; from risk import kernel_numba as k; print(json.dumps({n: "
-        "len(d._cache._cache_file._load_index()) for n, d in vars(k).items() "
-        "if isinstance(d, numba.core.registry.CPUDispatcher)}))"
-    )
-    counts = subprocess.run(
-        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600
-    )
-    assert counts.returncode == 0, counts.stderr
-    compiled = json.loads(counts.stdout)
+    compiled = compiled_versions(env)
     assert {n for names in kernel._INNER.values() for n in names} <= set(compiled)
-    two = {"_pw_leaf", "_interp"}
-    assert {n: c for n, c in compiled.items() if c != (2 if n in two else 1)} == {}
+    assert {n: c for n, c in compiled.items() if c != (2 if n in TWO_VERSIONS else 1)} == {}
 
 
 def test_first_call_skips_numbas_blas_probe_but_blas_still_compiles():

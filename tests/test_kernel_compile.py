@@ -1,6 +1,7 @@
-"""Compiling the just-in-time kernels from cold: on two or more cores the cascade's
-kernels compile in a second process while this one compiles ``evaluate_agents``
-(risk.kernel._compile_cascade_beside); on a warm cache nothing is started."""
+"""Compiling the just-in-time kernels from cold: on two or more cores half of the inner
+functions (and, in the whole warm-up, the cascade) compile in a second process while this
+one compiles the other half (risk.kernel._start_beside); on a warm cache nothing is
+started."""
 
 from __future__ import annotations
 
@@ -21,17 +22,19 @@ def test_a_warm_cache_starts_no_second_process():
 
     kernel.warm_up(kernel_numba)  # (the conftest has compiled them; this loads them)
     assert not kernel._cache_is_cold(kernel_numba.cascade_agents)
-    assert kernel._compile_cascade_beside(kernel_numba) is None
+    for cascade in (True, False):
+        assert kernel._start_beside(kernel_numba, cascade=cascade) is None
 
 
 def test_the_ahead_of_time_module_is_never_compiled_beside():
     fake = type(sys)("riskreplay_kernel_aot")
-    assert kernel._compile_cascade_beside(fake) is None
+    for cascade in (True, False):
+        assert kernel._start_beside(fake, cascade=cascade) is None
 
 
 @pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="compiles beside only on 2+ cores")
 @pytest.mark.skipif(not kernel.HAVE_CYCLE_COUNTER, reason="no one-pass cascade on this CPU")
-def test_a_cold_cache_starts_the_cascade_compile_beside(tmp_path):
+def test_a_cold_cache_starts_the_compile_beside(tmp_path):
     """In a new process on an empty cache folder the cache reads as cold and the helper
     process starts (it is stopped at once: the whole compile takes about 30 s)."""
     code = textwrap.dedent(
@@ -39,10 +42,11 @@ def test_a_cold_cache_starts_the_cascade_compile_beside(tmp_path):
         from risk import kernel, kernel_numba
         assert kernel._cache_is_cold(kernel_numba.cascade_agents)
         assert kernel._cache_is_cold(kernel_numba.evaluate_agents)
-        beside = kernel._compile_cascade_beside(kernel_numba)
-        assert beside is not None
-        beside.kill()
-        assert beside.wait() != 0
+        for cascade in (True, False):
+            beside = kernel._start_beside(kernel_numba, cascade=cascade)
+            assert beside is not None
+            beside.kill()
+            assert beside.wait() != 0
         print("ok")
         """
     )
@@ -81,4 +85,5 @@ def test_an_unwritable_cache_is_named_in_the_notice_and_compiles_nothing_beside(
     message = caplog.records[0].getMessage()
     assert "in every run" in message and "Permission denied" in message
     assert kernel_numba.CACHE_DIR in message and "NUMBA_CACHE_DIR" in message
-    assert kernel._compile_cascade_beside(kernel_numba) is None
+    for cascade in (True, False):
+        assert kernel._start_beside(kernel_numba, cascade=cascade) is None
