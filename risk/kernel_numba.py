@@ -131,13 +131,13 @@ class _CompileNotice(event.Listener):
             _CompileNotice.said = True
             if CACHE_PROBLEM is None:
                 log.warning(
-                    "riskreplay: compiling the risk kernels once (about 25-30 s on two cores); "
+                    "riskreplay: compiling the risk kernels once (about 20-25 s on two cores); "
                     "later runs load them from %s",
                     CACHE_DIR,
                 )
             else:
                 log.warning(
-                    "riskreplay: compiling the risk kernels (about 25-30 s on two cores) in "
+                    "riskreplay: compiling the risk kernels (about 20-25 s on two cores) in "
                     "every run: the cache folder %s cannot be written (%s); set "
                     "NUMBA_CACHE_DIR to a writable folder",
                     CACHE_DIR,
