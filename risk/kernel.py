@@ -316,9 +316,10 @@ _first_evaluate = IMPLEMENTATION == "jit"
 def _before_first_evaluate() -> None:
     """Before this process's first :func:`run`: on a cold just-in-time cache, compile the
     inner functions in two processes (:func:`_compile_split`), so that the call compiles
-    only ``evaluate_agents`` itself. The cold first call of :func:`risk.evaluate` takes
-    about 18 s of wall time instead of about 27 s; the process beside has ended when this
-    returns, so that no compile outlives a short script."""
+    only ``evaluate_agents`` itself. The cold first call of :func:`risk.evaluate` took
+    20.5-22.7 s of wall time instead of 30.5-31.2 s in one process (README, "Compiling
+    from cold"); the process beside has ended when this returns, so that no compile
+    outlives a short script."""
     global _first_evaluate
     _first_evaluate = False
     _compile_split(_compiled, cascade=False)
@@ -345,9 +346,9 @@ _INNER = {
 
 def _warm_up_inner(c: types.ModuleType, part: str) -> None:
     """Compile the inner functions of ``_INNER[part]`` for the argument types the entry
-    points pass them (contiguous float64 scratch arrays and their rows,
-    int64 counts, float64 scalars, read-only frame arrays). A type that differed would
-    compile a second, unused version; ``tests/test_kernel.py`` checks that none is."""
+    points pass them (contiguous float64 scratch arrays and their rows, int64 counts,
+    float64 scalars, read-only frame arrays). A type that differed would compile a
+    second, unused version; ``tests/test_kernel.py`` checks that none is."""
     fa, steps, unc, fp, _ = _warm_up_arguments()
     xy, heading, speed, _, _, kinds, valid, paths, path_points, path_agent = fa
     p1 = paths.shape[1] + 1

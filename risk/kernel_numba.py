@@ -157,7 +157,10 @@ _jit = numba.njit(cache=True, error_model="numpy")
 #: The same for the inner functions, which only kernel code calls: without the Python and
 #: C wrappers that numba otherwise generates and optimises for every function (0.05-0.15 s
 #: of cold compile each, 3-4 s in all). Python compiles them with :func:`compile_like`.
-_inner = numba.njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+#: (numba's own type hints leave out these two of its options.)
+_inner = numba.njit(  # type: ignore[call-overload]
+    cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True
+)
 # A bare literal passed to a kernel function (or a variable that starts as one) makes
 # numba compile the callee once more, for Literal[int](0) or Literal[bool](False): seconds
 # of cold compile. Where the callee is compiled for int64/bool anyway, such constants are
