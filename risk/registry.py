@@ -264,6 +264,12 @@ def kernel_inputs(
     mapping is read-only: it is shared)."""
     if params is None and prediction is None:
         return _default_kernel_inputs()
+    return _resolve_kernel_inputs(params, prediction)
+
+
+def _resolve_kernel_inputs(
+    params: Mapping[str, Any] | None, prediction: PredictionSettings | None
+) -> tuple[dict[str, Any], PredictionSettings, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     chosen = resolve_params(params)
     settings = resolve_prediction(prediction)
     steps, unc = kernel_settings(settings)
@@ -275,10 +281,7 @@ def kernel_inputs(
 def _default_kernel_inputs() -> tuple[
     Mapping[str, Any], PredictionSettings, np.ndarray, np.ndarray, np.ndarray, np.ndarray
 ]:
-    chosen = resolve_params(None)
-    settings = resolve_prediction(None)
-    steps, unc = kernel_settings(settings)
-    fp, ip = kernel_params(chosen, settings)
+    chosen, settings, steps, unc, fp, ip = _resolve_kernel_inputs(None, None)
     return types.MappingProxyType(chosen), settings, steps, unc, fp, ip
 
 
