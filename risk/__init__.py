@@ -11,8 +11,10 @@ entry point::
     important = baseline_mask(risks[BASELINE_MODEL])
 """
 
+from risk.cascade import CascadeConfig
 from risk.errors import FrameError, RiskError, UnknownModelError
 from risk.evaluation import evaluate_references, pooled_roc
+from risk.filtering import FilterResult, filter_frame, parse_filter
 from risk.frame import KIND_NAMES, Frame, Kind, Lane, LaneMap, MapLine, Scene
 from risk.hindsight import HindsightSettings, Tracks, Truth, hindsight_truth
 from risk.prediction import (
@@ -37,8 +39,10 @@ from risk.registry import kernel as kernel
 __all__ = [
     "BASELINE_MODEL",
     "BASELINE_THRESHOLD",
+    "CascadeConfig",
     "KIND_NAMES",
     "MODELS",
+    "FilterResult",
     "Frame",
     "FrameContext",
     "FrameError",
@@ -59,6 +63,8 @@ __all__ = [
     "baseline_mask",
     "evaluate",
     "evaluate_references",
+    "filter_frame",
     "hindsight_truth",
+    "parse_filter",
     "pooled_roc",
 ]
