@@ -31,7 +31,7 @@ import numpy as np
 import polars as pl
 
 from converters.errors import ConversionError
-from converters.finite import check_grid
+from converters.input_checks import check_grid
 from converters.lanegraph import PathSettings, lanelet_centerline
 from converters.map_lines import av2_lines
 from converters.tracks import Skipped, TrackTable, build_scene, integer_ids

@@ -23,8 +23,8 @@ import numpy as np
 from tqdm import tqdm
 
 from converters.errors import ConversionError
-from converters.finite import REASONS, apply_bad_rule, bad_states
-from converters.hindsight import Hindsight
+from converters.hindsight_paths import Hindsight
+from converters.input_checks import REASONS, apply_bad_rule, bad_states
 from converters.lanegraph import LaneGraph, PathRows, PathSettings, straight_rows
 from risk.frame import Frame, Kind, LaneMap, Scene
 from risk.motion import MIN_TRAVEL_M, track_extents
@@ -154,7 +154,7 @@ def build_scene(
     ``paths`` is ``map`` (lane graph of ``lane_map``) or ``hindsight`` (recorded future).
     ``source`` names the input in error messages. Raises ConversionError when the ego is
     never valid or a track id repeats. Valid states with non-finite or out-of-range
-    values follow the rule of :mod:`converters.finite`: an error, or with ``skip_bad``
+    values follow the rule of :mod:`converters.input_checks`: an error, or with ``skip_bad``
     dropped, noted in ``skipped`` and counted in the metadata (``bad_states_dropped``).
     """
     if paths not in PATH_MODES:

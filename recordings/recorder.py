@@ -1,4 +1,4 @@
-"""The Rerun recording of a replay: a :class:`base.sinks.Sink` that writes one ``.rrd``.
+"""The Rerun recording of a replay: a :class:`outputs.sinks.Sink` that writes one ``.rrd``.
 
 ``add()`` keeps only the arrays the recording needs (valid agents, the cascade outcome,
 every model's risk, the paths to draw); ``close()`` adds the hindsight labels and writes
@@ -6,7 +6,7 @@ everything at once with :func:`recordings.writer.write_file` (batched, atomic: a
 temporary file renamed at the end; ``abort()`` or any error leaves nothing behind).
 
 This module does not import rerun. With ``background=True`` the writing runs in the
-output process (:mod:`base.background`), started by ``begin()`` or earlier by the
+output process (:mod:`outputs.process`), started by ``begin()`` or earlier by the
 command, which imports rerun (about 1 s) while the replay computes; ``close()`` hands it
 the collected frames, waits for the temporary file and renames it into place. On one CPU,
 or where processes cannot be forked (Windows, macOS), the recorder writes in its own
@@ -27,9 +27,9 @@ from typing import Literal
 
 import numpy as np
 
-from base import background as output_process
-from base.atomic import commit, temp_path_beside
-from base.sinks import FrameResult, SceneInfo
+from outputs import process as output_process
+from outputs.atomic import commit, temp_path_beside
+from outputs.sinks import FrameResult, SceneInfo
 from recordings.errors import RecordingError
 from risk.hindsight import LABEL_POSITIVE, LABEL_UNKNOWN, truth_for_rows
 

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from base.sinks import SceneInfo
+from outputs.sinks import SceneInfo
 from recordings import layout as L
 
 if TYPE_CHECKING:

@@ -8,7 +8,7 @@ and one per timeline entity. Measured with rerun-sdk 0.41 (see ``docs/recording.
 frame. The recorder renames the temporary file into place when it is complete.
 
 This module is kept apart from the recorder so that the recorder can run it in the output
-process (:mod:`base.background`; importing rerun takes about 1 s) while the replay
+process (:mod:`outputs.process`; importing rerun takes about 1 s) while the replay
 computes; see ``SceneRecorder(background=True)``.
 """
 
@@ -30,8 +30,8 @@ import numpy.ma  # (rerun's blueprint code needs it: 40 ms, here while idle)
 import pyarrow as pa
 import rerun as rr
 
-from base.guard import run_with_stall_timeout
-from base.sinks import SceneInfo
+from outputs.sinks import SceneInfo
+from outputs.transaction import run_with_stall_timeout
 from recordings import columns as C
 from recordings import layout as L
 from recordings.errors import RecordingError

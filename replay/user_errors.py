@@ -3,8 +3,8 @@ without a traceback, and ``replay batch`` records them without the code location
 
 from __future__ import annotations
 
-from base.background import OutputProcessError  # standard library only: cheap to import
-from base.guard import OutputError
+from outputs.process import OutputProcessError  # standard library only: cheap to import
+from outputs.transaction import OutputError
 
 
 def user_errors() -> tuple[type[BaseException], ...]:
@@ -14,11 +14,12 @@ def user_errors() -> tuple[type[BaseException], ...]:
     # loads rerun (about 1 s), which neither ``replay --help`` nor a batch worker that
     # writes no recording should pay.
     from converters.errors import ConversionError
+    from converters.scene.errors import SceneFormatError
     from recordings.errors import RecordingError
     from replay.errors import ReplayError
     from risk.errors import RiskError
 
     return (
-        RiskError, ConversionError, ReplayError, RecordingError, OutputError,
+        RiskError, ConversionError, SceneFormatError, ReplayError, RecordingError, OutputError,
         OutputProcessError, OSError,
     )  # fmt: skip

@@ -97,7 +97,7 @@ def scene_bytes() -> bytes:
     """A small valid scene (synthetic, 12 agents, 1 s), made once per process."""
     with _SCENE_LOCK:
         if "scene" not in _SCENE_CACHE:
-            from converters.mcap_io import write_scene
+            from converters.scene.writer import write_scene
             from converters.synthetic import SyntheticSettings, generate_scene
 
             settings = SyntheticSettings(n_agents=12, duration_s=1.0)
@@ -134,8 +134,8 @@ def truncated(folder: pathlib.Path, fraction: float) -> pathlib.Path:
 
 def table(folder: pathlib.Path, name: str = "tab.parquet") -> pathlib.Path:
     """A real agents table, from replaying the small scene (in-process)."""
-    from replay.engine import run_scene
-    from replay.tables import TableSink
+    from replay.core.engine import run_scene
+    from replay.core.tables import TableSink
 
     src = scene(folder, ".src.mcap")
     path = folder / name
@@ -495,7 +495,7 @@ def run_case_in_process(case: Case, folder: pathlib.Path) -> Outcome:
     surviving processes are not observable here (the subprocess runner sees them)."""
     from click.testing import CliRunner
 
-    from replay.cli import main
+    from replay.cli.app import main
 
     folder.mkdir(parents=True, exist_ok=True)
     args, inputs = case.make(folder)

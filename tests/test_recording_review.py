@@ -13,12 +13,12 @@ import pytest
 from click.testing import CliRunner
 from test_recordings import TIMES, make_results, read_rrd, rgba
 
-from base.sinks import FrameResult
+from outputs.sinks import FrameResult
 from recordings import SceneRecorder
 from recordings import layout as L
 from recordings import writer as W
-from replay.cli import main
-from replay.tables import TableSink
+from replay.cli.app import main
+from replay.core.tables import TableSink
 from risk import MODELS
 from risk.frame import MapLine
 

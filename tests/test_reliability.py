@@ -31,12 +31,12 @@ from reliability_cases import (
     session_members,
 )
 
-from base import atomic
-from base.guard import OutputError, OutputGuard, run_with_stall_timeout, same_file
-from converters import scene_format as sf
-from converters.mcap_io import SceneWriter, encode_frame
-from replay.cli import main
-from replay.reader import read_scene
+from converters.scene import schema as sf
+from converters.scene.reader import read_scene
+from converters.scene.writer import SceneWriter, encode_frame
+from outputs import atomic
+from outputs.transaction import OutputError, OutputGuard, run_with_stall_timeout, same_file
+from replay.cli.app import main
 
 
 @pytest.mark.parametrize("case", cases(), ids=lambda c: c.name)
@@ -324,7 +324,7 @@ def _assert_clean_failure(code, err, disk: pathlib.Path, seconds: float) -> None
 
 @pytest.mark.slow
 def test_run_on_a_full_disk_fails_fast_and_leaves_nothing(tiny_disk, tmp_path):
-    from converters.mcap_io import write_scene
+    from converters.scene.writer import write_scene
     from converters.synthetic import SyntheticSettings, generate_scene
 
     big = tmp_path / "big.mcap"
@@ -396,7 +396,7 @@ def _children_of(pid: int) -> list[int]:
 @pytest.mark.slow
 @pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGTERM])
 def test_batch_leaves_no_orphans_when_its_driver_dies(how, tmp_path):
-    from converters.mcap_io import write_scene
+    from converters.scene.writer import write_scene
     from converters.synthetic import SyntheticSettings, generate_scene
 
     scenes = tmp_path / "scenes"

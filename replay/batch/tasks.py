@@ -14,9 +14,11 @@ import traceback
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING
 
-from base.atomic import safe_name
+from converters.scene.errors import SceneFormatError
+from converters.scene.reader import open_scene
 from converters.sources import SOURCES, ReadOptions, SourceInput, SourceSpec
 from converters.tracks import Skipped
+from outputs.atomic import safe_name
 from replay.batch.markers import write_convert_marker, write_parquet, write_replay_marker
 from replay.batch.records import (
     ConvertOutcome,
@@ -26,11 +28,9 @@ from replay.batch.records import (
     ReplayTask,
     SceneDone,
 )
-from replay.egos import ALL_EGOS
-from replay.errors import SceneFormatError
-from replay.reader import open_scene
+from replay.core.egos import ALL_EGOS
+from replay.core.worker import replay_scene
 from replay.user_errors import user_errors
-from replay.worker import replay_scene
 
 if TYPE_CHECKING:
     from risk.frame import Scene
@@ -83,7 +83,7 @@ def convert_one(task: ConvertTask) -> ConvertOutcome:
     """
     start = time.perf_counter()
     try:
-        from converters.mcap_io import write_scene
+        from converters.scene.writer import write_scene
     except Exception as exc:
         failure = failure_from(task.input, "", "setup", exc)
         return ConvertOutcome(task, (), (failure,), time.perf_counter() - start)
