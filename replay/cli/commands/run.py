@@ -13,6 +13,7 @@ from replay.cli.ego_options import ego_option, every_option
 from replay.cli.settings_option import load_cascade, set_option
 from replay.core.egos import ALL_EGOS, EgosSummary, pooled, run_every_ego
 from replay.core.engine import ReplayWarning, RunSummary, Sink, Stride, run_scene
+from replay.core.keep_lists import KeepListSink
 
 
 @click.command("run")
@@ -37,6 +38,12 @@ from replay.core.engine import ReplayWarning, RunSummary, Sink, Stride, run_scen
     help="Also write a frame x agent table of every model's risk and the cascade's "
     "decisions (.parquet or .csv, by suffix).",
 )  # fmt: skip
+@click.option(
+    "--keep-lists", type=click.Path(dir_okay=False, path_type=pathlib.Path),
+    help="Also write the cascade's answer for every frame by agent id, for a planner "
+    "stack: kept ids (most important first), ids per planner tier, dropped ids with the "
+    "stage that dropped them, the filter's time (.jsonl or .parquet, by suffix).",
+)  # fmt: skip
 @click.option("--no-rrd", is_flag=True, help="Do not write the Rerun recording.")
 @click.option(
     "--progress/--no-progress", default=True, show_default=True,
@@ -52,6 +59,7 @@ def run(
     table: pathlib.Path | None,
     no_rrd: bool,
     progress: bool,
+    keep_lists: pathlib.Path | None = None,
     sets: tuple[str, ...] = (),
 ) -> None:
     """Replay SCENE (an MCAP scene) through the nine risk models and the filter cascade.
@@ -79,16 +87,16 @@ def run(
             "one ego with --ego ID to look at it.",
             err=True,
         )
-        with OutputGuard(inputs=inputs, files=(table,)):  # checked before the replay
+        with OutputGuard(inputs=inputs, files=(table, keep_lists)):  # checked first
             egos = run_every_ego(
-                scene, sinks=make_sinks(None, table), cascade=cascade, every=every,
+                scene, sinks=make_sinks(None, table, keep_lists), cascade=cascade, every=every,
                 progress=progress,
             )  # fmt: skip
         click.echo(format_egos_summary(egos))
         return
     rrd = None if no_rrd else (output or scene.with_suffix(".rrd"))
-    with OutputGuard(inputs=inputs, files=(rrd, table)):  # checked before the replay
-        sinks = make_sinks(rrd, table)
+    with OutputGuard(inputs=inputs, files=(rrd, table, keep_lists)):  # checked first
+        sinks = make_sinks(rrd, table, keep_lists)
         reader = open_scene(scene)
         if ego is None:  # the scene's own ego: say which agent it is and why
             click.echo(ego_note(reader.metadata), err=True)
@@ -118,7 +126,11 @@ def format_egos_summary(egos: EgosSummary) -> str:
     return head + "\n" + body.replace("frames", "ego-frames", 1)
 
 
-def make_sinks(rrd: pathlib.Path | None, table: pathlib.Path | None) -> list[Sink]:
+def make_sinks(
+    rrd: pathlib.Path | None,
+    table: pathlib.Path | None,
+    keep_lists: pathlib.Path | None = None,
+) -> list[Sink]:
     """The sinks of a run: the Rerun recording and/or the table (both checked before the
     replay starts, so a bad path fails at once)."""
     # Each output's library is loaded only when it is asked for, and where there is a
@@ -128,6 +140,8 @@ def make_sinks(rrd: pathlib.Path | None, table: pathlib.Path | None) -> list[Sin
     # the process's imports and writes one after the other made it the critical path
     # (`replay demo` 0.3 s slower, measured).
     sinks: list[Sink] = []
+    if keep_lists is not None:
+        sinks.append(KeepListSink(keep_lists))
     if table is not None:
         from replay.core.tables import TableSink
 
