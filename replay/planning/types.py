@@ -24,7 +24,9 @@ STOP_SPEED_MPS = 0.5
 
 
 def _shape(name: str, a: np.ndarray, shape: tuple[int | None, ...]) -> None:
-    ok = a.ndim == len(shape) and all(s is None or s == d for s, d in zip(shape, a.shape))
+    ok = a.ndim == len(shape) and all(
+        s is None or s == d for s, d in zip(shape, a.shape, strict=False)
+    )
     if not ok:
         want = "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
         raise ValueError(f"{name}: expected shape {want}, got {a.shape}")
@@ -104,6 +106,29 @@ class AgentForecasts:
             heading_rad=self.heading_rad[sel],
         )
 
+    def on_times(self, times_s: np.ndarray) -> AgentForecasts:
+        """The forecasts at other times (T',): linear in position and heading, held at
+        the first / last forecast outside their span. Returns ``self`` when the times are
+        the same."""
+        new = np.asarray(times_s, dtype=np.float64)
+        if new.shape == self.times_s.shape and np.allclose(new, self.times_s):
+            return self
+        old = self.times_s
+        j = np.clip(np.searchsorted(old, new, side="right") - 1, 0, max(old.size - 2, 0))
+        j1 = np.minimum(j + 1, old.size - 1)
+        span = old[j1] - old[j]
+        w = np.clip(np.where(span > 0, (new - old[j]) / np.where(span > 0, span, 1.0), 0.0), 0, 1)
+        heading = np.unwrap(self.heading_rad, axis=1)
+        return AgentForecasts(
+            ids=self.ids,
+            kinds=self.kinds,
+            length_m=self.length_m,
+            width_m=self.width_m,
+            times_s=new,
+            xy=self.xy[:, j] * (1 - w)[None, :, None] + self.xy[:, j1] * w[None, :, None],
+            heading_rad=heading[:, j] * (1 - w)[None, :] + heading[:, j1] * w[None, :],
+        )
+
     @classmethod
     def empty(cls, times_s: np.ndarray) -> AgentForecasts:
         """No agents, on the time grid ``times_s`` (T,)."""
@@ -156,7 +181,7 @@ class PlanRequest:
 
 def plan_times(horizon_s: float, dt_s: float) -> np.ndarray:
     """Times ``0, dt, ..., horizon`` (T,) in s; the horizon is rounded to whole steps."""
-    steps = int(round(horizon_s / dt_s))
+    steps = round(horizon_s / dt_s)
     return np.arange(steps + 1) * dt_s
 
 
