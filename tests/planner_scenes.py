@@ -108,6 +108,6 @@ def road_scene(agents: Iterable[int] = OTHERS, *, duration_s: float = 2.0) -> Sc
 
 def write_road_scene(path: str | pathlib.Path, agents: Iterable[int] = OTHERS) -> pathlib.Path:
     """Write :func:`road_scene` to an MCAP scene file; returns its path."""
-    from converters.mcap_io import write_scene  # tests only: keeps this module import light
+    from converters.scene.writer import write_scene  # tests only: keeps this module import light
 
     return write_scene(path, road_scene(agents))

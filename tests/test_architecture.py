@@ -36,6 +36,8 @@ ALLOWED_INNER_IMPORTS = {
     ("replay/batch/tasks.py", "converters.errors"),
     ("replay/batch/tasks.py", "converters.scene.writer"),
     ("replay/batch/tasks.py", "converters.tracks"),
+    # matplotlib (about 1 s to import) only when replay plan writes its plots
+    ("replay/analysis/planner_eval/study.py", "replay.analysis.planner_eval"),
     # optional dependency, installed with the 'ray' extra
     ("replay/batch/engines.py", "ray"),
     # rerun (about 1 s) only for workers that write a recording / on a failure
