@@ -39,9 +39,9 @@ from risk.registry import kernel as kernel
 __all__ = [
     "BASELINE_MODEL",
     "BASELINE_THRESHOLD",
-    "CascadeConfig",
     "KIND_NAMES",
     "MODELS",
+    "CascadeConfig",
     "FilterResult",
     "Frame",
     "FrameContext",
