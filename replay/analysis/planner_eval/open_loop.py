@@ -95,6 +95,17 @@ PLAN_COLUMNS = (
     "stops", "lane", "blocking_id", "blocking_dropped", "reason", "target_speed_mps",
 )  # fmt: skip
 
+#: Column types of the tables (columns that may be all null need theirs stated).
+SCHEMA: dict[str, str] = {
+    "scene": "str", "dataset": "str", "planner": "str", "filter": "str", "why": "str",
+    "reason": "str", "ego_id": "int", "frame": "int", "n_others": "int", "n_agents": "int",
+    "lane": "int", "blocking_id": "int", "agent_id": "int", "kind": "int", "t_s": "float",
+    "filter_ms": "float", "plan_ms": "float", "max_shift_m": "float",
+    "target_speed_mps": "float", "distance_m": "float", "planner_shift_m": "float",
+    "plan_ok": "bool", "changed": "bool", "stops": "bool", "blocking_dropped": "bool",
+    "planner_label": "bool", "planner_skipped": "bool", "kept_by_cascade": "bool",
+}  # fmt: skip
+
 TRUTH_COLUMNS = (
     "scene", "dataset", "planner", "ego_id", "frame", "t_s", "agent_id", "kind",
     "distance_m", "planner_label", "planner_shift_m", "planner_skipped", "kept_by_cascade",

@@ -25,6 +25,7 @@ from outputs.atomic import atomic_write, write_text
 from replay.analysis.planner_eval.closed_loop import closed_loop_scene
 from replay.analysis.planner_eval.open_loop import (
     ALL_AGENTS,
+    SCHEMA,
     PlanSettings,
     ScenePlans,
     _egos,
@@ -91,8 +92,15 @@ def run_open_loop(
     )
 
 
+_POLARS_TYPES = {"str": pl.String, "int": pl.Int64, "float": pl.Float64, "bool": pl.Boolean}
+
+
 def _frame(parts: list[dict[str, list[Any]]], datasets: dict[str, str]) -> pl.DataFrame:
-    frames = [pl.DataFrame(p, infer_schema_length=None) for p in parts if p and p["scene"]]
+    frames = [
+        pl.DataFrame(p, schema={k: _POLARS_TYPES[SCHEMA[k]] for k in p})
+        for p in parts
+        if p and p["scene"]
+    ]
     if not frames:
         return pl.DataFrame()
     df = pl.concat(frames, how="diagonal_relaxed")
