@@ -165,7 +165,7 @@ def test_an_ego_without_a_path_is_counted_not_unchanged(tmp_path):
             paths=[np.array([[0.0, 0.0]]), np.array([[30.0, 0.0], [200.0, 0.0]])],
             ego=0,
             t=0.1 * k,
-        )  # fmt: skip
+        )
         for k in range(3)
     ]
     path = write_scene(tmp_path / "nopath.mcap", Scene(road_map(), frames, 0.1, ego_id=0))
