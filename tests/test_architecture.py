@@ -50,6 +50,8 @@ ALLOWED_INNER_IMPORTS = {
     # polars (about 0.3 s): only to build or write a table, else in the output process
     ("replay/core/tables.py", "replay.core"),
     ("replay/core/worker.py", "recordings"),
+    ("replay/core/scene_run.py", "replay.core.tables"),
+    ("replay/core/scene_run.py", "recordings"),
     ("replay/batch/tasks.py", "recordings.errors"),
     # matplotlib (about 1 s) only in the driver, not in every spawned worker
     ("replay/batch/driver.py", "replay.analysis.stats.run"),
