@@ -25,12 +25,12 @@ import sys
 import tempfile
 import time
 
-from replay.cli.commands.demo import DEMO_SEED
+from replay.core.scene_run import DEMO_SEED
 
 
 def make_scene(folder: pathlib.Path, agents: int, seed: int) -> pathlib.Path:
     from converters.scene.writer import write_scene
-    from replay.cli.commands.demo import demo_scene
+    from replay.core.scene_run import demo_scene
 
     return write_scene(folder / "bench.mcap", demo_scene(n_agents=agents, seed=seed))
 

@@ -46,11 +46,13 @@ import traceback
 from collections.abc import Iterable
 from typing import Any
 
+from risk.errors import RiskReplayError  # standard library only (risk/__init__.py is lazy)
+
 #: ``auto`` (default), ``on`` or ``off``: when to write outputs in the output process.
 MODE_VARIABLE = "RISKREPLAY_OUTPUT_PROCESS"
 
 
-class OutputProcessError(RuntimeError):
+class OutputProcessError(RiskReplayError, RuntimeError):
     """The output process ended before it finished a job (it was killed, or crashed)."""
 
 

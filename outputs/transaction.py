@@ -53,6 +53,7 @@ from collections.abc import Callable, Iterable
 from types import TracebackType
 
 from outputs import atomic
+from risk.errors import RiskReplayError
 
 TEMP_NAME = re.compile(r"^\.(?P<target>.+)\.[0-9a-f]{12}\.tmp$")
 """Names of :func:`outputs.atomic.temp_path_beside` files (``.NAME.<12 hex>.tmp``)."""
@@ -60,7 +61,7 @@ TEMP_NAME = re.compile(r"^\.(?P<target>.+)\.[0-9a-f]{12}\.tmp$")
 LOCK_SUFFIX = ".lock"
 
 
-class OutputError(RuntimeError):
+class OutputError(RiskReplayError, RuntimeError):
     """An output path cannot be used: it is an input, used twice, locked or unwritable,
     or a save stalled. The message is meant for the user (``replay.cli.app`` prints it as one
     ``Error:`` line)."""

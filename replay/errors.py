@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from risk.errors import RiskReplayError
 
-class ReplayError(RuntimeError):
+
+class ReplayError(RiskReplayError, RuntimeError):
     """Base class of replay errors; the message says what is wrong and what to do."""
 
 

@@ -43,6 +43,7 @@ import warnings
 
 import numpy
 
+from risk.errors import RiskReplayError
 from risk.kernel_shared import cache_dir
 
 log = logging.getLogger("risk")
@@ -59,7 +60,7 @@ HERE = pathlib.Path(__file__).resolve().parent
 SOURCES = ("kernel_numba.py", "kernel_shared.py", "kernel_aot.py")
 
 
-class AotBuildError(RuntimeError):
+class AotBuildError(RiskReplayError, RuntimeError):
     """The ahead-of-time module could not be built (no C compiler, a numba error, ...)."""
 
 

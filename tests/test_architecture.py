@@ -1,5 +1,6 @@
-"""The import rules of docs/architecture.md that import-linter does not cover: no
-module-level import cycles, and imports at the top of library modules.
+"""The rules of docs/architecture.md that import-linter does not cover: no module-level
+import cycles, imports at the top of library modules, mcap and click only in their layers
+(also for modules added after the contracts were written), and one base for every error.
 
 (The layers and the forbidden imports are import-linter contracts in pyproject.toml,
 checked by ``lint-imports`` in ``.ci/run``.)
@@ -8,9 +9,13 @@ checked by ``lint-imports`` in ``.ci/run``.)
 from __future__ import annotations
 
 import ast
+import importlib
+import inspect
 import pathlib
 
 from conftest import ROOT
+
+from risk.errors import RiskReplayError
 
 PACKAGES = ("risk", "outputs", "converters", "replay", "recordings")
 
@@ -36,6 +41,8 @@ ALLOWED_INNER_IMPORTS = {
     ("replay/batch/tasks.py", "converters.errors"),
     ("replay/batch/tasks.py", "converters.scene.writer"),
     ("replay/batch/tasks.py", "converters.tracks"),
+    # polars (0.3 s to import) only for a Parquet keep-list (JSON Lines needs none)
+    ("replay/core/keep_lists.py", "polars"),
     # matplotlib (about 1 s to import) only when replay plan writes its plots
     ("replay/analysis/planner_eval/study.py", "replay.analysis.planner_eval"),
     # optional dependency, installed with the 'ray' extra
@@ -47,16 +54,12 @@ ALLOWED_INNER_IMPORTS = {
     # polars (about 0.3 s): only to build or write a table, else in the output process
     ("replay/core/tables.py", "replay.core"),
     ("replay/core/worker.py", "recordings"),
+    ("replay/core/scene_run.py", "replay.core.tables"),
+    ("replay/core/scene_run.py", "recordings"),
     ("replay/batch/tasks.py", "recordings.errors"),
     # matplotlib (about 1 s) only in the driver, not in every spawned worker
     ("replay/batch/driver.py", "replay.analysis.stats.run"),
     ("replay/analysis/experiment/report.py", "replay.analysis.stats.plots"),
-    # `replay --help` stays fast: the error types load numpy, the models and rerun
-    ("replay/user_errors.py", "converters.errors"),
-    ("replay/user_errors.py", "converters.scene.errors"),
-    ("replay/user_errors.py", "recordings.errors"),
-    ("replay/user_errors.py", "replay.errors"),
-    ("replay/user_errors.py", "risk.errors"),
     # the output process starts before click and the CLI load (replay/__main__.py)
     ("replay/__main__.py", "replay.cli.app"),
     # importlib.metadata (about 25 ms of every command's start-up) only for __version__
@@ -187,3 +190,59 @@ def test_imports_inside_functions_are_the_listed_ones():
                 elif isinstance(node, ast.ImportFrom):
                     found.add((rel, node.module or ""))
     assert found - ALLOWED_INNER_IMPORTS == set()
+
+
+def _imported_names(path: pathlib.Path) -> set[str]:
+    """Every module an ``import`` statement anywhere in the file names (also in functions)."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            names |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.add(node.module)
+    return names
+
+
+#: third-party package -> the only package of ours that may import it
+ONLY_IN = {"mcap": "converters.scene", "mcap_protobuf": "converters.scene", "click": "replay.cli"}
+
+
+def test_mcap_and_click_stay_in_their_layers():
+    users: dict[str, set[str]] = {library: set() for library in ONLY_IN}
+    for name, path in _modules().items():
+        for imported in _imported_names(path):
+            top = imported.split(".")[0]
+            if top in users:
+                users[top].add(name)
+    for library, owner in ONLY_IN.items():
+        outside = {m for m in users[library] if m != owner and not m.startswith(owner + ".")}
+        assert outside == set(), f"{library} imported outside {owner}"
+    # not vacuous: the owners do import them
+    assert "converters.scene.writer" in users["mcap"] and "converters.scene.reader" in users["mcap"]
+    assert "replay.cli.app" in users["click"]
+
+
+#: Exception classes of ours that are not meant for the user (each with its reason).
+INTERNAL_EXCEPTIONS: set[str] = set()
+
+
+def test_every_error_derives_from_the_one_base():
+    found = {}
+    for name in sorted(_modules()):
+        module = importlib.import_module(name)
+        for obj in vars(module).values():
+            if (
+                inspect.isclass(obj)
+                and issubclass(obj, BaseException)
+                and not issubclass(obj, Warning)
+                and obj.__module__ == name
+            ):
+                found[f"{name}.{obj.__qualname__}"] = obj
+    assert {"risk.errors.RiskError", "outputs.process.OutputProcessError"} <= set(found)
+    assert len(found) >= 15
+    strays = {
+        qualname
+        for qualname, cls in found.items()
+        if not issubclass(cls, RiskReplayError) and qualname not in INTERNAL_EXCEPTIONS
+    }
+    assert strays == set()

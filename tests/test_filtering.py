@@ -32,7 +32,7 @@ def _frame(xy: list[tuple[float, float]], *, ids: list[int] | None = None, ego: 
         speed=np.full(n, 5.0),
         length=np.full(n, 4.0),
         width=np.full(n, 2.0),
-        paths=[np.array([p, [*p, 80.0, 0.0]]) for p in pts],
+        paths=[np.array([p, p + np.array([80.0, 0.0])]) for p in pts],
         ego=ego,
         ids=ids,
     )
@@ -52,7 +52,7 @@ def test_radius_is_inclusive_and_ignores_invalid_agents() -> None:
     pts = np.array([(0, 0), (30, 0), (10, 0), (0, -20), (5, 5)], dtype=float)
     frame = Frame.from_arrays(
         xy=pts, heading=np.zeros(5), speed=np.full(5, 5.0), length=np.full(5, 4.0),
-        width=np.full(5, 2.0), paths=[np.array([p, [*p, 80.0, 0.0]]) for p in pts], ego=0,
+        width=np.full(5, 2.0), paths=[np.array([p, p + np.array([80.0, 0.0])]) for p in pts], ego=0,
         valid=[True, True, True, True, False],
     )  # fmt: skip
     answer = RadiusFilter(20.0).apply(frame)

@@ -2,6 +2,13 @@
 
 from __future__ import annotations
 
+from risk.errors import RiskReplayError
 
-class SceneFormatError(RuntimeError):
+
+class SceneFormatError(RiskReplayError, RuntimeError):
     """A file is not a readable scene: not MCAP, truncated, or missing our channels."""
+
+
+class ProtoSyntaxError(RiskReplayError, ValueError):
+    """A ``.proto`` file uses something outside the subset the schema parser reads (for
+    ``scene.proto``, a packaging bug)."""

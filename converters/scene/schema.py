@@ -20,6 +20,8 @@ from typing import Any
 
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
+from converters.scene.errors import ProtoSyntaxError
+
 FORMAT_VERSION = 2
 """Integer version of the format; readers refuse files with a newer version and read
 every older one (version 1 lacks ``Map.lines``, which then reads as empty)."""
@@ -65,10 +67,6 @@ _STATEMENTS = (
 )
 _FIELD = re.compile(r"(repeated\s+)?([A-Za-z_][\w.]*)\s+([A-Za-z_]\w*)\s*=\s*(\d+)\s*;")
 _ENUM_VALUE = re.compile(r"([A-Za-z_]\w*)\s*=\s*(-?\d+)\s*;")
-
-
-class ProtoSyntaxError(ValueError):
-    """``scene.proto`` uses something outside the supported subset (a packaging bug)."""
 
 
 def parse_proto(text: str, filename: str = "scene.proto") -> descriptor_pb2.FileDescriptorProto:

@@ -3,7 +3,7 @@ what really happened (the hindsight truth), with scene-bootstrap intervals.
 
 The input is an agents table (the columns of ``replay run --table`` plus ``scene``, as
 ``replay stats`` collects them, see :func:`replay.analysis.inputs.collect`);
-:func:`evaluate_agents` turns it into arrays and calls the pure
+:func:`evaluate_table` turns it into arrays and calls the pure
 :func:`risk.evaluation.evaluate_references`; :func:`write_evaluation` writes
 ``summary.json``, tables and plots. ``docs/evaluation.md`` describes every field.
 
@@ -72,7 +72,7 @@ def default_calibration_sites(sites: Sequence[str]) -> list[str]:
 # ---------------------------------------------------------------------- arrays
 @dataclass(frozen=True)
 class EvaluationSettings:
-    """What :func:`evaluate_agents` computes (CLI options map one to one)."""
+    """What :func:`evaluate_table` computes (CLI options map one to one)."""
 
     models: tuple[str, ...] | None = None  # default: every risk_<model> column
     baseline_threshold: float = BASELINE_THRESHOLD
@@ -92,7 +92,7 @@ def check_groupings(names: Sequence[str]) -> tuple[str, ...]:
     return tuple(dict.fromkeys(names))
 
 
-def evaluate_agents(
+def evaluate_table(
     agents: pl.DataFrame,
     *,
     settings: EvaluationSettings | None = None,
@@ -483,7 +483,7 @@ def evaluate_inputs(
         paths, cascade=cascade, params=params, prediction=prediction, hindsight=hindsight,
         workers=workers, progress=progress, ego=ego, every=every,
     )  # fmt: skip
-    return evaluate_agents(
+    return evaluate_table(
         agents, settings=settings, datasets=datasets, hindsight=hs,
         inputs=[str(p) for p in paths],
     )  # fmt: skip

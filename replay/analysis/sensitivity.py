@@ -27,7 +27,7 @@ from replay.analysis.corpus_evaluation import (
     EvaluationError,
     EvaluationSettings,
     collect_agents,
-    evaluate_agents,
+    evaluate_table,
 )
 from replay.analysis.evaluation_plots import plot_sensitivity
 from risk.cascade import CascadeConfig
@@ -285,7 +285,7 @@ def run_sweep(
     base_threshold = settings.baseline_threshold
 
     def evaluate(agents: pl.DataFrame, threshold: float) -> dict[str, Any]:
-        return evaluate_agents(
+        return evaluate_table(
             agents, settings=replace(settings, baseline_threshold=threshold),
             datasets=datasets, hindsight=hindsight,
         )  # fmt: skip

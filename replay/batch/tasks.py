@@ -30,7 +30,7 @@ from replay.batch.records import (
 )
 from replay.core.egos import ALL_EGOS
 from replay.core.worker import replay_scene
-from replay.user_errors import user_errors
+from risk.errors import RiskReplayError
 
 if TYPE_CHECKING:
     from risk.frame import Scene
@@ -185,7 +185,7 @@ def failure_from(input_: str, scene: str, stage: str, exc: BaseException) -> Fai
     reason = one_line(str(exc)) or type(exc).__name__
     if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in reason:
         reason = f"{reason}: {exc.filename}"
-    if not isinstance(exc, user_errors()):
+    if not isinstance(exc, (RiskReplayError, OSError)):
         reason += _where(exc)  # an unexpected error: say where, for a bug report
     return Failure(input_, scene, stage, type(exc).__name__, reason)
 

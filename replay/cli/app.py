@@ -1,8 +1,10 @@
 """The ``replay`` command line.
 
 Subcommands live in ``replay/cli/commands/<name>.py`` and are imported only when used, so that
-``replay --help`` stays fast. User errors raised by any package become one line
-``Error: ...`` and exit code 1, without a traceback.
+``replay --help`` stays fast. Errors meant for the user (every package's derive from
+:class:`risk.errors.RiskReplayError`) become one line ``Error: ...`` and exit code 1,
+without a traceback; so do system errors (``OSError``: a missing file, a full disk),
+whose message names the file.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import click
 from outputs import process as background
 from outputs.transaction import target_of_temp
 from replay.cli.output_prestart import RECORDING_WRITER, TABLE_WRITER, output_writers
-from replay.user_errors import user_errors
+from risk.errors import RiskReplayError
 
 __all__ = ["RECORDING_WRITER", "TABLE_WRITER", "main", "output_writers"]
 
@@ -76,8 +78,8 @@ class LazyGroup(click.Group):
             if exc.errno != errno.EPIPE and not isinstance(exc, BrokenPipeError):
                 raise click.ClickException(_os_message(exc)) from None
             quiet_broken_pipe()
-        except user_errors() as exc:
-            raise click.ClickException(str(exc) or type(exc).__name__) from None
+        except RiskReplayError as exc:  # the one base of every error meant for the user
+            raise click.ClickException(str(exc)) from None
 
 
 def _os_message(exc: OSError) -> str:

@@ -184,7 +184,7 @@ def drive(
         path = np.vstack([state.xy[None], ahead]) if ahead.shape[0] else state.xy[None]
         if path.shape[0] < 2:
             path = np.vstack(
-                [state.xy, [*state.xy, math.cos(state.heading), math.sin(state.heading)]]
+                [state.xy, state.xy + np.array([math.cos(state.heading), math.sin(state.heading)])]
             )
         frame = _frame_with_ego(log, ego_id, kind, state, length, width, path)
         gap, hit, behind, thw_short = _safety(frame, tracks, row, column, state, reference, cum)

@@ -1,31 +1,20 @@
 """``replay evaluate``: every model against the survival baseline and against what really
 happened (the hindsight truth), over scenes or tables, with scene-bootstrap intervals.
 
-The library part (including :func:`replay.analysis.corpus_evaluation.evaluate_inputs`, the same without
-writing files) is :mod:`replay.analysis.corpus_evaluation`; the sensitivity sweep is
-:mod:`replay.analysis.sensitivity`."""
+The workflow is :func:`replay.analysis.evaluation_run.run_evaluation`; the corpus steps
+(including :func:`replay.analysis.corpus_evaluation.evaluate_inputs`, the evaluation
+without writing files) are :mod:`replay.analysis.corpus_evaluation`; the sensitivity
+sweep is :mod:`replay.analysis.sensitivity`."""
 
 from __future__ import annotations
 
 import pathlib
 import sys
-import time
-from dataclasses import replace
 
 import click
 
-from outputs.transaction import OutputGuard
-from replay.analysis.corpus_evaluation import (
-    DEFAULT_GROUPINGS,
-    GROUPINGS,
-    EvaluationError,
-    EvaluationSettings,
-    collect_agents,
-    evaluate_agents,
-)
-from replay.analysis.evaluation_report import write_report
-from replay.analysis.inputs import resolve_inputs
-from replay.analysis.sensitivity import format_sweep, run_sweep, sweep_subset, write_sweep
+from replay.analysis.corpus_evaluation import DEFAULT_GROUPINGS, GROUPINGS, EvaluationSettings
+from replay.analysis.evaluation_run import SensitivityRequest, run_evaluation
 from replay.cli.ego_options import StrideParam, ego_option, every_option
 from replay.cli.settings_option import load_cascade, set_option
 from replay.core.engine import Stride
@@ -159,11 +148,7 @@ def evaluate(
 
     Exits non-zero when no agent came close (every rate against hindsight undefined).
     """
-    from replay.analysis.corpus_evaluation import (
-        check_groupings,
-        format_evaluation,
-        write_evaluation,
-    )
+    from replay.analysis.corpus_evaluation import check_groupings
     from replay.core.pool import default_workers
     from risk.registry import resolve_models
 
@@ -175,7 +160,6 @@ def evaluate(
         "coverage": truth_coverage,
     }  # fmt: skip
     custom = {k: v for k, v in given.items() if v is not None}
-    hindsight = HindsightSettings(**custom) if custom else None
     settings = EvaluationSettings(
         models=chosen,
         baseline_threshold=cascade.baseline_threshold
@@ -186,58 +170,20 @@ def evaluate(
         n_boot=n_boot,
         seed=seed,
     )
-    workers_n = workers or default_workers()
-    guard = OutputGuard(inputs=[*inputs, cascade_file], folders=(out_dir,), files=(report_path,))
-    with guard:  # checked and locked at once; every file appears together
-        start = time.perf_counter()
-        agents, datasets, hs = collect_agents(
-            inputs, cascade=cascade, hindsight=hindsight, workers=workers_n,
-            progress=progress, ego=ego, every=every,
-        )  # fmt: skip
-        read_s = time.perf_counter() - start
-        start = time.perf_counter()
-        summary = evaluate_agents(
-            agents, settings=settings, datasets=datasets, hindsight=hs,
-            inputs=[str(p) for p in inputs],
-        )  # fmt: skip
-        summary["time_s"] = {"replay / read": read_s, "evaluation": time.perf_counter() - start}
-        click.echo(format_evaluation(summary))
-        files: dict[str, pathlib.Path] = {}
-        sweep = None
-        if sensitivity:
-            start = time.perf_counter()
-            found = resolve_inputs(list(inputs))
-            if found.tables:
-                raise EvaluationError(
-                    "--sensitivity replays the scenes with other settings; give .mcap scenes, "
-                    "not tables"
-                )
-            subset = sweep_subset(found.scenes, sensitivity_scenes)
-            same = sensitivity_scenes == 1 and sensitivity_every in (None, every)
-            sweep = run_sweep(
-                subset, default_agents=agents if same else None,
-                datasets=datasets if same else None, cascade=cascade, hindsight=hs,
-                settings=replace(settings, n_boot=sensitivity_bootstrap), workers=workers_n,
-                progress=progress, ego=ego, every=sensitivity_every or every,
-            )  # fmt: skip
-            summary["sensitivity"] = {
-                "scenes": len(subset), "every": str(sensitivity_every or every),
-                "bootstrap": sensitivity_bootstrap, "time_s": sweep.time_s,
-            }  # fmt: skip
-            summary["time_s"]["sensitivity"] = time.perf_counter() - start
-            files.update(write_sweep(sweep, out_dir, plots=plots))
-            click.echo(format_sweep(sweep))
-        files.update(write_evaluation(summary, agents, out_dir, datasets=datasets, plots=plots))
-    if report_path is not None:  # after the guard: it copies the plots written above
-        command = " ".join(["replay", "evaluate", *sys.argv[2:]]) if len(sys.argv) > 1 else ""
-        with OutputGuard(files=(report_path,)):
-            files.update(
-                write_report(
-                    report_path, summary, agents, out_dir=out_dir, sweep=sweep,
-                    command=command, datasets=datasets,
-                )
-            )  # fmt: skip
-    click.echo("Time: " + ", ".join(f"{k} {v:.1f} s" for k, v in summary["time_s"].items()))
+    sweep = (
+        SensitivityRequest(sensitivity_bootstrap, sensitivity_every, sensitivity_scenes)
+        if sensitivity
+        else None
+    )
+    run = run_evaluation(
+        inputs, out_dir, cascade=cascade, settings=settings,
+        hindsight=HindsightSettings(**custom) if custom else None,
+        workers=workers or default_workers(), progress=progress, ego=ego, every=every,
+        plots=plots, sensitivity=sweep, report_path=report_path,
+        command=" ".join(["replay", "evaluate", *sys.argv[2:]]) if len(sys.argv) > 1 else "",
+        extra_inputs=(cascade_file,), show=click.echo,
+    )  # fmt: skip
+    click.echo("Time: " + ", ".join(f"{k} {v:.1f} s" for k, v in run.summary["time_s"].items()))
     click.echo("Wrote:")
-    for path in files.values():
+    for path in run.files.values():
         click.echo(f"  {path}")

@@ -19,7 +19,7 @@ from replay.analysis.experiment import (
     write_experiment,
 )
 from replay.analysis.stats import DEFAULT_ERRORS_MODEL
-from replay.cli.commands.stats import format_stats
+from replay.analysis.stats.run import format_stats
 from replay.cli.limits import SEEDS, SITUATIONS, WORKERS
 from replay.core.pool import default_workers
 from risk.cascade import CascadeConfig

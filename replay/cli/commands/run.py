@@ -3,17 +3,20 @@
 from __future__ import annotations
 
 import pathlib
-import warnings
+from typing import cast
 
 import click
 
-from converters.scene.reader import open_scene
-from outputs.transaction import OutputGuard
 from replay.cli.ego_options import ego_option, every_option
 from replay.cli.settings_option import load_cascade, set_option
-from replay.core.egos import ALL_EGOS, EgosSummary, pooled, run_every_ego
-from replay.core.engine import ReplayWarning, RunSummary, Sink, Stride, run_scene
-from replay.core.keep_lists import KeepListSink
+from replay.core.egos import ALL_EGOS
+from replay.core.engine import Stride
+from replay.core.scene_run import (
+    format_egos_summary,
+    format_summary,
+    replay_every_ego_to_table,
+    replay_to_files,
+)
 
 
 @click.command("run")
@@ -74,7 +77,6 @@ def run(
     cascade = load_cascade(cascade_file, sets)
     if no_rrd and output is not None:
         raise click.UsageError("--output names the recording; it cannot go with --no-rrd")
-    inputs = (scene, cascade_file)
     if ego == ALL_EGOS:
         if output is not None:
             raise click.UsageError(
@@ -87,121 +89,16 @@ def run(
             "one ego with --ego ID to look at it.",
             err=True,
         )
-        with OutputGuard(inputs=inputs, files=(table, keep_lists)):  # checked first
-            egos = run_every_ego(
-                scene, sinks=make_sinks(None, table, keep_lists), cascade=cascade, every=every,
-                progress=progress,
-            )  # fmt: skip
+        egos = replay_every_ego_to_table(
+            scene, table=table, cascade=cascade, every=every, progress=progress,
+            inputs=(cascade_file,), keep_lists=keep_lists,
+        )  # fmt: skip
         click.echo(format_egos_summary(egos))
         return
-    rrd = None if no_rrd else (output or scene.with_suffix(".rrd"))
-    with OutputGuard(inputs=inputs, files=(rrd, table, keep_lists)):  # checked first
-        sinks = make_sinks(rrd, table, keep_lists)
-        reader = open_scene(scene)
-        if ego is None:  # the scene's own ego: say which agent it is and why
-            click.echo(ego_note(reader.metadata), err=True)
-        summary = run_with_warnings(
-            reader, sinks=sinks, cascade=cascade, ego=ego, progress=progress, every=every
-        )
+    summary = replay_to_files(
+        scene, rrd=None if no_rrd else (output or scene.with_suffix(".rrd")), table=table,
+        cascade=cascade, ego=cast(int | None, ego), every=every, progress=progress,
+        inputs=(cascade_file,), keep_lists=keep_lists,
+        notify=lambda message: click.echo(message, err=True),
+    )  # fmt: skip
     click.echo(format_summary(summary))
-
-
-def ego_note(metadata: dict[str, str]) -> str:
-    """Which agent the scene's own ego is, and why (the converter's choice, which it
-    records in the scene metadata as ``ego_track`` and ``ego_choice``)."""
-    track = metadata.get("ego_track") or metadata.get("ego_id", "?")
-    why = metadata.get("ego_choice") or "the scene's ego"
-    return f"Ego: agent {metadata.get('ego_id', '?')} (source track {track}): {why}"
-
-
-def format_egos_summary(egos: EgosSummary) -> str:
-    """The end-of-run summary of an every-ego replay: the egos, then the pooled funnel."""
-    shown = ", ".join(str(e) for e in egos.egos[:12]) + (", ..." if len(egos.egos) > 12 else "")
-    stride = f", {egos.every}" if egos.every != Stride() else ""
-    head = (
-        f"Egos: {len(egos.egos)} agents that move {egos.min_travel_m:g} m or more ({shown});"
-        f" {egos.ego_frames} ego-frames{stride}"
-    )
-    body = format_summary(pooled(egos)).replace(", ego id -1,", ", every ego,")
-    return head + "\n" + body.replace("frames", "ego-frames", 1)
-
-
-def make_sinks(
-    rrd: pathlib.Path | None,
-    table: pathlib.Path | None,
-    keep_lists: pathlib.Path | None = None,
-) -> list[Sink]:
-    """The sinks of a run: the Rerun recording and/or the table (both checked before the
-    replay starts, so a bad path fails at once)."""
-    # Each output's library is loaded only when it is asked for, and where there is a
-    # second CPU by the output process (outputs.process), while this one replays: rerun
-    # takes about 1 s and polars 0.3 s to import (python -X importtime). With both, the
-    # output process takes the recording and this one the table: it is idle by then, and
-    # the process's imports and writes one after the other made it the critical path
-    # (`replay demo` 0.3 s slower, measured).
-    sinks: list[Sink] = []
-    if keep_lists is not None:
-        sinks.append(KeepListSink(keep_lists))
-    if table is not None:
-        from replay.core.tables import TableSink
-
-        sinks.append(TableSink(table, background=rrd is None))
-    if rrd is not None:
-        from recordings import SceneRecorder
-
-        sinks.append(SceneRecorder(rrd, background=True))
-    return sinks
-
-
-def run_with_warnings(scene, **kwargs) -> RunSummary:
-    """``run_scene`` with its ReplayWarnings printed as ``Warning: ...`` on stderr."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", ReplayWarning)
-        summary = run_scene(scene, **kwargs)
-    for w in caught:
-        if issubclass(w.category, ReplayWarning):
-            click.echo(f"Warning: {w.message}", err=True)
-        else:
-            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
-    return summary
-
-
-def format_summary(s: RunSummary, extra_outputs: tuple[pathlib.Path, ...] = ()) -> str:
-    """The end-of-run summary: counts, the funnel, false negatives, times, files
-    (``extra_outputs``: files written before the replay, listed first)."""
-    skipped = f", {s.skipped_frames} skipped (ego missing)" if s.skipped_frames else ""
-    name_w = max(len(n) for n in ("all other agents", *s.stage_names, *s.tier_names)) + 2
-    lines = [
-        f"Scene: {s.source or 'in memory'}",
-        f"  {s.frames} frames{skipped}, ego id {s.ego_id}, {s.agents} agents, "
-        f"{s.mean_others:.1f} other agents per frame",
-        "Cascade (mean agents per frame; false negatives vs the survival baseline, "
-        f"{s.baseline_agents} important agent-frames; compute time):",
-        f"  {'all other agents':<{name_w}}{s.mean_others:7.1f}",
-    ]
-    for name, kept, fn, t in zip(
-        s.stage_names, s.mean_kept, s.false_negatives, s.stage_time_s, strict=True
-    ):
-        lines.append(f"  {name:<{name_w}}{kept:7.1f}   FN {fn:<6d} {t:8.3f} s")
-    tiers = ", ".join(f"{n} {k:.1f}" for n, k in zip(s.tier_names, s.mean_tier, strict=True))
-    lines += [
-        f"  tiers (survival sort): {tiers}   {s.sort_time_s:.3f} s",
-        f"Time: cascade {sum(s.stage_time_s) + s.sort_time_s:.3f} s "
-        f"(stages + sort) vs survival analysis on all agents {s.survival_all_time_s:.3f} s",
-        "  "
-        + ", ".join(
-            [
-                f"read {s.read_time_s:.2f} s",
-                f"all models for the timelines {s.models_time_s:.2f} s",
-                *(f"{k} {v:.2f} s" for k, v in s.sink_time_s.items()),
-            ]
-        ),
-    ]
-    outputs = (*extra_outputs, *s.outputs)
-    if outputs:
-        lines.append("Wrote:")
-        lines += [f"  {p}" for p in outputs]
-        rrd = [p for p in outputs if p.suffix == ".rrd"]
-        if rrd:
-            lines.append(f"Open the recording with: rerun {rrd[0]}")
-    return "\n".join(lines)
