@@ -22,7 +22,7 @@ from __future__ import annotations
 import contextlib
 import os
 import pathlib
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Literal
 
 import numpy as np
@@ -77,6 +77,12 @@ class FrameRows:
     survivor_paths: np.ndarray  # (R, P, 2) m, deeper-tier survivors' candidates (padded)
     survivor_path_risk: np.ndarray  # (R,) R_S of each candidate's owner (colour)
     survivor_path_owner: np.ndarray  # (R,) id of each candidate's owner
+    # With a planner beside the replay (replay run --planner): the plans with all agents
+    # and with the cascade's agents, (T, 2) m ((0, 2) without a plan), and their times.
+    plan_all: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    plan_filtered: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    plan_all_ms: float = float("nan")
+    plan_filtered_ms: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -347,7 +353,21 @@ def _collect(result: FrameResult, info: SceneInfo, *, keep_paths: bool) -> Frame
         survivor_path_owner=np.asarray(frame.ids, dtype=np.int64)[
             _path_owner_rows(frame, idx[deep], keep_paths)
         ],
+        **_plans(result),
     )
+
+
+def _plans(result: FrameResult) -> dict[str, object]:
+    """The planner's two plans of the frame, when one ran beside the replay."""
+    out: dict[str, object] = {}
+    for key in ("plan_all", "plan_filtered"):
+        plan = result.extras.get(key)
+        if plan is None:
+            continue
+        ok = bool(getattr(plan, "ok", False))
+        out[key] = np.asarray(plan.xy, dtype=np.float64) if ok else np.zeros((0, 2))
+        out[f"{key}_ms"] = float(plan.plan_ms)
+    return out
 
 
 def _with_hindsight(frames: list[FrameRows], info: SceneInfo) -> list[FrameRows]:

@@ -8,6 +8,7 @@ import importlib
 import json
 import pathlib
 
+import numpy as np
 import polars as pl
 import pytest
 from click.testing import CliRunner
@@ -185,3 +186,44 @@ def test_help_explains_the_filters():
     assert result.exit_code == 0
     for word in ("nearest:K", "radius:R", "--closed-loop", "plans.parquet", "--truth"):
         assert word in result.output
+
+
+@pytest.mark.parametrize("planner", PLANNERS)
+def test_run_with_a_planner_draws_both_plans_and_labels_the_table(road, tmp_path, planner):
+    from tests.test_recordings import read_rrd, scalars
+
+    rrd, table = tmp_path / "road.rrd", tmp_path / "road.parquet"
+    result = CliRunner().invoke(
+        main,
+        [
+            "run",
+            str(road),
+            "-o",
+            str(rrd),
+            "--table",
+            str(table),
+            "--planner",
+            planner,
+            "--no-progress",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert f"Planner {planner}:" in result.output
+    rows = pl.read_parquet(table).filter(pl.col("frame") == 0)
+    label = dict(zip(rows["agent_id"], rows["planner_label"], strict=True))
+    assert label == {STOPPED: True, ONCOMING: False, BEHIND: False, PARKED_OFF_ROAD: False}
+    entities = read_rrd(rrd)
+    strips = entities["/scene/ego/plan_all_agents"].column("strips", rows_with="strips")
+    assert len(strips) > 0 and len(strips[0][0]) >= 2  # a plan of several points
+    assert "/scene/ego/plan_filtered" in entities
+    times = scalars(entities["/timing_ms/plan_all_agents"])
+    assert np.isfinite(times).any() and (times[np.isfinite(times)] > 0).all()
+
+
+def test_run_without_a_planner_has_no_planner_columns(road, tmp_path):
+    table = tmp_path / "road.parquet"
+    result = CliRunner().invoke(
+        main, ["run", str(road), "--no-rrd", "--table", str(table), "--no-progress"]
+    )
+    assert result.exit_code == 0, result.output
+    assert "planner_label" not in pl.read_parquet(table).columns

@@ -26,7 +26,12 @@ from tqdm import tqdm
 
 import risk
 from converters.scene.reader import open_scene
-from outputs.sinks import FrameResult, SceneInfo, Sink  # also importable from here, as before
+from outputs.sinks import (  # also importable from here, as before
+    Annotator,
+    FrameResult,
+    SceneInfo,
+    Sink,
+)
 from replay.errors import ReplayError
 from risk import kernel
 from risk.cascade import SURVIVAL_MODEL, CascadeConfig, CascadeResult, Evaluator, run_cascade
@@ -168,6 +173,7 @@ def run_scene(
     progress: bool = True,
     evaluate: Evaluator | None = None,
     every: int | Stride = 1,
+    annotators: Sequence[Annotator] = (),
 ) -> RunSummary:
     """Replay a scene through every model and the cascade, feeding ``sinks``.
 
@@ -197,7 +203,7 @@ def run_scene(
     try:
         return _run(
             reader, path, sinks, cascade, ego, model_names, params, progress, evaluate,
-            stride.frames_at(float(reader.frame_period_s)),
+            stride.frames_at(float(reader.frame_period_s)), annotators,
         )  # fmt: skip
     finally:
         close = getattr(reader, "close", None)
@@ -216,6 +222,7 @@ def _run(
     progress: bool,
     evaluate: Evaluator,
     every: int = 1,
+    annotators: Sequence[Annotator] = (),
 ) -> RunSummary:
     entries = _entries(reader)
     start = time.perf_counter()
@@ -242,6 +249,8 @@ def _run(
     totals.read_time_s = read_first_s
     begun: list[Sink] = []
     try:
+        for annotator in annotators:
+            annotator.begin(info)
         for sink in sinks:
             _timed_sink(totals, sink, "begin", info)
             begun.append(sink)
@@ -266,6 +275,8 @@ def _run(
                         totals.ids_skipped.update(frame.ids[frame.valid].tolist())
                     continue
                 result = _process(index, seen, cascade, model_names, params, evaluate, totals)
+                for annotator in annotators:
+                    _annotate(totals, annotator, result)
                 for sink in begun:
                     _timed_sink(totals, sink, "add", result)
         if totals.frames == 0:
@@ -402,6 +413,13 @@ def _timed(
         if entry is None:
             return
         yield entry[0], entry[2]
+
+
+def _annotate(totals: _Totals, annotator: Annotator, result: FrameResult) -> None:
+    start = time.perf_counter()
+    result.extras.update(annotator.annotate(result))
+    name = annotator.name
+    totals.sink_time_s[name] = totals.sink_time_s.get(name, 0.0) + time.perf_counter() - start
 
 
 def _timed_sink(totals: _Totals, sink: Sink, method: str, *args: Any) -> None:

@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import pathlib
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from converters.scene.reader import open_scene
 from converters.scene.writer import write_scene
 from converters.synthetic import SyntheticSettings, generate_scene
+from outputs.sinks import Annotator
 from outputs.transaction import OutputGuard
 from replay.core.egos import EgosSummary, pooled, run_every_ego
 from replay.core.engine import ReplayWarning, RunSummary, Sink, Stride, run_scene
@@ -46,6 +47,7 @@ def replay_to_files(
     inputs: tuple[pathlib.Path | None, ...] = (),
     notify: Notify = _quiet,
     keep_lists: pathlib.Path | None = None,
+    annotators: Sequence[Annotator] = (),
 ) -> RunSummary:
     """Replay ``scene`` into a Rerun recording, a table and/or keep-lists (each
     optional), all or nothing: the outputs are checked before the replay and appear
@@ -58,7 +60,7 @@ def replay_to_files(
             notify(ego_note(reader.metadata))
         return run_with_warnings(
             reader, notify=notify, sinks=sinks, cascade=cascade, ego=ego, progress=progress,
-            every=every,
+            every=every, annotators=annotators,
         )  # fmt: skip
 
 
@@ -71,13 +73,14 @@ def replay_every_ego_to_table(
     progress: bool = True,
     inputs: tuple[pathlib.Path | None, ...] = (),
     keep_lists: pathlib.Path | None = None,
+    annotators: Sequence[Annotator] = (),
 ) -> EgosSummary:
     """Replay ``scene`` once per ego (every agent that moves) into one table (and
     keep-lists)."""
     with OutputGuard(inputs=(scene, *inputs), files=(table, keep_lists)):  # checked first
         return run_every_ego(
             scene, sinks=make_sinks(None, table, keep_lists), cascade=cascade, every=every,
-            progress=progress,
+            progress=progress, annotators=annotators,
         )  # fmt: skip
 
 

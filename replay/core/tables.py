@@ -16,6 +16,8 @@ a risk value). Columns, in order:
   equal times within the horizon (m), post-encroachment time (s; null when the footprints
   do not meet), and whether the agent really came close (true / false, null when the
   window is censored). All null when the engine cannot give the recorded tracks.
+- with a planner beside the replay: ``planner_label`` (removing the agent alone changes
+  the plan; null when unknown) and ``planner_shift_m`` (m), :mod:`replay.planning.truth`.
 
 The file is written once, at ``close()``, to a temporary name in the target folder and
 renamed into place, so a failed run never leaves a half-written table.
@@ -41,6 +43,10 @@ if TYPE_CHECKING:
     import polars as pl
 
 TRUTH_COLUMNS = ("truth_gap_m", "truth_pet_s", "truth_label")
+#: With a planner beside the replay (``replay run --planner NAME --table T``): whether
+#: removing the agent alone changes the plan (true / false, null when unknown) and by how
+#: much (m); see :mod:`replay.planning.truth`.
+PLANNER_COLUMNS = ("planner_label", "planner_shift_m")
 #: The module that builds and writes the table with polars (replay.core.table_file).
 TABLE_WRITER = "replay.core.table_file"
 
@@ -121,14 +127,19 @@ class TableSink:
         chunk["dropped_at"] = res.dropped_at[rows]
         chunk["tier"] = res.tier[rows]
         chunk["baseline"] = res.baseline[rows]
+        for name in PLANNER_COLUMNS:  # a planner's labels, when one ran beside the replay
+            if name in result.extras:
+                chunk[name] = np.asarray(result.extras[name], dtype=np.float64)[rows]
         self._chunks.append(chunk)
 
     def columns(self) -> TableColumns:
         """Everything added so far as numpy columns, the hindsight truth included."""
         info = self._require_info()
         keys = self._columns(info)
+        planner = [k for k in PLANNER_COLUMNS if self._chunks and k in self._chunks[0]]
         data: dict[str, Any] = {
-            k: np.concatenate([c[k] for c in self._chunks]) if self._chunks else [] for k in keys
+            k: np.concatenate([c[k] for c in self._chunks]) if self._chunks else []
+            for k in (*keys, *planner)
         }
         gap, pet, label = self._truth(data["t_s"], data["ego_id"], data["agent_id"])
         return TableColumns(

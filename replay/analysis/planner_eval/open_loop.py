@@ -8,10 +8,9 @@ is compared with the reference (:func:`replay.planning.compare.compare_plans`): 
 plan change, by how much, and did the filter drop the agent that constrained the
 reference plan?
 
-The ego's *target speed* is the speed the driver was willing to drive: the larger of its
-speed now and the fastest it drove over the planning horizon in the recorded future. A
-planner given the recorded speed only would never show what an agent made the driver give
-up; one given a fixed speed limit would speed through every recorded scene.
+The ego's *target speed* is the speed the driver was willing to drive
+(:func:`replay.planning.truth.target_speed`): the larger of its speed now and the fastest
+it drove over the planning horizon in the recorded future.
 
 With ``truth`` set, every agent is also removed on its own ("all agents but this one"),
 which labels it *planner-important* when the plan changes (Waymo's CausalAgents idea).
@@ -37,11 +36,11 @@ from replay.planning.compare import compare_plans
 from replay.planning.errors import NoReferencePath
 from replay.planning.inputs import plan_request
 from replay.planning.registry import make_planner
+from replay.planning.truth import planner_truth, target_speed
 from replay.planning.types import Plan, Planner, PlanRequest
 from risk.cascade import CascadeConfig
 from risk.filtering import CascadeFilter, Filter, parse_filter
 from risk.frame import Frame
-from risk.hindsight import Tracks
 from risk.motion import moving_agent_ids
 
 #: The reference filter's name: every valid other agent.
@@ -122,20 +121,6 @@ class ScenePlans:
     egos: tuple[int, ...]
     ego_frames: int
     no_path: int
-
-
-def target_speed(tracks: Tracks, row: int, column: int, horizon_s: float, now_mps: float) -> float:
-    """The larger of ``now_mps`` and the fastest the agent drove over the next
-    ``horizon_s`` of its recorded track (finite differences of recorded positions)."""
-    steps = max(1, round(horizon_s / tracks.dt_s))
-    stop = min(tracks.valid.shape[0], row + steps + 1)
-    xy = tracks.xy[row:stop, column]
-    ok = tracks.valid[row:stop, column]
-    both = ok[1:] & ok[:-1]
-    if not both.any():
-        return float(now_mps)
-    step = np.hypot(*(xy[1:] - xy[:-1]).T)[both] / tracks.dt_s
-    return float(max(now_mps, step.max()))
 
 
 def _egos(scene: Any, ego: int | str | None) -> tuple[int, ...]:
@@ -303,28 +288,21 @@ def _add_truth(
     agents = request.agents
     if agents.n == 0:
         return
-    may = np.asarray(planner.may_matter(request), dtype=bool)
-    labels: list[bool | None] = [False] * agents.n
-    shifts = np.zeros(agents.n)
-    everyone = np.ones(agents.n, dtype=bool)
-    for k in np.flatnonzero(may):
-        without = everyone.copy()
-        without[k] = False
-        plan = planner.plan(request.with_agents(agents.subset(without)))
-        change = compare_plans(reference, plan, tolerance_m=settings.tolerance_m)
-        labels[k] = change.changed
-        shifts[k] = change.max_shift_m
+    labels = planner_truth(planner, request, reference, tolerance_m=settings.tolerance_m)
     index = {int(i): n for n, i in enumerate(frame.ids)}
     rows = np.array([index[int(i)] for i in agents.ids], dtype=np.int64)
     d = frame.xy[rows] - frame.xy[frame.ego]
     distance = np.hypot(d[:, 0], d[:, 1])
     kept = np.isin(agents.ids, cascade_kept)
+    keys = ("scene", "dataset", "planner", "ego_id", "frame", "t_s")
     for k in range(agents.n):
+        label = labels.label[k]
         truth.add(
-            **{key: common[key] for key in ("scene", "dataset", "planner", "ego_id", "frame", "t_s")},
+            **{key: common[key] for key in keys},
             agent_id=int(agents.ids[k]), kind=int(agents.kinds[k]),
-            distance_m=float(distance[k]), planner_label=labels[k],
-            planner_shift_m=float(shifts[k]), planner_skipped=bool(not may[k]),
+            distance_m=float(distance[k]),
+            planner_label=None if np.isnan(label) else bool(label),
+            planner_shift_m=float(labels.shift_m[k]), planner_skipped=bool(labels.skipped[k]),
             kept_by_cascade=bool(kept[k]),
         )  # fmt: skip
 
