@@ -34,7 +34,7 @@ from replay.planning import (
     make_planner,
     plan_request,
 )
-from replay.planning.inputs import side_lanes
+from replay.planning.inputs import side_lanes, smooth_polyline
 from replay.user_errors import user_errors
 from risk import Frame, Lane, LaneMap, geometry
 
@@ -181,6 +181,19 @@ def test_side_lanes_counts_parallel_lanes_in_the_same_direction():
     short = LaneMap((Lane(2, np.array([[150.0, 3.5], [200.0, 3.5]])),))  # only far ahead
     assert side_lanes(ref, short, lane_width_m=3.5, stretch_m=50) == (0, 0)
     assert side_lanes(ref, LaneMap(), lane_width_m=3.5, stretch_m=50) == (0, 0)
+
+
+def test_smoothing_keeps_lines_and_ends_and_rounds_kinks():
+    straight = smooth_polyline(np.array([[0.0, 0.0], [20.0, 0.0]]), spacing_m=1.0, half_window_m=4)
+    np.testing.assert_allclose(straight, np.stack([np.arange(21.0), np.zeros(21)], 1), atol=1e-12)
+    kinked = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])  # a right angle at (10, 0)
+    out = smooth_polyline(kinked, spacing_m=1.0, half_window_m=4)
+    np.testing.assert_array_equal(out[[0, -1]], kinked[[0, -1]])
+    d = np.diff(out, axis=0)
+    turn = np.abs(np.diff(np.unwrap(np.arctan2(d[:, 1], d[:, 0]))))
+    # 90 degrees spread over the 9 m window: no turn above about 1/8 of it per metre
+    assert turn.max() < math.pi / 2 / 6
+    assert turn.sum() == pytest.approx(math.pi / 2)
 
 
 def test_ego_without_a_path_is_a_clear_error():
