@@ -416,6 +416,23 @@ def test_an_agent_that_may_not_matter_never_changes_the_plan(
 
 
 @pytest.mark.parametrize("name", PLANNER_PARAMS)
+def test_far_agents_in_the_ego_lane_that_may_not_matter_change_nothing(name, road):
+    """The likeliest way to be wrong: a leader far ahead in the ego's own lane (car
+    following and speed policies look along the lane)."""
+    planner = _planner(name)
+    reference = planner.plan(road)
+    checked = 0
+    for x in (300.0, 450.0, 700.0, 1000.0):
+        for speed, heading in ((0.0, 0.0), (3.0, 0.0), (10.0, math.pi)):
+            req = _with_extra_agent(road, x, 0.0, heading, speed, 4.5, 1.8)
+            if planner.may_matter(req)[-1]:
+                continue
+            checked += 1
+            np.testing.assert_array_equal(planner.plan(req).xy, reference.xy)
+    assert checked >= 3  # the far ones are skipped
+
+
+@pytest.mark.parametrize("name", PLANNER_PARAMS)
 def test_may_matter_skips_agents_far_away(name, road):
     planner = _planner(name)
     req = _with_extra_agent(road, 3000.0, 3000.0, 0.0, 0.0, 4.5, 1.8)
