@@ -8,7 +8,9 @@ The ego (id 0) starts at the origin at 10 m/s. The other agents, by id:
   swerve for it);
 - 2 ``ONCOMING``: a car in the oncoming lane 300 m ahead at 10 m/s, towards the ego (far
   off: it never comes within 180 m of the ego within a 5 s horizon);
-- 3 ``BEHIND``: a slower car (5 m/s) 20 m behind the ego in its lane;
+- 3 ``BEHIND``: a slower car (3 m/s) 40 m behind the ego in its lane (slow enough that,
+  replayed without reacting, it does not reach an ego that stops behind ``STOPPED``
+  within 20 s: a closed loop of that length has no rear-end collision it could not avoid);
 - 4 ``PARKED_OFF_ROAD``: a car parked 30 m ahead, 6 m to the right of the ego's lane centre
   (4.25 m beyond the road edge).
 
@@ -37,7 +39,7 @@ _AGENTS: dict[int, tuple[float, float, float, float, float, float]] = {
     EGO: (0.0, 0.0, 0.0, EGO_SPEED_MPS, 4.5, 1.8),
     STOPPED: (40.0, 0.0, 0.0, 0.0, 4.5, 1.8),
     ONCOMING: (300.0, LANE_WIDTH_M, np.pi, 10.0, 4.5, 1.8),
-    BEHIND: (-20.0, 0.0, 0.0, 5.0, 4.5, 1.8),
+    BEHIND: (-40.0, 0.0, 0.0, 3.0, 4.5, 1.8),
     PARKED_OFF_ROAD: (30.0, -6.0, 0.0, 0.0, 4.5, 1.8),
 }
 

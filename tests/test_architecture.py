@@ -47,6 +47,9 @@ ALLOWED_INNER_IMPORTS = {
     ("replay/analysis/planner_eval/study.py", "replay.analysis.planner_eval"),
     # optional dependency, installed with the 'ray' extra
     ("replay/batch/engines.py", "ray"),
+    # optional dependency, installed with the 'planner' extra (fiss-planner's Frenet
+    # planners); a missing extra is a one-line error naming it
+    ("replay/planning/frenet.py", "fiss_planner"),
     # rerun (about 1 s) only for workers that write a recording / on a failure
     ("recordings/__init__.py", "recordings.recorder"),
     # the writer (rerun, about 1 s): only when writing, or in the writer process

@@ -27,7 +27,6 @@ The adapter:
 
 from __future__ import annotations
 
-import importlib
 import math
 import time
 from types import ModuleType
@@ -50,11 +49,12 @@ MAY_MATTER_SLACK_M = 2.0
 def load_fiss_planner() -> ModuleType:
     """The ``fiss_planner`` module, or PlannerUnavailable naming the extra to install."""
     try:
-        return importlib.import_module("fiss_planner")
+        import fiss_planner  # the optional extra: loaded only when a Frenet planner is made
     except ImportError:
         raise PlannerUnavailable(
             f"the Frenet planners need the optional package fiss-planner; {INSTALL_HINT}"
         ) from None
+    return fiss_planner
 
 
 class FrenetPlanner:
@@ -108,7 +108,8 @@ class FrenetPlanner:
     def _obstacles(self, request: PlanRequest) -> list[Any]:
         a = request.agents
         times = a.times_s.tolist()
-        static: list[bool] = (~(np.abs(np.diff(a.xy, axis=1)) > 1e-9).any(axis=(1, 2))).tolist()
+        moves = np.asarray((np.abs(np.diff(a.xy, axis=1)) > 1e-9).any(axis=(1, 2)), dtype=bool)
+        static = (~moves).tolist()
         make = self.fp.Obstacle.from_arrays
         return [
             make(int(i), float(ln), float(w), times, x, y, h, bool(still))

@@ -119,12 +119,18 @@ class IdmPlanner:
         sqrt_ab = 2.0 * math.sqrt(p.a0_mps2 * p.b_mps2)
 
         agents = request.agents.on_times(times)  # the plan's steps
+        ids = agents.ids
         if agents.n:
             coords = path_coords(ref, agents)
             inside = _in_corridor(coords, request.lane_width_m)
-            # Index of the last forecast step each agent is in the corridor (-1: never).
-            last_in = np.where(inside.any(axis=1), n_steps - 1 - np.argmax(inside[:, ::-1], 1), -1)
-            t_out = np.where(last_in >= 0, times[np.maximum(last_in, 0)], -np.inf)
+            # Only agents that are ever in the corridor can constrain (see may_matter):
+            # the loop over steps works on those alone.
+            ever = np.asarray(inside.any(axis=1))
+            coords, inside, ids = coords.rows(ever), inside[ever], ids[ever]
+            # Time of the last forecast step each agent is in the corridor.
+            t_out = times[n_steps - 1 - np.argmax(inside[:, ::-1], axis=1)]
+            crossing = inside & ~coords.along
+            any_crossing = bool(crossing.any())
         s = np.empty(n_steps)
         v = np.empty(n_steps)
         s[0] = float(project(ref, ego.xy[None])[1][0])
@@ -133,10 +139,11 @@ class IdmPlanner:
         for k in range(n_steps - 1):
             a_free = p.a0_mps2 * (1.0 - (v[k] / v0) ** p.delta)
             accel = a_free
-            if agents.n:
+            if ids.size:
                 gap, v_lead = self._constraints(
-                    coords, inside, t_out, k, times, s[k], v[k], half_ego
-                )
+                    coords, inside, crossing if any_crossing else None, t_out, k, times,
+                    s[k], v[k], half_ego,
+                )  # fmt: skip
                 s_star = p.s0_m + np.maximum(
                     0.0, v[k] * p.headway_s + v[k] * (v[k] - v_lead) / sqrt_ab
                 )
@@ -147,7 +154,7 @@ class IdmPlanner:
                 worst = int(np.argmin(a_agent))
                 accel = min(a_free, float(a_agent[worst]))
                 if blocking_id < 0 and accel < a_free - p.blocking_margin_mps2:
-                    blocking_id = int(agents.ids[worst])
+                    blocking_id = int(ids[worst])
             accel = min(max(accel, -p.max_decel_mps2), p.a0_mps2)
             v_next = v[k] + accel * dt
             if v_next >= 0.0:
@@ -173,6 +180,7 @@ class IdmPlanner:
         self,
         c: PathCoords,
         inside: np.ndarray,
+        crossing: np.ndarray | None,
         t_out: np.ndarray,
         k: int,
         times: np.ndarray,
@@ -190,7 +198,9 @@ class IdmPlanner:
 
         # Conflicts: the first future step at which a crossing / oncoming agent is in the
         # corridor ahead of the ego, if the ego would be there near that time.
-        future = inside[:, k:] & (c.arc_m[:, k:] > s_ego) & ~c.along[:, k:]
+        if crossing is None:
+            return gap, v_lead
+        future = crossing[:, k:] & (c.arc_m[:, k:] > s_ego)
         has = future.any(axis=1)
         if has.any():
             first = k + np.argmax(future, axis=1)

@@ -36,6 +36,17 @@ class PathCoords:
     along: np.ndarray
     speed_along_mps: np.ndarray
 
+    def rows(self, which: np.ndarray) -> PathCoords:
+        """The agents selected by a mask or index array ``(K,)``."""
+        return PathCoords(
+            arc_m=self.arc_m[which],
+            lateral_m=self.lateral_m[which],
+            half_along_m=self.half_along_m[which],
+            half_across_m=self.half_across_m[which],
+            along=self.along[which],
+            speed_along_mps=self.speed_along_mps[which],
+        )
+
 
 def reference_arcs(reference: np.ndarray) -> np.ndarray:
     """Arc length ``(P,)`` in m at the reference's points."""

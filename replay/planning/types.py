@@ -190,7 +190,9 @@ class Plan:
     """A planner's answer.
 
     ``times_s`` (T,) s, ``xy`` (T, 2) m, ``heading_rad`` (T,), ``speed_mps`` (T,): the
-    planned trajectory (empty arrays when ``ok`` is False). ``plan_ms``: wall time of the
+    planned trajectory on the request's times ``0, dt_s, ...`` (empty arrays when ``ok``
+    is False). It may end before the horizon: fiss-planner samples end times from 3 s up
+    to the horizon, and its plan is not continued beyond its own end. ``plan_ms``: wall time of the
     planner call. ``lane``: the lane the plan ends in, 0 = the reference lane, +1 one lane
     to the left, -1 one to the right. ``stops``: the plan comes to a stop (speed below
     STOP_SPEED_MPS) within the horizon. ``blocking_id``: the agent that constrained the
