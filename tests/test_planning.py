@@ -35,8 +35,8 @@ from replay.planning import (
     plan_request,
 )
 from replay.planning.inputs import side_lanes, smooth_polyline
-from replay.user_errors import user_errors
 from risk import Frame, Lane, LaneMap, geometry
+from risk.errors import RiskReplayError
 
 try:
     import fiss_planner  # noqa: F401
@@ -209,7 +209,7 @@ def test_ego_without_a_path_is_a_clear_error():
     )
     with pytest.raises(NoReferencePath, match=r"ego 7 .* no path") as info:
         plan_request(frame, LaneMap(), target_speed_mps=10.0)
-    assert isinstance(info.value, user_errors())
+    assert isinstance(info.value, RiskReplayError)
     assert "\n" not in str(info.value)
 
 
@@ -455,13 +455,13 @@ def test_missing_extra_names_the_install_command(monkeypatch):
     message = str(info.value)
     assert "pip install 'riskreplay[planner]'" in message
     assert "\n" not in message
-    assert isinstance(info.value, user_errors())
+    assert isinstance(info.value, RiskReplayError)
     assert available_planners() == ("idm",)
 
 
 # ---------------------------------------------------------------------- the scene file
 def test_road_scene_written_as_mcap_reads_back_and_plans(tmp_path):
-    from replay.reader import read_scene
+    from converters.scene.reader import read_scene
 
     path = ps.write_road_scene(tmp_path / "road.mcap")
     scene = read_scene(path)
