@@ -306,8 +306,8 @@ kernel.warm_up()
 """
 
 AOT_BUILD = """
-from risk import kernel_aot
-kernel_aot.main([])
+from risk import kernel_aot_build
+kernel_aot_build.main([])
 """
 
 #: Every module ``replay demo`` imports in the replay's process, one name per line
@@ -445,10 +445,10 @@ def main(argv: list[str] | None = None) -> int:
         help="do not wait for the machine's fast state before each group (MachineSpeed)",
     )  # fmt: skip
     args = ap.parse_args(argv)
-    from risk import kernel, kernel_aot
+    from risk import kernel, kernel_aot_build
 
     if kernel.IMPLEMENTATION != "aot":  # built once, so that the rows measure what they say
-        print(f"  building the ahead-of-time kernel: {kernel_aot.build(kernel.CACHE_DIR)}",
+        print(f"  building the ahead-of-time kernel: {kernel_aot_build.build(kernel.CACHE_DIR)}",
               file=sys.stderr)  # fmt: skip
         os.execv(sys.executable, [sys.executable, *sys.argv])  # again, on the built kernel
     print(f"  in-process rows: the {kernel.IMPLEMENTATION} kernel", file=sys.stderr)

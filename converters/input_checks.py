@@ -21,19 +21,29 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from converters.errors import ConversionError
 
-if TYPE_CHECKING:
-    from converters.tracks import Skipped
-
 MAX_ABS_POSITION_M = 2.0**53 / 1000.0  # the scene format stores millimetres exactly up to 2**53
 MAX_STEPS = 10_000_000  # time steps of one scenario (at 10 Hz: 11.6 days)
 BYTES_PER_STATE = 64  # xy, heading, speed, length, width, valid and the frames built from them
 SHOWN = 5  # bad records named in a --skip-bad note
+
+
+@dataclass
+class Skipped:
+    """What a ``skip_bad`` conversion left out, one line per record, and why."""
+
+    what: list[str] = field(default_factory=list)
+
+    def add(self, message: str) -> None:
+        self.what.append(message)
+
+    def __len__(self) -> int:
+        return len(self.what)
 
 
 def apply_bad_rule(

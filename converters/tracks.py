@@ -17,14 +17,14 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from tqdm import tqdm
 
 from converters.errors import ConversionError
 from converters.hindsight_paths import Hindsight
-from converters.input_checks import REASONS, apply_bad_rule, bad_states
+from converters.input_checks import REASONS, Skipped, apply_bad_rule, bad_states
 from converters.lanegraph import LaneGraph, PathRows, PathSettings, straight_rows
 from risk.frame import Frame, Kind, LaneMap, Scene
 from risk.motion import MIN_TRAVEL_M, track_extents
@@ -35,19 +35,6 @@ MOVING_EGO_MIN_M = MIN_TRAVEL_M
 """A default ego must move at least this far (m; risk.motion's threshold for "moves")."""
 
 _INTEGER = re.compile(r"[+-]?\d{1,18}")
-
-
-@dataclass
-class Skipped:
-    """What a ``skip_bad`` conversion left out, one line per record, and why."""
-
-    what: list[str] = field(default_factory=list)
-
-    def add(self, message: str) -> None:
-        self.what.append(message)
-
-    def __len__(self) -> int:
-        return len(self.what)
 
 
 def integer_ids(names: Sequence[str]) -> tuple[np.ndarray, dict[str, int]]:

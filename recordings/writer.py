@@ -35,25 +35,10 @@ from outputs.transaction import run_with_stall_timeout
 from recordings import columns as C
 from recordings import layout as L
 from recordings.errors import RecordingError
-from recordings.recorder import FrameRows, PackedFrames, WriteOptions
+from recordings.frames import FrameRows, PackedFrames, SceneRows, WriteOptions
 from recordings.summary import recording_name, summary_markdown
 from risk.cascade import SURVIVAL_MODEL
 from risk.registry import MODELS
-
-
-@dataclass
-class _Scene:
-    """All frames concatenated: ``K`` agent rows in total, ``F`` frames."""
-
-    times_s: np.ndarray  # (F,) s
-    frame_index: np.ndarray  # (F,) int
-    frame_of: np.ndarray  # (K,) row -> position in the frame list
-    false_negatives: np.ndarray  # (F, S) int, cumulative per stage
-    stage_time_ms: np.ndarray  # (F, S) ms
-    sort_time_ms: np.ndarray  # (F,) ms
-    survival_all_time_ms: np.ndarray  # (F,) ms
-    rows: dict[str, np.ndarray] = field(default_factory=dict)  # name -> (K, ...) or (S, K)
-    grid: tuple[np.ndarray, ...] | None = None  # _agent_grid's result, computed once
 
 
 def write_temp(
@@ -120,10 +105,10 @@ def _write(
         )
 
 
-def _concatenate(frames: Sequence[FrameRows], info: SceneInfo) -> _Scene:
+def _concatenate(frames: Sequence[FrameRows], info: SceneInfo) -> SceneRows:
     """Stack all frames' rows: one flat array per field, ``frame_of`` maps rows to frames."""
     n_stages = len(info.cascade.stages)
-    scene = _Scene(
+    scene = SceneRows(
         times_s=np.array([f.t for f in frames], dtype=np.float64),
         frame_index=np.array([f.index for f in frames], dtype=np.int64),
         frame_of=np.repeat(np.arange(len(frames)), [f.ids.size for f in frames]).astype(np.int64),
@@ -155,7 +140,7 @@ def _concatenate(frames: Sequence[FrameRows], info: SceneInfo) -> _Scene:
 
 
 # ---------------------------------------------------------------------- static entities
-def _log_static(rec: rr.RecordingStream, info: SceneInfo, scene: _Scene) -> None:
+def _log_static(rec: rr.RecordingStream, info: SceneInfo, scene: SceneRows) -> None:
     rec.log(L.SCENE, rr.Transform3D(scale=[1.0, -1.0, 1.0]), static=True, strict=True)
     lanes = [np.asarray(lane.centerline, dtype=np.float64) for lane in info.map.lanes]
     lanes = [c for c in lanes if c.ndim == 2 and c.shape[0] >= 2]
@@ -204,14 +189,14 @@ def _log_map_lines(rec: rr.RecordingStream, info: SceneInfo) -> None:
 
 
 # ---------------------------------------------------------------------- scene layers
-def _time_columns(scene: _Scene) -> list[rr.TimeColumn]:
+def _time_columns(scene: SceneRows) -> list[rr.TimeColumn]:
     return [
         rr.TimeColumn(L.TIMELINE, duration=scene.times_s),
         rr.TimeColumn(L.FRAME_TIMELINE, sequence=scene.frame_index),
     ]
 
 
-def _timed_batch(scene: _Scene) -> C.Batch:
+def _timed_batch(scene: SceneRows) -> C.Batch:
     """An empty batch over the scene's two timelines (one row per recorded frame)."""
     ns = np.rint(scene.times_s * 1e9).astype(np.int64)
     return C.Batch(
@@ -325,7 +310,7 @@ def _add_entities(
 
 
 def _log_scene_layers(
-    rec, info: SceneInfo, scene: _Scene, frames, *, options: WriteOptions
+    rec, info: SceneInfo, scene: SceneRows, frames, *, options: WriteOptions
 ) -> None:
     """Every layer of the scene view, all frames: one timed and one static record batch."""
     batch, static = _timed_batch(scene), C.Batch()
@@ -341,7 +326,7 @@ def _log_scene_layers(
     _log_misses(rec, info, scene)
 
 
-def _add_ego(batch: C.Batch, static: C.Batch, scene: _Scene, labels: np.ndarray) -> None:
+def _add_ego(batch: C.Batch, static: C.Batch, scene: SceneRows, labels: np.ndarray) -> None:
     """The ego: a green capsule with a dark heading nose and the label ``ego <id>``."""
     r = scene.rows
     ego = r["is_ego"]
@@ -363,7 +348,7 @@ def _add_agents(
     batch: C.Batch,
     static: C.Batch,
     info: SceneInfo,
-    scene: _Scene,
+    scene: SceneRows,
     labels: np.ndarray,
     *,
     show: bool,
@@ -420,7 +405,7 @@ def _add_agents(
     _add_entities(batch, static, paths, n_frames, columns, None, labels=show)
 
 
-def _add_links(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: _Scene) -> None:
+def _add_links(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: SceneRows) -> None:
     """Fig. 2 overlay (option ``links``): per stage, ego -> every agent kept after it."""
     r, n_frames = scene.rows, scene.times_s.size
     ego_xy = np.zeros((n_frames, 2))
@@ -440,7 +425,7 @@ def _add_links(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: _Scene) 
         )  # fmt: skip
 
 
-def _add_paths(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: _Scene, frames) -> None:
+def _add_paths(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: SceneRows, frames) -> None:
     """The ego's path candidates; each deeper-tier survivor's under its own subtree."""
     n_frames = scene.times_s.size
     ego = [p for f in frames for p in f.ego_paths]
@@ -479,7 +464,7 @@ def _add_paths(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: _Scene, 
     _add_entities(batch, static, paths, n_frames, cols, L.ORDER_PATHS, labels=False)
 
 
-def _add_plans(batch: C.Batch, static: C.Batch, scene: _Scene, frames) -> None:
+def _add_plans(batch: C.Batch, static: C.Batch, scene: SceneRows, frames) -> None:
     """A planner's two plans per frame (replay run --planner): white with every agent,
     orange with the cascade's agents (drawn thinner, on top, so both show where equal)."""
     n_frames = scene.times_s.size
@@ -519,7 +504,7 @@ def _references(rows: dict[str, np.ndarray]) -> np.ndarray:
     )
 
 
-def _label_texts(info: SceneInfo, scene: _Scene, mode: str) -> np.ndarray:
+def _label_texts(info: SceneInfo, scene: SceneRows, mode: str) -> np.ndarray:
     """The label of every row (``""``: none; the id still shows on hover).
 
     ``"kept"`` (default): the ego, the tier agents (``17 I``) and the misses
@@ -560,7 +545,7 @@ def _label_texts(info: SceneInfo, scene: _Scene, mode: str) -> np.ndarray:
 
 
 def _declutter(
-    scene: _Scene, wanted: np.ndarray, priority: np.ndarray, spacing_m: float
+    scene: SceneRows, wanted: np.ndarray, priority: np.ndarray, spacing_m: float
 ) -> np.ndarray:
     """``wanted`` rows minus those within ``spacing_m`` of a more important wanted row.
 
@@ -586,7 +571,7 @@ def _declutter(
     return shown
 
 
-def miss_episodes(scene: _Scene, info: SceneInfo) -> list[dict[str, object]]:
+def miss_episodes(scene: SceneRows, info: SceneInfo) -> list[dict[str, object]]:
     """The misses, one entry per episode: an agent dropped although important, over
     consecutive recorded frames with the same stage and reference.
 
@@ -624,7 +609,7 @@ def miss_episodes(scene: _Scene, info: SceneInfo) -> list[dict[str, object]]:
     ]
 
 
-def _log_misses(rec, info: SceneInfo, scene: _Scene) -> None:
+def _log_misses(rec, info: SceneInfo, scene: SceneRows) -> None:
     """The misses list: a text log row per episode on the agent's body entity.
 
     A row at the episode's first frame reads ``agent 17 · dropped by stage 2
@@ -683,13 +668,13 @@ def _log10_range(values: np.ndarray, window_decades: float = 30.0) -> tuple[floa
     return max(bottom, top - window_decades) - 0.5, top + 0.5
 
 
-def _agent_grid(scene: _Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _agent_grid(scene: SceneRows) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     if scene.grid is None:
         scene.grid = _compute_agent_grid(scene)
     return scene.grid
 
 
-def _compute_agent_grid(scene: _Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _compute_agent_grid(scene: SceneRows) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The other agents as columns of a frame x agent grid.
 
     Returns ``agent_ids (A,)``, ``column (K,)`` (-1 for the ego rows), and each agent's
@@ -708,7 +693,7 @@ def _compute_agent_grid(scene: _Scene) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 
 def _log_timelines(
-    rec, info: SceneInfo, scene: _Scene, log10_models: set[str], focus: Sequence[int]
+    rec, info: SceneInfo, scene: SceneRows, log10_models: set[str], focus: Sequence[int]
 ) -> None:
     """``/scene/agents/<id>/risk/<model>``: each agent's risk from its first to its last
     frame, in the agent's own subtree (beside its body and path).
@@ -752,7 +737,7 @@ def _log_timelines(
     static.send(rec)
 
 
-def _log_threshold(rec, scene: _Scene, model: str, threshold: float, is_log: bool) -> None:
+def _log_threshold(rec, scene: SceneRows, model: str, threshold: float, is_log: bool) -> None:
     """The stage threshold as a flat line in the model's risk view."""
     if is_log and threshold <= 0:
         return
@@ -773,7 +758,7 @@ def _log_threshold(rec, scene: _Scene, model: str, threshold: float, is_log: boo
 
 
 # ---------------------------------------------------------------------- cascade series
-def _log_cascade_series(rec, info: SceneInfo, scene: _Scene, frames=()) -> None:
+def _log_cascade_series(rec, info: SceneInfo, scene: SceneRows, frames=()) -> None:
     """Funnel counts, cumulative false negatives and compute times, one value per frame."""
     r, n_frames = scene.rows, scene.times_s.size
     per_frame = lambda mask: np.bincount(scene.frame_of[mask], minlength=n_frames)  # noqa: E731
@@ -831,7 +816,7 @@ def _units(models: Sequence[str]) -> dict[str, str]:
     return {m: MODELS[m].unit for m in models if m in MODELS}
 
 
-def _ego_points(scene: _Scene, info: SceneInfo) -> np.ndarray:
+def _ego_points(scene: SceneRows, info: SceneInfo) -> np.ndarray:
     """Where the scene view opens: the ego's positions (without frames, the map)."""
     r = scene.rows
     if r["is_ego"].any():
@@ -842,7 +827,7 @@ def _ego_points(scene: _Scene, info: SceneInfo) -> np.ndarray:
     return np.concatenate(lanes) if lanes else np.zeros((1, 2))
 
 
-def focus_agents(scene: _Scene, limit: int = L.FOCUS_AGENTS_MAX) -> list[int]:
+def focus_agents(scene: SceneRows, limit: int = L.FOCUS_AGENTS_MAX) -> list[int]:
     """The agents the risk views open on: misses, hindsight positives and tier agents.
 
     Ordered by importance (missed at least once, then came close, then the deepest tier

@@ -14,7 +14,7 @@ the same:
 
 The replay's commands start the ahead-of-time build in the background the first time
 they run on the just-in-time form (:func:`risk.kernel_aot.start_background_build`);
-``python -m risk.kernel_aot`` builds it in the foreground.
+``python -m risk.kernel_aot_build`` builds it in the foreground.
 
 :data:`IMPLEMENTATION` says which form this process runs. Every array argument of the
 entry points must be read-only and C-contiguous with the dtype :func:`warm_up` uses (one
@@ -248,7 +248,7 @@ def warm_up(compiled: types.ModuleType | None = None, *, build_ahead_of_time: bo
 
     Call it once in a parent process before starting workers (pytest-xdist, batch, Ray),
     so that they load the cached kernels instead of each compiling them. ``compiled``:
-    the form to warm up (default: the one this process runs; :mod:`risk.kernel_aot`
+    the form to warm up (default: the one this process runs; :mod:`risk.kernel_aot_build`
     passes :mod:`risk.kernel_numba` to compile the signatures it builds).
 
     ``build_ahead_of_time``: when this process runs the just-in-time form (and

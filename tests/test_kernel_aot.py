@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from conftest import ROOT
 
-from risk import kernel, kernel_aot
+from risk import kernel, kernel_aot, kernel_aot_build
 
 #: A new process: evaluate every model and run the default cascade on random frames
 #: (N = 2 to 120, the mixed oracle frames too); save every array to ``argv[1]`` (.npz)
@@ -64,7 +64,7 @@ def built_cache(tmp_path_factory) -> pathlib.Path:
         kernel.CACHE_DIR, cache, dirs_exist_ok=True, ignore=shutil.ignore_patterns("aot")
     )
     build = subprocess.run(
-        [sys.executable, "-m", "risk.kernel_aot"],
+        [sys.executable, "-m", "risk.kernel_aot_build"],
         env={**os.environ, "NUMBA_CACHE_DIR": str(cache)},
         capture_output=True, text=True, timeout=900, cwd=ROOT,
     )  # fmt: skip
@@ -94,7 +94,7 @@ def test_built_module_loads_without_numba_and_agrees_bit_for_bit(built_cache, tm
 @pytest.mark.slow
 def test_building_again_is_a_no_op(built_cache):
     before = kernel_aot.module_path(built_cache).stat().st_mtime_ns
-    assert kernel_aot.build(built_cache) == kernel_aot.module_path(built_cache)
+    assert kernel_aot_build.build(built_cache) == kernel_aot.module_path(built_cache)
     assert kernel_aot.module_path(built_cache).stat().st_mtime_ns == before
     assert not kernel_aot.start_background_build(built_cache)
 
@@ -136,7 +136,7 @@ def test_background_build_starts_once_and_not_after_a_failure(tmp_path, monkeypa
     monkeypatch.setattr(kernel_aot.subprocess, "Popen", FakePopen)
     key = kernel_aot.build_key()
     assert kernel_aot.start_background_build(tmp_path)
-    assert started == [[sys.executable, "-m", "risk.kernel_aot", "--background"]]
+    assert started == [[sys.executable, "-m", "risk.kernel_aot_build", "--background"]]
     lock = tmp_path / "aot" / f"{key}.lock"
     lock.write_text("123")  # a build running
     assert not kernel_aot.start_background_build(tmp_path)
@@ -155,7 +155,7 @@ def test_a_failed_build_is_remembered_and_reported(tmp_path, monkeypatch):
     )
     # no C compiler: pycc's toolchain finds none
     run = subprocess.run(
-        [sys.executable, "-m", "risk.kernel_aot"],
+        [sys.executable, "-m", "risk.kernel_aot_build"],
         env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "CC": "/nonexistent/cc"},
         capture_output=True, text=True, timeout=900, cwd=ROOT,
     )  # fmt: skip

@@ -137,3 +137,31 @@ def test_exact_sweep_matches_a_direct_count(rows):
             assert r.fpr[0, k] == pytest.approx((keep & ~b).sum() / (~b).sum())
     # the lowest threshold keeps everything
     assert r.kept[0, 0] == s.size
+
+
+def test_one_auc_for_single_curves_and_rows():
+    """Hand-computed: the curve (0, 0) -> (0, 0.5) -> (0.5, 1) -> (1, 1) has area 0.875."""
+    from risk.metrics import trapezoid_auc, trapezoid_auc_rows
+
+    fpr, tpr = np.array([0.0, 0.5]), np.array([0.5, 1.0])
+    assert trapezoid_auc(fpr, tpr) == 0.875
+    rows = trapezoid_auc_rows(
+        np.array([[0.0, 0.5], [1.0, 1.0]]), np.array([[0.5, 1.0], [1.0, 1.0]])
+    )
+    assert rows.tolist() == [0.875, 0.5]  # the second: the chance diagonal
+    assert np.isnan(trapezoid_auc(np.array([np.nan]), np.array([0.5])))
+    assert np.isnan(trapezoid_auc(np.zeros(0), np.zeros(0)))
+
+
+def test_the_sweep_and_the_pooled_evaluation_share_one_sort():
+    """One situation: the mean sweep is the pooled curve (same thresholds, rates, AUC)."""
+    from risk.evaluation import pooled_roc
+
+    rng = np.random.default_rng(3)
+    scores = np.round(rng.random(200), 2)  # ties
+    positive = rng.random(200) < 0.3
+    sweep = exact_sweep(scores, np.zeros(200, dtype=np.int64), positive)
+    pooled = pooled_roc(scores, positive)
+    assert np.array_equal(sweep.thresholds, pooled.thresholds)
+    assert np.allclose(sweep.mean_tpr, pooled.tpr) and np.allclose(sweep.mean_fpr, pooled.fpr)
+    assert sweep.auc == pytest.approx(pooled.auc, abs=1e-12)

@@ -14,7 +14,7 @@ import pathlib
 import numpy as np
 import polars as pl
 
-from replay.core.tables import PLANNER_COLUMNS, TRUTH_COLUMNS, TableColumns
+from replay.core.table_columns import PLANNER_COLUMNS, TRUTH_COLUMNS, TableColumns
 from replay.errors import ReplayError
 from risk.frame import KIND_NAMES
 from risk.hindsight import LABEL_POSITIVE, LABEL_UNKNOWN

@@ -28,7 +28,6 @@ from __future__ import annotations
 import importlib
 import os
 import pathlib
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -36,32 +35,15 @@ import numpy as np
 from outputs import process as background_process
 from outputs.atomic import commit, temp_path_beside
 from outputs.sinks import FrameResult, SceneInfo
+from replay.core.table_columns import PLANNER_COLUMNS, TableColumns
 from replay.errors import ReplayError
 from risk.hindsight import LABEL_UNKNOWN, HindsightSettings, truth_for_rows
 
 if TYPE_CHECKING:
     import polars as pl
 
-TRUTH_COLUMNS = ("truth_gap_m", "truth_pet_s", "truth_label")
-#: With a planner beside the replay (``replay run --planner NAME --table T``): whether
-#: removing the agent alone changes the plan (true / false, null when unknown) and by how
-#: much (m); see :mod:`replay.planning.truth`.
-PLANNER_COLUMNS = ("planner_label", "planner_shift_m")
 #: The module that builds and writes the table with polars (replay.core.table_file).
 TABLE_WRITER = "replay.core.table_file"
-
-
-@dataclass(frozen=True, eq=False)
-class TableColumns:
-    """The table as numpy columns: what :mod:`replay.core.table_file` turns into the file."""
-
-    keys: tuple[str, ...]  # the collected columns, in order (codes for kind, stage, tier)
-    data: dict[str, Any]  # name -> (rows,) array ([] when there are no rows)
-    stage_names: tuple[str, ...]
-    tier_names: tuple[str, ...]
-    truth_gap_m: np.ndarray  # NaN: unknown
-    truth_pet_s: np.ndarray  # NaN: the footprints do not meet, or unknown
-    truth_label: np.ndarray  # int8 risk.hindsight labels
 
 
 SUFFIXES = (".parquet", ".csv")
