@@ -131,6 +131,12 @@ def loads(data: bytes, *, where: str = "input", what: str = "ScenarioNet scenari
             f"{where}: refused to load: the pickle names the global {exc}; this file is not "
             f"a plain {what} (nothing in it was run)"
         ) from None
+    except pickle.UnpicklingError as exc:
+        if "truncated" not in str(exc):
+            raise ConversionError(f"{where}: not a readable pickle ({exc})") from None
+        raise ConversionError(
+            f"{where}: the pickle ends early (truncated or incomplete file); copy it again"
+        ) from None
     except EOFError:
         raise ConversionError(
             f"{where}: the pickle ends early (truncated or incomplete file); copy it again"
