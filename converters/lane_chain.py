@@ -1,13 +1,13 @@
 """Successor links for maps whose lanes carry none (nuScenes through ScenarioNet).
 
 nuScenes lane centre lines come without ``exit_lanes``, but consecutive lanes share their
-joint: on the format's test scenes, 88-90 % of lane ends lie within 1 mm of another
-lane's start, the heading across those joints changes by at most 0.16 rad (9 degrees),
-and the remaining ends are the edge of the cropped map or the end of a turning pocket
-(their nearest lane start is 1.3 m or more away, most often the opposite lane's,
-heading back). So lane *j* succeeds lane *i* when *j*'s first point lies within
-``max_gap_m`` of *i*'s last point and the direction of *j*'s first segment is within
-``max_heading_rad`` of *i*'s last segment. The links then feed the ordinary lane graph
+joint. Measured on the eight nuScenes scenes of the format's test data: 88-91 % of lane
+ends have another lane starting within 1 m, over 99 % of those exactly at the end point
+(the largest gap: 0.50 m), the heading across such joints changes by at most 0.16 rad
+(9 degrees), and every other end is 1.27 m or more from the nearest lane start (the edge
+of the cropped map, a pocket, or the opposite lane heading back). So lane *j* succeeds
+lane *i* when *j*'s first point lies within ``max_gap_m`` of *i*'s last point and the
+direction of *j*'s first segment is within ``max_heading_rad`` of *i*'s last segment. The links then feed the ordinary lane graph
 (:class:`converters.lanegraph.LaneGraph`): matching, forks as candidates, straight
 extension where a route ends.
 """

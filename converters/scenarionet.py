@@ -283,7 +283,7 @@ def scenario_lane_map(sd: Mapping[str, Any], where: str) -> tuple[LaneMap, dict[
     features = sd["map_features"]
     id_of = _feature_ids(sd)
     keys = list(id_of)
-    lanes: list[tuple[int, np.ndarray, str, list[Any] | None]] = []
+    lanes: list[tuple[int, np.ndarray, str, Any]] = []  # id, centre line, kind, exit_lanes
     lines: list[MapLine] = []
     left_out: dict[str, int] = {}
     for key, f in zip(keys, features.values(), strict=True):
