@@ -18,7 +18,8 @@ Mapping (one scene per scenario):
   renaming is the metadata ``renamed_tracks``); valid where ``state.valid``;
   position ``state.position[:, :2]``, heading, speed ``|state.velocity|``, length and width
   (``(T,)`` or ``(T, 1)``);
-- kinds: :data:`TRACK_KINDS`. ``TRAFFIC_CONE`` and ``TRAFFIC_BARRIER`` are **kept** as
+- kinds: :data:`TRACK_KINDS`, except nuScenes motorcycles (ScenarioNet's ``CYCLIST``
+  with category ``vehicle.motorcycle``), which are vehicles. ``TRAFFIC_CONE`` and ``TRAFFIC_BARRIER`` are **kept** as
   standing agents of kind ``other``: unlike the bollards and signs that the Argoverse 2
   Sensor converter leaves out, they are temporary (road works), no map holds them, and
   a planner learns of them only from these tracks;
@@ -72,6 +73,10 @@ TRACK_KINDS: dict[str, Kind] = {
     "TRAFFIC_BARRIER": Kind.OTHER,
 }
 """ScenarioNet track ``type`` -> kind; any other type is ``other``."""
+
+MOTORCYCLE_CATEGORY = "vehicle.motorcycle"
+"""nuScenes category (the track's ``metadata.type``) that ScenarioNet types ``CYCLIST`` but
+that is a vehicle here, as in every converter (motorcycles use lanes and move like cars)."""
 
 POLYGON_TYPES = {"CROSSWALK": "crosswalk", "SPEED_BUMP": "other", "DRIVEWAY": "other"}
 """Map feature types kept as closed polygons, and their line kind."""
@@ -217,10 +222,15 @@ def _points(value: Any, where: str) -> np.ndarray:
 
 # ---------------------------------------------------------------------- reading
 def read_scenario(path: str | os.PathLike) -> dict[str, Any]:
-    """Load a scenario file safely and check its top level (a dict with ``tracks``,
-    ``metadata`` holding ``sdc_id`` and ``ts``, and ``map_features``)."""
+    """Load a scenario file safely and check its top level (:func:`check_scenario`)."""
     sd = safe_pickle.load(path)
-    where = str(path)
+    check_scenario(sd, str(path))
+    return sd
+
+
+def check_scenario(sd: Any, where: str) -> None:
+    """Raise ConversionError unless ``sd`` is a dict with the dicts ``tracks``,
+    ``metadata`` (holding ``sdc_id``) and ``map_features``."""
     if not isinstance(sd, dict):
         raise ConversionError(
             f"{where}: holds a {type(sd).__name__}, not a ScenarioNet scenario (a dict)"
@@ -231,7 +241,11 @@ def read_scenario(path: str | os.PathLike) -> dict[str, Any]:
         raise ConversionError(
             f"{where}: metadata has no 'sdc_id' (the ego's track); not a ScenarioNet scenario"
         )
-    return sd
+
+
+def _text(value: Any) -> str:
+    """A metadata value as text when it is a string or an integer, else ''."""
+    return str(value) if isinstance(value, (str, int, np.integer)) else ""
 
 
 def scenario_tracks(
@@ -265,6 +279,10 @@ def scenario_tracks(
         kind = _get(track, "type", str, w)
         state = _get(track, "state", dict, w)
         kinds[i] = TRACK_KINDS.get(kind, Kind.OTHER)
+        meta = track.get("metadata")
+        category = meta.get("type") if isinstance(meta, dict) else None
+        if isinstance(category, str) and category.startswith(MOTORCYCLE_CATEGORY):
+            kinds[i] = Kind.VEHICLE  # ScenarioNet makes them cyclists; we count them as vehicles
         xy[:, i] = _array(state, "position", n_steps, (2, 3), w)[:, :2]
         heading[:, i] = _array(state, "heading", n_steps, (), w)
         velocity = _array(state, "velocity", n_steps, (2,), w)
@@ -300,7 +318,7 @@ def scenario_lane_map(sd: Mapping[str, Any], where: str) -> tuple[LaneMap, dict[
             lanes.append((fid, _points(f.get("polyline"), w), lane_kind, exits))
         elif kind.startswith(("ROAD_LINE_", "ROAD_EDGE_")):
             line_kind = "lane_boundary" if kind.startswith("ROAD_LINE_") else "road_edge"
-            style = kind[len("ROAD_LINE_") :].lower()
+            style = kind.split("_", 2)[2].lower()  # ROAD_LINE_BROKEN_SINGLE_WHITE -> broken_...
             lines.append(MapLine(fid, line_kind, _points(f.get("polyline"), w), style=style))
         elif kind in POLYGON_TYPES:
             pts = _points(f["polygon"] if "polygon" in f else f.get("polyline"), w)
@@ -311,7 +329,11 @@ def scenario_lane_map(sd: Mapping[str, Any], where: str) -> tuple[LaneMap, dict[
     linked = any(exits is not None for *_, exits in lanes)
     if linked:
         successors = [
-            tuple(id_of[str(int(s))] for s in exits or () if str(int(s)) in id_of)
+            tuple(
+                id_of[k]
+                for k in map(_feature_key, exits if exits is not None else ())
+                if k in id_of
+            )
             for *_, exits in lanes
         ]
         how = "exit_lanes"
@@ -360,7 +382,9 @@ def traffic_lights(
 ) -> list[dict[str, Any]]:
     """``dynamic_map_states`` as JSON-able lights: lane id, stop point (m) and the state
     changes ``[t_s, state]`` (``LANE_STATE_`` dropped; ``null`` where unknown)."""
-    states = sd.get("dynamic_map_states") or {}
+    states = sd.get("dynamic_map_states")
+    if states is None:
+        return []
     if not isinstance(states, dict):
         raise ConversionError(f"{where}: 'dynamic_map_states' is not a dict")
     out = []
@@ -368,7 +392,8 @@ def traffic_lights(
         w = f"{where}: dynamic map state {key}"
         if not isinstance(light, dict):
             raise ConversionError(f"{w}: a {type(light).__name__}, not a dict")
-        seq = (light.get("state") or {}).get("object_state")
+        state = light.get("state")
+        seq = state.get("object_state") if isinstance(state, dict) else None
         if not isinstance(seq, (list, tuple)) or len(seq) != t_s.size:
             raise ConversionError(f"{w}: 'state.object_state' is not one state per step")
         changes: list[list[Any]] = []
@@ -376,16 +401,16 @@ def traffic_lights(
             name = s.removeprefix("LANE_STATE_") if isinstance(s, str) else None
             if not changes or changes[-1][1] != name:
                 changes.append([round(float(t_s[k]), 3), name])
-        lane = light.get("lane")
         stop = light.get("stop_point")
         stop_xy = (
             [round(float(v), 3) for v in stop[:2]]
-            if isinstance(stop, np.ndarray) and stop.dtype.kind in "biuf" and stop.size >= 2
+            if isinstance(stop, np.ndarray) and stop.dtype.kind in "biuf" and stop.ndim == 1
+            and stop.size >= 2
             else None
-        )
+        )  # fmt: skip
         out.append(
             {
-                "lane": lane_id.get(str(lane)) if lane is not None else None,
+                "lane": lane_id.get(_feature_key(light.get("lane"))),
                 "stop_point_m": stop_xy,
                 "states": changes,
             }
@@ -406,11 +431,12 @@ def scenario_to_scene(
 ) -> Scene:
     """One checked scenario dict (:func:`read_scenario`) as a scene."""
     settings = settings or PathSettings()
+    check_scenario(sd, str(source))
     md = sd["metadata"]
-    scenario_id = str(md.get("scenario_id") or md.get("id") or sd.get("id") or "")
+    scenario_id = _text(md.get("scenario_id")) or _text(md.get("id")) or _text(sd.get("id"))
     where = f"{source} (scenario {scenario_id or '?'})"
     table, names, renamed = scenario_tracks(sd, where)
-    sdc = str(md["sdc_id"])
+    sdc = _text(md["sdc_id"])
     if sdc not in names:
         raise ConversionError(f"{where}: metadata sdc_id {sdc!r} is not one of the tracks")
     ego = names.index(sdc)
@@ -419,10 +445,10 @@ def scenario_to_scene(
     steps = np.diff(table.t_s)
     period = (round(float(np.median(steps)), 3) or float(np.median(steps))) if steps.size else 0.1
     lights = traffic_lights(sd, table.t_s, _feature_ids(sd), where)
-    dataset = str(md.get("dataset") or "unknown")
+    dataset = _text(md.get("dataset")) or "unknown"
     metadata = {
         "dataset": dataset,
-        "source_format": f"scenarionet {sd.get('version', '')}".strip(),
+        "source_format": f"scenarionet {_text(sd.get('version'))}".strip(),
         "source_file": os.path.basename(os.fspath(source)),
         "scenario_id": scenario_id,
         "converter": CONVERTER,
@@ -439,8 +465,8 @@ def scenario_to_scene(
         **map_facts,
     }
     for key in ("map", "current_time_index"):
-        if key in md and isinstance(md[key], (str, int)):
-            metadata[key] = str(md[key])
+        if _text(md.get(key)):
+            metadata[key] = _text(md[key])
     if lights:
         metadata["traffic_lights"] = json.dumps(lights, separators=(",", ":"))
     return build_scene(
@@ -459,6 +485,15 @@ def scenario_to_scene(
         off_lane="hindsight",
         path_source_labels=True,
     )
+
+
+def _feature_key(ref: Any) -> str:
+    """A reference to a map feature (Waymo: an int; else the key itself) as its key."""
+    if isinstance(ref, (bool, np.bool_)):
+        return ""
+    if isinstance(ref, (int, np.integer)):
+        return str(int(ref))
+    return ref if isinstance(ref, str) else ""
 
 
 def _feature_ids(sd: Mapping[str, Any]) -> dict[str, int]:

@@ -386,7 +386,12 @@ def test_real_scenes_against_the_pickles(shared_data, tmp_path):
         assert result.exit_code == 0, result.output
         scene = read_scene(out)
         f = scene.frames[0]
-        want = collections.Counter(KIND_OF.get(t["type"], Kind.OTHER) for t in tracks.values())
+        want = collections.Counter(
+            Kind.VEHICLE
+            if t["metadata"].get("type", "").startswith("vehicle.motorcycle")  # our rule
+            else KIND_OF.get(t["type"], Kind.OTHER)
+            for t in tracks.values()
+        )
         assert collections.Counter(Kind(k) for k in f.kinds.tolist()) == want, path
         assert scene.metadata["dataset"] == md["dataset"]
         assert len(scene.frames) == len(md["ts"])
@@ -441,3 +446,53 @@ def test_batch_discovers_one_input_per_scenarionet_folder(shared_data):
     ]  # fmt: skip
     assert {i.source for i in found.inputs} == {"scenarionet"}
     assert not found.unreadable and not found.scenes
+
+
+def _keys(d, pre=()):
+    if isinstance(d, dict):
+        for k, v in d.items():
+            yield (*pre, k)
+            yield from _keys(v, (*pre, k))
+
+
+def test_any_field_of_the_wrong_type_is_a_conversion_error_or_converts():
+    """Every field of a scenario (also lights, labels, exit_lanes) replaced by values of
+    other types and shapes: a ConversionError or a scene, never another exception."""
+    base = scenario()
+    base["dynamic_map_states"] = {
+        "9": {"type": "TRAFFIC_LIGHT", "lane": "A", "stop_point": np.array([1.0, 2.0, 0.0]),
+              "state": {"object_state": ["LANE_STATE_GO"] * T}},
+    }  # fmt: skip
+    base["metadata"]["objects_of_interest"] = ["ego"]
+    base["map_features"]["A"]["exit_lanes"] = ["B"]
+    values = [None, 7, True, "x", [], {}, [1, 2], np.zeros((2, 2)), np.array(["a"]),
+              [[1, 2], [3]], [(1, "a")], np.zeros(T), np.zeros((T, 5)), math.nan]  # fmt: skip
+    settings = PathSettings(map_path_m=0.0)
+    outcomes = collections.Counter()
+    for key in list(_keys(base)):
+        for value in values:
+            sd = pickle.loads(pickle.dumps(base))  # a deep copy
+            parent = sd
+            for k in key[:-1]:
+                parent = parent[k]
+            parent[key[-1]] = value
+            try:
+                scenarionet.scenario_to_scene(sd, source="fuzz", settings=settings)
+                outcomes["scene"] += 1
+            except ConversionError as exc:
+                assert "\n" not in str(exc)
+                outcomes["error"] += 1
+    assert outcomes["scene"] > 100 and outcomes["error"] > 500
+
+
+def test_nuscenes_motorcycles_are_vehicles_bicycles_cyclists(tmp_path):
+    sd = scenario()
+    sd["tracks"]["m0to"] = _track("CYCLIST", (0.0, 3.0), 0.0, 5.0)
+    sd["tracks"]["m0to"]["metadata"] = {"type": "vehicle.motorcycle"}
+    sd["tracks"]["b1cy"] = _track("CYCLIST", (0.0, 6.0), 0.0, 3.0)
+    sd["tracks"]["b1cy"]["metadata"] = {"type": "vehicle.bicycle"}
+    scene = scenarionet.read_scene(write(tmp_path / "m.pkl", sd))
+    f = scene.frames[0]
+    kinds = dict(zip(f.ids.tolist(), f.kinds.tolist(), strict=True))
+    # sorted keys: b1cy 0, b1ke 1, c0ne 2, ego 3, f00d 4, m0to 5
+    assert kinds[5] == Kind.VEHICLE and kinds[0] == Kind.CYCLIST
