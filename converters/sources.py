@@ -486,10 +486,12 @@ def _matches(path: pathlib.Path, patterns: Iterable[str]) -> bool:
 
 
 def detect(path: pathlib.Path) -> SourceSpec | None:
-    """The source of one file (or of a log folder), or None."""
+    """The source of one file (or of a log folder or ScenarioNet database folder), or None."""
     path = pathlib.Path(path)
     if path.is_dir():
-        return SOURCES["av2-sensor"] if av2_sensor.is_log_dir(path) else None
+        if av2_sensor.is_log_dir(path):
+            return SOURCES["av2-sensor"]
+        return SOURCES["scenarionet"] if scenarionet.is_database(path) else None
     for s in SOURCES.values():
         if _matches(path, s.patterns) and s.detect(path):
             return s
