@@ -120,8 +120,9 @@ def _index(folder: pathlib.Path, name: str) -> dict[str, Any]:
 
 def scenario_files(path: str | os.PathLike) -> list[pathlib.Path]:
     """The scenario files of an input: the file itself, or those of a database folder
-    (mapping, else summary, else every ``*.pkl`` but the index files), in sorted order.
-    Raises ConversionError when a named file is missing or the folder has none."""
+    (mapping, else summary, else every ``*.pkl`` but the index files), in sorted order;
+    a folder with none of these: those of its sub-folders that have them. Raises
+    ConversionError when a named file is missing or no scenario is found."""
     path = pathlib.Path(path)
     if path.is_file():
         return [path]
@@ -140,16 +141,27 @@ def scenario_files(path: str | os.PathLike) -> list[pathlib.Path]:
     else:
         files = [p for p in path.glob("*.pkl") if p.name not in INDEX_FILES and p.is_file()]
         index = ""
-        if not files:
-            raise ConversionError(f"{path}: no ScenarioNet scenario (*.pkl) in this folder")
+        if not files:  # a folder of databases (one level down), as the test data comes
+            subs = sorted(d for d in path.iterdir() if d.is_dir() and _holds_scenarios(d))
+            if not subs:
+                raise ConversionError(
+                    f"{path}: no ScenarioNet scenario (*.pkl) in this folder or its sub-folders"
+                )
+            return [f for d in subs for f in scenario_files(d)]
     missing = [f for f in files if not f.is_file()]
     if missing:
         more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
         raise ConversionError(
-            f"{path / index}: names {missing[0].relative_to(path)}, which does not exist"
+            f"{path / index}: names {os.path.relpath(missing[0], path)}, which does not exist"
             f"{more}; copy the whole database or rebuild its index"
         )
     return sorted(set(files))
+
+
+def _holds_scenarios(folder: pathlib.Path) -> bool:
+    return is_database(folder) or any(
+        p.name not in INDEX_FILES for p in folder.glob("*.pkl") if p.is_file()
+    )
 
 
 def companions(path: pathlib.Path) -> list[pathlib.Path]:

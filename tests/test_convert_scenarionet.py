@@ -378,13 +378,15 @@ KIND_OF = {"VEHICLE": Kind.VEHICLE, "PEDESTRIAN": Kind.PEDESTRIAN, "CYCLIST": Ki
 
 
 def test_real_scenes_against_the_pickles(shared_data, tmp_path):
-    for path in _real_files(shared_data):
+    files = _real_files(shared_data)
+    # the whole folder of databases at once: one scene per scenario, named by its id
+    result = _cli(files[0].parents[1], "-o", tmp_path)
+    assert result.exit_code == 0, result.output
+    assert len(list(tmp_path.glob("*.mcap"))) == len(files)
+    for path in files:
         sd = _plain(path)
         md, tracks = sd["metadata"], sd["tracks"]
-        out = tmp_path / f"{path.parent.name}-{path.stem}.mcap"
-        result = _cli(path, "-o", out)
-        assert result.exit_code == 0, result.output
-        scene = read_scene(out)
+        scene = read_scene(tmp_path / f"{sd['id']}.mcap")
         f = scene.frames[0]
         want = collections.Counter(
             Kind.VEHICLE
