@@ -2,7 +2,8 @@
 
 A pickle names Python callables (its "globals") and the loader calls them; a hostile file
 can name ``os.system``. :class:`ScenarioUnpickler` resolves only the globals that plain
-ScenarioNet files use (verified on the format's own test data with numpy 1 and 2 names):
+ScenarioNet files use (the globals of the format's own test data, written with numpy 1's
+``numpy.core`` names, and of numpy 2.4's pickles of the same arrays, ``numpy._core``):
 
 - ``numpy.core.multiarray._reconstruct`` / ``numpy._core.multiarray._reconstruct`` with
   ``numpy.ndarray`` and ``numpy.dtype``: numpy's array pickling (protocols 3 and 4; ScenarioNet
@@ -18,7 +19,8 @@ numpy's own pickles make: ``ndarray`` resolves to a marker that can only be pass
 accepts only the empty seed array that ``__setstate__`` then fills from the file's own
 bytes, ``dtype`` only a type string, and ``defaultdict`` becomes a plain ``dict`` (no
 default factory survives). Files larger than :data:`MAX_FILE_BYTES` are refused before
-reading; a nesting too deep for the interpreter is reported, not crashed on.
+reading; deep nesting is harmless (the C unpickler builds it without recursion, and
+nothing here walks it), and a RecursionError would be reported, not crashed on.
 """
 
 from __future__ import annotations

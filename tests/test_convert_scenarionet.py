@@ -176,6 +176,15 @@ def test_loader_reads_numpy_arrays_and_defaultdicts_as_pickled_by_scenarionet():
         assert got["d"] == value["d"]
 
 
+def test_deeply_nested_pickle_is_one_error(tmp_path):
+    """A million nested lists (2 MB, built without recursion by the unpickler)."""
+    n = 1_000_000
+    bad = tmp_path / "deep.pkl"
+    bad.write_bytes(b"\x80\x04" + b"]" * n + b"a" * (n - 1) + b".")
+    line = _one_error(_cli(bad, "-o", tmp_path / "out"))
+    assert "holds a list" in line
+
+
 def test_file_size_limit(tmp_path, monkeypatch):
     path = write(tmp_path / "s.pkl", scenario())
     monkeypatch.setattr(safe_pickle, "MAX_FILE_BYTES", 100)
