@@ -5,7 +5,8 @@ The input is nuScenes ``scene-0061`` of the format's test data (191 steps at 10 
 ``replay convert scenarionet`` does: safe load, checks, tracks, lane chaining, map paths
 (with the recorded-future fallback), frames and the MCAP write. Medians over
 ``--repeat`` runs after one warm-up run (imports and first-call costs are not counted);
-the load alone and the conversion without the write are timed too.
+the load alone and the conversion without the write are timed too, and the process's
+CPU time (what the wall time would be on an idle core) with the load average beside it.
 
 Usage::
 
@@ -41,10 +42,11 @@ def main() -> None:
     args = parser.parse_args()
     if not args.file.is_file():
         sys.exit(f"{args.file}: not found (the shared ScenarioNet samples are needed)")
-    load, build, total = [], [], []
+    load, build, total, cpu = [], [], [], []
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "scene.mcap"
         for k in range(args.repeat + 1):
+            c0 = time.process_time()
             t0 = time.perf_counter()
             sd = scenarionet.read_scenario(args.file)
             t1 = time.perf_counter()
@@ -52,10 +54,12 @@ def main() -> None:
             t2 = time.perf_counter()
             write_scene(out, scene)
             t3 = time.perf_counter()
+            c3 = time.process_time()
             if k:  # the first run pays imports and first calls
                 load.append(t1 - t0)
                 build.append(t2 - t1)
                 total.append(t3 - t0)
+                cpu.append(c3 - c0)
         size = out.stat().st_size
     safe_pickle.load(args.file)  # the loader alone, for the record below
     f = scene.frames[0]
@@ -68,6 +72,8 @@ def main() -> None:
     print(f"  tracks, map, paths : median {statistics.median(build):.3f} s")
     print(f"  total with write   : median {statistics.median(total):.3f} s  (goal <= 2 s)")
     print(f"  total, all runs    : {', '.join(f'{t:.2f}' for t in total)}")
+    print(f"  CPU time (process) : median {statistics.median(cpu):.3f} s")
+    print(f"  load average       : {', '.join(f'{v:.1f}' for v in os.getloadavg())}")
 
 
 if __name__ == "__main__":
