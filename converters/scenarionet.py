@@ -235,6 +235,10 @@ def _points(value: Any, where: str) -> np.ndarray:
 # ---------------------------------------------------------------------- reading
 def read_scenario(path: str | os.PathLike) -> dict[str, Any]:
     """Load a scenario file safely and check its top level (:func:`check_scenario`)."""
+    if pathlib.Path(path).name in INDEX_FILES:
+        raise ConversionError(
+            f"{path}: the index of a ScenarioNet database, not a scenario; give its folder"
+        )
     sd = safe_pickle.load(path)
     check_scenario(sd, str(path))
     return sd

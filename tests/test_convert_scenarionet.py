@@ -351,6 +351,11 @@ def test_database_whose_mapping_names_a_missing_file(tmp_path):
     assert not out.exists() or not any(out.iterdir())  # not even a.mcap
 
 
+def test_an_index_file_given_as_the_input(tmp_path):
+    index = write(tmp_path / scenarionet.SUMMARY_FILE, {"a.pkl": {}})
+    assert "give its folder" in _one_error(_cli(index, "-o", tmp_path / "out"))
+
+
 def test_database_folder_mapping_into_a_sub_folder(tmp_path):
     db = tmp_path / "db"
     (db / "part").mkdir(parents=True)
