@@ -17,6 +17,7 @@ from converters import safe_pickle, scenarionet, sources
 from converters.errors import ConversionError
 from converters.lane_chain import chain_successors
 from converters.lanegraph import PathSettings
+from replay import batch
 from replay.cli import main
 from replay.reader import read_scene
 from risk.frame import Kind
@@ -462,6 +463,9 @@ def test_batch_discovers_one_input_per_scenarionet_folder(shared_data):
     ]  # fmt: skip
     assert {i.source for i in found.inputs} == {"scenarionet"}
     assert not found.unreadable and not found.scenes
+    # batch names: one per folder, so that OUT/scenes/<folder>/<scenario>.mcap is a dataset
+    names = sorted(f.name for f in batch.discover([root]))
+    assert names == ["nuscenes_0", "nuscenes_1", "nuscenes_2", "nuscenes_4", "overpass"]
 
 
 def _keys(d, pre=()):
