@@ -315,7 +315,7 @@ def scenario_lane_map(sd: Mapping[str, Any], where: str) -> tuple[LaneMap, dict[
     """Lanes and map lines; also facts for the metadata (how lanes were linked, what was
     left out)."""
     features = sd["map_features"]
-    id_of = _feature_ids(sd)
+    id_of = _feature_ids(sd, where)
     keys = list(id_of)
     lanes: list[tuple[int, np.ndarray, str, Any]] = []  # id, centre line, kind, exit_lanes
     lines: list[MapLine] = []
@@ -460,7 +460,7 @@ def scenario_to_scene(
     id_of = dict(zip(names, table.ids.tolist(), strict=True))
     steps = np.diff(table.t_s)
     period = (round(float(np.median(steps)), 3) or float(np.median(steps))) if steps.size else 0.1
-    lights = traffic_lights(sd, table.t_s, _feature_ids(sd), where)
+    lights = traffic_lights(sd, table.t_s, _feature_ids(sd, where), where)
     dataset = _text(md.get("dataset")) or "unknown"
     metadata = {
         "dataset": dataset,
@@ -512,9 +512,11 @@ def _feature_key(ref: Any) -> str:
     return ref if isinstance(ref, str) else ""
 
 
-def _feature_ids(sd: Mapping[str, Any]) -> dict[str, int]:
+def _feature_ids(sd: Mapping[str, Any], where: str) -> dict[str, int]:
     """Map feature key -> integer id (integer keys keep their value, as for tracks)."""
     keys = [str(k) for k in sd["map_features"]]
+    if len(set(keys)) != len(keys):
+        raise ConversionError(f"{where}: two map features have the same key (as text)")
     ids, _ = integer_ids(keys)
     return dict(zip(keys, ids.tolist(), strict=True))
 
