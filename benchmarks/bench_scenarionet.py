@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from converters import safe_pickle, scenarionet  # noqa: E402
-from converters.mcap_io import write_scene  # noqa: E402
+from converters.scene.writer import write_scene  # noqa: E402
 
 DEFAULT = (
     Path(os.environ.get("RISKREPLAY_SHARED_DATA") or ROOT.parent / "shared" / "data")

@@ -52,7 +52,7 @@ import numpy as np
 
 from converters import safe_pickle
 from converters.errors import ConversionError
-from converters.finite import check_grid
+from converters.input_checks import check_grid
 from converters.lane_chain import MAX_GAP_M, MAX_HEADING_RAD, chain_successors
 from converters.lanegraph import PathSettings
 from converters.map_lines import dedupe_lines

@@ -23,9 +23,7 @@ PACKAGES = ("risk", "outputs", "converters", "replay", "recordings")
 #: (start-up cost, an optional dependency, an import cycle inside ``risk``). New ones
 #: need a reason too: add them here with it.
 ALLOWED_INNER_IMPORTS = {
-    # risk/cascade.py loads alone (the registry imports the model modules); tomli_w only
-    # to write a cascade file
-    ("risk/cascade.py", "risk"),
+    # tomli_w only to write a cascade file
     ("risk/cascade.py", "tomli_w"),
     # numba's BLAS probe answered before numba's own import of arraymath (0.3-0.6 s saved
     # per process; risk/kernel_numba.py explains)

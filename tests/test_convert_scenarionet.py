@@ -17,9 +17,9 @@ from converters import safe_pickle, scenarionet, sources
 from converters.errors import ConversionError
 from converters.lane_chain import chain_successors
 from converters.lanegraph import PathSettings
+from converters.scene.reader import read_scene
 from replay import batch
-from replay.cli import main
-from replay.reader import read_scene
+from replay.cli.app import main
 from risk.frame import Kind
 
 T = 30  # steps of the hand-made scenario, 10 Hz
