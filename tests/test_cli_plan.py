@@ -65,8 +65,8 @@ def test_a_cut_that_drops_the_stopped_car_changes_the_plan(road, tmp_path, plann
     # the cascade keeps the stopped car in the ego's lane: the plan is the same
     assert by["cascade"]["changed"] is False
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["filters"]["radius:10"]["changed"]["share"] > 0.5
-    assert (out / "plan_time.png").stat().st_size > 0
+    assert summary["planners"][planner]["filters"]["radius:10"]["changed"]["share"] > 0.5
+    assert (out / "plan_time.png").stat().st_size > 0  # one planner: no suffix
     assert str(out / "plans.parquet") in result.output
 
 
@@ -115,10 +115,10 @@ def test_matched_cuts_keep_the_cascades_mean(road, tmp_path):
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "summary.json").read_text())
     matched = summary["matched_cuts"]
-    cascade_kept = summary["filters"]["cascade"]["mean_kept"]
+    cascade_kept = summary["planners"]["idm"]["filters"]["cascade"]["mean_kept"]
     assert matched["nearest_k"] == round(matched["cascade_mean_kept"])
     assert abs(matched["cascade_mean_kept"] - cascade_kept) < 1e-9
-    radius = summary["filters"][f"radius:{matched['radius_m']:g}"]
+    radius = summary["planners"]["idm"]["filters"][f"radius:{matched['radius_m']:g}"]
     assert radius["mean_kept"] >= cascade_kept - 1e-9
 
 
@@ -171,7 +171,7 @@ def test_an_ego_without_a_path_is_counted_not_unchanged(tmp_path):
     assert not rows["plan_ok"].any()
     assert rows["changed"].null_count() == rows.height
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["ego_frames_without_path"] == 3
+    assert summary["planners"]["idm"]["ego_frames_without_path"] == 3
     assert "3 without a path" in result.output
 
 
@@ -221,3 +221,19 @@ def test_run_without_a_planner_has_no_planner_columns(road, tmp_path):
     )
     assert result.exit_code == 0, result.output
     assert "planner_label" not in pl.read_parquet(table).columns
+
+
+@pytest.mark.skipif(not HAS_FISS, reason="needs the optional extra riskreplay[planner]")
+def test_two_planners_run_the_same_frames(road, tmp_path):
+    out = tmp_path / "out"
+    result = plan(road, "-o", out, "--planner", "idm", "--planner", "fiss_plus",
+                  "--filter", "radius:10")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    rows = pl.read_parquet(out / "plans.parquet")
+    per = rows.group_by("planner").agg(pl.len(), pl.col("frame").n_unique())
+    assert sorted(per["planner"].to_list()) == ["fiss_plus", "idm"]
+    assert per["len"].n_unique() == 1 and per["frame"].n_unique() == 1
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["planners"]) == {"idm", "fiss_plus"}
+    assert (out / "plan_time_idm.png").exists() and (out / "plan_time_fiss_plus.png").exists()
+    assert "Planner idm:" in result.output and "Planner fiss_plus:" in result.output

@@ -299,16 +299,26 @@ def closed_loop_scene(
     ego: int | str | None = None,
     planner: Planner | None = None,
     filters: list[Filter] | None = None,
+    egos_per_scene: int | None = None,
 ) -> list[dict[str, Any]]:
-    """Closed-loop runs of one scene: per ego, once with all agents and once per filter."""
+    """Closed-loop runs of one scene: per ego, once with all agents and once per filter.
+
+    ``egos_per_scene``: at most this many of the egos, the ones present longest (ties:
+    lower id), so that a sample covers each scene's best-observed agents."""
     path = pathlib.Path(source)
     scene = load_scene(path)
     if not scene.indexed:
         raise ReplayError(f"{path}: the scene has no frames")
     planner = make_planner(settings.planner) if planner is None else planner
     filters = settings.make_filters() if filters is None else filters
+    egos = _egos(scene, ego)
+    if egos_per_scene is not None and len(egos) > egos_per_scene:
+        seen = np.concatenate([f.ids[f.valid] for _, f in scene.indexed])
+        ids, counts = np.unique(seen, return_counts=True)
+        frames_of = dict(zip(ids.tolist(), counts.tolist(), strict=True))
+        egos = tuple(sorted(egos, key=lambda e: (-frames_of.get(e, 0), e))[:egos_per_scene])
     rows = []
-    for ego_id in _egos(scene, ego):
+    for ego_id in egos:
         for flt in [KeepAll(name=ALL_AGENTS), *filters]:
             rows.append(drive(scene, ego_id, planner, flt, settings))
     return rows

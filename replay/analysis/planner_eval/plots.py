@@ -20,11 +20,15 @@ from replay.analysis.planner_eval.open_loop import ALL_AGENTS
 def write_plots(
     plans: pl.DataFrame, summary: dict[str, Any], out_dir: pathlib.Path
 ) -> dict[str, pathlib.Path]:
-    """``plan_time.png`` and ``plan_changed.png`` into ``out_dir``."""
-    return {
-        "plan_time.png": _plan_time(plans, out_dir / "plan_time.png"),
-        "plan_changed.png": _changed(summary, out_dir / "plan_changed.png"),
-    }
+    """``plan_time[_<planner>].png`` and ``plan_changed.png`` into ``out_dir`` (one
+    time plot per planner when there are several)."""
+    names = plans["planner"].unique(maintain_order=True).to_list()
+    files = {}
+    for name in names:
+        file = "plan_time.png" if len(names) == 1 else f"plan_time_{name}.png"
+        files[file] = _plan_time(plans.filter(pl.col("planner") == name), out_dir / file)
+    files["plan_changed.png"] = _changed(summary, out_dir / "plan_changed.png")
+    return files
 
 
 def _plan_time(plans: pl.DataFrame, path: pathlib.Path) -> pathlib.Path:
@@ -49,12 +53,18 @@ def _plan_time(plans: pl.DataFrame, path: pathlib.Path) -> pathlib.Path:
 
 
 def _changed(summary: dict[str, Any], path: pathlib.Path) -> pathlib.Path:
-    names = list(summary["filters"])
-    shares = [summary["filters"][n]["changed"]["share"] or 0.0 for n in names]
-    cis = [summary["filters"][n]["changed"]["ci95"] or [np.nan, np.nan] for n in names]
+    entries = {
+        (planner, name): f
+        for planner, entry in summary["planners"].items()
+        for name, f in entry["filters"].items()
+    }
+    several = len(summary["planners"]) > 1
+    names = [f"{p}: {n}" if several else n for p, n in entries]
+    shares = [f["changed"]["share"] or 0.0 for f in entries.values()]
+    cis = [f["changed"]["ci95"] or [np.nan, np.nan] for f in entries.values()]
     lo = [max(0.0, s - (c[0] if c[0] is not None else s)) for s, c in zip(shares, cis, strict=True)]
     hi = [max(0.0, (c[1] if c[1] is not None else s) - s) for s, c in zip(shares, cis, strict=True)]
-    kept = [summary["filters"][n]["mean_kept"] for n in names]
+    kept = [f["mean_kept"] for f in entries.values()]
     fig, ax = plt.subplots(figsize=(7.5, 0.6 * len(names) + 1.6), dpi=110)
     y = np.arange(len(names))
     ax.barh(y, [100 * s for s in shares], xerr=[[100 * v for v in lo], [100 * v for v in hi]],
@@ -62,7 +72,7 @@ def _changed(summary: dict[str, Any], path: pathlib.Path) -> pathlib.Path:
     ax.set_yticks(y, [f"{n}\n({k:.1f} agents kept)" for n, k in zip(names, kept, strict=True)])
     ax.invert_yaxis()
     ax.set_xlabel("plans changed by the filter (% of comparable ego-frames, 95 % scene bootstrap)")
-    ax.set_title(f"What each filter changes, {summary.get('planner', '')}")
+    ax.set_title("What each filter changes, " + ", ".join(summary["planners"]))
     ax.grid(axis="x", alpha=0.3)
     fig.tight_layout()
     try:

@@ -15,6 +15,7 @@ import json
 import math
 import os
 import pathlib
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -349,9 +350,9 @@ def _ms(value: float | None) -> str:
 
 
 # ---------------------------------------------------------------------- closed loop
-def _closed_task(item: tuple[str, PlanSettings, Any]) -> list[dict[str, Any]]:
-    path, settings, ego = item
-    return closed_loop_scene(path, settings, ego=ego)
+def _closed_task(item: tuple[str, PlanSettings, Any, int | None]) -> list[dict[str, Any]]:
+    path, settings, ego, egos_per_scene = item
+    return closed_loop_scene(path, settings, ego=ego, egos_per_scene=egos_per_scene)
 
 
 def run_closed_loop(
@@ -361,10 +362,11 @@ def run_closed_loop(
     ego: int | str | None = None,
     workers: int = 1,
     progress: bool = True,
+    egos_per_scene: int | None = None,
 ) -> pl.DataFrame:
     """Closed-loop runs (:func:`closed_loop_scene`): one row per (scene, ego, filter)."""
     settings.make_filters()
-    tasks = [(str(p), settings, ego) for p in scenes]
+    tasks = [(str(p), settings, ego, egos_per_scene) for p in scenes]
     results = parallel_map(
         _closed_task, tasks, workers=min(workers, len(tasks)), progress=progress,
         desc=f"closed loop ({settings.planner})", unit="scene",
@@ -456,32 +458,116 @@ def _m(value: float | None) -> str:
 
 
 # ---------------------------------------------------------------------- output
-def write_open_loop(
-    tables: PlanTables,
-    summary: dict[str, Any],
-    out_dir: pathlib.Path,
+@dataclasses.dataclass(frozen=True)
+class StudyResult:
+    """Everything one ``replay plan`` run computed: the tables of every planner (told
+    apart by their ``planner`` column) and the summary (``summary["planners"][name]``)."""
+
+    plans: pl.DataFrame
+    truth: pl.DataFrame | None
+    closed_loop: pl.DataFrame | None
+    summary: dict[str, Any]
+
+
+def run_study(
+    scenes: Sequence[pathlib.Path],
+    settings: PlanSettings,
     *,
-    plots: bool = True,
-    closed_loop: pl.DataFrame | None = None,
+    planners: Sequence[str],
+    ego: int | str | None = None,
+    every: Stride | int = 1,
+    workers: int = 1,
+    progress: bool = True,
+    closed_loop: bool = False,
+    closed_loop_egos: int | None = None,
+    notify: Any = None,
+) -> StudyResult:
+    """``replay plan``: the matched cuts (when asked for), then per planner the open loop
+    and, with ``closed_loop``, the closed loop; one summary for all."""
+    summary: dict[str, Any] = {"planners": {}, "time_s": {}}
+    if wants_matching(settings):
+        start = time.perf_counter()
+        matched = matched_cuts(
+            scenes, settings, ego=ego, every=every, workers=workers, progress=progress
+        )
+        settings = resolve_matched(settings, matched)
+        summary["matched_cuts"] = matched
+        summary["time_s"]["matching"] = time.perf_counter() - start
+        if notify is not None:
+            notify(
+                f"Matched to the cascade's {matched['cascade_mean_kept']:.1f} agents per "
+                f"ego-frame: nearest:{matched['nearest_k']}, radius:{matched['radius_m']:g}"
+            )
+    plans, truths, closed = [], [], []
+    for name in planners:
+        own = dataclasses.replace(settings, planner=name)
+        start = time.perf_counter()
+        tables = run_open_loop(
+            scenes, own, ego=ego, every=every, workers=workers, progress=progress
+        )
+        entry = summarize(tables)
+        summary["time_s"][f"open_loop:{name}"] = time.perf_counter() - start
+        plans.append(tables.plans)
+        if tables.truth is not None:
+            truths.append(tables.truth)
+        if closed_loop:
+            start = time.perf_counter()
+            runs = run_closed_loop(
+                scenes, own, ego=ego, workers=workers, progress=progress,
+                egos_per_scene=closed_loop_egos,
+            )  # fmt: skip
+            entry["closed_loop"] = summarize_closed_loop(runs)
+            summary["time_s"][f"closed_loop:{name}"] = time.perf_counter() - start
+            closed.append(runs)
+        summary["planners"][name] = entry
+    summary["filters"] = list(settings.filters)
+    summary["tolerance_m"] = settings.tolerance_m
+    summary["horizon_s"] = settings.horizon_s
+    return StudyResult(
+        plans=_concat(plans),
+        truth=_concat(truths) if settings.truth else None,
+        closed_loop=_concat(closed) if closed_loop else None,
+        summary=summary,
+    )
+
+
+def _concat(frames: list[pl.DataFrame]) -> pl.DataFrame:
+    frames = [f for f in frames if not f.is_empty()]
+    return pl.concat(frames, how="diagonal_relaxed") if frames else pl.DataFrame()
+
+
+def format_study(summary: dict[str, Any]) -> str:
+    """The end-of-run text of ``replay plan``: every planner's open and closed loop."""
+    lines = []
+    for entry in summary["planners"].values():
+        lines.append(format_summary(entry))
+        if "closed_loop" in entry:
+            lines.append(format_closed_loop(entry["closed_loop"]))
+    return "\n".join(lines)
+
+
+def write_study(
+    result: StudyResult, out_dir: pathlib.Path, *, plots: bool = True
 ) -> dict[str, pathlib.Path]:
     """``plans.parquet``, ``agents.parquet`` (with truth), ``closed_loop.parquet`` (with
-    a closed-loop run), ``summary.json`` and plots."""
+    a closed loop), ``summary.json`` and the plots into ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     files: dict[str, pathlib.Path] = {}
-    files["plans"] = atomic_write(out_dir / "plans.parquet", tables.plans.write_parquet)
-    if closed_loop is not None:
+    files["plans"] = atomic_write(out_dir / "plans.parquet", result.plans.write_parquet)
+    if result.closed_loop is not None:
         files["closed_loop"] = atomic_write(
-            out_dir / "closed_loop.parquet", closed_loop.write_parquet
+            out_dir / "closed_loop.parquet", result.closed_loop.write_parquet
         )
-    if tables.truth is not None:
-        files["agents"] = atomic_write(out_dir / "agents.parquet", tables.truth.write_parquet)
+    if result.truth is not None:
+        files["agents"] = atomic_write(out_dir / "agents.parquet", result.truth.write_parquet)
     files["summary"] = write_text(
-        out_dir / "summary.json", json.dumps(json_safe(summary), indent=2, allow_nan=False) + "\n"
+        out_dir / "summary.json",
+        json.dumps(json_safe(result.summary), indent=2, allow_nan=False) + "\n",
     )
-    if plots and not tables.plans.is_empty():
+    if plots and not result.plans.is_empty():
         from replay.analysis.planner_eval import plots as planner_plots  # matplotlib: about 1 s
 
-        files.update(planner_plots.write_plots(tables.plans, summary, out_dir))
+        files.update(planner_plots.write_plots(result.plans, result.summary, out_dir))
     return files
 
 

@@ -3,24 +3,17 @@
 from __future__ import annotations
 
 import pathlib
-import time
 
 import click
 
 from outputs.transaction import OutputGuard
 from replay.analysis.planner_eval.open_loop import PlanSettings
 from replay.analysis.planner_eval.study import (
-    format_closed_loop,
-    format_summary,
-    matched_cuts,
+    format_study,
     resolve_matched,
-    run_closed_loop,
-    run_open_loop,
+    run_study,
     scene_files,
-    summarize,
-    summarize_closed_loop,
-    wants_matching,
-    write_open_loop,
+    write_study,
 )
 from replay.cli.ego_options import ego_option, every_option
 from replay.cli.settings_option import load_cascade, set_option
@@ -44,10 +37,11 @@ from risk.filtering import FILTER_FORMS
 @ego_option("Default: each scene's own ego.")
 @every_option
 @click.option(
-    "--planner", default="idm", show_default=True, type=click.Choice(list(PLANNERS)),
-    help="idm: the built-in IDM planner along the ego's path (core dependencies only); "
-    "fop, fiss, fiss_plus: fiss-planner's Frenet planners (pip install "
-    "'riskreplay[planner]').",
+    "--planner", "planners", multiple=True, default=("idm",), show_default=True,
+    type=click.Choice(list(PLANNERS)),
+    help="The planner (repeatable: each runs the same frames). idm: the built-in IDM "
+    "planner along the ego's path (core dependencies only); fop, fiss, fiss_plus: "
+    "fiss-planner's Frenet planners (pip install 'riskreplay[planner]').",
 )  # fmt: skip
 @click.option(
     "--filter", "filters", multiple=True, default=("cascade",), show_default=True,
@@ -75,6 +69,11 @@ from risk.filtering import FILTER_FORMS
     "perfectly; once with all agents and once per filter. Writes closed_loop.parquet.",
 )  # fmt: skip
 @click.option(
+    "--closed-loop-egos", type=click.IntRange(min=1), default=None, metavar="K",
+    help="With --closed-loop: at most K egos per scene, those present longest "
+    "(default: every ego of --ego).",
+)  # fmt: skip
+@click.option(
     "--tolerance", "tolerance_m", type=click.FloatRange(min=0.0), default=0.5,
     show_default=True,
     help="A plan changed when it moves more than this many metres from the all-agents "
@@ -94,11 +93,12 @@ def plan(
     out_dir: pathlib.Path,
     ego: int | str | None,
     every: Stride,
-    planner: str,
+    planners: tuple[str, ...],
     filters: tuple[str, ...],
     cascade_file: pathlib.Path | None,
     truth: bool,
     closed_loop: bool,
+    closed_loop_egos: int | None,
     tolerance_m: float,
     horizon_s: float,
     workers: int | None,
@@ -127,50 +127,26 @@ def plan(
       plan_time.png, plan_changed.png
     """
     cascade = load_cascade(cascade_file, sets)
+    planners = tuple(dict.fromkeys(planners))
     settings = PlanSettings(
-        planner=planner, filters=tuple(filters), cascade=cascade, tolerance_m=tolerance_m,
-        horizon_s=horizon_s, truth=truth,
+        planner=planners[0], filters=tuple(filters), cascade=cascade,
+        tolerance_m=tolerance_m, horizon_s=horizon_s, truth=truth,
     )  # fmt: skip
     resolve_matched(settings, {"nearest_k": 1, "radius_m": 1.0}).make_filters()  # bad specs
-    make_planner(planner)  # a missing optional extra fails before anything is read
+    for name in planners:
+        make_planner(name)  # a missing optional extra fails before anything is read
     found = scene_files(scenes)
     if not found:
         raise ReplayError(f"{', '.join(map(str, scenes))}: no .mcap scene found")
     with OutputGuard(inputs=[*found, cascade_file], folders=(out_dir,)):
-        start = time.perf_counter()
-        matched = None
-        if wants_matching(settings):
-            matched = matched_cuts(
-                found, settings, ego=ego, every=every, workers=workers or default_workers(),
-                progress=progress,
-            )  # fmt: skip
-            settings = resolve_matched(settings, matched)
-            click.echo(
-                f"Matched to the cascade's {matched['cascade_mean_kept']:.1f} agents per "
-                f"ego-frame: nearest:{matched['nearest_k']}, radius:{matched['radius_m']:g}",
-                err=True,
-            )
-        tables = run_open_loop(
-            found, settings, ego=ego, every=every, workers=workers or default_workers(),
-            progress=progress,
+        result = run_study(
+            found, settings, planners=planners, ego=ego, every=every,
+            workers=workers or default_workers(), progress=progress,
+            closed_loop=closed_loop, closed_loop_egos=closed_loop_egos,
+            notify=lambda message: click.echo(message, err=True),
         )  # fmt: skip
-        summary = summarize(tables)
-        if matched is not None:
-            summary["matched_cuts"] = matched
-        summary["time_s"] = {"open_loop": time.perf_counter() - start}
-        closed = None
-        if closed_loop:
-            start = time.perf_counter()
-            closed = run_closed_loop(
-                found, settings, ego=ego, workers=workers or default_workers(),
-                progress=progress,
-            )  # fmt: skip
-            summary["closed_loop"] = summarize_closed_loop(closed)
-            summary["time_s"]["closed_loop"] = time.perf_counter() - start
-        files = write_open_loop(tables, summary, out_dir, plots=plots, closed_loop=closed)
-    click.echo(format_summary(summary))
-    if closed is not None:
-        click.echo(format_closed_loop(summary["closed_loop"]))
+        files = write_study(result, out_dir, plots=plots)
+    click.echo(format_study(result.summary))
     click.echo("Wrote:")
     for path in files.values():
         click.echo(f"  {path}")
