@@ -287,6 +287,23 @@ def summarize(tables: PlanTables, *, n_boot: int = 1000, seed: int = 0) -> dict[
             "median_time_ratio": ratio,
         }
         out["by_agent_count"][name] = _by_bins(both_ok)
+        out.setdefault("by_dataset", {})[name] = {
+            str(d["dataset"]): {
+                "ego_frames": int(d["n"]),
+                "changed_share": None if d["share"] is None else float(d["share"]),
+                "mean_kept": float(d["kept"]),
+                "mean_others": float(d["others"]),
+            }
+            for d in rows.group_by("dataset")
+            .agg(
+                pl.len().alias("n"),
+                pl.col("changed").cast(pl.Float64).mean().alias("share"),
+                pl.col("n_agents").mean().alias("kept"),
+                pl.col("n_others").mean().alias("others"),
+            )
+            .sort("dataset")
+            .iter_rows(named=True)
+        }
     return out
 
 

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import pathlib
+import shlex
+import sys
 
 import click
 
 from outputs.transaction import OutputGuard
 from replay.analysis.planner_eval.open_loop import PlanSettings
+from replay.analysis.planner_eval.report import write_report
 from replay.analysis.planner_eval.study import (
     format_study,
     resolve_matched,
@@ -81,6 +84,12 @@ from risk.filtering import FILTER_FORMS
 )  # fmt: skip
 @click.option("--horizon", "horizon_s", type=click.FloatRange(min=0.5, max=30.0), default=5.0,
               show_default=True, help="Planning horizon (s).")  # fmt: skip
+@click.option(
+    "--report", "report_path", default=None,
+    type=click.Path(dir_okay=False, path_type=pathlib.Path),
+    help="Also write a Markdown report of the run (e.g. docs/planner-evaluation.md), its "
+    "plots into the folder of the same name without .md.",
+)  # fmt: skip
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="Worker processes (default: one per core).")  # fmt: skip
 @click.option("--plots/--no-plots", default=True, show_default=True, help="Write the PNG plots.")
@@ -102,6 +111,7 @@ def plan(
     tolerance_m: float,
     horizon_s: float,
     workers: int | None,
+    report_path: pathlib.Path | None,
     plots: bool,
     progress: bool,
     sets: tuple[str, ...] = (),
@@ -138,14 +148,22 @@ def plan(
     found = scene_files(scenes)
     if not found:
         raise ReplayError(f"{', '.join(map(str, scenes))}: no .mcap scene found")
-    with OutputGuard(inputs=[*found, cascade_file], folders=(out_dir,)):
+    report_folder = None if report_path is None else report_path.with_suffix("")
+    with OutputGuard(
+        inputs=[*found, cascade_file], folders=(out_dir, report_folder), files=(report_path,)
+    ):
         result = run_study(
             found, settings, planners=planners, ego=ego, every=every,
             workers=workers or default_workers(), progress=progress,
             closed_loop=closed_loop, closed_loop_egos=closed_loop_egos,
             notify=lambda message: click.echo(message, err=True),
         )  # fmt: skip
-        files = write_study(result, out_dir, plots=plots)
+        files = write_study(result, out_dir, plots=plots or report_path is not None)
+        if report_path is not None:
+            words = ["replay", "plan", *sys.argv[2:]] if len(sys.argv) > 2 else ["replay plan"]
+            files.update(
+                write_report(report_path, result.summary, result.plans, command=shlex.join(words))
+            )
     click.echo(format_study(result.summary))
     click.echo("Wrote:")
     for path in files.values():
