@@ -74,7 +74,9 @@ def frames():
 
 
 def measure() -> dict:
-    worst = {name: [0.0, "", 0, 0] for name in [*MODELS, *CASCADE_OUTPUTS]}  # ulps, where, differ, n
+    worst = {
+        name: [0.0, "", 0, 0] for name in [*MODELS, *CASCADE_OUTPUTS]
+    }  # ulps, where, differ, n
 
     def record(name: str, label: str, a: np.ndarray, b: np.ndarray) -> None:
         d = ulp_distance(a, b)
@@ -124,9 +126,14 @@ def measure() -> dict:
 
 
 def _simd() -> list[str]:
-    from numpy._core._multiarray_umath import __cpu_features__
+    """numpy's baseline and the dispatch targets it enabled (as ``np.show_runtime``)."""
+    from numpy._core._multiarray_umath import (
+        __cpu_baseline__,
+        __cpu_dispatch__,
+        __cpu_features__,
+    )
 
-    return sorted(k for k, v in __cpu_features__.items() if v and k.startswith(("AVX", "FMA")))
+    return [*__cpu_baseline__, *(k for k in __cpu_dispatch__ if __cpu_features__.get(k))]
 
 
 def run_all() -> None:

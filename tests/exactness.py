@@ -127,7 +127,9 @@ def max_ulps(a: np.ndarray, b: np.ndarray) -> float:
     return float(d.max()) if d.size else 0.0
 
 
-def assert_within_ulps(actual: np.ndarray, desired: np.ndarray, ulps: float, label: str = "") -> None:
+def assert_within_ulps(
+    actual: np.ndarray, desired: np.ndarray, ulps: float, label: str = ""
+) -> None:
     """``actual`` and ``desired`` have NaN at the same places, the same infinities, and
     every other pair within ``ulps`` (see :func:`ulp_distance`)."""
     actual = np.asarray(actual, dtype=np.float64)
@@ -138,10 +140,13 @@ def assert_within_ulps(actual: np.ndarray, desired: np.ndarray, ulps: float, lab
     if bad.any():
         idx = np.flatnonzero(bad.ravel())
         shown = ", ".join(
-            f"[{i}] {float(actual.flat[i])!r} vs {float(desired.flat[i])!r} ({d.flat[i]:g} ulps)" for i in idx[:5]
+            f"[{i}] {float(actual.flat[i])!r} vs {float(desired.flat[i])!r} ({d.flat[i]:g} ulps)"
+            for i in idx[:5]
         )
         more = f" and {idx.size - 5} more" if idx.size > 5 else ""
-        raise AssertionError(f"{label}: {idx.size} values more than {ulps:g} ulps apart: {shown}{more}")
+        raise AssertionError(
+            f"{label}: {idx.size} values more than {ulps:g} ulps apart: {shown}{more}"
+        )
 
 
 def assert_exact(actual: np.ndarray, desired: np.ndarray, label: str = "") -> None:
@@ -195,3 +200,61 @@ def numpy_exp_off_by(ulps: int, rng: np.random.Generator):
     import risk.stochastic
 
     return patch.object(risk.stochastic, "np", _NumpyWithExp(exp_off_by(ulps, rng)))
+
+
+def rank_ties(values: np.ndarray, ulps: float) -> np.ndarray:
+    """Where a value lies within ``ulps`` of another one (so that two computations, each
+    within ``ulps / 2`` of the other's, may rank the two either way); False for NaN."""
+    v = np.asarray(values, dtype=np.float64)
+    out = np.zeros(v.shape, dtype=bool)
+    idx = np.flatnonzero(~np.isnan(v))
+    if idx.size < 2:
+        return out
+    order = idx[np.argsort(v[idx], kind="stable")]
+    close = ulp_distance(v[order[1:]], v[order[:-1]]) <= ulps
+    out[order[1:][close]] = True
+    out[order[:-1][close]] = True
+    return out
+
+
+def cascade_ties(risks: dict[str, np.ndarray], config, ulps_of) -> np.ndarray:
+    """Agents whose cascade decisions another computation within the contract may take the
+    other way: a stage model's risk within ``ulps_of(model)`` of the stage threshold, the
+    survival risk within ``ulps_of("survival")`` of the baseline or a tier threshold, or,
+    where a tier has a cap and the risk reaches a capped tier's threshold, within twice
+    that of another such agent's (the ranking).
+
+    ``risks``: model name -> ``(N,)`` risks of one side; ``config``: a
+    ``risk.cascade.CascadeConfig``."""
+    survival = risks["survival"]
+    ties = np.zeros(survival.shape, dtype=bool)
+    for stage in config.stages:
+        ties |= near(risks[stage.model], stage.threshold, ulps_of(stage.model))
+    tol = ulps_of("survival")
+    for threshold in (config.baseline_threshold, *(t.min_survival_risk for t in config.tiers)):
+        ties |= near(survival, threshold, tol)
+    capped = [t.min_survival_risk for t in config.tiers if t.max_agents is not None]
+    if capped:  # (below every capped tier's threshold the ranking decides nothing)
+        contend = np.nan_to_num(survival, nan=-1.0) >= min(capped)
+        ties |= contend & rank_ties(np.where(contend, survival, np.nan), 2 * tol)
+    return ties
+
+
+def score_ties(scores: np.ndarray, other: np.ndarray, ulps: float) -> np.ndarray:
+    """Agents whose place in a ROC sweep may differ between two computations of the same
+    scores: a distinct value of ``scores`` within ``2 * ulps`` of the next one (the order
+    may flip), or a group of equal ``scores`` whose ``other`` values are not all equal (one
+    ROC point on one side, several on the other). False for NaN."""
+    s = np.asarray(scores, dtype=np.float64)
+    o = np.asarray(other, dtype=np.float64)
+    out = np.zeros(s.shape, dtype=bool)
+    valid = ~np.isnan(s)
+    if not valid.any():
+        return out
+    values, group = np.unique(s[valid], return_inverse=True)
+    lo = np.full(values.size, np.inf)
+    hi = np.full(values.size, -np.inf)
+    np.minimum.at(lo, group, o[valid])
+    np.maximum.at(hi, group, o[valid])
+    out[valid] = (rank_ties(values, 2 * ulps) | (lo != hi))[group]
+    return out

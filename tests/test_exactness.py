@@ -46,7 +46,9 @@ def test_ulp_distance_by_hand():
     assert got.tolist() == [1, 7, 0, 0, 0, INF, 0, INF, INF, 3, 1, 1, 0]
     # Across zero: the floats between -x and x, both signs counted.
     tiny = 5e-324
-    assert ulp_distance(np.array([-tiny]), np.array([tiny])).tolist() == [2 * tiny / np.spacing(FLOOR)]
+    assert ulp_distance(np.array([-tiny]), np.array([tiny])).tolist() == [
+        2 * tiny / np.spacing(FLOOR)
+    ]
     # Symmetric.
     np.testing.assert_array_equal(ulp_distance(b, a), got)
 

@@ -24,10 +24,10 @@ import sys
 
 import numpy as np
 import pytest
+from exactness import assert_exact, assert_within_ulps, kernel_ulps
 from frames import mixed_frame as random_frame
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
-from exactness import assert_exact, assert_within_ulps, kernel_ulps
 from oracle_ties import settle_rounding_touches
 
 from risk import (
