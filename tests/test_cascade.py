@@ -263,6 +263,7 @@ def test_default_config_loads_and_is_the_paper_cascade():
 
 
 # ---------------------------------------------------------------------- with the real models
+@pytest.mark.exactness
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_sub_frame_risks_equal_whole_frame_risks(seed):
     """Every model is a function of the ego and one agent, so a stage on a sub-frame must
@@ -384,6 +385,7 @@ def test_reachability_bound_drops_far_agents():
     assert reachable_mask(frame, prediction=PredictionSettings(2.0, 0.5))[frame.others].all()
 
 
+@pytest.mark.exactness
 @settings(max_examples=25, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.sampled_from([30.0, 400.0]), st.booleans())
 def test_fused_cascade_matches_the_staged_oracle(seed, spread, forks):
@@ -416,6 +418,7 @@ def test_fused_cascade_matches_the_staged_oracle(seed, spread, forks):
     assert (fused.dropped_at[fused.unreachable] == 0).all()
 
 
+@pytest.mark.exactness
 @settings(max_examples=10, deadline=None)
 @given(st.integers(0, 2**32 - 1))
 def test_fused_cascade_with_other_stage_models_matches_the_staged_oracle(seed):
@@ -585,6 +588,7 @@ def test_keep_bounds_never_change_a_decision(threshold, eps, distances):
             assert risk < threshold
 
 
+@pytest.mark.exactness
 def test_without_a_cycle_counter_the_cascade_times_each_stage(monkeypatch):
     """Where the one-pass kernel may not read the cycle counter (non-x86), the fused
     cascade runs one kernel call per stage: the same decisions, tiers and survival."""
