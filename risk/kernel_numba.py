@@ -16,7 +16,8 @@ nothing grows with ``N^2`` and memory stays cache-sized; only the ego's candidat
 kept for the whole call. The maths follows the vectorised numpy modules
 (:mod:`risk.distance`, :mod:`risk.temporal`, :mod:`risk.stochastic`, :mod:`risk.prediction`)
 operation by operation, including numpy's pairwise summation, so that the results agree
-with them bit for bit except where ``exp`` differs in the last bit; those modules and
+with them bit for bit except where numpy's ``exp`` differs from the C library's in the last
+bit (its AVX-512 code): within a few ulps then (tests/exactness.py); those modules and
 :mod:`risk.reference` are the oracles the tests compare with.
 
 Compile cost: every function is ``@njit(cache=True)`` and none is recursive (a recursive
