@@ -3,17 +3,19 @@ the cascade, on this machine and under other numpy and numba code paths.
 
 Usage::
 
-    .venv/bin/python benchmarks/ulp_table.py            # the three settings, one table
+    .venv/bin/python benchmarks/ulp_table.py            # every setting, one table
     .venv/bin/python benchmarks/ulp_table.py --here     # only this process's setting (JSON)
 
-The three settings (each in a new process):
+The settings (each in a new process):
 
 - ``default``: numpy and the kernel as they are here (the ahead-of-time kernel when built);
 - ``npy X86_V2``: ``NPY_ENABLE_CPU_FEATURES=X86_V2``, numpy's baseline code only (no
   AVX2, no AVX-512: numpy's ``exp``, ``log``, ``arctan2`` are the C library's);
 - ``numba generic``: ``NUMBA_CPU_NAME=generic`` with a fresh ``NUMBA_CACHE_DIR`` and
   ``RISKREPLAY_KERNEL=jit`` (the kernel compiled for a generic x86-64, not loaded from
-  the host's cache or its ahead-of-time module; a cold compile of about 25 s).
+  the host's cache or its ahead-of-time module; a cold compile of about 25 s);
+- ``exp moved 1 ulp``: ``RISKREPLAY_TEST_EXP_ULPS=1``, the numpy models' ``exp`` results
+  moved by up to one float at random (another CPU's exp, simulated; tests/exactness.py).
 
 Frames: the benchmark's intersection (N = 2, 40, 120, seeds 5-7; horizon 12 s, dt 0.1 s),
 the conformance suite's crossing frame (8 s, 0.2 s), 200 mixed random frames of the oracle
@@ -42,17 +44,19 @@ sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_models import random_frame as lane_frame  # noqa: E402
-from exactness import kernel_ulps, near, ulp_distance  # noqa: E402
+from exactness import kernel_ulps, near, numpy_exp_off_by, ulp_distance  # noqa: E402
 from frames import mixed_frame, scattered_frame  # noqa: E402
 
 from risk import MODELS, PredictionSettings, evaluate, kernel  # noqa: E402
 from risk.cascade import CascadeConfig, run_cascade  # noqa: E402
 from risk.registry import evaluate_numpy  # noqa: E402
 
+EXP_ULPS_ENV = "RISKREPLAY_TEST_EXP_ULPS"  # as tests/conftest.py
 SETTINGS = {
     "default": {},
     "npy X86_V2": {"NPY_ENABLE_CPU_FEATURES": "X86_V2"},
     "numba generic": {"NUMBA_CPU_NAME": "generic", "RISKREPLAY_KERNEL": "jit"},
+    "exp moved 1 ulp": {EXP_ULPS_ENV: "1"},
 }
 CASCADE_OUTPUTS = ("cascade.survival_all", "cascade.survival")
 
@@ -179,6 +183,9 @@ def main() -> None:
     parser.add_argument("--here", action="store_true", help="measure in this process (JSON)")
     args = parser.parse_args()
     if args.here:
+        ulps = os.environ.get(EXP_ULPS_ENV, "").strip()
+        if ulps:
+            numpy_exp_off_by(int(ulps), np.random.default_rng(0)).start()
         print(json.dumps(measure()))
     else:
         run_all()
