@@ -17,7 +17,8 @@ The settings (each in a new process):
 - ``exp moved 1 ulp``: ``RISKREPLAY_TEST_EXP_ULPS=1``, the numpy models' ``exp`` results
   moved by up to one float at random (another CPU's exp, simulated; tests/exactness.py).
 
-Frames: the benchmark's intersection (N = 2, 40, 120, seeds 5-7; horizon 12 s, dt 0.1 s),
+Frames: the benchmark's intersection (N = 2, 40, 120 from seeds 5-7, and N = 120 from seeds
+100-119; horizon 12 s, dt 0.1 s),
 the conformance suite's crossing frame (8 s, 0.2 s), 200 mixed random frames of the oracle
 tests (3 s, 0.25 s) and 20 scattered frames (defaults). The cascade (the default
 configuration) runs fused on the kernel and staged on the numpy modules, on the
@@ -67,6 +68,8 @@ def frames():
         rng = np.random.default_rng(seed)
         for n in (2, 40, 120):
             yield f"lane n={n} seed={seed}", lane_frame(n, rng), None
+    for seed in range(100, 120):
+        yield f"lane n=120 seed={seed}", lane_frame(120, np.random.default_rng(seed)), None
     from test_models_conformance import FRAME, PRED
 
     yield "conformance", FRAME, PRED

@@ -445,10 +445,10 @@ def test_fused_cascade_with_other_stage_models_matches_the_staged_oracle(seed):
 
 @pytest.mark.exactness
 @settings(max_examples=30, deadline=None)
-@given(st.integers(0, 2**32 - 1), st.sampled_from([30.0, 400.0]), st.sampled_from([0, 1, 2]))
+@given(st.integers(0, 2**32 - 1), st.sampled_from([30.0, 400.0]), st.sampled_from([0, 1]))
 def test_fused_cascade_on_the_kernel_decides_as_the_staged_one_on_numpy(seed, spread, exp_ulps):
     """Across code paths: the fused cascade (the compiled kernel) against the staged
-    cascade on the numpy modules, with numpy's own exp or one moved by up to 1 or 2 floats
+    cascade on the numpy modules, with numpy's own exp or one moved by up to a float
     (another CPU's, simulated). Survival within the contract's ulps; every decision (kept
     by each stage, dropped where, tier, baseline, false negatives) the same, except for
     the agents that cascade_ties finds within the tolerance of a threshold or of another

@@ -105,16 +105,18 @@ SHORT = PredictionSettings(horizon_s=3.0, dt_s=0.25)
 
 
 @settings(max_examples=40, deadline=None)
-@given(st.integers(0, 2**32 - 1), st.sampled_from([1, 2]))
-def test_kernel_within_the_contract_of_numpy_with_another_cpus_exp(seed, ulps):
+@given(st.integers(0, 2**32 - 1))
+def test_kernel_within_the_contract_of_numpy_with_another_cpus_exp(seed):
     """numpy's exp on another CPU, simulated: every exp result of the numpy models moved
-    by up to 1 or 2 floats at random (numpy's AVX-512 exp is at most 1 apart from the C
-    library's, measured). The kernel's results stay within the contract on every machine,
-    not only on one whose numpy takes another code path."""
+    by up to a float at random (numpy's AVX-512 exp is at most 1 apart from the C
+    library's, measured; the contract allows two exps 2 apart, each within 1 ulp of the
+    true value, so this stays inside it also where numpy's own exp is the AVX-512 one).
+    The kernel's results stay within the contract on every machine, not only on one
+    whose numpy takes another code path."""
     rng = np.random.default_rng(seed)
     frame = mixed_frame(rng)
     fast = evaluate(frame, prediction=SHORT)
-    with numpy_exp_off_by(ulps, rng):
+    with numpy_exp_off_by(1, rng):
         slow = evaluate_numpy(frame, prediction=SHORT)
     for name in MODELS:
         assert_within_ulps(fast[name], slow[name], kernel_ulps(name, SHORT.horizon_s), name)

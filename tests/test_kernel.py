@@ -159,8 +159,8 @@ def test_encounter_rules():
 @pytest.mark.exactness
 def test_lane_frames_match_numpy_within_the_contract():
     """The benchmark's intersection frames (T = 12 s, dt = 0.1 s): every model within the
-    contract's ulps of the numpy code (bit for bit where numpy's exp is the C library's;
-    up to 2 ulps apart on AVX-512, benchmarks/ulp_table.py)."""
+    contract's ulps of the numpy code (up to 2 ulps apart on AVX-512, 0 here with numpy's
+    baseline code: benchmarks/ulp_table.py)."""
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
     from bench_models import random_frame as lane_frame
 
