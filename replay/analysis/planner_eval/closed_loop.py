@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from replay.analysis.planner_eval.open_loop import ALL_AGENTS, PlanSettings, _egos
+from replay.analysis.planner_eval.open_loop import ALL_AGENTS, PlanSettings, _egos, scene_key
 from replay.core.egos import load_scene
 from replay.errors import ReplayError
 from replay.planning.errors import NoReferencePath
@@ -222,7 +222,7 @@ def drive(
     _, arc_end = project_points(state.xy[None], reference, cum)
     times = np.asarray(plan_ms) if plan_ms else np.array([math.nan])
     return {
-        "scene": pathlib.Path(str(scene.path)).name,
+        "scene": scene_key(pathlib.Path(str(scene.path))),
         "dataset": scene.metadata.get("dataset", ""),
         "planner": planner.name,
         "ego_id": ego_id,

@@ -123,6 +123,12 @@ class ScenePlans:
     no_path: int
 
 
+def scene_key(path: pathlib.Path) -> str:
+    """A scene's name in the tables: its folder (the dataset) and file name, so that
+    equal file names of two datasets stay apart."""
+    return f"{path.parent.name}/{path.name}" if path.parent.name else path.name
+
+
 def _egos(scene: Any, ego: int | str | None) -> tuple[int, ...]:
     if ego == "all":
         return tuple(int(i) for i in moving_agent_ids(scene.frames()))
@@ -197,7 +203,7 @@ def plan_scene(
         speed_now = float(frame.speed[frame.ego])
         target = target_speed(tracks, row, column_of[ego_id], settings.horizon_s, speed_now)
         common = {
-            "scene": path.name, "dataset": dataset, "planner": planner.name,
+            "scene": scene_key(path), "dataset": dataset, "planner": planner.name,
             "ego_id": ego_id, "frame": index, "t_s": float(frame.t),
             "n_others": int(frame.others.sum()), "target_speed_mps": target,
         }  # fmt: skip

@@ -262,6 +262,13 @@ def write_report(
             f"{matched['cascade_mean_kept']:.2f} agents per ego-frame: K = "
             f"{matched['nearest_k']}, R = {matched['radius_m']:g} m."
         )
+    if "closed_loop_selection" in summary:
+        lines.append(
+            "- Closed loop: the planner drives the ego from its first recorded frame, "
+            "re-planning at 10 Hz (the log's rate where slower) and following each plan "
+            "perfectly; the others replay their log. Egos: "
+            f"{summary['closed_loop_selection']}."
+        )
     lines += ["", "## Does the claim hold?", "", *verdict(summary), ""]
     lines += [
         f"A filter keeps the plan here when the upper end of the 95 % interval of its "

@@ -32,6 +32,7 @@ from replay.analysis.planner_eval.open_loop import (
     _egos,
     ego_frames,
     plan_scene,
+    scene_key,
 )
 from replay.core.egos import load_scene
 from replay.core.engine import Stride
@@ -80,7 +81,7 @@ def run_open_loop(
         _task, tasks, workers=min(workers, len(tasks)), progress=progress,
         desc=f"plan ({settings.planner})", unit="scene",
     )  # fmt: skip
-    datasets = {p.name: _dataset_of(p) for p in scenes}
+    datasets = {scene_key(p): _dataset_of(p) for p in scenes}
     plans = _frame([r.plans for r in results], datasets)
     truth = _frame([r.truth for r in results if r.truth is not None], datasets)
     return PlanTables(
@@ -105,13 +106,9 @@ def _frame(parts: list[dict[str, list[Any]]], datasets: dict[str, str]) -> pl.Da
     if not frames:
         return pl.DataFrame()
     df = pl.concat(frames, how="diagonal_relaxed")
-    # The dataset is the scene's folder (as in replay evaluate), else the scene's own word.
-    folder = df["scene"].replace_strict(datasets, default=None)
-    return df.with_columns(
-        pl.when(pl.col("dataset") == "").then(folder).otherwise(pl.col("dataset")).alias("dataset")
-        if "dataset" in df.columns
-        else folder.alias("dataset")
-    )
+    # The dataset is the scene's folder, as in replay evaluate (the scene's own word,
+    # e.g. "commonroad", names a format rather than a recording site).
+    return df.with_columns(df["scene"].replace_strict(datasets, default="").alias("dataset"))
 
 
 # ---------------------------------------------------------------------- matched cuts
@@ -372,6 +369,16 @@ def _closed_task(item: tuple[str, PlanSettings, Any, int | None]) -> list[dict[s
     return closed_loop_scene(path, settings, ego=ego, egos_per_scene=egos_per_scene)
 
 
+def closed_loop_sample(scenes: Sequence[pathlib.Path], sample: int | None) -> list[pathlib.Path]:
+    """The scenes of a closed-loop sample of ``sample`` egos (one per scene, the one
+    present longest): every k-th scene in the order given, k = ceil(scenes / sample), so
+    that the sample spreads over every dataset; all scenes when ``sample`` is None."""
+    if sample is None or sample >= len(scenes):
+        return list(scenes)
+    step = math.ceil(len(scenes) / sample)
+    return list(scenes[::step])[:sample]
+
+
 def run_closed_loop(
     scenes: Sequence[pathlib.Path],
     settings: PlanSettings,
@@ -380,10 +387,15 @@ def run_closed_loop(
     workers: int = 1,
     progress: bool = True,
     egos_per_scene: int | None = None,
+    sample: int | None = None,
 ) -> pl.DataFrame:
-    """Closed-loop runs (:func:`closed_loop_scene`): one row per (scene, ego, filter)."""
+    """Closed-loop runs (:func:`closed_loop_scene`): one row per (scene, ego, filter).
+    ``sample``: at most this many egos in all, one per scene (see
+    :func:`closed_loop_sample`)."""
+    if sample is not None:
+        egos_per_scene = 1
     settings.make_filters()
-    tasks = [(str(p), settings, ego, egos_per_scene) for p in scenes]
+    tasks = [(str(p), settings, ego, egos_per_scene) for p in closed_loop_sample(scenes, sample)]
     results = parallel_map(
         _closed_task, tasks, workers=min(workers, len(tasks)), progress=progress,
         desc=f"closed loop ({settings.planner})", unit="scene",
@@ -392,11 +404,8 @@ def run_closed_loop(
     if not rows:
         return pl.DataFrame()
     df = pl.DataFrame(rows, infer_schema_length=None)
-    datasets = {p.name: _dataset_of(p) for p in scenes}
-    folder = df["scene"].replace_strict(datasets, default=None)
-    return df.with_columns(
-        pl.when(pl.col("dataset") == "").then(folder).otherwise(pl.col("dataset")).alias("dataset")
-    )
+    datasets = {scene_key(p): _dataset_of(p) for p in scenes}
+    return df.with_columns(df["scene"].replace_strict(datasets, default="").alias("dataset"))
 
 
 def summarize_closed_loop(df: pl.DataFrame) -> dict[str, Any]:
@@ -497,6 +506,7 @@ def run_study(
     progress: bool = True,
     closed_loop: bool = False,
     closed_loop_egos: int | None = None,
+    closed_loop_sample: int | None = None,
     notify: Any = None,
 ) -> StudyResult:
     """``replay plan``: the matched cuts (when asked for), then per planner the open loop
@@ -531,12 +541,21 @@ def run_study(
             start = time.perf_counter()
             runs = run_closed_loop(
                 scenes, own, ego=ego, workers=workers, progress=progress,
-                egos_per_scene=closed_loop_egos,
+                egos_per_scene=closed_loop_egos, sample=closed_loop_sample,
             )  # fmt: skip
             entry["closed_loop"] = summarize_closed_loop(runs)
             summary["time_s"][f"closed_loop:{name}"] = time.perf_counter() - start
             closed.append(runs)
         summary["planners"][name] = entry
+    if closed_loop:
+        summary["closed_loop_selection"] = (
+            f"{closed_loop_sample} egos in all, one per scene (the one present longest) of "
+            "every k-th scene, k = ceil(scenes / sample)"
+            if closed_loop_sample is not None
+            else f"at most {closed_loop_egos} egos per scene, those present longest"
+            if closed_loop_egos is not None
+            else "every ego"
+        )
     summary["filters"] = list(settings.filters)
     summary["tolerance_m"] = settings.tolerance_m
     summary["horizon_s"] = settings.horizon_s

@@ -77,6 +77,11 @@ from risk.filtering import FILTER_FORMS
     "(default: every ego of --ego).",
 )  # fmt: skip
 @click.option(
+    "--closed-loop-sample", type=click.IntRange(min=1), default=None, metavar="N",
+    help="With --closed-loop: N egos in all, one per scene (the one present longest) of "
+    "every k-th scene, k = ceil(scenes / N), so that the sample spreads over the datasets.",
+)  # fmt: skip
+@click.option(
     "--tolerance", "tolerance_m", type=click.FloatRange(min=0.0), default=0.5,
     show_default=True,
     help="A plan changed when it moves more than this many metres from the all-agents "
@@ -108,6 +113,7 @@ def plan(
     truth: bool,
     closed_loop: bool,
     closed_loop_egos: int | None,
+    closed_loop_sample: int | None,
     tolerance_m: float,
     horizon_s: float,
     workers: int | None,
@@ -156,6 +162,7 @@ def plan(
             found, settings, planners=planners, ego=ego, every=every,
             workers=workers or default_workers(), progress=progress,
             closed_loop=closed_loop, closed_loop_egos=closed_loop_egos,
+            closed_loop_sample=closed_loop_sample,
             notify=lambda message: click.echo(message, err=True),
         )  # fmt: skip
         files = write_study(result, out_dir, plots=plots or report_path is not None)
