@@ -476,3 +476,76 @@ def test_road_scene_written_as_mcap_reads_back_and_plans(tmp_path):
 def test_ego_state_checks_its_shape():
     with pytest.raises(ValueError, match="xy"):
         EgoState(xy=np.zeros(3), heading_rad=0.0, speed_mps=1.0)
+
+
+def _side_lanes_by_loops(reference, lane_map, *, lane_width_m, stretch_m, max_lanes=4):
+    """The obvious oracle of inputs.side_lanes: every sample, lane and segment in loops."""
+    from replay.planning import inputs as pi
+
+    cum = np.r_[0.0, np.cumsum(np.hypot(*np.diff(reference, axis=0).T))]
+    samples = np.arange(0.0, min(stretch_m, cum[-1]) + 1e-9, pi.LANE_SAMPLE_M)
+    present = np.zeros((samples.size, 2 * max_lanes + 1), dtype=bool)
+    for si, s in enumerate(samples):
+        j = min(int(np.searchsorted(cum, s, side="right")) - 1, len(reference) - 2)
+        seg = reference[j + 1] - reference[j]
+        tan = seg / np.hypot(*seg)
+        frac = (s - cum[j]) / max(cum[j + 1] - cum[j], 1e-300)
+        p = reference[j] + min(max(frac, 0.0), 1.0) * seg
+        normal = np.array([-tan[1], tan[0]])
+        for lane in lane_map.lanes:
+            c = lane.centerline
+            best = None
+            for q in range(len(c) - 1):
+                ab = c[q + 1] - c[q]
+                l2 = ab @ ab
+                if l2 <= 0:
+                    continue
+                t = min(max((p - c[q]) @ ab / l2, 0.0), 1.0)
+                foot = c[q] + t * ab
+                d2 = (p - foot) @ (p - foot)
+                if best is None or d2 < best[0]:
+                    best = (d2, foot, ab / np.sqrt(l2))
+            if best is None:
+                continue
+            _, foot, unit = best
+            lateral, along = (foot - p) @ normal, (foot - p) @ tan
+            k = round(lateral / lane_width_m)
+            if (
+                unit @ tan >= math.cos(pi.LANE_ANGLE_RAD)
+                and abs(lateral - k * lane_width_m) <= pi.LANE_OFFSET_TOLERANCE * lane_width_m
+                and abs(along) <= 0.5 * pi.LANE_SAMPLE_M
+                and k != 0
+                and abs(k) <= max_lanes
+            ):
+                present[si, k + max_lanes] = True
+    usable = present.mean(axis=0) >= pi.LANE_COVERAGE
+    left = usable[max_lanes + 1 :]
+    right = usable[:max_lanes][::-1]
+    run = lambda f: int(np.argmin(f)) if not f.all() else int(f.size)  # noqa: E731
+    return run(left), run(right)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_side_lanes_match_the_loop_oracle(seed):
+    """Random curved roads with lanes at whole and broken lane widths, both directions."""
+    rng = np.random.default_rng(seed)
+    s = np.linspace(0.0, 200.0, 41)
+    bend = rng.uniform(-0.004, 0.004)
+    centre = np.stack([s, bend * s**2], axis=1)
+    d = np.gradient(centre, axis=0)
+    normal = np.stack([-d[:, 1], d[:, 0]], axis=1) / np.hypot(*d.T)[:, None]
+    lanes = []
+    for i, offset in enumerate(rng.choice([-7.0, -3.5, -2.0, 3.5, 5.0, 7.0, 10.5], 4)):
+        line = centre + (offset + rng.normal(0, 0.3)) * normal
+        cut = rng.integers(0, 15)
+        line = line[cut : cut + rng.integers(10, 41)]
+        if rng.random() < 0.3:
+            line = line[::-1]  # an oncoming lane
+        if len(line) >= 2:
+            lanes.append(Lane(i, line))
+    lane_map = LaneMap(lanes=tuple(lanes))
+    reference = centre[rng.integers(0, 5) :]
+    from replay.planning.inputs import side_lanes
+
+    got = side_lanes(reference, lane_map, lane_width_m=3.5, stretch_m=80.0)
+    assert got == _side_lanes_by_loops(reference, lane_map, lane_width_m=3.5, stretch_m=80.0)

@@ -9,6 +9,7 @@ and the other agents' forecasts (the toolkit's own constant-speed prediction).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -195,9 +196,10 @@ def side_lanes(
     the samples; the count on each side is the run of usable offsets from 1 outwards (a
     gap ends it). Vectorised over lanes and samples; (0, 0) when the map has no lanes.
     """
-    lanes = [lane.centerline for lane in lane_map.lanes if len(lane.centerline) >= 2]
-    if not lanes:
+    prepared = _padded_lanes(lane_map)
+    if prepared is None:
         return 0, 0
+    all_lanes, counts, box_lo, box_hi = prepared
     ref_cum = geometry.cumulative_lengths(reference[None])[0]
     s = np.arange(0.0, min(stretch_m, float(ref_cum[-1])) + 1e-9, LANE_SAMPLE_M)
     pts, seg = geometry.interpolate(reference[None], ref_cum[None], s[None])
@@ -210,29 +212,44 @@ def side_lanes(
     # Lanes padded to one array; keep only those whose box comes near the samples.
     reach = (max_lanes + 1) * lane_width_m
     lo, hi = pts.min(axis=0) - reach, pts.max(axis=0) + reach
-    q = max(len(c) for c in lanes)
-    padded = np.stack([np.concatenate([c, np.repeat(c[-1:], q - len(c), axis=0)]) for c in lanes])
-    near = ((padded.max(axis=1) >= lo) & (padded.min(axis=1) <= hi)).all(axis=1)
+    near = ((box_hi >= lo) & (box_lo <= hi)).all(axis=1)
     if not near.any():
         return 0, 0
-    padded = padded[near]  # (L, Q, 2)
-    a = padded[:, None, :-1, :]  # (L, 1, Q-1, 2)
-    ab = np.diff(padded, axis=1)[:, None]  # (L, 1, Q-1, 2)
+    # Every segment of the nearby lanes whose own box comes near the samples, grouped by
+    # lane: the samples' distances to them are one (S, M) matrix, and each lane's nearest
+    # segment per sample comes from per-group reductions (no loop over lanes).
+    padded = all_lanes[near, : int(counts[near].max())]  # (L, Q, 2)
+    a_pts, b_pts = padded[:, :-1], padded[:, 1:]  # (L, Q-1, 2)
+    seg_lo, seg_hi = np.minimum(a_pts, b_pts), np.maximum(a_pts, b_pts)
+    real = (np.diff(padded, axis=1) ** 2).sum(axis=-1) > 0
+    close = real & ((seg_hi >= lo) & (seg_lo <= hi)).all(axis=-1)  # (L, Q-1)
+    lane_of, seg_of = np.nonzero(close)
+    if lane_of.size == 0:
+        return 0, 0
+    a = a_pts[lane_of, seg_of]  # (M, 2), grouped by lane (nonzero is row-major)
+    ab = b_pts[lane_of, seg_of] - a
     len2 = (ab**2).sum(axis=-1)
-    rel = pts[None, :, None, :] - a  # (L, S, Q-1, 2)
-    t = np.clip((rel * ab).sum(axis=-1) / np.where(len2 > 0, len2, 1.0), 0.0, 1.0)
-    foot = a + t[..., None] * ab
-    dist2 = ((pts[None, :, None, :] - foot) ** 2).sum(axis=-1)
-    dist2 = np.where(len2 > 0, dist2, np.inf)  # padding segments
-    best = np.argmin(dist2, axis=2)  # (L, S)
-    take = best[..., None, None]
-    foot_b = np.take_along_axis(foot, take, axis=2)[:, :, 0]  # (L, S, 2)
-    dir_b = np.take_along_axis(np.broadcast_to(ab, foot.shape), take, axis=2)[:, :, 0]
-    dir_b = dir_b / np.maximum(np.linalg.norm(dir_b, axis=-1, keepdims=True), 1e-12)
-    off = foot_b - pts[None]
-    lateral = (off * normal[None]).sum(axis=-1)  # (L, S), + to the left
-    along = (off * tan[None]).sum(axis=-1)
-    aligned = (dir_b * tan[None]).sum(axis=-1) >= math.cos(LANE_ANGLE_RAD)
+    starts = np.flatnonzero(np.r_[True, lane_of[1:] != lane_of[:-1]])
+    rel = pts[:, None, :] - a[None]  # (S, M, 2)
+    t = np.clip((rel * ab[None]).sum(axis=-1) / len2[None], 0.0, 1.0)
+    foot = a[None] + t[..., None] * ab[None]  # (S, M, 2)
+    dist2 = ((pts[:, None, :] - foot) ** 2).sum(axis=-1)  # (S, M)
+    group_min = np.minimum.reduceat(dist2, starts, axis=1)  # (S, G)
+    sizes = np.diff(np.r_[starts, lane_of.size])
+    is_best = dist2 == np.repeat(group_min, sizes, axis=1)
+    # The first best segment of each group: the running count of bests within it is 1.
+    running = np.cumsum(is_best, axis=1)
+    before = np.repeat(np.c_[np.zeros((len(pts), 1)), running[:, starts[1:] - 1]], sizes, axis=1)
+    first = is_best & (running - before == 1)
+
+    def at_best(values: np.ndarray) -> np.ndarray:  # (S, M) -> (S, G)
+        return np.add.reduceat(np.where(first, values, 0.0), starts, axis=1)
+
+    unit = ab / np.sqrt(len2)[:, None]  # (M, 2)
+    off = foot - pts[:, None, :]
+    lateral = at_best((off * normal[:, None, :]).sum(axis=-1))  # (S, G), + to the left
+    along = at_best((off * tan[:, None, :]).sum(axis=-1))
+    aligned = at_best((unit[None] * tan[:, None, :]).sum(axis=-1)) >= math.cos(LANE_ANGLE_RAD)
     k = np.rint(lateral / lane_width_m)
     beside = (
         aligned
@@ -242,11 +259,29 @@ def side_lanes(
         & (np.abs(k) <= max_lanes)
     )
     offsets = np.arange(-max_lanes, max_lanes + 1)
-    present = (beside[..., None] & (k[..., None] == offsets)).any(axis=0)  # (S, 2*max+1)
+    present = (beside[..., None] & (k[..., None] == offsets)).any(axis=1)  # (S, 2*max+1)
     usable = present.mean(axis=0) >= LANE_COVERAGE
     left = _run(usable[max_lanes + 1 :])
     right = _run(usable[:max_lanes][::-1])
     return left, right
+
+
+@functools.lru_cache(maxsize=8)
+def _padded_lanes(
+    lane_map: LaneMap,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """The map's lane centre lines as one padded array ``(L, Q, 2)`` (each padded with its
+    last point), their point counts ``(L,)`` and bounding boxes ``(L, 2)`` low and high;
+    built once per map (a scene's frames share one map; maps are compared by identity)."""
+    lanes = [lane.centerline for lane in lane_map.lanes if len(lane.centerline) >= 2]
+    if not lanes:
+        return None
+    counts = np.array([len(c) for c in lanes], dtype=np.int64)
+    padded = np.empty((len(lanes), int(counts.max()), 2))
+    for i, c in enumerate(lanes):  # once per map, not per frame
+        padded[i, : len(c)] = c
+        padded[i, len(c) :] = c[-1]
+    return padded, counts, padded.min(axis=1), padded.max(axis=1)
 
 
 def _run(flags: np.ndarray) -> int:
