@@ -549,3 +549,29 @@ def test_side_lanes_match_the_loop_oracle(seed):
 
     got = side_lanes(reference, lane_map, lane_width_m=3.5, stretch_m=80.0)
     assert got == _side_lanes_by_loops(reference, lane_map, lane_width_m=3.5, stretch_m=80.0)
+
+
+def test_coords_cache_serves_subsets_and_never_a_changed_forecast():
+    from replay.planning.path_coords import CoordsCache, path_coords
+
+    frame = ps.road_frame()
+    request = plan_request(frame, ps.road_map(), target_speed_mps=10.0)
+    cache = CoordsCache()
+    full = cache.get(request.reference, request.agents)
+    sub = request.agents.subset(np.array([2, 0]))
+    got = cache.get(request.reference, sub)
+    want = path_coords(request.reference, sub)
+    assert np.array_equal(got.arc_m, want.arc_m) and np.array_equal(got.along, want.along)
+    assert np.array_equal(full.arc_m[[2, 0]], got.arc_m)
+    moved = AgentForecasts(
+        ids=sub.ids,
+        kinds=sub.kinds,
+        length_m=sub.length_m,
+        width_m=sub.width_m,
+        times_s=sub.times_s,
+        xy=sub.xy + 3.0,
+        heading_rad=sub.heading_rad,
+    )  # the same ids, moved: computed afresh
+    assert np.array_equal(
+        cache.get(request.reference, moved).arc_m, path_coords(request.reference, moved).arc_m
+    )

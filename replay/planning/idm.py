@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from replay.planning.path_coords import PathCoords, path_coords, project
+from replay.planning.path_coords import CoordsCache, PathCoords, project
 from replay.planning.types import STOP_SPEED_MPS, Plan, PlanRequest
 from risk import geometry
 
@@ -70,6 +70,7 @@ class IdmPlanner:
 
     def __init__(self, settings: IdmSettings | None = None) -> None:
         self.settings = IdmSettings() if settings is None else settings
+        self._coords = CoordsCache()
 
     # ------------------------------------------------------------------ may_matter
     def may_matter(self, request: PlanRequest) -> np.ndarray:
@@ -94,7 +95,7 @@ class IdmPlanner:
         a = request.agents.on_times(request.times_s)
         if a.n == 0:
             return np.zeros(0, dtype=bool)
-        c = path_coords(request.reference, a)
+        c = self._coords.get(request.reference, a)
         inside = _in_corridor(c, request.lane_width_m)
         s0 = float(project(request.reference, request.ego.xy[None])[1][0])
         v = max(request.ego.speed_mps, 0.0)
@@ -121,7 +122,7 @@ class IdmPlanner:
         agents = request.agents.on_times(times)  # the plan's steps
         ids = agents.ids
         if agents.n:
-            coords = path_coords(ref, agents)
+            coords = self._coords.get(ref, agents)
             inside = _in_corridor(coords, request.lane_width_m)
             # Only agents that are ever in the corridor can constrain (see may_matter):
             # the loop over steps works on those alone.

@@ -84,3 +84,52 @@ def path_coords(reference: np.ndarray, agents: AgentForecasts) -> PathCoords:
         along=np.cos(rel) >= math.cos(ALONG_ANGLE_RAD),
         speed_along_mps=speed,
     )
+
+
+class CoordsCache:
+    """:func:`path_coords` of the last reference, reused for any subset of its agents.
+
+    A filter's plan, and every "all agents but one" plan of the planner truth, asks about
+    a subset of the agents of the all-agents request, along the same reference: their
+    coordinates are rows of the ones already computed. A hit needs the same reference
+    object, the same times, and every agent's id and forecast equal to the cached ones
+    (compared, so that a changed forecast under an old id is never served stale).
+    """
+
+    def __init__(self) -> None:
+        self._key: tuple[np.ndarray, np.ndarray] | None = None
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._order = np.zeros(0, dtype=np.int64)
+        self._xy = np.zeros((0, 0, 2))
+        self._heading = np.zeros((0, 0))
+        self._size = np.zeros((0, 2))
+        self._coords: PathCoords | None = None
+
+    def get(self, reference: np.ndarray, agents: AgentForecasts) -> PathCoords:
+        if (
+            self._coords is not None
+            and self._key is not None
+            and self._key[0] is reference
+            and np.array_equal(self._key[1], agents.times_s)
+            and agents.n <= self._ids.size
+        ):
+            sorted_ids = self._ids[self._order]
+            pos = np.clip(np.searchsorted(sorted_ids, agents.ids), 0, max(sorted_ids.size - 1, 0))
+            rows = self._order[pos]
+            same = (
+                np.array_equal(self._ids[rows], agents.ids)
+                and np.array_equal(self._xy[rows], agents.xy)
+                and np.array_equal(self._heading[rows], agents.heading_rad)
+                and np.array_equal(self._size[rows], np.stack([agents.length_m, agents.width_m], 1))
+            )
+            if same:
+                return self._coords.rows(rows)
+        coords = path_coords(reference, agents)
+        self._key = (reference, agents.times_s.copy())
+        self._ids = agents.ids.copy()
+        self._order = np.argsort(self._ids, kind="stable")
+        self._xy = agents.xy.copy()
+        self._heading = agents.heading_rad.copy()
+        self._size = np.stack([agents.length_m, agents.width_m], 1)
+        self._coords = coords
+        return coords
