@@ -279,7 +279,7 @@ def _truth(result: FrameResult, n: int) -> np.ndarray:
         raise RecordingError(
             f"frame {result.index}: truth_label has {raw.size} values, expected {n}"
         )
-    unknown = np.equal(raw, None)
+    unknown = np.array([v is None for v in raw.tolist()], dtype=bool)
     values = np.where(unknown, np.nan, raw).astype(np.float64)
     return np.where(np.isnan(values), np.nan, (values != 0).astype(np.float64))
 

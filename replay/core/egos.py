@@ -59,7 +59,11 @@ class _LoadedScene:
     def n_frames(self) -> int:
         return len(self.indexed)
 
-    def entries(self) -> Iterator[Any]:
+    @property
+    def ego_id(self) -> int | None:
+        return None  # every agent in turn; the recording's own is in the metadata
+
+    def entries(self) -> Iterator[_Entry]:
         for index, frame in self.indexed:
             yield _Entry(index, frame.ego_id, frame)
 
