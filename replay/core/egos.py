@@ -39,6 +39,7 @@ from risk.cascade import CascadeConfig, Evaluator
 from risk.frame import Frame, LaneMap
 from risk.hindsight import Tracks, tracks_from_frames
 from risk.motion import MIN_TRAVEL_M, moving_agent_ids
+from risk.prediction import PredictionSettings
 
 #: What ``--ego`` takes besides an agent id.
 ALL_EGOS = "all"
@@ -148,7 +149,7 @@ def run_every_ego(
     min_travel_m: float = MIN_TRAVEL_M,
     models: Sequence[str] | None = None,
     params: Mapping[str, Any] | None = None,
-    prediction: Any = None,
+    prediction: PredictionSettings | None = None,
     progress: bool = True,
     evaluate: Evaluator | None = None,
 ) -> EgosSummary:

@@ -32,6 +32,7 @@ from risk import kernel
 from risk.cascade import SURVIVAL_MODEL, CascadeConfig, CascadeResult, Evaluator, run_cascade
 from risk.frame import Frame, LaneMap, Scene
 from risk.hindsight import Tracks, tracks_from_frames
+from risk.prediction import PredictionSettings
 from risk.registry import resolve_models
 
 
@@ -206,7 +207,7 @@ def run_scene(
     ego: int | None = None,
     models: Sequence[str] | None = None,
     params: Mapping[str, Any] | None = None,
-    prediction: Any = None,
+    prediction: PredictionSettings | None = None,
     progress: bool = True,
     evaluate: Evaluator | None = None,
     every: int | Stride = 1,

@@ -66,7 +66,7 @@ class SituationTask:
     seed: int
     cascade: CascadeConfig
     extra_cascades: tuple[tuple[str, CascadeConfig], ...] = ()
-    settings: Any = None  # converters.synthetic.SyntheticSettings (None: defaults)
+    settings: SyntheticSettings | None = None  # None: the defaults
     time_models: bool = True  # also time each model alone on every frame
 
 
@@ -192,7 +192,7 @@ class ExperimentSettings:
     workers: int = field(default_factory=default_workers)
     errors_model: str = DEFAULT_ERRORS_MODEL
     calibrate_half: bool = True
-    synthetic: Any = None  # converters.synthetic.SyntheticSettings (None: paper ranges)
+    synthetic: SyntheticSettings | None = None  # None: the paper's ranges
 
 
 @dataclass(frozen=True, eq=False)
