@@ -266,3 +266,14 @@ def test_every_error_derives_from_the_one_base():
         if not issubclass(cls, RiskReplayError) and qualname not in INTERNAL_EXCEPTIONS
     }
     assert strays == set()
+
+
+def test_commands_do_not_import_each_other():
+    """A command parses, calls the library and prints: logic two commands share lives in
+    the library (e.g. replay.core.scene_run for run and demo), not in a command module.
+    (Groups load their subcommands by name, as replay/cli/app.py does: no import.)"""
+    modules = _modules()
+    commands = {m for m in modules if m.startswith("replay.cli.commands.")}
+    assert {"replay.cli.commands.run", "replay.cli.commands.demo"} <= commands
+    graph = _file_graph()
+    assert {c: graph[c] & commands for c in commands if graph[c] & commands} == {}
