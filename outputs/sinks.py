@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import pathlib
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -47,6 +47,23 @@ class FrameResult:
     frame: Frame
     risks: dict[str, np.ndarray]  # model name -> (N,) risk on ALL agents (NaN: ego/invalid)
     cascade: CascadeResult
+    #: What annotators added (a planner's plans and labels, see
+    #: :mod:`replay.planning.annotator`); empty without one.
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+@runtime_checkable
+class Annotator(Protocol):
+    """Computes more per frame for the sinks (e.g. a planner's plans): ``begin`` once per
+    scene (and ego), then ``annotate`` per frame; what it returns goes into
+    :attr:`FrameResult.extras` before any sink sees the frame. ``name`` labels its time."""
+
+    @property
+    def name(self) -> str: ...
+
+    def begin(self, info: SceneInfo) -> None: ...
+
+    def annotate(self, result: FrameResult) -> dict[str, Any]: ...
 
 
 @runtime_checkable

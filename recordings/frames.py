@@ -50,6 +50,12 @@ class FrameRows:
     survivor_paths: np.ndarray  # (R, P, 2) m, deeper-tier survivors' candidates (padded)
     survivor_path_risk: np.ndarray  # (R,) R_S of each candidate's owner (colour)
     survivor_path_owner: np.ndarray  # (R,) id of each candidate's owner
+    # With a planner beside the replay (replay run --planner): the plans with all agents
+    # and with the cascade's agents, (T, 2) m ((0, 2) without a plan), and their times.
+    plan_all: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    plan_filtered: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    plan_all_ms: float = float("nan")
+    plan_filtered_ms: float = float("nan")
 
 
 @dataclass(frozen=True)

@@ -240,7 +240,21 @@ def _collect(result: FrameResult, info: SceneInfo, *, keep_paths: bool) -> Frame
         survivor_path_owner=np.asarray(frame.ids, dtype=np.int64)[
             _path_owner_rows(frame, idx[deep], keep_paths)
         ],
+        **_plans(result),
     )
+
+
+def _plans(result: FrameResult) -> dict[str, object]:
+    """The planner's two plans of the frame, when one ran beside the replay."""
+    out: dict[str, object] = {}
+    for key in ("plan_all", "plan_filtered"):
+        plan = result.extras.get(key)
+        if plan is None:
+            continue
+        ok = bool(getattr(plan, "ok", False))
+        out[key] = np.asarray(plan.xy, dtype=np.float64) if ok else np.zeros((0, 2))
+        out[f"{key}_ms"] = float(plan.plan_ms)
+    return out
 
 
 def _with_hindsight(frames: list[FrameRows], info: SceneInfo) -> list[FrameRows]:

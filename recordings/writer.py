@@ -94,7 +94,7 @@ def _write(
         if frames:
             _log_scene_layers(rec, info, scene, frames, options=options)
             _log_timelines(rec, info, scene, set(log10_ranges), focus)
-            _log_cascade_series(rec, info, scene)
+            _log_cascade_series(rec, info, scene, frames)
         rec.flush()
     except (OSError, RuntimeError) as exc:  # I/O and rerun's native errors; bugs propagate
         raise RecordingError(f"could not write {output}: {exc}") from exc
@@ -326,6 +326,7 @@ def _log_scene_layers(
     if options.links:
         _add_links(batch, static, info, scene)
     _add_paths(batch, static, info, scene, frames)
+    _add_plans(batch, static, scene, frames)
     static.send(rec)
     batch.send(rec)
     _log_misses(rec, info, scene)
@@ -467,6 +468,28 @@ def _add_paths(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: SceneRow
     paths = [L.agent_paths_path(int(agent_ids[c])) for c in with_paths]
     cols = parts.columns(with_paths.size * n_frames)
     _add_entities(batch, static, paths, n_frames, cols, L.ORDER_PATHS, labels=False)
+
+
+def _add_plans(batch: C.Batch, static: C.Batch, scene: SceneRows, frames) -> None:
+    """A planner's two plans per frame (replay run --planner): white with every agent,
+    orange with the cascade's agents (drawn thinner, on top, so both show where equal)."""
+    n_frames = scene.times_s.size
+    for path, key, color, width in (
+        (L.PLAN_ALL, "plan_all", L.PLAN_ALL_COLOR, 2.2),
+        (L.PLAN_FILTERED, "plan_filtered", L.PLAN_FILTERED_COLOR, 1.2),
+    ):
+        plans = [getattr(f, key) for f in frames]
+        if not any(len(p) >= 2 for p in plans):
+            continue
+        parts = _Parts()
+        for f, plan in enumerate(plans):
+            if len(plan) >= 2:
+                parts.add(
+                    np.array([f]), plan[None], _tile((*color, 230), 1),
+                    np.full(1, -L.PATH_WIDTH_UI * width),
+                )  # fmt: skip
+        cols = parts.columns(n_frames)
+        _add_entities(batch, static, [path], n_frames, cols, L.ORDER_PATHS + 1.0, labels=False)
 
 
 # ---------------------------------------------------------------------- labels and misses
@@ -741,7 +764,7 @@ def _log_threshold(rec, scene: SceneRows, model: str, threshold: float, is_log: 
 
 
 # ---------------------------------------------------------------------- cascade series
-def _log_cascade_series(rec, info: SceneInfo, scene: SceneRows) -> None:
+def _log_cascade_series(rec, info: SceneInfo, scene: SceneRows, frames=()) -> None:
     """Funnel counts, cumulative false negatives and compute times, one value per frame."""
     r, n_frames = scene.rows, scene.times_s.size
     per_frame = lambda mask: np.bincount(scene.frame_of[mask], minlength=n_frames)  # noqa: E731
@@ -760,6 +783,17 @@ def _log_cascade_series(rec, info: SceneInfo, scene: SceneRows) -> None:
         path = f"{L.FUNNEL}/tier_{k + 1}_{tier.name}"
         series.append((path, tier.name, L.tier_color(k), per_frame(r["tier"] >= k)))
     total_ms = scene.stage_time_ms.sum(axis=1) + scene.sort_time_ms
+    plan_ms = {
+        key: np.array([getattr(f, key) for f in frames], dtype=np.float64)
+        for key in ("plan_all_ms", "plan_filtered_ms")
+    }
+    if np.isfinite(plan_ms["plan_all_ms"]).any():
+        series += [
+            (f"{L.TIMING}/plan_all_agents", "plan, all agents", L.PLAN_ALL_COLOR,
+             plan_ms["plan_all_ms"]),
+            (f"{L.TIMING}/plan_filtered", "plan, cascade's agents", L.PLAN_FILTERED_COLOR,
+             plan_ms["plan_filtered_ms"]),
+        ]  # fmt: skip
     series += [
         (f"{L.TIMING}/sort", "sort into tiers", L.tier_color(1), scene.sort_time_ms),
         (f"{L.TIMING}/cascade_total", "cascade total", L.OTHERS_SERIES, total_ms),

@@ -15,8 +15,10 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from risk.cascade import CascadeConfig
     from risk.errors import FrameError, RiskError, RiskReplayError, UnknownModelError
     from risk.evaluation import evaluate_references, pooled_roc
+    from risk.filtering import FilterResult, filter_frame, parse_filter
     from risk.frame import KIND_NAMES, Frame, Kind, Lane, LaneMap, MapLine, Scene
     from risk.hindsight import HindsightSettings, Tracks, Truth, hindsight_truth
     from risk.prediction import FrameContext, KindUncertainty, PredictionSettings, UncertaintyTable
@@ -42,6 +44,8 @@ _WHERE: dict[str, str] = {
         ("FrameError", "RiskError", "RiskReplayError", "UnknownModelError"), "risk.errors"
     ),
     **dict.fromkeys(("evaluate_references", "pooled_roc"), "risk.evaluation"),
+    "CascadeConfig": "risk.cascade",
+    **dict.fromkeys(("FilterResult", "filter_frame", "parse_filter"), "risk.filtering"),
     **dict.fromkeys(
         ("KIND_NAMES", "Frame", "Kind", "Lane", "LaneMap", "MapLine", "Scene"), "risk.frame"
     ),
@@ -83,6 +87,8 @@ __all__ = [
     "BASELINE_THRESHOLD",
     "KIND_NAMES",
     "MODELS",
+    "CascadeConfig",
+    "FilterResult",
     "Frame",
     "FrameContext",
     "FrameError",
@@ -104,6 +110,8 @@ __all__ = [
     "baseline_mask",
     "evaluate",
     "evaluate_references",
+    "filter_frame",
     "hindsight_truth",
+    "parse_filter",
     "pooled_roc",
 ]

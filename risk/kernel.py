@@ -3,7 +3,7 @@
 :func:`run`, :func:`warm_up`).
 
 The code is :mod:`risk.kernel_numba`. It runs compiled in one of two forms, bit for bit
-the same:
+the same on one machine:
 
 - **ahead of time** (:mod:`risk.kernel_aot`): an extension module built once into the
   cache folder by numba's ``pycc``. Loading it imports neither numba nor LLVM: about

@@ -1,6 +1,7 @@
 """The ahead-of-time kernel (risk/kernel_aot.py): built from the same code, it loads
-without numba and agrees with the just-in-time kernel bit for bit; a broken, failed or
-running build leaves the just-in-time kernel in charge."""
+without numba and agrees with the just-in-time kernel built on the same machine bit for
+bit (the exact side of the contract in tests/exactness.py); a broken, failed or running
+build leaves the just-in-time kernel in charge."""
 
 from __future__ import annotations
 
@@ -73,12 +74,14 @@ def built_cache(tmp_path_factory) -> pathlib.Path:
     return cache
 
 
+@pytest.mark.exactness
 @pytest.mark.slow  # (the build: about 10 s)
 def test_built_module_loads_without_numba_and_agrees_bit_for_bit(built_cache, tmp_path):
     path = kernel_aot.module_path(built_cache)
     assert path.is_file() and path.stat().st_size > 0
     code = RESULTS.format(tests=str(ROOT / "tests"), benchmarks=str(ROOT / "benchmarks"))
-    aot = _run(code, built_cache, str(tmp_path / "aot.npz"))
+    # (auto: also when the tests run with RISKREPLAY_KERNEL=jit, as .ci/run's second pass)
+    aot = _run(code, built_cache, str(tmp_path / "aot.npz"), RISKREPLAY_KERNEL="auto")
     jit = _run(code, built_cache, str(tmp_path / "jit.npz"), RISKREPLAY_KERNEL="jit")
     assert aot.returncode == 0, aot.stderr
     assert jit.returncode == 0, jit.stderr

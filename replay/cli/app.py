@@ -33,6 +33,7 @@ COMMANDS: dict[str, str] = {
     "calibrate": "replay.cli.commands.calibrate:calibrate",
     "stats": "replay.cli.commands.stats:stats",
     "evaluate": "replay.cli.commands.evaluate:evaluate",
+    "plan": "replay.cli.commands.plan:plan",
     "experiment": "replay.cli.commands.experiment:experiment",
     "batch": "replay.cli.commands.batch:batch",
     "models": "replay.cli.commands.models:models",

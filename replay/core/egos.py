@@ -25,6 +25,7 @@ import numpy as np
 from tqdm import tqdm
 
 from converters.scene.reader import open_scene
+from outputs.sinks import Annotator
 from replay.core.engine import (
     FrameResult,
     ReplayWarning,
@@ -152,6 +153,7 @@ def run_every_ego(
     prediction: PredictionSettings | None = None,
     progress: bool = True,
     evaluate: Evaluator | None = None,
+    annotators: Sequence[Annotator] = (),
 ) -> EgosSummary:
     """Replay the scene once for every agent that moves at least ``min_travel_m``.
 
@@ -186,7 +188,7 @@ def run_every_ego(
                 run = run_scene(
                     scene, sinks=wrapped, cascade=cascade, ego=int(ego), models=models,
                     params=params, prediction=prediction, progress=False, evaluate=evaluate,
-                    every=step,
+                    every=step, annotators=annotators,
                 )  # fmt: skip
                 runs.append(run)
         for sink in sinks:

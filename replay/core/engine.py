@@ -26,7 +26,12 @@ from tqdm import tqdm
 
 import risk
 from converters.scene.reader import open_scene
-from outputs.sinks import FrameResult, SceneInfo, Sink  # also importable from here, as before
+from outputs.sinks import (  # also importable from here, as before
+    Annotator,
+    FrameResult,
+    SceneInfo,
+    Sink,
+)
 from replay.errors import ReplayError
 from risk import kernel
 from risk.cascade import SURVIVAL_MODEL, CascadeConfig, CascadeResult, Evaluator, run_cascade
@@ -211,6 +216,7 @@ def run_scene(
     progress: bool = True,
     evaluate: Evaluator | None = None,
     every: int | Stride = 1,
+    annotators: Sequence[Annotator] = (),
 ) -> RunSummary:
     """Replay a scene through every model and the cascade, feeding ``sinks``.
 
@@ -240,7 +246,7 @@ def run_scene(
     # (a SceneReader holds no open file between reads: nothing to close afterwards)
     return _run(
         reader, path, sinks, cascade, ego, model_names, params, progress, evaluate,
-        stride.frames_at(float(reader.frame_period_s)),
+        stride.frames_at(float(reader.frame_period_s)), annotators,
     )  # fmt: skip
 
 
@@ -255,6 +261,7 @@ def _run(
     progress: bool,
     evaluate: Evaluator,
     every: int = 1,
+    annotators: Sequence[Annotator] = (),
 ) -> RunSummary:
     entries = _entries(reader)
     start = time.perf_counter()
@@ -279,6 +286,8 @@ def _run(
     totals.read_time_s = read_first_s
     begun: list[Sink] = []
     try:
+        for annotator in annotators:
+            annotator.begin(info)
         for sink in sinks:
             _timed_sink(totals, sink, "begin", info)
             begun.append(sink)
@@ -303,6 +312,8 @@ def _run(
                         totals.ids_skipped.update(frame.ids[frame.valid].tolist())
                     continue
                 result = _process(index, seen, cascade, model_names, params, evaluate, totals)
+                for annotator in annotators:
+                    _annotate(totals, annotator, result)
                 for sink in begun:
                     _timed_sink(totals, sink, "add", result)
         if totals.frames == 0:
@@ -437,6 +448,13 @@ def _timed(
         if entry is None:
             return
         yield entry[0], entry[2]
+
+
+def _annotate(totals: _Totals, annotator: Annotator, result: FrameResult) -> None:
+    start = time.perf_counter()
+    result.extras.update(annotator.annotate(result))
+    name = annotator.name
+    totals.sink_time_s[name] = totals.sink_time_s.get(name, 0.0) + time.perf_counter() - start
 
 
 def _timed_sink(totals: _Totals, sink: Sink, method: str, *args: Any) -> None:

@@ -10,14 +10,16 @@ from __future__ import annotations
 
 import pathlib
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from converters.scene.reader import open_scene
 from converters.scene.writer import write_scene
 from converters.synthetic import SyntheticSettings, generate_scene
+from outputs.sinks import Annotator
 from outputs.transaction import OutputGuard
 from replay.core.egos import EgosSummary, pooled, run_every_ego
 from replay.core.engine import ReplayWarning, RunSummary, Sink, Stride, run_scene
+from replay.core.keep_lists import KeepListSink
 from risk.cascade import CascadeConfig
 from risk.frame import Scene
 
@@ -44,18 +46,21 @@ def replay_to_files(
     progress: bool = True,
     inputs: tuple[pathlib.Path | None, ...] = (),
     notify: Notify = _quiet,
+    keep_lists: pathlib.Path | None = None,
+    annotators: Sequence[Annotator] = (),
 ) -> RunSummary:
-    """Replay ``scene`` into a Rerun recording and/or a table (each optional), all or
-    nothing: the outputs are checked before the replay and appear together
-    (:class:`outputs.transaction.OutputGuard`; ``inputs`` are refused as outputs)."""
-    with OutputGuard(inputs=(scene, *inputs), files=(rrd, table)):
-        sinks = make_sinks(rrd, table)
+    """Replay ``scene`` into a Rerun recording, a table and/or keep-lists (each
+    optional), all or nothing: the outputs are checked before the replay and appear
+    together (:class:`outputs.transaction.OutputGuard`; ``inputs`` are refused as
+    outputs)."""
+    with OutputGuard(inputs=(scene, *inputs), files=(rrd, table, keep_lists)):
+        sinks = make_sinks(rrd, table, keep_lists)
         reader = open_scene(scene)
         if ego is None:  # the scene's own ego: say which agent it is and why
             notify(ego_note(reader.metadata))
         return run_with_warnings(
             reader, notify=notify, sinks=sinks, cascade=cascade, ego=ego, progress=progress,
-            every=every,
+            every=every, annotators=annotators,
         )  # fmt: skip
 
 
@@ -67,12 +72,15 @@ def replay_every_ego_to_table(
     every: int | Stride = 1,
     progress: bool = True,
     inputs: tuple[pathlib.Path | None, ...] = (),
+    keep_lists: pathlib.Path | None = None,
+    annotators: Sequence[Annotator] = (),
 ) -> EgosSummary:
-    """Replay ``scene`` once per ego (every agent that moves) into one table."""
-    with OutputGuard(inputs=(scene, *inputs), files=(table,)):  # checked before the replay
+    """Replay ``scene`` once per ego (every agent that moves) into one table (and
+    keep-lists)."""
+    with OutputGuard(inputs=(scene, *inputs), files=(table, keep_lists)):  # checked first
         return run_every_ego(
-            scene, sinks=make_sinks(None, table), cascade=cascade, every=every,
-            progress=progress,
+            scene, sinks=make_sinks(None, table, keep_lists), cascade=cascade, every=every,
+            progress=progress, annotators=annotators,
         )  # fmt: skip
 
 
@@ -134,7 +142,11 @@ def format_egos_summary(egos: EgosSummary) -> str:
     return head + "\n" + body.replace("frames", "ego-frames", 1)
 
 
-def make_sinks(rrd: pathlib.Path | None, table: pathlib.Path | None) -> list[Sink]:
+def make_sinks(
+    rrd: pathlib.Path | None,
+    table: pathlib.Path | None,
+    keep_lists: pathlib.Path | None = None,
+) -> list[Sink]:
     """The sinks of a run: the Rerun recording and/or the table (both checked before the
     replay starts, so a bad path fails at once)."""
     # Each output's library is loaded only when it is asked for, and where there is a
@@ -144,6 +156,8 @@ def make_sinks(rrd: pathlib.Path | None, table: pathlib.Path | None) -> list[Sin
     # the process's imports and writes one after the other made it the critical path
     # (`replay demo` 0.3 s slower, measured).
     sinks: list[Sink] = []
+    if keep_lists is not None:
+        sinks.append(KeepListSink(keep_lists))
     if table is not None:
         from replay.core.tables import TableSink
 

@@ -11,6 +11,10 @@ from typing import Any
 import numpy as np
 
 TRUTH_COLUMNS = ("truth_gap_m", "truth_pet_s", "truth_label")
+#: With a planner beside the replay (``replay run --planner NAME --table T``): whether
+#: removing the agent alone changes the plan (true / false, null when unknown) and by how
+#: much (m); see :mod:`replay.planning.truth`.
+PLANNER_COLUMNS = ("planner_label", "planner_shift_m")
 
 
 @dataclass(frozen=True, eq=False)

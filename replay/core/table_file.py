@@ -14,7 +14,7 @@ import pathlib
 import numpy as np
 import polars as pl
 
-from replay.core.table_columns import TRUTH_COLUMNS, TableColumns
+from replay.core.table_columns import PLANNER_COLUMNS, TRUTH_COLUMNS, TableColumns
 from replay.errors import ReplayError
 from risk.frame import KIND_NAMES
 from risk.hindsight import LABEL_POSITIVE, LABEL_UNKNOWN
@@ -41,7 +41,20 @@ def dataframe(columns: TableColumns) -> pl.DataFrame:
         pl.Series("truth_pet_s", columns.truth_pet_s).fill_nan(None),
         pl.Series("truth_label", labels.tolist(), dtype=pl.Boolean),
     )
-    return df.select([*keys[:5], *keys[5:-3], "dropped_by", "tier", "baseline", *TRUTH_COLUMNS])
+    planner = [k for k in PLANNER_COLUMNS if k in data]
+    if planner:
+        label = np.asarray(data["planner_label"], dtype=np.float64)
+        df = df.with_columns(
+            pl.Series(
+                "planner_label",
+                np.where(np.isnan(label), None, label == 1.0).tolist(),
+                dtype=pl.Boolean,
+            ),
+            pl.Series("planner_shift_m", np.asarray(data["planner_shift_m"])).fill_nan(None),
+        )
+    return df.select(
+        [*keys[:5], *keys[5:-3], "dropped_by", "tier", "baseline", *TRUTH_COLUMNS, *planner]
+    )
 
 
 def write_temp(path: pathlib.Path, tmp: pathlib.Path, columns: TableColumns) -> None:

@@ -16,6 +16,8 @@ a risk value). Columns, in order:
   equal times within the horizon (m), post-encroachment time (s; null when the footprints
   do not meet), and whether the agent really came close (true / false, null when the
   window is censored). All null when the engine cannot give the recorded tracks.
+- with a planner beside the replay: ``planner_label`` (removing the agent alone changes
+  the plan; null when unknown) and ``planner_shift_m`` (m), :mod:`replay.planning.truth`.
 
 The file is written once, at ``close()``, to a temporary name in the target folder and
 renamed into place, so a failed run never leaves a half-written table.
@@ -33,7 +35,7 @@ import numpy as np
 from outputs import process as background_process
 from outputs.atomic import commit, temp_path_beside
 from outputs.sinks import FrameResult, SceneInfo
-from replay.core.table_columns import TableColumns
+from replay.core.table_columns import PLANNER_COLUMNS, TableColumns
 from replay.errors import ReplayError
 from risk.hindsight import LABEL_UNKNOWN, HindsightSettings, truth_for_rows
 
@@ -107,14 +109,19 @@ class TableSink:
         chunk["dropped_at"] = res.dropped_at[rows]
         chunk["tier"] = res.tier[rows]
         chunk["baseline"] = res.baseline[rows]
+        for name in PLANNER_COLUMNS:  # a planner's labels, when one ran beside the replay
+            if name in result.extras:
+                chunk[name] = np.asarray(result.extras[name], dtype=np.float64)[rows]
         self._chunks.append(chunk)
 
     def columns(self) -> TableColumns:
         """Everything added so far as numpy columns, the hindsight truth included."""
         info = self._require_info()
         keys = self._columns(info)
+        planner = [k for k in PLANNER_COLUMNS if self._chunks and k in self._chunks[0]]
         data: dict[str, Any] = {
-            k: np.concatenate([c[k] for c in self._chunks]) if self._chunks else [] for k in keys
+            k: np.concatenate([c[k] for c in self._chunks]) if self._chunks else []
+            for k in (*keys, *planner)
         }
         gap, pet, label = self._truth(data["t_s"], data["ego_id"], data["agent_id"])
         return TableColumns(

@@ -17,6 +17,8 @@ from replay.core.scene_run import (
     replay_every_ego_to_table,
     replay_to_files,
 )
+from replay.planning.annotator import PlannerAnnotator
+from replay.planning.registry import PLANNERS, make_planner
 
 
 @click.command("run")
@@ -41,6 +43,20 @@ from replay.core.scene_run import (
     help="Also write a frame x agent table of every model's risk and the cascade's "
     "decisions (.parquet or .csv, by suffix).",
 )  # fmt: skip
+@click.option(
+    "--keep-lists", type=click.Path(dir_okay=False, path_type=pathlib.Path),
+    help="Also write the cascade's answer for every frame by agent id, for a planner "
+    "stack: kept ids (most important first), ids per planner tier, dropped ids with the "
+    "stage that dropped them, the filter's time (.jsonl or .parquet, by suffix).",
+)  # fmt: skip
+@click.option(
+    "--planner", type=click.Choice(list(PLANNERS)), default=None,
+    help="Also plan every frame with this planner, once with all agents and once with the "
+    "cascade's: the recording draws both plans (white: all agents, orange: the "
+    "cascade's) and plots their planning times; with --table, the table gains "
+    "planner_label / planner_shift_m (does removing the agent alone change the plan?). "
+    "fop, fiss, fiss_plus need pip install 'riskreplay[planner]'.",
+)  # fmt: skip
 @click.option("--no-rrd", is_flag=True, help="Do not write the Rerun recording.")
 @click.option(
     "--progress/--no-progress", default=True, show_default=True,
@@ -56,6 +72,8 @@ def run(
     table: pathlib.Path | None,
     no_rrd: bool,
     progress: bool,
+    keep_lists: pathlib.Path | None = None,
+    planner: str | None = None,
     sets: tuple[str, ...] = (),
 ) -> None:
     """Replay SCENE (an MCAP scene) through the nine risk models and the filter cascade.
@@ -68,6 +86,9 @@ def run(
     Writes SCENE.rrd (open it with 'rerun SCENE.rrd') and prints a summary.
     """
     cascade = load_cascade(cascade_file, sets)
+    annotators = []
+    if planner is not None:
+        annotators.append(PlannerAnnotator(make_planner(planner), truth=table is not None))
     if no_rrd and output is not None:
         raise click.UsageError("--output names the recording; it cannot go with --no-rrd")
     if ego == ALL_EGOS:
@@ -84,14 +105,18 @@ def run(
         )
         egos = replay_every_ego_to_table(
             scene, table=table, cascade=cascade, every=every, progress=progress,
-            inputs=(cascade_file,),
+            inputs=(cascade_file,), keep_lists=keep_lists, annotators=annotators,
         )  # fmt: skip
         click.echo(format_egos_summary(egos))
+        for annotator in annotators:
+            click.echo(annotator.summary())
         return
     summary = replay_to_files(
         scene, rrd=None if no_rrd else (output or scene.with_suffix(".rrd")), table=table,
         cascade=cascade, ego=cast(int | None, ego), every=every, progress=progress,
-        inputs=(cascade_file,),
+        inputs=(cascade_file,), keep_lists=keep_lists, annotators=annotators,
         notify=lambda message: click.echo(message, err=True),
     )  # fmt: skip
+    for annotator in annotators:
+        click.echo(annotator.summary())
     click.echo(format_summary(summary))
