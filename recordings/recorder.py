@@ -23,7 +23,7 @@ import contextlib
 import os
 import pathlib
 from dataclasses import replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -244,9 +244,9 @@ def _collect(result: FrameResult, info: SceneInfo, *, keep_paths: bool) -> Frame
     )
 
 
-def _plans(result: FrameResult) -> dict[str, object]:
+def _plans(result: FrameResult) -> dict[str, Any]:
     """The planner's two plans of the frame, when one ran beside the replay."""
-    out: dict[str, object] = {}
+    out: dict[str, Any] = {}
     for key in ("plan_all", "plan_filtered"):
         plan = result.extras.get(key)
         if plan is None:
