@@ -113,5 +113,7 @@ class Hindsight:
         last = out[rows, count - 1]
         pad = np.arange(width)[None, :] >= count[:, None]
         out = np.where(pad[:, :, None], last[:, None, :], out)
-        rows = PathRows(frame.astype(np.int64), agent.astype(np.int64), out, count.astype(np.int64))
-        return rows.without_repeats()
+        paths = PathRows(
+            frame.astype(np.int64), agent.astype(np.int64), out, count.astype(np.int64)
+        )
+        return paths.without_repeats()

@@ -178,9 +178,9 @@ def _av2_sensor_group(files: Sequence[pathlib.Path]) -> list[SourceInput]:
 # ---------------------------------------------------------------------- conversions
 def _waymo_scenes(inp: SourceInput, opt: ReadOptions, skipped: Skipped) -> Iterator[SceneBuild]:
     if not opt.skip_bad:  # every CRC first: a damaged file stops before anything is written
-        for item in read_records(inp.path):
-            if isinstance(item, RecordError):
-                raise item
+        for record in read_records(inp.path):
+            if isinstance(record, RecordError):
+                raise record
     for item in waymo.read_scenarios(inp.path, skip_bad=opt.skip_bad, skipped=skipped):
 
         def build(item: waymo.ScenarioRecord = item) -> Scene:

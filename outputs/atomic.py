@@ -4,7 +4,7 @@ Every writer of the project (MCAP scenes, tables, recordings, cascade files, sta
 plots) goes through here (:func:`atomic_output`, :func:`atomic_write`, :func:`write_text`),
 so that an interrupted run never leaves a half-written file and every output gets the
 permissions of an ordinary new file (``mkstemp`` would make it 0600). Standard library
-only, so every layer can use it (see :mod:`base`).
+only, so every layer can use it (see :mod:`outputs`).
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@
 The engine (:mod:`replay.core.engine`) builds them; every output (the table writer, the
 statistics collector, the Rerun recorder in :mod:`recordings`, ...) consumes them. They
 live here, below both, so that an output package needs nothing from ``replay`` (see
-:mod:`base`). ``replay.core.engine`` re-exports them under their old names.
+:mod:`outputs`). ``replay.core.engine`` re-exports them under their old names.
 """
 
 from __future__ import annotations

@@ -138,4 +138,5 @@ class SceneRows:
     sort_time_ms: np.ndarray  # (F,) ms
     survival_all_time_ms: np.ndarray  # (F,) ms
     rows: dict[str, np.ndarray] = field(default_factory=dict)  # name -> (K, ...) or (S, K)
-    grid: tuple[np.ndarray, ...] | None = None  # _agent_grid's result, computed once
+    #: _agent_grid's result, computed once: agent ids, column of each row, first and last frame
+    grid: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None

@@ -378,7 +378,11 @@ def blueprint(
     ]
     misses_view = rrb.TextLogView(name="Misses (click a row: select the agent)", origin=AGENTS)
     summary_view = rrb.TextDocumentView(name="Summary", origin=SUMMARY)
-    active = list(model_names).index(active_model) if active_model in model_names else 0
+    active = (
+        list(model_names).index(active_model)
+        if active_model is not None and active_model in model_names
+        else 0
+    )
     left = rrb.Vertical(
         scene, rrb.Horizontal(funnel, missed, timing), row_shares=[2.4, 1.3], name="Scene"
     )

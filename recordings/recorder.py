@@ -23,7 +23,7 @@ import contextlib
 import os
 import pathlib
 from dataclasses import replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -244,9 +244,9 @@ def _collect(result: FrameResult, info: SceneInfo, *, keep_paths: bool) -> Frame
     )
 
 
-def _plans(result: FrameResult) -> dict[str, object]:
+def _plans(result: FrameResult) -> dict[str, Any]:
     """The planner's two plans of the frame, when one ran beside the replay."""
-    out: dict[str, object] = {}
+    out: dict[str, Any] = {}
     for key in ("plan_all", "plan_filtered"):
         plan = result.extras.get(key)
         if plan is None:
@@ -293,7 +293,7 @@ def _truth(result: FrameResult, n: int) -> np.ndarray:
         raise RecordingError(
             f"frame {result.index}: truth_label has {raw.size} values, expected {n}"
         )
-    unknown = np.equal(raw, None)
+    unknown = np.array([v is None for v in raw.tolist()], dtype=bool)
     values = np.where(unknown, np.nan, raw).astype(np.float64)
     return np.where(np.isnan(values), np.nan, (values != 0).astype(np.float64))
 

@@ -19,6 +19,7 @@ import os
 import pathlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 # rerun's native log: its I/O errors (a full disk) also reach us as exceptions, which the
 # CLI reports in one line; without this they print two more lines of Rust log first.
@@ -119,7 +120,12 @@ def _concatenate(frames: Sequence[FrameRows], info: SceneInfo) -> SceneRows:
         sort_time_ms=np.array([f.sort_time_s for f in frames], dtype=np.float64) * 1e3,
         survival_all_time_ms=np.array([f.survival_all_time_s for f in frames]) * 1e3,
     )
-    dtypes = {"ids": np.int64, "xy": np.float64, "heading": np.float64, "length": np.float64}
+    dtypes: dict[str, type] = {
+        "ids": np.int64,
+        "xy": np.float64,
+        "heading": np.float64,
+        "length": np.float64,
+    }
     dtypes |= {"width": np.float64, "is_ego": bool, "dropped_at": np.int64, "tier": np.int64}
     dtypes |= {"survival": np.float64, "baseline": bool, "truth": np.float64}
     for name, dtype in dtypes.items():
@@ -571,7 +577,7 @@ def _declutter(
     return shown
 
 
-def miss_episodes(scene: SceneRows, info: SceneInfo) -> list[dict[str, object]]:
+def miss_episodes(scene: SceneRows, info: SceneInfo) -> list[dict[str, Any]]:
     """The misses, one entry per episode: an agent dropped although important, over
     consecutive recorded frames with the same stage and reference.
 

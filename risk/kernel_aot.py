@@ -160,3 +160,11 @@ def start_background_build(cache_dir: str | os.PathLike[str]) -> bool:
         log.warning("riskreplay: cannot start the ahead-of-time kernel build (%s)", exc)
         return False
     return True
+
+
+if __name__ == "__main__":
+    # ``python -m risk.kernel_aot`` (the README's command) runs the build, which lives in
+    # risk/kernel_aot_build.py: it imports risk.kernel, which imports this module.
+    import runpy
+
+    runpy.run_module("risk.kernel_aot_build", run_name="__main__", alter_sys=True)

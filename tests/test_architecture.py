@@ -271,3 +271,28 @@ def test_every_error_derives_from_the_one_base():
         if not issubclass(cls, RiskReplayError) and qualname not in INTERNAL_EXCEPTIONS
     }
     assert strays == set()
+
+
+def test_commands_do_not_import_each_other():
+    """A command parses, calls the library and prints: logic two commands share lives in
+    the library (e.g. replay.core.scene_run for run and demo), not in a command module.
+    (Groups load their subcommands by name, as replay/cli/app.py does: no import.)"""
+    modules = _modules()
+    commands = {m for m in modules if m.startswith("replay.cli.commands.")}
+    assert {"replay.cli.commands.run", "replay.cli.commands.demo"} <= commands
+    graph = _file_graph()
+    assert {c: graph[c] & commands for c in commands if graph[c] & commands} == {}
+
+
+def test_the_scene_package_imports_no_converter():
+    """converters.scene sits below every converter (the import contract lists today's
+    modules; this also covers ones added later): of the converters package it imports
+    only itself and the shared error type."""
+    graph = _file_graph()
+    scene = {m for m in graph if m == "converters.scene" or m.startswith("converters.scene.")}
+    assert {"converters.scene.reader", "converters.scene.writer"} <= scene
+    allowed = scene | {"converters", "converters.errors"}
+    outside = {
+        (m, t) for m in scene for t in graph[m] if t.startswith("converters") and t not in allowed
+    }
+    assert outside == set()

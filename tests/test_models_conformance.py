@@ -99,6 +99,28 @@ def test_registry_order_and_metadata():
     assert BASELINE_MODEL == "survival" and BASELINE_THRESHOLD == 1e-25
 
 
+def test_the_registry_drives_colours_titles_and_ranges():
+    """Plot colours, report titles and table ranges come from ModelSpec, not from lists
+    of names in replay/ (so a new model needs no edit there)."""
+    import matplotlib.colors
+
+    from replay.analysis.evaluation_report import TITLES
+    from replay.analysis.stats.plots import MODEL_COLORS
+    from replay.core.tablecheck import RANGES
+
+    colors = [spec.color for spec in MODELS.values()]
+    assert len(set(colors)) == len(colors)  # one colour per model in the ROC plot
+    assert all(matplotlib.colors.is_color_like(c) for c in colors)
+    assert all(spec.label.strip() for spec in MODELS.values())
+    for name, spec in MODELS.items():
+        lo, hi = spec.risk_range
+        assert 0.0 <= lo < hi
+        assert MODEL_COLORS[name] == spec.color and TITLES[name] == spec.label
+        assert RANGES[name] == spec.risk_range
+    assert MODELS["gaussian"].risk_range == (0.0, math.inf)
+    assert {spec.risk_range for n, spec in MODELS.items() if n != "gaussian"} == {(0.0, 1.0)}
+
+
 @pytest.mark.parametrize("name", ORDER)
 def test_shape_dtype_and_nan_only_for_ego_and_invalid(name):
     r = evaluate(FRAME, [name], prediction=PRED)[name]

@@ -406,15 +406,9 @@ class SceneReader:
         ego_hits = np.flatnonzero((ids == agents.ego_id) & valid)
         if ego_hits.size == 0 and any_ego:
             ego_hits = np.flatnonzero(valid)
-        entry = {
-            "index": index,
-            "t_s": float(agents.t_s),
-            "ego_id": int(agents.ego_id),
-            "n_agents": n,
-        }
         stored = {"ids": ids, **fields}
         if ego_hits.size == 0:
-            return FrameEntry(**entry, frame=None), stored
+            return FrameEntry(index, float(agents.t_s), int(agents.ego_id), n, frame=None), stored
         path_agent, path_points, padded = self._decode_paths(index, paths, n)
         try:
             frame = Frame.from_padded(
@@ -436,7 +430,7 @@ class SceneReader:
             raise SceneFormatError(
                 f"{self.path}: frame {index} (t={agents.t_s:g} s): {exc}"
             ) from None
-        return FrameEntry(**entry, frame=frame), stored
+        return FrameEntry(index, float(agents.t_s), int(agents.ego_id), n, frame=frame), stored
 
     def _decode_paths(
         self, index: int, paths: Any, n: int
@@ -549,7 +543,7 @@ def _truncated_message(path: pathlib.Path, f: IO[bytes]) -> str:
     f.seek(0)
     frames = 0
     try:
-        topics = {}
+        topics: dict[str, int] = {}
         for _, channel, _ in NonSeekingReader(f).iter_messages(log_time_order=False):
             topics[channel.topic] = topics.get(channel.topic, 0) + 1
             frames = min(topics.get(sf.TOPIC_AGENTS, 0), topics.get(sf.TOPIC_PATHS, 0))

@@ -125,10 +125,10 @@ def encode_map(lane_map: LaneMap) -> sf.Map:
     other map lines (lane boundaries, road edges, crosswalks; format version 2)."""
     message = sf.Map()
     for lane in lane_map.lanes:
-        line = np.asarray(lane.centerline, dtype=np.float64).reshape(-1, 2)
-        if not np.isfinite(line).all():
+        centre = np.asarray(lane.centerline, dtype=np.float64).reshape(-1, 2)
+        if not np.isfinite(centre).all():
             raise ConversionError(f"lane {lane.id}: centre line has a non-finite point")
-        mm = quantise(line, sf.MM_PER_M, f"lane {lane.id}")
+        mm = quantise(centre, sf.MM_PER_M, f"lane {lane.id}")
         message.lanes.add(
             id=int(lane.id),
             kind=str(lane.kind),

@@ -33,6 +33,7 @@ from replay.errors import ReplayError
 from risk.cascade import CascadeConfig
 from risk.evaluation import FPR_POINTS, TPR_TARGETS, evaluate_references, pooled_roc
 from risk.hindsight import HindsightSettings
+from risk.prediction import PredictionSettings
 from risk.registry import BASELINE_THRESHOLD, MODELS
 
 #: Groupings the evaluation can break results down by.
@@ -464,15 +465,15 @@ def _ci(block: Mapping[str, Any]) -> str:
 def evaluate_inputs(
     paths: Sequence[str | os.PathLike[str]],
     *,
-    cascade: Any = None,
-    params: Any = None,
-    prediction: Any = None,
+    cascade: CascadeConfig | None = None,
+    params: Mapping[str, Any] | None = None,
+    prediction: PredictionSettings | None = None,
     hindsight: HindsightSettings | None = None,
     settings: EvaluationSettings | None = None,
     workers: int = 1,
     progress: bool = False,
     ego: int | str | None = None,
-    every: Any = 1,
+    every: int | Stride = 1,
 ) -> dict[str, Any]:
     """Replay (scenes) or read (tables) the inputs and evaluate them; the summary dict.
 
@@ -492,14 +493,14 @@ def evaluate_inputs(
 def collect_agents(
     paths: Sequence[str | os.PathLike[str]],
     *,
-    cascade: Any = None,
-    params: Any = None,
-    prediction: Any = None,
+    cascade: CascadeConfig | None = None,
+    params: Mapping[str, Any] | None = None,
+    prediction: PredictionSettings | None = None,
     hindsight: HindsightSettings | None = None,
     workers: int = 1,
     progress: bool = False,
     ego: int | str | None = None,
-    every: Any = 1,
+    every: int | Stride = 1,
     models: Sequence[str] | None = None,
 ) -> tuple[pl.DataFrame, dict[str, str], HindsightSettings]:
     """The agents table of scenes, tables or folders (as ``replay stats`` reads them),

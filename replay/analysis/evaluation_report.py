@@ -24,19 +24,11 @@ import polars as pl
 from outputs.atomic import atomic_output
 from replay.analysis.corpus_evaluation import HEADLINE_THRESHOLD, positives_table
 from replay.analysis.sensitivity import RANKED, SweepResult
+from risk.registry import MODELS
 
 TEMPLATE = pathlib.Path(__file__).with_name("report_templates") / "recorded_evaluation.md"
-TITLES = {
-    "current_distance": "current distance",
-    "path_distance": "path distance",
-    "trajectory_distance": "trajectory distance",
-    "closest_encounter": "closest encounter",
-    "headway": "closest encounter + headway",
-    "headway_2d": "closest encounter + 2D headway",
-    "circles": "circles",
-    "gaussian": "2D Gaussians",
-    "survival": "survival analysis",
-}
+#: Each model's name inside a sentence, from the registry (``ModelSpec.label``).
+TITLES = {name: spec.label for name, spec in MODELS.items()}
 
 
 def _auc(summary: Mapping[str, Any], model: str, ref: str) -> tuple[float, float, float]:

@@ -4,8 +4,9 @@ and tables (read as written), into one agents table and one frames table."""
 from __future__ import annotations
 
 import pathlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import polars as pl
 
@@ -22,6 +23,7 @@ from replay.core.worker import SceneJob, replay_job
 from replay.errors import ReplayError
 from risk.cascade import CascadeConfig
 from risk.hindsight import HindsightSettings
+from risk.prediction import PredictionSettings
 
 SCENE_SUFFIXES = (".mcap",)
 TABLE_SUFFIXES = (".parquet", ".csv")
@@ -77,8 +79,8 @@ def collect(
     models: Sequence[str] | None,
     workers: int,
     progress: bool,
-    params: object = None,
-    prediction: object = None,
+    params: Mapping[str, Any] | None = None,
+    prediction: PredictionSettings | None = None,
     hindsight: HindsightSettings | None = None,
     ego: int | str | None = None,
     every: Stride = EVERY_FRAME,

@@ -11,6 +11,7 @@ other variant replays the scenes evaluating only the models its keys change
 from __future__ import annotations
 
 import math
+import os
 import pathlib
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -30,6 +31,7 @@ from replay.analysis.corpus_evaluation import (
     evaluate_table,
 )
 from replay.analysis.evaluation_plots import plot_sensitivity
+from replay.core.engine import Stride
 from risk.cascade import CascadeConfig
 from risk.hindsight import HindsightSettings
 from risk.registry import BASELINE_MODEL, MODELS
@@ -264,7 +266,7 @@ def run_sweep(
     workers: int = 1,
     progress: bool = False,
     ego: int | str | None = None,
-    every: Any = 1,
+    every: int | Stride = 1,
     datasets: Mapping[str, str] | None = None,
 ) -> SweepResult:
     """Evaluate the defaults and every variant on the same inputs.
@@ -317,13 +319,15 @@ def run_sweep(
     return SweepResult(rows, per_variant, findings, times)
 
 
-def write_sweep(result: SweepResult, out_dir: Any, *, plots: bool = True) -> dict[str, Any]:
+def write_sweep(
+    result: SweepResult, out_dir: str | os.PathLike[str], *, plots: bool = True
+) -> dict[str, pathlib.Path]:
     """``sensitivity.parquet/.csv`` (AUC rows), ``sensitivity_ranking.parquet/.csv``
     (rank correlation and flips per variant), ``sensitivity_findings.parquet/.csv`` and
     ``sensitivity.png``, each atomically. Returns name -> path."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    written: dict[str, Any] = {}
+    written: dict[str, pathlib.Path] = {}
     tables = {
         "sensitivity": result.rows,
         "sensitivity_ranking": result.variants,

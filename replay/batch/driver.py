@@ -83,7 +83,7 @@ class BatchSettings:
                 "version": _package_version(),
                 "convert": self.convert,
                 "paths": self.paths,
-                "map": None if self.map_osm is None else [str(self.map_osm), *map_fp],
+                "map": None if map_fp is None else [str(self.map_osm), *map_fp],
             }
         )
 
@@ -448,7 +448,11 @@ def _execute(
     if not (run.replay_todo or run.convert_todo):
         return (engine if isinstance(engine, str) else engine.name), 0
     own = isinstance(engine, str)
-    eng = make_engine(engine, workers=workers, address=ray_address) if own else engine
+    eng = (
+        make_engine(engine, workers=workers, address=ray_address)
+        if isinstance(engine, str)
+        else engine
+    )
     bar = tqdm(
         total=len(run.replay_todo), unit="scene", desc=f"batch ({eng.name}, {eng.workers} workers)",
         file=sys.stderr, disable=not progress, dynamic_ncols=True, smoothing=0.05,

@@ -40,6 +40,7 @@ from risk.cascade import CascadeConfig, Evaluator
 from risk.frame import Frame, LaneMap
 from risk.hindsight import Tracks, tracks_from_frames
 from risk.motion import MIN_TRAVEL_M, moving_agent_ids
+from risk.prediction import PredictionSettings
 
 #: What ``--ego`` takes besides an agent id.
 ALL_EGOS = "all"
@@ -60,7 +61,11 @@ class _LoadedScene:
     def n_frames(self) -> int:
         return len(self.indexed)
 
-    def entries(self) -> Iterator[Any]:
+    @property
+    def ego_id(self) -> int | None:
+        return None  # every agent in turn; the recording's own is in the metadata
+
+    def entries(self) -> Iterator[_Entry]:
         for index, frame in self.indexed:
             yield _Entry(index, frame.ego_id, frame)
 
@@ -145,7 +150,7 @@ def run_every_ego(
     min_travel_m: float = MIN_TRAVEL_M,
     models: Sequence[str] | None = None,
     params: Mapping[str, Any] | None = None,
-    prediction: Any = None,
+    prediction: PredictionSettings | None = None,
     progress: bool = True,
     evaluate: Evaluator | None = None,
     annotators: Sequence[Annotator] = (),

@@ -37,6 +37,7 @@ from risk import kernel
 from risk.cascade import SURVIVAL_MODEL, CascadeConfig, CascadeResult, Evaluator, run_cascade
 from risk.frame import Frame, LaneMap, Scene
 from risk.hindsight import Tracks, tracks_from_frames
+from risk.prediction import PredictionSettings
 from risk.registry import resolve_models
 
 
@@ -70,16 +71,47 @@ class ReplayWarning(UserWarning):
     """Something the user should know about a replay that did not stop it."""
 
 
-class SceneSource(Protocol):
-    """What the engine reads: ``converters.scene.reader.SceneReader`` or an in-memory scene."""
+class StoredFrame(Protocol):
+    """One stored frame of a :class:`SceneSource` (``converters.scene.reader.FrameEntry``)."""
 
-    map: LaneMap
-    metadata: dict[str, str]
-    labels: dict[str, tuple[int, ...]]
-    frame_period_s: float
-    n_frames: int
+    @property
+    def index(self) -> int: ...  # position in the scene, 0-based
+
+    @property
+    def ego_id(self) -> int: ...  # the ego the recording names for this frame
+
+    @property
+    def frame(self) -> Frame | None: ...  # None: that ego is not a valid agent here
+
+
+class SceneSource(Protocol):
+    """What the engine reads: ``converters.scene.reader.SceneReader``, an in-memory scene
+    (:class:`InMemoryScene`) or the every-ego loop's scene read once
+    (``replay.core.egos``)."""
+
+    @property
+    def map(self) -> LaneMap: ...
+
+    @property
+    def metadata(self) -> dict[str, str]: ...
+
+    @property
+    def labels(self) -> dict[str, tuple[int, ...]]: ...
+
+    @property
+    def frame_period_s(self) -> float: ...
+
+    @property
+    def n_frames(self) -> int: ...
+
+    @property
+    def ego_id(self) -> int | None: ...  # the scene's one ego (None: see the metadata)
+
+    def entries(self) -> Iterator[StoredFrame]: ...
 
     def frames(self) -> Iterator[Frame]: ...
+
+    def tracks(self) -> Tracks: ...  # every recorded state, for the hindsight truth
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,11 +145,22 @@ class InMemoryScene:
         """The scene's ego (None: the frames' own, see :class:`risk.Scene`)."""
         return self.scene.ego_id
 
+    def entries(self) -> Iterator[StoredFrame]:
+        for index, frame in enumerate(self.scene.frames):
+            yield _Stored(index, frame.ego_id, frame)
+
     def frames(self) -> Iterator[Frame]:
         return iter(self.scene.frames)
 
     def tracks(self) -> Tracks:
         return tracks_from_frames(self.scene.frames, frame_period_s=self.scene.frame_period_s)
+
+
+@dataclass(frozen=True)
+class _Stored:
+    index: int
+    ego_id: int
+    frame: Frame | None
 
 
 class _Totals:
@@ -169,7 +212,7 @@ def run_scene(
     ego: int | None = None,
     models: Sequence[str] | None = None,
     params: Mapping[str, Any] | None = None,
-    prediction: Any = None,
+    prediction: PredictionSettings | None = None,
     progress: bool = True,
     evaluate: Evaluator | None = None,
     every: int | Stride = 1,
@@ -200,19 +243,15 @@ def run_scene(
     if prediction is not None:
         evaluate = functools.partial(evaluate, prediction=prediction)
     model_names = _model_names(models)
-    try:
-        return _run(
-            reader, path, sinks, cascade, ego, model_names, params, progress, evaluate,
-            stride.frames_at(float(reader.frame_period_s)), annotators,
-        )  # fmt: skip
-    finally:
-        close = getattr(reader, "close", None)
-        if reader is not source and callable(close):
-            close()  # a reader we opened ourselves
+    # (a SceneReader holds no open file between reads: nothing to close afterwards)
+    return _run(
+        reader, path, sinks, cascade, ego, model_names, params, progress, evaluate,
+        stride.frames_at(float(reader.frame_period_s)), annotators,
+    )  # fmt: skip
 
 
 def _run(
-    reader: Any,
+    reader: SceneSource,
     path: pathlib.Path | None,
     sinks: Sequence[Sink],
     cascade: CascadeConfig,
@@ -241,9 +280,7 @@ def _run(
         model_names=model_names,
         source=path,
         n_frames=int(reader.n_frames),
-        tracks=functools.cache(reader.tracks)
-        if callable(getattr(reader, "tracks", None))
-        else None,
+        tracks=functools.cache(reader.tracks),
     )
     totals = _Totals(len(cascade.stages), len(cascade.tiers))
     totals.read_time_s = read_first_s
@@ -352,38 +389,36 @@ EVERY_FRAME = Stride()
 
 
 # ---------------------------------------------------------------------- helpers
-def _open(source: str | os.PathLike[str] | SceneSource | Scene) -> tuple[Any, pathlib.Path | None]:
+def _open(
+    source: str | os.PathLike[str] | SceneSource | Scene,
+) -> tuple[SceneSource, pathlib.Path | None]:
     if isinstance(source, Scene):
         return InMemoryScene(source), None
     if isinstance(source, (str, os.PathLike)):
         path = pathlib.Path(source)
         return open_scene(path), path
-    path = getattr(source, "path", None)
-    return source, None if path is None else pathlib.Path(path)
+    where = getattr(source, "path", None)  # (a reader of a file: named in messages)
+    return source, None if where is None else pathlib.Path(where)
 
 
 def _model_names(models: Sequence[str] | None) -> tuple[str, ...]:
     return tuple(resolve_models(models))  # validated, unique, in the order given
 
 
-def _entries(reader: Any) -> Iterator[tuple[int, int, Frame | None]]:
+def _entries(reader: SceneSource) -> Iterator[tuple[int, int, Frame | None]]:
     """(index, ego id named by the recording, frame or None) of every stored frame.
 
     The reader gives None for a frame whose recorded ego is missing (a Frame cannot exist
     without a valid ego); such frames are skipped whatever ``--ego`` says.
     """
-    if hasattr(reader, "entries"):
-        for entry in reader.entries():
-            yield int(entry.index), int(entry.ego_id), entry.frame
-    else:
-        for index, frame in enumerate(reader.frames()):
-            yield index, frame.ego_id, frame
+    for entry in reader.entries():
+        yield int(entry.index), int(entry.ego_id), entry.frame
 
 
-def _scene_ego_id(reader: Any, first_ego_id: int) -> int:
+def _scene_ego_id(reader: SceneSource, first_ego_id: int) -> int:
     """The recording's ego: the scene's ``ego_id`` when every frame shares one, else the
     first frame's ego."""
-    value = getattr(reader, "ego_id", None)
+    value: int | str | None = reader.ego_id
     if value is None:
         value = dict(reader.metadata).get("ego_id")
     try:

@@ -47,7 +47,7 @@ def dataframe(columns: TableColumns) -> pl.DataFrame:
         df = df.with_columns(
             pl.Series(
                 "planner_label",
-                np.where(np.isnan(label), None, label == 1.0).tolist(),
+                np.asarray(np.where(np.isnan(label), None, label == 1.0)).tolist(),
                 dtype=pl.Boolean,
             ),
             pl.Series("planner_shift_m", np.asarray(data["planner_shift_m"])).fill_nan(None),

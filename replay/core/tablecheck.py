@@ -2,22 +2,24 @@
 damaged or foreign table is reported instead of feeding impossible values into the
 statistics: no rows, non-numeric risk columns, or a risk outside its model's range.
 
-Ranges (docs/models.md): every model's risk lies in ``[0, 1]`` except ``gaussian``
-(``[0, inf)``, unit 1/m^2). NaN is allowed (the ego and invalid agents have no risk).
+Ranges: each model's ``risk_range`` in the registry (:data:`risk.MODELS`; docs/models.md):
+``[0, 1]`` for all but ``gaussian`` (``[0, inf)``, unit 1/m^2). NaN is allowed (the ego and
+invalid agents have no risk). A column of a model the registry does not know is held to
+``[0, 1]``.
 """
 
 from __future__ import annotations
 
-import math
 import os
 
 import polars as pl
 
 from replay.errors import ReplayError
+from risk.registry import MODELS
 
 RISK_PREFIX = "risk_"
 DEFAULT_RANGE = (0.0, 1.0)
-RANGES: dict[str, tuple[float, float]] = {"gaussian": (0.0, math.inf)}
+RANGES: dict[str, tuple[float, float]] = {name: spec.risk_range for name, spec in MODELS.items()}
 TOLERANCE = 1e-9  # float noise at the ends of a range
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import pathlib
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,6 +32,7 @@ from replay.core.stats_sink import StatsSink
 from risk.cascade import CascadeConfig
 from risk.frame import Scene
 from risk.hindsight import HindsightSettings
+from risk.prediction import PredictionSettings
 
 
 @dataclass(frozen=True, eq=False)
@@ -49,8 +51,8 @@ def replay_scene(
     cascade: CascadeConfig,
     models: tuple[str, ...] | None = None,
     recording: str | os.PathLike[str] | None = None,
-    params: Any = None,
-    prediction: Any = None,
+    params: Mapping[str, Any] | None = None,
+    prediction: PredictionSettings | None = None,
     hindsight: HindsightSettings | None = None,
     ego: int | str | None = None,
     every: int | Stride = 1,
@@ -104,8 +106,8 @@ class SceneJob:
     models: tuple[str, ...] | None = None
     ego: int | str | None = None
     every: Stride = EVERY_FRAME
-    params: Any = None  # model name -> parameters, for every evaluation
-    prediction: Any = None  # risk.PredictionSettings
+    params: Mapping[str, Any] | None = None  # model name -> parameters, for every evaluation
+    prediction: PredictionSettings | None = None
     hindsight: HindsightSettings | None = None  # settings of the truth columns
 
 

@@ -398,7 +398,7 @@ def _f_traj_cost(v: View) -> Finding:
         "Compared with the 2D Gaussians, the trajectory distance performs worse but is "
         "computationally cheaper.",
         "Median time per situation, each model alone (its own prediction included): "
-        + ", ".join(f"{title(m)} {ms[m]:.2f} ms" for m in sorted(ms, key=ms.get))
+        + ", ".join(f"{title(m)} {ms[m]:.2f} ms" for m in sorted(ms, key=lambda m: ms[m]))
         + "."
         + paired,
         (

@@ -147,6 +147,14 @@ def _head(result: ExperimentResult, command: str) -> str:
     )
 
 
+def _int(value: Any) -> int:
+    return int(value)  # a polars aggregate (typed as any Python literal)
+
+
+def _float(value: Any) -> float:
+    return float(value)  # a polars aggregate (typed as any Python literal)
+
+
 def _setup(result: ExperimentResult) -> str:
     s = result.stats.summary
     pf = result.stats.per_frame
@@ -160,11 +168,11 @@ def _setup(result: ExperimentResult) -> str:
             "setup",
             situations=result.settings.situations,
             seed=result.settings.seed,
-            agents_min=agents.min(),
-            agents_max=agents.max(),
-            agents_mean=f"{agents.mean():.1f}",
-            speed_min=f"{speeds.min():.1f}",
-            speed_max=f"{speeds.max():.1f}",
+            agents_min=_int(agents.min()),
+            agents_max=_int(agents.max()),
+            agents_mean=f"{_float(agents.mean()):.1f}",
+            speed_min=f"{_float(speeds.min()):.1f}",
+            speed_max=f"{_float(speeds.max()):.1f}",
             threshold=f"{base['threshold']:g}",
             important=base["important_agent_frames"],
             agent_frames=base["agent_frames"],

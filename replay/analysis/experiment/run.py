@@ -66,7 +66,7 @@ class SituationTask:
     seed: int
     cascade: CascadeConfig
     extra_cascades: tuple[tuple[str, CascadeConfig], ...] = ()
-    settings: Any = None  # converters.synthetic.SyntheticSettings (None: defaults)
+    settings: SyntheticSettings | None = None  # None: the defaults
     time_models: bool = True  # also time each model alone on every frame
 
 
@@ -192,7 +192,7 @@ class ExperimentSettings:
     workers: int = field(default_factory=default_workers)
     errors_model: str = DEFAULT_ERRORS_MODEL
     calibrate_half: bool = True
-    synthetic: Any = None  # converters.synthetic.SyntheticSettings (None: paper ranges)
+    synthetic: SyntheticSettings | None = None  # None: the paper's ranges
 
 
 @dataclass(frozen=True, eq=False)
@@ -235,8 +235,10 @@ def run_experiment(
             extra = (("calibrated", config),) if config is not None else ()
             times["calibration"] = time.perf_counter() - start
         start = time.perf_counter()
-        second = _replay(
-            range(half_n, n), settings, cascade, extra, pool, progress, "situations 2/2"
+        second = (
+            _replay(range(half_n, n), settings, cascade, extra, pool, progress, "situations 2/2")
+            if half_n < n
+            else None
         )
         times["replay (second half)"] = time.perf_counter() - start
     finally:
@@ -290,9 +292,7 @@ def _replay(
     pool: LocalEngine | None,
     progress: bool,
     desc: str,
-) -> ChunkResult | None:
-    if len(indices) == 0:
-        return None
+) -> ChunkResult:
     parts = chunks(list(indices), settings.workers)
     tasks = [
         SituationTask(tuple(p), settings.seed, cascade, extra, settings.synthetic) for p in parts

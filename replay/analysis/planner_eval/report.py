@@ -226,7 +226,7 @@ def write_report(
             if key in relative:
                 per_planner[name] = relative[key]
                 break
-    first = next(iter(summary["planners"].values()), {})
+    first: dict[str, Any] = next(iter(summary["planners"].values()), {})
     matched = summary.get("matched_cuts")
     lines = [
         "# A planner in the loop: what filtering saves, and what it changes",

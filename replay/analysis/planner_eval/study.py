@@ -237,8 +237,8 @@ def summarize(tables: PlanTables, *, n_boot: int = 1000, seed: int = 0) -> dict[
          pl.col("n_agents").alias("all_agents")]
     )  # fmt: skip
     out["all_agents"] = {
-        "plan_ok_share": float(reference["all_ok"].mean() or 0.0),
-        "mean_agents": float(reference["all_agents"].mean() or 0.0),
+        "plan_ok_share": _float(reference["all_ok"].mean() or 0.0),
+        "mean_agents": _float(reference["all_agents"].mean() or 0.0),
         "plan_ms": _quantiles(reference.filter(pl.col("all_ok"))["all_plan_ms"].to_numpy()),
     }
     for name in df["filter"].unique(maintain_order=True).to_list():
@@ -257,8 +257,8 @@ def summarize(tables: PlanTables, *, n_boot: int = 1000, seed: int = 0) -> dict[
             )
         out["filters"][name] = {
             "ego_frames": rows.height,
-            "mean_kept": float(rows["n_agents"].mean() or 0.0),
-            "plan_ok_share": float(rows["plan_ok"].mean() or 0.0),
+            "mean_kept": _float(rows["n_agents"].mean() or 0.0),
+            "plan_ok_share": _float(rows["plan_ok"].mean() or 0.0),
             "not_comparable": rows.height - comparable.height,
             "changed": _share_with_interval(
                 comparable["changed"].to_numpy().astype(bool),
@@ -320,7 +320,7 @@ def _by_bins(rows: pl.DataFrame) -> list[dict[str, Any]]:
                 "ego_frames": int(inside.sum()),
                 "all_agents_plan_ms": _quantiles(all_ms),
                 "filter_plus_plan_ms": _quantiles(total),
-                "changed_share": float(part["changed"].cast(pl.Float64).mean() or 0.0),
+                "changed_share": _float(part["changed"].cast(pl.Float64).mean() or 0.0),
             }
         )
     return bins
@@ -433,7 +433,7 @@ def summarize_closed_loop(df: pl.DataFrame) -> dict[str, Any]:
             "progress_m": _quantiles(rows["progress_m"].to_numpy()),
             "plan_ms_median": _quantiles(rows["plan_ms_median"].to_numpy())["median"],
             "plan_ms_p95": _quantiles(rows["plan_ms_p95"].to_numpy())["median"],
-            "mean_agents": float(rows["mean_agents"].mean() or 0.0),
+            "mean_agents": _float(rows["mean_agents"].mean() or 0.0),
             "plan_failures": int(rows["plan_failures"].sum()),
         }
         if name != ALL_AGENTS:
@@ -627,3 +627,8 @@ def scene_files(paths: Sequence[os.PathLike[str] | str]) -> list[pathlib.Path]:
         else:
             found.append(p)
     return list(dict.fromkeys(found))
+
+
+def _float(value: Any) -> float:
+    """A polars aggregate (typed as any Python literal) as a float."""
+    return float(value)

@@ -370,26 +370,26 @@ def cascade_summary(
         stages.append(
             {
                 "model": s,
-                "mean_kept": float(frames[f"kept_{s}"].mean()),
+                "mean_kept": _float(frames[f"kept_{s}"].mean()),
                 "false_negatives": fn,
                 "fn_share": fn / baseline if baseline else math.nan,
                 "situations_with_fn": int((frames[f"fn_{s}"] > 0).sum()),
                 "time_s": float(timed[f"time_{s}_s"].sum()) if timed.height else None,
-                "median_time_s": float(timed[f"time_{s}_s"].median()) if timed.height else None,
+                "median_time_s": _float(timed[f"time_{s}_s"].median()) if timed.height else None,
             }
         )
     tiers = [
         {
             "name": t,
-            "mean_agents": float(frames[f"tier_{t}"].mean()),
-            "min_agents": int(frames[f"tier_{t}"].min()),
-            "max_agents": int(frames[f"tier_{t}"].max()),
+            "mean_agents": _float(frames[f"tier_{t}"].mean()),
+            "min_agents": _int(frames[f"tier_{t}"].min()),
+            "max_agents": _int(frames[f"tier_{t}"].max()),
         }
         for t in tier_names
     ]
     summary: dict[str, Any] = {
         "situations": n,
-        "mean_others": float(frames["n_others"].mean()),
+        "mean_others": _float(frames["n_others"].mean()),
         "baseline_agent_frames": baseline,
         "stages": stages,
         "tiers": tiers,
@@ -417,9 +417,9 @@ def _compute(timed: pl.DataFrame, stage_names: Sequence[str]) -> dict[str, float
         "cascade_time_s": cascade,
         "survival_all_time_s": survival_all,
         "cascade_over_survival_all": cascade / survival_all if survival_all > 0 else math.nan,
-        "median_cascade_time_s": float(per_situation.median()),
-        "median_sort_time_s": float(timed["sort_time_s"].median()),
-        "median_survival_all_time_s": float(timed["survival_all_time_s"].median()),
+        "median_cascade_time_s": _float(per_situation.median()),
+        "median_sort_time_s": _float(timed["sort_time_s"].median()),
+        "median_survival_all_time_s": _float(timed["survival_all_time_s"].median()),
     }
 
 
@@ -643,3 +643,13 @@ def _per_scene(
         )
         .sort("scene")
     )
+
+
+def _float(value: Any) -> float:
+    """A polars aggregate (typed as any Python literal) as a float."""
+    return float(value)
+
+
+def _int(value: Any) -> int:
+    """A polars aggregate (typed as any Python literal) as an int."""
+    return int(value)

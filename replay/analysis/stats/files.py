@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -125,9 +126,7 @@ def write_stats(stats: DatasetStats, out_dir: str | os.PathLike[str]) -> dict[st
     for name, df in tables.items():
         for suffix in (".parquet", ".csv"):
             path = out / f"{name}{suffix}"
-            atomic_write(
-                path, lambda tmp, df=df, path=path: table_file.write_dataframe(df, tmp, path)
-            )
+            atomic_write(path, functools.partial(_write_table, df, target=path))
             written[f"{name}{suffix}"] = path
     summary = {**stats.summary, "files": sorted(p.name for p in written.values())}
     path = out / "summary.json"
@@ -150,3 +149,7 @@ def _jsonable(value: Any) -> Any:
     if isinstance(value, np.bool_):
         return bool(value)
     return value
+
+
+def _write_table(df: pl.DataFrame, tmp: str, *, target: pathlib.Path) -> None:
+    table_file.write_dataframe(df, tmp, target)

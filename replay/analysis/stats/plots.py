@@ -34,20 +34,8 @@ from outputs.atomic import atomic_write
 from replay.analysis.stats.compute import DatasetStats
 from risk.registry import MODELS
 
-#: The paper's colours (Sec. V): blue current distance, orange path distance, green
-#: trajectory distance, red closest encounter, purple + headway, brown + 2D headway, pink
-#: circles, grey 2D Gaussians, yellow survival (matplotlib's olive is the cycle's yellow).
-MODEL_COLORS: dict[str, str] = {
-    "current_distance": "tab:blue",
-    "path_distance": "tab:orange",
-    "trajectory_distance": "tab:green",
-    "closest_encounter": "tab:red",
-    "headway": "tab:purple",
-    "headway_2d": "tab:brown",
-    "circles": "tab:pink",
-    "gaussian": "tab:gray",
-    "survival": "tab:olive",
-}
+#: Each model's colour, from the registry (``ModelSpec.color``: the paper's, Sec. V).
+MODEL_COLORS: dict[str, str] = {name: spec.color for name, spec in MODELS.items()}
 DPI = 110
 
 

@@ -8,7 +8,6 @@ import pathlib
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import polars as pl
 
@@ -17,6 +16,7 @@ from replay.analysis.inputs import collect, resolve_inputs
 from replay.analysis.stats.compute import DatasetStats, compute_stats
 from replay.analysis.stats.files import write_stats
 from replay.analysis.stats.plots import plot_all
+from replay.core.engine import Stride
 from risk.cascade import CascadeConfig
 
 
@@ -74,7 +74,7 @@ def stats_of_inputs(
     workers: int,
     progress: bool,
     ego: int | str | None = None,
-    every: Any = 1,
+    every: int | Stride = 1,
     plots: bool = True,
     extra_inputs: Sequence[pathlib.Path | None] = (),
 ) -> tuple[StatsRun, dict[str, float]]:
@@ -92,7 +92,7 @@ def stats_of_inputs(
         start = time.perf_counter()
         agents, frames, stage_names, tier_names = collect(
             found, cascade, models=engine_models, workers=workers, progress=progress,
-            ego=ego, every=every,
+            ego=ego, every=Stride.of(every),
         )  # fmt: skip
         times["replay / read"] = time.perf_counter() - start
         result = run_stats(

@@ -21,7 +21,7 @@ from converters.scene.writer import write_scene
 from converters.sources import SOURCES, ReadOptions, SourceInput, SourceSpec
 from converters.tracks import Skipped
 from outputs.transaction import OutputGuard
-from replay.cli.commands.convert_common import (
+from replay.cli.convert_options import (
     MCAP_SUFFIX,
     Outputs,
     files_under,

@@ -1,4 +1,5 @@
-"""Options and output handling shared by the recorded-data converters' commands."""
+"""Options and output handling shared by the recorded-data converters' commands
+(`replay convert <source>`, built in :mod:`replay.cli.commands.convert_source`)."""
 
 from __future__ import annotations
 
