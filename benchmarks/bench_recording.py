@@ -23,6 +23,8 @@ import statistics
 import tempfile
 import time
 
+from results_log import recorded
+
 
 class _Collect:
     """A sink that keeps every result in memory (to replay them into the recorder)."""
@@ -113,4 +115,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded("recording", "Writing a recording"):
+        main()

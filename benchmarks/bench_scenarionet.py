@@ -26,6 +26,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from results_log import recorded  # noqa: E402
+
 from converters import safe_pickle, scenarionet  # noqa: E402
 from converters.scene.writer import write_scene  # noqa: E402
 
@@ -77,4 +79,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded("scenarionet", "Converting a ScenarioNet scene"):
+        main()
