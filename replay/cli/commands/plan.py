@@ -138,9 +138,19 @@ def plan(
                        plan_ms_median, plan_ms_p95
       agents.parquet   with --truth: one row per (scene, ego, frame, agent):
                        planner_label, planner_shift_m
-      summary.json     per filter: kept agents, changed share (95 % scene bootstrap),
-                       planning time vs all agents, by agent-count bins
-      plan_time.png, plan_changed.png
+      summary.json     per planner and filter: kept agents, changed share (95 % scene
+                       bootstrap), planning time vs all agents by agent-count bins
+                       and dataset; the closed loop's paired differences
+      plan_time.png    (plan_time_<planner>.png with several planners),
+      plan_changed.png
+
+    Example, the corpus study of docs/planner-evaluation.md:
+
+    \b
+      replay plan corpus/scenes/ --ego all --every 1s --planner idm
+          --planner fiss_plus --filter cascade --filter nearest:match
+          --filter radius:match --closed-loop --closed-loop-sample 40
+          -o plan-out/ --report docs/planner-evaluation.md
     """
     cascade = load_cascade(cascade_file, sets)
     planners = tuple(dict.fromkeys(planners))
