@@ -26,8 +26,8 @@ ALLOWED_INNER_IMPORTS = {
     # tomli_w only to write a cascade file
     ("risk/cascade.py", "tomli_w"),
     # numba's BLAS probe answered before numba's own import of arraymath (0.3-0.6 s saved
-    # per process; risk/kernel_numba.py explains)
-    ("risk/kernel_numba.py", "numba.np"),
+    # per process; risk/kernel_jit.py explains)
+    ("risk/kernel_jit.py", "numba.np"),
     # numba (about 0.9 s with its set-up) only when the ahead-of-time kernel is not built,
     # and only to build it (risk/kernel_aot_build.py)
     ("risk/kernel.py", "risk"),

@@ -73,8 +73,10 @@ def test_an_unwritable_cache_is_named_in_the_notice_and_compiles_nothing_beside(
 ):
     """numba caches nothing there, silently: the notice says every run will compile, and
     no second process compiles what could not be loaded from the cache."""
-    from risk import kernel_numba
+    from risk import kernel_jit, kernel_numba
 
+    # (kernel_jit holds the notice; kernel_numba, which gathers the kernel, names the same)
+    monkeypatch.setattr(kernel_jit, "CACHE_PROBLEM", "Permission denied")
     monkeypatch.setattr(kernel_numba, "CACHE_PROBLEM", "Permission denied")
     monkeypatch.setattr(kernel_numba._CompileNotice, "said", False)
     monkeypatch.setattr(kernel, "_cache_is_cold", lambda dispatcher: True)
