@@ -60,8 +60,6 @@ ALLOWED_INNER_IMPORTS = {
     # matplotlib (about 1 s) only in the driver, not in every spawned worker
     ("replay/batch/driver.py", "replay.analysis.stats.run"),
     ("replay/analysis/experiment/report.py", "replay.analysis.stats.plots"),
-    # the output process starts before click and the CLI load (replay/__main__.py)
-    ("replay/__main__.py", "replay.cli.app"),
     # importlib.metadata (about 25 ms of every command's start-up) only for __version__
     ("replay/__init__.py", "importlib.metadata"),
 }
