@@ -160,10 +160,33 @@ def tiers(risk, tier_min, tier_cap):
 
 @_jit
 def cascade_agents(
-    xy, heading, speed, length, width, kinds, valid, paths, path_points, path_agent, ego,
-    agents, steps, unc, float_params, int_params, stage_models, stage_thresholds, stage_keep_d2, stage_drop_d2, use_bound, max_speed_by_kind,
-    baseline_threshold, survival_all, tier_min, tier_cap,
-):  # fmt: skip
+    xy,
+    heading,
+    speed,
+    length,
+    width,
+    kinds,
+    valid,
+    paths,
+    path_points,
+    path_agent,
+    ego,
+    agents,
+    steps,
+    unc,
+    float_params,
+    int_params,
+    stage_models,
+    stage_thresholds,
+    stage_keep_d2,
+    stage_drop_d2,
+    use_bound,
+    max_speed_by_kind,
+    baseline_threshold,
+    survival_all,
+    tier_min,
+    tier_cap,
+):
     """The fused cascade: one pass per agent of ``agents`` through the reachability bound
     (when ``use_bound``) and the stages (model slot ``stage_models[s]``, one of PATH, TRAJ,
     GAUSS; kept when its risk reaches ``stage_thresholds[s]``), then survival analysis for the
@@ -183,9 +206,16 @@ def cascade_agents(
     (N,) (NaN elsewhere), the cycle counts (S + 3,) of the set-up (the ego's
     candidates), the bound, each stage and the survival analysis with the tiers (for the
     caller to share out the call's measured time), the tiers (N,) int8 (-1: none), the
-    baseline (N,) bool (``survival_all >= baseline_threshold``, the survival risk of every agent, for
-    agents of ``agents`` only) and the false negatives (S,) int64 (baseline agents not
-    kept after stage ``s``)."""
+    baseline (N,) bool (``survival_all >= baseline_threshold``, ``survival_all`` the
+    survival risk of every agent; for agents of ``agents`` only) and the false negatives
+    (S,) int64 (baseline agents not kept after stage ``s``).
+
+    Why 26 plain arguments: numba's compiled entry points (and the ahead-of-time module
+    built from them) take arrays and scalars, not Python objects, so the groups are kept
+    on the Python side: the frame's arrays (:func:`risk.kernel.frame_arrays`), the
+    prediction and model parameters (:func:`risk.registry.kernel_inputs`), the stages
+    (``risk.cascade._Plan``: ``stage_models`` .. ``stage_drop_d2``, the tiers), and the
+    baseline."""
     n = xy.shape[0]
     n_st = stage_models.shape[0]
     if agents.shape[0] == 0:
@@ -210,11 +240,45 @@ def cascade_agents(
     seg = np.empty(max(p - 1, 1))
     u_e = unc[kinds[ego]]
     (
-        ego_x, ego_y, _, _, _, ego_n, ego_boxes, ego_nboxes, ego_cut_x, ego_cut_y, ego_cut_n, ego_cut_boxes, ego_cut_nboxes,
-        ego_px, ego_py, _, _, _, ego_cov_xx, ego_cov_xy, ego_cov_yy, _, _, _,
+        ego_x,
+        ego_y,
+        _,
+        _,
+        _,
+        ego_n,
+        ego_boxes,
+        ego_nboxes,
+        ego_cut_x,
+        ego_cut_y,
+        ego_cut_n,
+        ego_cut_boxes,
+        ego_cut_nboxes,
+        ego_px,
+        ego_py,
+        _,
+        _,
+        _,
+        ego_cov_xx,
+        ego_cov_xy,
+        ego_cov_yy,
+        _,
+        _,
+        _,
     ) = _ego_candidates(
-        xy, heading, speed, kinds, paths, path_points, ego, ego_row0, n_ego_paths, steps, unc, seg, n_chunks
-    )  # fmt: skip
+        xy,
+        heading,
+        speed,
+        kinds,
+        paths,
+        path_points,
+        ego,
+        ego_row0,
+        n_ego_paths,
+        steps,
+        unc,
+        seg,
+        n_chunks,
+    )
     s0_e = min(min(u_e[0], u_e[4]), min(u_e[1], u_e[5]))
     # ------------------------------------------------ per-agent scratch (rmax rows)
     path_x = np.empty((rmax, n_points))
@@ -303,9 +367,20 @@ def cascade_agents(
                     if not extended[m]:
                         _segment_lengths(paths, r, seg)
                         path_n[m] = _extend(
-                            paths, r, path_points[r], heading[i], v * horizon, seg,
-                            np_sum(seg, p - 1), path_x, path_y, path_arc, path_ux, path_uy, m,
-                        )  # fmt: skip
+                            paths,
+                            r,
+                            path_points[r],
+                            heading[i],
+                            v * horizon,
+                            seg,
+                            np_sum(seg, p - 1),
+                            path_x,
+                            path_y,
+                            path_arc,
+                            path_ux,
+                            path_uy,
+                            m,
+                        )
                         path_nboxes[m] = _boxes(path_x[m], path_y[m], path_n[m], path_boxes[m])
                         extended[m] = True
                     if slot == TRAJ:
@@ -323,14 +398,42 @@ def cascade_agents(
                     for e in range(n_ego_paths):
                         if slot == PATH:
                             d = _polyline_distance(
-                                ego_x, ego_y, e, ego_n[e], ego_boxes, ego_nboxes[e], path_x, path_y, m, path_n[m], path_boxes, path_nboxes[m],
-                                gaps, keep_d2, drop_d2, INF,
-                            )  # fmt: skip
+                                ego_x,
+                                ego_y,
+                                e,
+                                ego_n[e],
+                                ego_boxes,
+                                ego_nboxes[e],
+                                path_x,
+                                path_y,
+                                m,
+                                path_n[m],
+                                path_boxes,
+                                path_nboxes[m],
+                                gaps,
+                                keep_d2,
+                                drop_d2,
+                                INF,
+                            )
                         else:
                             d = _polyline_distance(
-                                ego_cut_x, ego_cut_y, e, ego_cut_n[e], ego_cut_boxes, ego_cut_nboxes[e], cut_x_row, cut_y_row, row, cut_n, cut_boxes_row, cut_nboxes,
-                                gaps, keep_d2, drop_d2, INF,
-                            )  # fmt: skip
+                                ego_cut_x,
+                                ego_cut_y,
+                                e,
+                                ego_cut_n[e],
+                                ego_cut_boxes,
+                                ego_cut_nboxes[e],
+                                cut_x_row,
+                                cut_y_row,
+                                row,
+                                cut_n,
+                                cut_boxes_row,
+                                cut_nboxes,
+                                gaps,
+                                keep_d2,
+                                drop_d2,
+                                INF,
+                            )
                         if eps / (eps + d) >= thr:
                             keep = True
                             break
@@ -345,24 +448,64 @@ def cascade_agents(
                     if not extended[m]:
                         _segment_lengths(paths, r, seg)
                         path_n[m] = _extend(
-                            paths, r, path_points[r], heading[i], v * horizon, seg,
-                            np_sum(seg, p - 1), path_x, path_y, path_arc, path_ux, path_uy, m,
-                        )  # fmt: skip
+                            paths,
+                            r,
+                            path_points[r],
+                            heading[i],
+                            v * horizon,
+                            seg,
+                            np_sum(seg, p - 1),
+                            path_x,
+                            path_y,
+                            path_arc,
+                            path_ux,
+                            path_uy,
+                            m,
+                        )
                         path_nboxes[m] = _boxes(path_x[m], path_y[m], path_n[m], path_boxes[m])
                         extended[m] = True
                     if not predicted[m]:
                         _predict(
-                            path_x[m], path_y[m], path_arc[m], path_ux[m], path_uy[m], v, steps, unc, kinds[i], m,
-                            pred_x, pred_y, pred_dir_x, pred_dir_y, pred_sigma_lon, pred_cov_xx, pred_cov_xy, pred_cov_yy,
-                        )  # fmt: skip
+                            path_x[m],
+                            path_y[m],
+                            path_arc[m],
+                            path_ux[m],
+                            path_uy[m],
+                            v,
+                            steps,
+                            unc,
+                            kinds[i],
+                            m,
+                            pred_x,
+                            pred_y,
+                            pred_dir_x,
+                            pred_dir_y,
+                            pred_sigma_lon,
+                            pred_cov_xx,
+                            pred_cov_xy,
+                            pred_cov_yy,
+                        )
                         predicted[m] = True
                     for e in range(n_ego_paths):
                         # q and det at every step, kept for survival when this pair is
                         # the first it computes (then the two models share this loop)
                         q_dmin = _pair_q(
-                            pred_x, pred_y, pred_cov_xx, pred_cov_xy, pred_cov_yy, m, ego_px, ego_py, ego_cov_xx, ego_cov_xy, ego_cov_yy, e, n_steps, qs,
+                            pred_x,
+                            pred_y,
+                            pred_cov_xx,
+                            pred_cov_xy,
+                            pred_cov_yy,
+                            m,
+                            ego_px,
+                            ego_py,
+                            ego_cov_xx,
+                            ego_cov_xy,
+                            ego_cov_yy,
+                            e,
+                            n_steps,
+                            qs,
                             dets,
-                        )  # fmt: skip
+                        )
                         q_pair = m * n_ego_paths + e
                         if _gauss_reaches(qs, dets, n_steps, thr, qcut):
                             keep = True
@@ -381,29 +524,79 @@ def cascade_agents(
             if not extended[m]:
                 _segment_lengths(paths, r, seg)
                 path_n[m] = _extend(
-                    paths, r, path_points[r], heading[i], v * horizon, seg,
-                    np_sum(seg, p - 1), path_x, path_y, path_arc, path_ux, path_uy, m,
-                )  # fmt: skip
+                    paths,
+                    r,
+                    path_points[r],
+                    heading[i],
+                    v * horizon,
+                    seg,
+                    np_sum(seg, p - 1),
+                    path_x,
+                    path_y,
+                    path_arc,
+                    path_ux,
+                    path_uy,
+                    m,
+                )
                 extended[m] = True
             if not predicted[m]:
                 _predict(
-                    path_x[m], path_y[m], path_arc[m], path_ux[m], path_uy[m], v, steps, unc, kinds[i], m,
-                    pred_x, pred_y, pred_dir_x, pred_dir_y, pred_sigma_lon, pred_cov_xx, pred_cov_xy, pred_cov_yy,
-                )  # fmt: skip
+                    path_x[m],
+                    path_y[m],
+                    path_arc[m],
+                    path_ux[m],
+                    path_uy[m],
+                    v,
+                    steps,
+                    unc,
+                    kinds[i],
+                    m,
+                    pred_x,
+                    pred_y,
+                    pred_dir_x,
+                    pred_dir_y,
+                    pred_sigma_lon,
+                    pred_cov_xx,
+                    pred_cov_xy,
+                    pred_cov_yy,
+                )
                 predicted[m] = True
             for e in range(n_ego_paths):
                 if m * n_ego_paths + e == q_pair:  # q and det of this pair are still in qs, dets
                     dmin = q_dmin
                 else:
                     dmin = _pair_q(
-                        pred_x, pred_y, pred_cov_xx, pred_cov_xy, pred_cov_yy, m, ego_px, ego_py, ego_cov_xx, ego_cov_xy, ego_cov_yy, e, n_steps, qs,
+                        pred_x,
+                        pred_y,
+                        pred_cov_xx,
+                        pred_cov_xy,
+                        pred_cov_yy,
+                        m,
+                        ego_px,
+                        ego_py,
+                        ego_cov_xx,
+                        ego_cov_xy,
+                        ego_cov_yy,
+                        e,
+                        n_steps,
+                        qs,
                         dets,
-                    )  # fmt: skip
+                    )
                     q_pair = m * n_ego_paths + e
                 _overlap_risks(
-                    qs, dets, dmin, n_steps, float_params[DT_TAU], terms, escape_log_s, escape_s, log_s_deferred, defer,
-                    np.bool_(False), np.bool_(True),
-                )  # fmt: skip
+                    qs,
+                    dets,
+                    dmin,
+                    n_steps,
+                    float_params[DT_TAU],
+                    terms,
+                    escape_log_s,
+                    escape_s,
+                    log_s_deferred,
+                    defer,
+                    np.bool_(False),
+                    np.bool_(True),
+                )
                 rsurv = np_sum(terms, n_steps)
                 best = max(best, rsurv)
         surv_out[i] = best

@@ -69,9 +69,26 @@ def _time_gap(arc, l1, v1):
 
 @_jit
 def evaluate_agents(
-    xy, heading, speed, length, width, kinds, valid, paths, path_points, path_agent, ego,
-    agents, steps, unc, want, float_params, int_params, keep_d2, drop_d2,
-):  # fmt: skip
+    xy,
+    heading,
+    speed,
+    length,
+    width,
+    kinds,
+    valid,
+    paths,
+    path_points,
+    path_agent,
+    ego,
+    agents,
+    steps,
+    unc,
+    want,
+    float_params,
+    int_params,
+    keep_d2,
+    drop_d2,
+):
     """Risks ``(9, N)`` of the requested models (``want``) for ``agents`` (an empty array:
     every valid agent but the ego); NaN elsewhere.
 
@@ -98,11 +115,45 @@ def evaluate_agents(
     seg = np.empty(max(p - 1, 1))
     ego_speed = speed[ego]
     (
-        ego_x, ego_y, ego_arc, _, _, ego_n, ego_boxes, ego_nboxes, ego_cut_x, ego_cut_y, ego_cut_n, ego_cut_boxes, ego_cut_nboxes,
-        ego_px, ego_py, _, _, ego_sigma_lon, ego_cov_xx, ego_cov_xy, ego_cov_yy, ego_arc_pos, ego_inv_len2, ego_seg_len,
+        ego_x,
+        ego_y,
+        ego_arc,
+        _,
+        _,
+        ego_n,
+        ego_boxes,
+        ego_nboxes,
+        ego_cut_x,
+        ego_cut_y,
+        ego_cut_n,
+        ego_cut_boxes,
+        ego_cut_nboxes,
+        ego_px,
+        ego_py,
+        _,
+        _,
+        ego_sigma_lon,
+        ego_cov_xx,
+        ego_cov_xy,
+        ego_cov_yy,
+        ego_arc_pos,
+        ego_inv_len2,
+        ego_seg_len,
     ) = _ego_candidates(
-        xy, heading, speed, kinds, paths, path_points, ego, ego_row0, n_ego_paths, steps, unc, seg, n_chunks
-    )  # fmt: skip
+        xy,
+        heading,
+        speed,
+        kinds,
+        paths,
+        path_points,
+        ego,
+        ego_row0,
+        n_ego_paths,
+        steps,
+        unc,
+        seg,
+        n_chunks,
+    )
     # ------------------------------------------------ per-row scratch
     # one row each, for the functions that take rows (path_x_row ... with row 0), and that row's
     # views for the others (made once per call: each view costs an atomic reference count)
@@ -203,9 +254,20 @@ def evaluate_agents(
                 break
             _segment_lengths(paths, r, seg)
             path_n = _extend(
-                paths, r, path_points[r], heading[i], v * horizon, seg, np_sum(seg, p - 1),
-                path_x_row, path_y_row, path_arc_row, path_ux_row, path_uy_row, row,
-            )  # fmt: skip
+                paths,
+                r,
+                path_points[r],
+                heading[i],
+                v * horizon,
+                seg,
+                np_sum(seg, p - 1),
+                path_x_row,
+                path_y_row,
+                path_arc_row,
+                path_ux_row,
+                path_uy_row,
+                row,
+            )
             path_nboxes = _boxes(path_x, path_y, path_n, path_boxes) if want_path else 0
             if want[TRAJ] and not traj_done:
                 cut_n = _cut(path_x, path_y, path_arc, v * horizon, cut_x, cut_y)
@@ -217,17 +279,47 @@ def evaluate_agents(
                     cut_nboxes = _boxes(cut_x, cut_y, cut_n, cut_boxes)
             if want_pred:
                 _predict(
-                    path_x, path_y, path_arc, path_ux, path_uy, v, steps, unc, kinds[i], row,
-                    pred_x, pred_y, pred_dir_x, pred_dir_y, pred_sigma_lon, pred_cov_xx, pred_cov_xy, pred_cov_yy,
-                )  # fmt: skip
+                    path_x,
+                    path_y,
+                    path_arc,
+                    path_ux,
+                    path_uy,
+                    v,
+                    steps,
+                    unc,
+                    kinds[i],
+                    row,
+                    pred_x,
+                    pred_y,
+                    pred_dir_x,
+                    pred_dir_y,
+                    pred_sigma_lon,
+                    pred_cov_xx,
+                    pred_cov_xy,
+                    pred_cov_yy,
+                )
             for e in range(n_ego_paths):
                 d_path = INF
                 d_traj = INF
                 if want[TRAJ] and not traj_done:
                     d_traj = _polyline_distance(
-                        ego_cut_x, ego_cut_y, e, ego_cut_n[e], ego_cut_boxes, ego_cut_nboxes[e], cut_x_row, cut_y_row, row, cut_n, cut_boxes_row, cut_nboxes, gaps,
-                        keep_d2[TRAJ], drop_d2[TRAJ], INF,
-                    )  # fmt: skip
+                        ego_cut_x,
+                        ego_cut_y,
+                        e,
+                        ego_cut_n[e],
+                        ego_cut_boxes,
+                        ego_cut_nboxes[e],
+                        cut_x_row,
+                        cut_y_row,
+                        row,
+                        cut_n,
+                        cut_boxes_row,
+                        cut_nboxes,
+                        gaps,
+                        keep_d2[TRAJ],
+                        drop_d2[TRAJ],
+                        INF,
+                    )
                     eps = float_params[EPS_TRAJ]
                     best[TRAJ] = max(best[TRAJ], eps / (eps + d_traj))
                     if keep_d2[TRAJ] >= 0 and d_traj * d_traj <= keep_d2[TRAJ]:
@@ -241,10 +333,23 @@ def evaluate_agents(
                     if traj_exact and d_traj < INF:
                         bound = (d_traj + 1e-6) ** 2
                     d_path = _polyline_distance(
-                        ego_x, ego_y, e, ego_n[e], ego_boxes, ego_nboxes[e], path_x_row, path_y_row, row, path_n, path_boxes_row, path_nboxes, gaps,
-                        -1.0 if exact_path else keep_d2[PATH], INF if exact_path else drop_d2[PATH],
+                        ego_x,
+                        ego_y,
+                        e,
+                        ego_n[e],
+                        ego_boxes,
+                        ego_nboxes[e],
+                        path_x_row,
+                        path_y_row,
+                        row,
+                        path_n,
+                        path_boxes_row,
+                        path_nboxes,
+                        gaps,
+                        -1.0 if exact_path else keep_d2[PATH],
+                        INF if exact_path else drop_d2[PATH],
                         bound,
-                    )  # fmt: skip
+                    )
                     if want[PATH]:
                         eps = float_params[EPS_PATH]
                         best[PATH] = max(best[PATH], eps / (eps + d_path))
@@ -305,9 +410,19 @@ def evaluate_agents(
                         dets,
                     )
                     gmax = _overlap_risks(
-                        qs, dets, dmin, n_steps, dt_tau, terms, escape_log_s, escape_s, log_s_deferred, defer,
-                        want[GAUSS], w_surv,
-                    )  # fmt: skip
+                        qs,
+                        dets,
+                        dmin,
+                        n_steps,
+                        dt_tau,
+                        terms,
+                        escape_log_s,
+                        escape_s,
+                        log_s_deferred,
+                        defer,
+                        want[GAUSS],
+                        w_surv,
+                    )
                     if w_surv:
                         rsurv = np_sum(terms, n_steps)
                 if want[ENC] or want[HW] or want[H2D]:
@@ -341,9 +456,19 @@ def evaluate_agents(
                         th = _time_gap(arc_on[e], ego_arc_pos[e], ego_speed)
                     elif d_path == 0.0:
                         s_b, s_a = _first_crossing(
-                            path_x, path_y, path_arc, path_n, path_boxes, path_nboxes, ego_x[e], ego_y[e], ego_arc[e], ego_n[e],
-                            ego_boxes[e], ego_nboxes[e],
-                        )  # fmt: skip
+                            path_x,
+                            path_y,
+                            path_arc,
+                            path_n,
+                            path_boxes,
+                            path_nboxes,
+                            ego_x[e],
+                            ego_y[e],
+                            ego_arc[e],
+                            ego_n[e],
+                            ego_boxes[e],
+                            ego_nboxes[e],
+                        )
                         th = _time_gap(s_a - s_b, ego_arc_pos[e], ego_speed)
                     tau = float_params[TAU_H2D]
                     best[H2D] = max(best[H2D], tau / (tau + th))

@@ -12,10 +12,11 @@ from risk.kernel_shared import EXP_ZERO, INF
 
 @_inner
 def _escape_track(n_steps, dt_tau, escape_log_s, escape_s):
-    """``escape_log_s[k]``: the survival loop's ``log_s`` before step ``k`` when every earlier
-    ``P_o + dt/tau`` rounds to ``dt/tau`` (always so far from the ego); ``escape_s[k] =
-    exp(-escape_log_s[k])``. The loop looks ``exp(-log_s)`` up here whenever ``log_s == escape_log_s[k]``
-    (the same argument, so the same value) instead of computing it."""
+    """``escape_log_s[k]``: the survival loop's ``log_s`` before step ``k`` when every
+    earlier ``P_o + dt/tau`` rounds to ``dt/tau`` (always so far from the ego);
+    ``escape_s[k] = exp(-escape_log_s[k])``. The loop looks ``exp(-log_s)`` up here
+    whenever ``log_s == escape_log_s[k]`` (the same argument, so the same value) instead
+    of computing it."""
     log_s = 0.0
     for k in range(n_steps):
         escape_log_s[k] = log_s

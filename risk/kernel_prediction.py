@@ -137,18 +137,45 @@ def _ego_candidates(
         r = ego_row0 + e
         _segment_lengths(paths, r, seg)
         ego_n[e] = _extend(
-            paths, r, path_points[r], heading[ego], ego_speed * horizon, seg, np_sum(seg, p - 1),
-            ego_x, ego_y, ego_arc, ego_ux, ego_uy, e,
-        )  # fmt: skip
+            paths,
+            r,
+            path_points[r],
+            heading[ego],
+            ego_speed * horizon,
+            seg,
+            np_sum(seg, p - 1),
+            ego_x,
+            ego_y,
+            ego_arc,
+            ego_ux,
+            ego_uy,
+            e,
+        )
         ego_nboxes[e] = _boxes(ego_x[e], ego_y[e], ego_n[e], ego_boxes[e])
         ego_cut_n[e] = _cut(
             ego_x[e], ego_y[e], ego_arc[e], ego_speed * horizon, ego_cut_x[e], ego_cut_y[e]
         )
         ego_cut_nboxes[e] = _boxes(ego_cut_x[e], ego_cut_y[e], ego_cut_n[e], ego_cut_boxes[e])
         _predict(
-            ego_x[e], ego_y[e], ego_arc[e], ego_ux[e], ego_uy[e], ego_speed, steps, unc, kinds[ego], e,
-            ego_px, ego_py, ego_dir_x, ego_dir_y, ego_sigma_lon, ego_cov_xx, ego_cov_xy, ego_cov_yy,
-        )  # fmt: skip
+            ego_x[e],
+            ego_y[e],
+            ego_arc[e],
+            ego_ux[e],
+            ego_uy[e],
+            ego_speed,
+            steps,
+            unc,
+            kinds[ego],
+            e,
+            ego_px,
+            ego_py,
+            ego_dir_x,
+            ego_dir_y,
+            ego_sigma_lon,
+            ego_cov_xx,
+            ego_cov_xy,
+            ego_cov_yy,
+        )
         _segments(ego_x[e], ego_y[e], ego_n[e], ego_inv_len2[e], ego_seg_len[e])
         ego_arc_pos[e] = _project(
             xy[ego, 0],
@@ -164,6 +191,28 @@ def _ego_candidates(
             e,
         )[1]
     return (
-        ego_x, ego_y, ego_arc, ego_ux, ego_uy, ego_n, ego_boxes, ego_nboxes, ego_cut_x, ego_cut_y, ego_cut_n, ego_cut_boxes, ego_cut_nboxes,
-        ego_px, ego_py, ego_dir_x, ego_dir_y, ego_sigma_lon, ego_cov_xx, ego_cov_xy, ego_cov_yy, ego_arc_pos, ego_inv_len2, ego_seg_len,
-    )  # fmt: skip
+        ego_x,
+        ego_y,
+        ego_arc,
+        ego_ux,
+        ego_uy,
+        ego_n,
+        ego_boxes,
+        ego_nboxes,
+        ego_cut_x,
+        ego_cut_y,
+        ego_cut_n,
+        ego_cut_boxes,
+        ego_cut_nboxes,
+        ego_px,
+        ego_py,
+        ego_dir_x,
+        ego_dir_y,
+        ego_sigma_lon,
+        ego_cov_xx,
+        ego_cov_xy,
+        ego_cov_yy,
+        ego_arc_pos,
+        ego_inv_len2,
+        ego_seg_len,
+    )
