@@ -19,13 +19,16 @@ import numba
 import numpy as np
 from numba.core import event
 
-from risk.kernel_shared import PW_BLOCK, cache_dir, cache_problem
+from risk.kernel_shared import LAYOUT_KEY, PW_BLOCK, cache_dir, cache_problem
 
 log = logging.getLogger("risk")
 
 
 CACHE_DIR = cache_dir()
-numba.config.CACHE_DIR = CACHE_DIR  # type: ignore[attr-defined]  # read by the decorators
+#: numba's cache folder inside it, one per argument layout (kernel_shared.layout_key says
+#: why); read by the decorators.
+JIT_CACHE_DIR = str(pathlib.Path(CACHE_DIR) / f"jit-{LAYOUT_KEY}")
+numba.config.CACHE_DIR = JIT_CACHE_DIR  # type: ignore[attr-defined]
 #: Why the cache folder cannot be written (None: it can); the compile notice says so.
 CACHE_PROBLEM = cache_problem(CACHE_DIR)
 

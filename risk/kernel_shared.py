@@ -9,6 +9,7 @@ module. :mod:`risk.kernel` loads one of the two.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import pathlib
@@ -43,6 +44,21 @@ FLOAT_AT = _layout("floats")
 INT_AT = _layout("ints")
 N_FLOAT = max(len(FLOAT_AT), 1)
 N_INT = max(len(INT_AT), 1)
+
+
+def layout_key(
+    slots: tuple[str, ...], float_at: dict[tuple[str, str], int], int_at: dict[tuple[str, str], int]
+) -> str:
+    """A short hash of a layout. numba's cache checks only the changed source file of a
+    function, not the constants it read from other modules, so the just-in-time cache
+    lives in a folder per layout (:mod:`risk.kernel_jit`): a registry that adds or moves
+    a model never loads code compiled for another layout."""
+    text = repr((slots, sorted(float_at.items()), sorted(int_at.items())))
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+#: This registry's layout (:func:`layout_key`).
+LAYOUT_KEY = layout_key(SLOTS, FLOAT_AT, INT_AT)
 
 # The kernel code's names for the slots and numbers it reads (numba freezes module-level
 # integers into the compiled code as constants). A model's kernel function names its own.
