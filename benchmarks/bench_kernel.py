@@ -326,14 +326,13 @@ print("\\n".join(sorted(m for m in sys.modules if not m.startswith("__"))))
 """
 
 #: The start-up of ``replay demo`` with its libraries, and nothing else: the output
-#: process starts as the command starts it (importing the recording's writer: rerun),
+#: process starts as the demo's recorder starts it (importing the recording's writer: rerun),
 #: the replay's process imports every module of DEMO_MODULES (polars and the CLI
 #: included), then waits until the output process has its imports and lets it go.
 DEMO_STARTUP = """
 import importlib
 from outputs import process as background
-from replay.cli.output_prestart import start_for
-process = start_for(["demo"])
+process = background.acquire(("recordings.writer",))
 try:
     for name in open({modules!r}).read().split():
         try:

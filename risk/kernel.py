@@ -39,33 +39,22 @@ from risk import kernel_aot
 from risk.errors import RiskError
 from risk.frame import Frame
 from risk.kernel_shared import (
-    CIRC,
-    ENC,
-    F_DT_TAU,
-    F_EPS,
-    F_LIM_ENC,
-    F_LIM_H2D,
-    F_LIM_HW,
-    F_SCALE_CIRC,
-    F_TAU_H2D,
-    F_TAU_HW,
-    F_TOL_H2D,
-    F_TOL_HW,
+    DT_TAU,
+    FLOAT_AT,
     GAUSS,
-    H2D,
     HAVE_CYCLE_COUNTER,
-    HW,
-    I_NCIRC,
-    I_RADIUS_RULE,
+    INT_AT,
+    N_CIRC,
     N_FLOAT,
     N_INT,
     N_MODELS,
     PATH,
-    SURV,
+    SLOTS,
     TRAJ,
     K,
     cache_dir,
 )
+from risk.registry import MODELS
 
 __all__ = [
     "CACHE_DIR",
@@ -125,21 +114,6 @@ tiers = _compiled.tiers
 cascade_agents = getattr(_compiled, "cascade_agents", None)
 
 
-#: Model names in slot order (the registry's order; checked by the registry).
-SLOTS: tuple[str, ...] = (
-    "current_distance",
-    "path_distance",
-    "trajectory_distance",
-    "closest_encounter",
-    "headway",
-    "headway_2d",
-    "circles",
-    "gaussian",
-    "survival",
-)
-RADIUS_RULES: tuple[str, ...] = ("spec", "width")
-
-
 def _readonly(a: np.ndarray) -> np.ndarray:
     """``a`` as a read-only C-contiguous array (no copy when it already is one), so that
     every call has the same argument types and the kernel compiles once."""
@@ -175,26 +149,24 @@ def frame_arrays(frame: Any) -> tuple[np.ndarray, ...]:
 
 
 def pack_params(chosen: Mapping[str, Any], horizon_s: float, dt_s: float) -> tuple[np.ndarray, ...]:
-    """Float and integer parameter vectors of the kernel from the parameter objects."""
-    fp = np.zeros(N_FLOAT)
-    for slot, name in enumerate(SLOTS[:7]):
-        fp[F_EPS + slot] = chosen[name].epsilon_m
-    for lim, name in ((F_LIM_ENC, SLOTS[ENC]), (F_LIM_HW, SLOTS[HW]), (F_LIM_H2D, SLOTS[H2D])):
-        value = chosen[name].encounter_time_max_s
-        fp[lim] = horizon_s if value is None else value
-    fp[F_TAU_HW] = chosen[SLOTS[HW]].tau_s
-    fp[F_TAU_H2D] = chosen[SLOTS[H2D]].tau_s
-    fp[F_TOL_HW] = chosen[SLOTS[HW]].on_path_tolerance_m
-    fp[F_TOL_H2D] = chosen[SLOTS[H2D]].on_path_tolerance_m
-    circles = chosen[SLOTS[CIRC]]
-    fp[F_SCALE_CIRC] = circles.sigma_scale
-    fp[F_DT_TAU] = dt_s / chosen[SLOTS[SURV]].escape_time_s
-    ip = np.zeros(N_INT, np.int64)
-    ip[I_NCIRC] = circles.n_circles
-    ip[I_RADIUS_RULE] = RADIUS_RULES.index(circles.radius_rule)
-    fp.flags.writeable = False
-    ip.flags.writeable = False
-    return fp, ip
+    """The kernel's float and int parameter vectors from every model's parameter object:
+    each model's numbers (:attr:`risk.registry.ModelSpec.kernel_args`) at the indices the
+    layout gives them (:data:`risk.kernel_shared.FLOAT_AT`, ``INT_AT``)."""
+    floats = np.zeros(N_FLOAT)
+    ints = np.zeros(N_INT, np.int64)
+    for name, spec in MODELS.items():
+        args = spec.kernel_args
+        values = args.values(chosen[name], horizon_s, dt_s)
+        if len(values) != len(args.floats) + len(args.ints):
+            raise RiskError(f"{name}: kernel_args gives {len(values)} numbers for "
+                            f"{args.floats + args.ints}")  # fmt: skip
+        for arg, value in zip(args.floats, values, strict=False):
+            floats[FLOAT_AT[name, arg]] = value
+        for arg, value in zip(args.ints, values[len(args.floats) :], strict=True):
+            ints[INT_AT[name, arg]] = value
+    floats.flags.writeable = False
+    ints.flags.writeable = False
+    return floats, ints
 
 
 def _constant(a: np.ndarray) -> np.ndarray:
@@ -354,7 +326,7 @@ def _warm_up_inner(c: types.ModuleType, part: str) -> None:
     p1 = paths.shape[1] + 1
     ns = steps.shape[0]
     nch = (p1 - 1 + K - 1) // K + 1
-    dt_tau = float(fp[F_DT_TAU])
+    dt_tau = float(fp[DT_TAU])
 
     def line() -> np.ndarray:
         return np.zeros(p1)
@@ -495,8 +467,10 @@ def _warm_up_arguments() -> tuple[
     steps = _constant(np.linspace(0.0, 1.0, 5))
     unc = _constant(np.tile([0.5, 0.3, 0.1, 0.1, 2.0, 1.0, 0.0, 0.0], (4, 1)))
     fp = np.ones(N_FLOAT)
-    fp[F_DT_TAU] = 0.25
-    ip = _constant(np.array([3, 0], dtype=np.int64))
+    fp[DT_TAU] = 0.25
+    ip = np.zeros(N_INT, np.int64)
+    ip[N_CIRC] = 3
+    ip = _constant(ip)
     return frame_arrays(frame), steps, unc, _constant(fp), ip
 
 

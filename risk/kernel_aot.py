@@ -48,8 +48,10 @@ ENTRY_POINTS = ("evaluate_agents", "reachable", "tiers", "cascade_agents")
 #: A build lock older than this is taken to be left by a killed build.
 STALE_LOCK_S = 15 * 60
 HERE = pathlib.Path(__file__).resolve().parent
-#: The files whose content the compiled code depends on.
-SOURCES = ("kernel_numba.py", "kernel_shared.py", "kernel_aot.py", "kernel_aot_build.py")
+#: The files whose content the compiled code depends on: every kernel module (its parts,
+#: :mod:`risk.kernel_numba` lists them, the layout, the build) and the registry, from
+#: which the layout of the kernel's arguments is generated (:mod:`risk.kernel_shared`).
+SOURCES = (*sorted(p.name for p in HERE.glob("kernel*.py")), "registry.py")
 
 
 def _package_stamp(name: str) -> str:

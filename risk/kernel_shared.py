@@ -1,5 +1,6 @@
 """What the kernel's two compiled forms share, without importing numba: the layout of its
-arguments (model slots, parameter vectors, constants) and the cache folder.
+arguments (model slots and parameter vectors, generated from :mod:`risk.registry`),
+constants and the cache folder.
 
 The kernel's code is :mod:`risk.kernel_numba`; numba compiles it just in time
 (``cache=True``), or :mod:`risk.kernel_aot` compiles it ahead of time into an extension
@@ -8,6 +9,7 @@ module. :mod:`risk.kernel` loads one of the two.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import pathlib
@@ -15,20 +17,72 @@ import platform
 import sys
 import tempfile
 
-# Model slots, in registry order.
-CUR, PATH, TRAJ, ENC, HW, H2D, CIRC, GAUSS, SURV = range(9)
-N_MODELS = 9
-# Float parameters.
-F_EPS = 0  # 9 slots: eps of CUR, PATH, TRAJ, ENC, HW, H2D, CIRC (others unused)
-F_LIM_ENC, F_LIM_HW, F_LIM_H2D = 9, 10, 11  # count an encounter when s_E < this
-F_TAU_HW, F_TAU_H2D = 12, 13
-F_TOL_HW, F_TOL_H2D = 14, 15
-F_SCALE_CIRC = 16
-F_DT_TAU = 17  # dt / tau_esc
-N_FLOAT = 18
-# Integer parameters.
-I_NCIRC, I_RADIUS_RULE = 0, 1
-N_INT = 2
+from risk.registry import MODELS
+
+# ---------------------------------------------------------------- the generated layout
+# Everything model-specific in the kernel's arguments comes from the registry
+# (:class:`risk.registry.KernelArgs`): a model's slot is its place in registry order
+# (the rows of the kernel's ``(models, N)`` result and of its ``want`` flags), and each
+# model's numbers sit model after model in the float and int parameter vectors.
+#: Model names in slot order (registry order).
+SLOTS: tuple[str, ...] = tuple(MODELS)
+N_MODELS = len(SLOTS)
+SLOT: dict[str, int] = {name: slot for slot, name in enumerate(SLOTS)}
+
+
+def _layout(kind: str) -> dict[tuple[str, str], int]:
+    """(model, number's name) -> its index in the ``kind`` ("floats"/"ints") vector."""
+    at: dict[tuple[str, str], int] = {}
+    for name, spec in MODELS.items():
+        for arg in getattr(spec.kernel_args, kind):
+            at[name, arg] = len(at)
+    return at
+
+
+#: Where each model's float and int numbers sit in the kernel's parameter vectors.
+FLOAT_AT = _layout("floats")
+INT_AT = _layout("ints")
+N_FLOAT = max(len(FLOAT_AT), 1)
+N_INT = max(len(INT_AT), 1)
+
+
+def layout_key(
+    slots: tuple[str, ...], float_at: dict[tuple[str, str], int], int_at: dict[tuple[str, str], int]
+) -> str:
+    """A short hash of a layout. numba's cache checks only the changed source file of a
+    function, not the constants it read from other modules, so the just-in-time cache
+    lives in a folder per layout (:mod:`risk.kernel_jit`): a registry that adds or moves
+    a model never loads code compiled for another layout."""
+    text = repr((slots, sorted(float_at.items()), sorted(int_at.items())))
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+#: This registry's layout (:func:`layout_key`).
+LAYOUT_KEY = layout_key(SLOTS, FLOAT_AT, INT_AT)
+
+# The kernel code's names for the slots and numbers it reads (numba freezes module-level
+# integers into the compiled code as constants). A model's kernel function names its own.
+CUR, PATH, TRAJ = SLOT["current_distance"], SLOT["path_distance"], SLOT["trajectory_distance"]
+ENC, HW, H2D = SLOT["closest_encounter"], SLOT["headway"], SLOT["headway_2d"]
+CIRC, GAUSS, SURV = SLOT["circles"], SLOT["gaussian"], SLOT["survival"]
+EPS_CUR = FLOAT_AT["current_distance", "epsilon"]
+EPS_PATH = FLOAT_AT["path_distance", "epsilon"]
+EPS_TRAJ = FLOAT_AT["trajectory_distance", "epsilon"]
+EPS_ENC = FLOAT_AT["closest_encounter", "epsilon"]
+LIM_ENC = FLOAT_AT["closest_encounter", "encounter_limit"]  # an encounter counts if s_E < this
+EPS_HW = FLOAT_AT["headway", "epsilon"]
+LIM_HW = FLOAT_AT["headway", "encounter_limit"]
+TAU_HW = FLOAT_AT["headway", "tau"]
+TOL_HW = FLOAT_AT["headway", "on_path_tolerance"]
+EPS_H2D = FLOAT_AT["headway_2d", "epsilon"]
+LIM_H2D = FLOAT_AT["headway_2d", "encounter_limit"]
+TAU_H2D = FLOAT_AT["headway_2d", "tau"]
+TOL_H2D = FLOAT_AT["headway_2d", "on_path_tolerance"]
+EPS_CIRC = FLOAT_AT["circles", "epsilon"]
+SCALE_CIRC = FLOAT_AT["circles", "sigma_scale"]
+N_CIRC = INT_AT["circles", "n_circles"]
+RADIUS_RULE = INT_AT["circles", "radius_rule"]  # index into registry.RADIUS_RULES
+DT_TAU = FLOAT_AT["survival", "dt_over_escape_time"]
 
 #: Segments per chunk of the bounding-box pruning (as risk.geometry.CHUNK_SEGMENTS).
 K = 8

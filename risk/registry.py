@@ -31,6 +31,52 @@ ModelFn = Callable[[FrameContext, Any], np.ndarray]
 
 
 @dataclass(frozen=True, kw_only=True)
+class KernelArgs:
+    """The numbers one model hands the compiled kernel (:mod:`risk.kernel`), by name.
+
+    The kernel takes every model's numbers in two read-only vectors (float64 and int64:
+    numba's entry points take plain arrays, not objects); their layout is generated from
+    these declarations in registry order (:mod:`risk.kernel_shared`), and the kernel code
+    reads each number at its generated index (e.g. ``kernel_shared.FLOAT_AT["headway",
+    "tau"]``). ``values(params, horizon_s, dt_s)`` gives the floats, then the ints, in
+    the declared order.
+    """
+
+    floats: tuple[str, ...] = ()
+    ints: tuple[str, ...] = ()
+    values: Callable[[Any, float, float], tuple[float, ...]] = lambda params, horizon_s, dt_s: ()
+
+
+#: The circles' rules for the ego's radius, as the kernel numbers them (int input 1).
+RADIUS_RULES: tuple[str, ...] = ("spec", "width")
+
+
+def _epsilon(params: Any, horizon_s: float, dt_s: float) -> tuple[float, ...]:
+    return (params.epsilon_m,)
+
+
+def _encounter(params: Any, horizon_s: float) -> tuple[float, float]:
+    """epsilon and the encounter-time limit (None: the horizon)."""
+    limit = params.encounter_time_max_s
+    return params.epsilon_m, horizon_s if limit is None else limit
+
+
+#: epsilon of the distance models
+DISTANCE_ARGS = KernelArgs(floats=("epsilon",), values=_epsilon)
+#: the closest encounter's two numbers, then headway's own
+ENCOUNTER_ARGS = KernelArgs(
+    floats=("epsilon", "encounter_limit"),
+    values=lambda p, horizon_s, dt_s: _encounter(p, horizon_s),
+)
+HEADWAY_ARGS = KernelArgs(
+    floats=("epsilon", "encounter_limit", "tau", "on_path_tolerance"),
+    values=lambda p, horizon_s, dt_s: (
+        *_encounter(p, horizon_s), p.tau_s, p.on_path_tolerance_m,
+    ),
+)  # fmt: skip
+
+
+@dataclass(frozen=True, kw_only=True)
 class ModelSpec:
     """One risk model: how to call it and how to describe it.
 
@@ -55,6 +101,8 @@ class ModelSpec:
     unit: str = ""  # unit of the risk value ("" = dimensionless)
     #: the closed range of its risk values (tables read back are checked against it)
     risk_range: tuple[float, float] = (0.0, 1.0)
+    #: the numbers it hands the compiled kernel (none: the model needs no parameter there)
+    kernel_args: KernelArgs = KernelArgs()
 
     def default_params(self) -> Any:
         """The spec's defaults."""
@@ -87,6 +135,7 @@ MODELS: dict[str, ModelSpec] = {
             fn=distance.current_distance,
             label="current distance",
             color="tab:blue",
+            kernel_args=DISTANCE_ARGS,
         ),
         ModelSpec(
             name="path_distance",
@@ -98,6 +147,7 @@ MODELS: dict[str, ModelSpec] = {
             fn=distance.path_distance,
             label="path distance",
             color="tab:orange",
+            kernel_args=DISTANCE_ARGS,
         ),
         ModelSpec(
             name="trajectory_distance",
@@ -109,6 +159,7 @@ MODELS: dict[str, ModelSpec] = {
             fn=distance.trajectory_distance,
             label="trajectory distance",
             color="tab:green",
+            kernel_args=DISTANCE_ARGS,
         ),
         ModelSpec(
             name="closest_encounter",
@@ -120,6 +171,7 @@ MODELS: dict[str, ModelSpec] = {
             fn=temporal.closest_encounter,
             label="closest encounter",
             color="tab:red",
+            kernel_args=ENCOUNTER_ARGS,
         ),
         ModelSpec(
             name="headway",
@@ -131,6 +183,7 @@ MODELS: dict[str, ModelSpec] = {
             fn=temporal.headway,
             label="closest encounter + headway",
             color="tab:purple",
+            kernel_args=HEADWAY_ARGS,
         ),
         ModelSpec(
             name="headway_2d",
@@ -142,6 +195,7 @@ MODELS: dict[str, ModelSpec] = {
             fn=temporal.headway_2d,
             label="closest encounter + 2D headway",
             color="tab:brown",
+            kernel_args=HEADWAY_ARGS,
         ),
         ModelSpec(
             name="circles",
@@ -153,6 +207,16 @@ MODELS: dict[str, ModelSpec] = {
             fn=stochastic.circles,
             label="circles",
             color="tab:pink",
+            kernel_args=KernelArgs(
+                floats=("epsilon", "sigma_scale"),
+                ints=("n_circles", "radius_rule"),
+                values=lambda p, horizon_s, dt_s: (
+                    p.epsilon_m,
+                    p.sigma_scale,
+                    p.n_circles,
+                    RADIUS_RULES.index(p.radius_rule),
+                ),
+            ),
         ),
         ModelSpec(
             name="gaussian",
@@ -177,6 +241,10 @@ MODELS: dict[str, ModelSpec] = {
             fn=stochastic.survival,
             label="survival analysis",
             color="tab:olive",
+            kernel_args=KernelArgs(
+                floats=("dt_over_escape_time",),
+                values=lambda p, horizon_s, dt_s: (dt_s / p.escape_time_s,),
+            ),
         ),
     )
 }

@@ -26,8 +26,8 @@ ALLOWED_INNER_IMPORTS = {
     # tomli_w only to write a cascade file
     ("risk/cascade.py", "tomli_w"),
     # numba's BLAS probe answered before numba's own import of arraymath (0.3-0.6 s saved
-    # per process; risk/kernel_numba.py explains)
-    ("risk/kernel_numba.py", "numba.np"),
+    # per process; risk/kernel_jit.py explains)
+    ("risk/kernel_jit.py", "numba.np"),
     # numba (about 0.9 s with its set-up) only when the ahead-of-time kernel is not built,
     # and only to build it (risk/kernel_aot_build.py)
     ("risk/kernel.py", "risk"),
@@ -60,8 +60,6 @@ ALLOWED_INNER_IMPORTS = {
     # matplotlib (about 1 s) only in the driver, not in every spawned worker
     ("replay/batch/driver.py", "replay.analysis.stats.run"),
     ("replay/analysis/experiment/report.py", "replay.analysis.stats.plots"),
-    # the output process starts before click and the CLI load (replay/__main__.py)
-    ("replay/__main__.py", "replay.cli.app"),
     # importlib.metadata (about 25 ms of every command's start-up) only for __version__
     ("replay/__init__.py", "importlib.metadata"),
 }

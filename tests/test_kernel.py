@@ -378,3 +378,34 @@ def test_first_call_skips_numbas_blas_probe_but_blas_still_compiles():
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr
     assert run.stdout.split() == ["False", "3.0", "True"]
+
+
+def test_the_parameter_vectors_follow_the_registry_layout():
+    """pack_params puts each model's numbers (ModelSpec.kernel_args) where the generated
+    layout says, and only there."""
+    from risk import kernel, kernel_shared, registry, stochastic, temporal
+
+    chosen = registry.resolve_params(
+        {
+            "headway": temporal.HeadwayParams(tau_s=2.5, encounter_time_max_s=None),
+            "headway_2d": temporal.Headway2DParams(encounter_time_max_s=3.0),
+            "circles": stochastic.CirclesParams(n_circles=5, radius_rule="width"),
+            "survival": stochastic.SurvivalParams(escape_time_s=4.0),
+        }
+    )
+    floats, ints = kernel.pack_params(chosen, 12.0, 0.1)
+    at, int_at = kernel_shared.FLOAT_AT, kernel_shared.INT_AT
+    assert floats.shape == (len(at),) and ints.shape == (len(int_at),)
+    assert floats[at["headway", "tau"]] == 2.5
+    assert floats[at["headway", "encounter_limit"]] == 12.0  # None: the horizon
+    assert floats[at["headway_2d", "encounter_limit"]] == 3.0
+    assert floats[at["survival", "dt_over_escape_time"]] == 0.1 / 4.0
+    assert ints[int_at["circles", "n_circles"]] == 5
+    assert ints[int_at["circles", "radius_rule"]] == registry.RADIUS_RULES.index("width")
+    for name in registry.MODELS:
+        if "epsilon" in registry.MODELS[name].kernel_args.floats:
+            assert floats[at[name, "epsilon"]] == chosen[name].epsilon_m
+    # every index used once, models in registry order
+    assert sorted(at.values()) == list(range(len(at)))
+    assert [n for n, _ in at] == sorted((n for n, _ in at), key=list(registry.MODELS).index)
+    assert tuple(registry.MODELS) == kernel.SLOTS

@@ -123,9 +123,17 @@ def test_the_key_follows_the_kernel_source(tmp_path, monkeypatch):
         shutil.copy(kernel_aot.HERE / name, tmp_path / name)
     monkeypatch.setattr(kernel_aot, "HERE", tmp_path)
     assert kernel_aot.build_key() == key
-    source = tmp_path / "kernel_numba.py"
-    source.write_text(source.read_text() + "\n# an edit\n")
-    assert kernel_aot.build_key() != key
+    # every part of the kernel, and the registry its argument layout is generated from
+    parts = {"kernel_numba.py", "kernel_paths.py", "kernel_evaluate.py", "kernel_cascade.py",
+             "kernel_shared.py", "registry.py"}  # fmt: skip
+    assert parts <= set(kernel_aot.SOURCES)
+    for name in sorted(parts):
+        source = tmp_path / name
+        text = source.read_text()
+        source.write_text(text + "\n# an edit\n")
+        assert kernel_aot.build_key() != key, name
+        source.write_text(text)
+    assert kernel_aot.build_key() == key
 
 
 def test_background_build_starts_once_and_not_after_a_failure(tmp_path, monkeypatch):

@@ -73,8 +73,10 @@ def test_an_unwritable_cache_is_named_in_the_notice_and_compiles_nothing_beside(
 ):
     """numba caches nothing there, silently: the notice says every run will compile, and
     no second process compiles what could not be loaded from the cache."""
-    from risk import kernel_numba
+    from risk import kernel_jit, kernel_numba
 
+    # (kernel_jit holds the notice; kernel_numba, which gathers the kernel, names the same)
+    monkeypatch.setattr(kernel_jit, "CACHE_PROBLEM", "Permission denied")
     monkeypatch.setattr(kernel_numba, "CACHE_PROBLEM", "Permission denied")
     monkeypatch.setattr(kernel_numba._CompileNotice, "said", False)
     monkeypatch.setattr(kernel, "_cache_is_cold", lambda dispatcher: True)
@@ -87,3 +89,24 @@ def test_an_unwritable_cache_is_named_in_the_notice_and_compiles_nothing_beside(
     assert kernel_numba.CACHE_DIR in message and "NUMBA_CACHE_DIR" in message
     for cascade in (True, False):
         assert kernel._start_beside(kernel_numba, cascade=cascade) is None
+
+
+def test_the_jit_cache_has_a_folder_per_argument_layout():
+    """numba's cache checks a function's own source file only, not the layout constants it
+    reads from risk.kernel_shared (generated from the registry): a folder per layout keeps
+    a registry with another model, or another order, from loading stale code."""
+    from risk import kernel_jit, kernel_numba, kernel_shared
+
+    assert kernel_jit.JIT_CACHE_DIR.startswith(kernel.CACHE_DIR)
+    assert kernel_jit.JIT_CACHE_DIR.endswith(f"jit-{kernel_shared.LAYOUT_KEY}")
+    assert kernel_numba.evaluate_agents._cache._cache_path.startswith(kernel_jit.JIT_CACHE_DIR)
+    slots, floats, ints = kernel_shared.SLOTS, kernel_shared.FLOAT_AT, kernel_shared.INT_AT
+    assert kernel_shared.layout_key(slots, floats, ints) == kernel_shared.LAYOUT_KEY
+    assert kernel_shared.layout_key(slots[::-1], floats, ints) != kernel_shared.LAYOUT_KEY
+    (a, i), (b, j) = list(floats.items())[:2]
+    swapped = {**floats, a: j, b: i}
+    assert kernel_shared.layout_key(slots, swapped, ints) != kernel_shared.LAYOUT_KEY
+    one_more = {**floats, ("new_model", "epsilon"): len(floats)}
+    assert (
+        kernel_shared.layout_key((*slots, "new_model"), one_more, ints) != kernel_shared.LAYOUT_KEY
+    )

@@ -1,5 +1,5 @@
 """Outputs written by the output process (outputs.process): the same files as in process,
-errors that say what happened, nothing left behind, and the CLI's early start."""
+errors that say what happened, nothing left behind, and the one place that starts the process (a sink that begins)."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from test_recordings import make_results, read_rrd
 from outputs import process as background
 from recordings import SceneRecorder, recorder
 from recordings.errors import RecordingError
-from replay.cli.app import RECORDING_WRITER, TABLE_WRITER, main, output_writers
+from replay.cli.app import main
 from replay.core import tables
 from replay.core.tables import TableSink
 
@@ -63,13 +63,6 @@ def fake_writer(monkeypatch, tmp_path: pathlib.Path, module, body: str) -> None:
 def no_process_left():
     yield
     assert background._shared is None, "an output process was left running"
-
-
-def test_the_cli_and_the_sinks_name_the_same_writers():
-    from recordings.recorder import WRITER
-    from replay.core.tables import TABLE_WRITER as SINK_TABLE_WRITER
-
-    assert (RECORDING_WRITER, TABLE_WRITER) == (WRITER, SINK_TABLE_WRITER)
 
 
 def test_background_recording_is_the_recording_written_in_process(tmp_path):
@@ -217,28 +210,34 @@ def test_the_mode_variable_and_the_load_decide(monkeypatch, tmp_path):
     assert leftovers(tmp_path) == ["e.rrd"]
 
 
-@pytest.mark.parametrize(
-    ("args", "writers"),
-    [
-        (["run", "s.mcap"], (RECORDING_WRITER,)),
-        (["demo"], (RECORDING_WRITER,)),  # (and the table in the replay's process)
-        (["run", "s.mcap", "--no-rrd"], ()),
-        (["run", "s.mcap", "--table", "t.csv"], (RECORDING_WRITER,)),
-        (["run", "s.mcap", "--no-rrd", "--table=t.csv"], (TABLE_WRITER,)),
-        (["run", "s.mcap", "--ego", "all"], (TABLE_WRITER,)),
-        (["run", "s.mcap", "--ego=all"], (TABLE_WRITER,)),
-        (["run", "s.mcap", "--ego", "7"], (RECORDING_WRITER,)),
-        (["run", "--help"], ()),
-        (["demo", "-h"], ()),
-        (["stats", "s.mcap"], ()),
-        ([], ()),
-    ],
-)
-def test_which_commands_start_the_output_process_early(args, writers):
-    assert output_writers(args) == writers
+def test_only_the_outputs_start_the_output_process(tmp_path, monkeypatch):
+    """One place starts it: a sink that begins (the recording here); a command that
+    writes no recording or table starts none, whatever its command line says."""
+    started: list[tuple[str, ...]] = []
+    real = background.OutputProcess
+
+    class Counting(real):  # type: ignore[misc,valid-type]
+        def __init__(self, preload) -> None:
+            started.append(tuple(preload))
+            super().__init__(preload)
+
+    monkeypatch.setattr(background, "OutputProcess", Counting)
+    scene = tmp_path / "s.mcap"
+    runner = CliRunner()
+    made = runner.invoke(main, ["convert", "synthetic", "-o", str(scene), "--agents", "4",
+                                "--duration", "1"])  # fmt: skip
+    assert made.exit_code == 0, made.output
+    assert started == []
+    ran = runner.invoke(main, ["run", str(scene), "--no-rrd", "--no-progress"])
+    assert ran.exit_code == 0, ran.output
+    assert started == []
+    ran = runner.invoke(main, ["run", str(scene), "-o", str(tmp_path / "s.rrd"), "--no-progress"])
+    assert ran.exit_code == 0, ran.output
+    assert started == [(recorder.WRITER,)]
+    assert background._shared is None
 
 
-def test_run_uses_the_early_process_and_bad_input_stops_it(tmp_path):
+def test_run_uses_the_output_process_and_bad_input_stops_it(tmp_path):
     scene = tmp_path / "s.mcap"
     runner = CliRunner()
     made = runner.invoke(main, ["convert", "synthetic", "-o", str(scene), "--agents", "6",
@@ -249,7 +248,7 @@ def test_run_uses_the_early_process_and_bad_input_stops_it(tmp_path):
     assert ran.exit_code == 0, ran.output
     assert (tmp_path / "s.rrd").stat().st_size > 0 and (tmp_path / "s.csv").stat().st_size > 0
     assert background._shared is None
-    # An unknown ego fails before anything is written: the early process is stopped.
+    # An unknown ego fails before anything is written: the output process is stopped.
     bad = runner.invoke(main, ["run", str(scene), "-o", str(tmp_path / "t.rrd"), "--ego", "99"])
     assert bad.exit_code == 1 and "Error:" in bad.output
     assert background._shared is None and not (tmp_path / "t.rrd").exists()
@@ -303,21 +302,3 @@ def test_the_output_process_runs_neither_the_main_script_nor_the_cli():
     finally:
         background.release(process)
     assert loaded == []
-
-
-def test_replay_starts_the_output_process_before_it_imports_the_cli():
-    code = (
-        "import sys; from replay.cli import output_prestart as early_output; from outputs import process as background; "
-        "p = early_output.start_for(sys.argv[1:]); "
-        "print(p is not None, 'click' in sys.modules); background.release(p)"
-    )
-    env = {**os.environ, background.MODE_VARIABLE: "on"}
-    for args, started in ((["demo"], "True"), (["demo", "--help"], "False")):
-        run = subprocess.run([sys.executable, "-c", code, *args], capture_output=True,
-                             text=True, timeout=60, env=env)  # fmt: skip
-        assert run.returncode == 0, run.stderr
-        assert run.stdout.split() == [started, "False"], args
-    completing = {**env, "_REPLAY_COMPLETE": "bash_complete"}
-    run = subprocess.run([sys.executable, "-c", code, "demo"], capture_output=True, text=True,
-                         timeout=60, env=completing)  # fmt: skip
-    assert run.stdout.split() == ["False", "False"]

@@ -17,12 +17,10 @@ import sys
 
 import click
 
-from outputs import process as background
 from outputs.transaction import target_of_temp
-from replay.cli.output_prestart import RECORDING_WRITER, TABLE_WRITER, output_writers
 from risk.errors import RiskReplayError
 
-__all__ = ["RECORDING_WRITER", "TABLE_WRITER", "main", "output_writers"]
+__all__ = ["main"]
 
 # name -> "module:attribute"; the order is the order of ``replay --help``.
 COMMANDS: dict[str, str] = {
@@ -60,16 +58,6 @@ class LazyGroup(click.Group):
             return None
         module_name, attr = target.split(":")
         return getattr(importlib.import_module(module_name), attr)
-
-    def resolve_command(self, ctx: click.Context, args: list[str]):
-        preload = () if ctx.resilient_parsing else output_writers(args)
-        if preload:
-            # Before the command's module loads the models (about 1 s): the output
-            # process imports the writers meanwhile, and the command's outputs adopt it
-            # (the one ``replay.__main__`` started, if it did).
-            process = background.start(preload)
-            ctx.call_on_close(lambda: background.release(process))
-        return super().resolve_command(ctx, args)
 
     def invoke(self, ctx: click.Context):
         try:
