@@ -63,7 +63,8 @@ def test_changed_share_interval_resamples_whole_scenes():
 
 def test_closed_loop_sample_spreads_over_the_list():
     scenes = [pathlib.Path(f"s{i:02d}.mcap") for i in range(10)]
-    assert closed_loop_sample(scenes, 3) == [scenes[0], scenes[4], scenes[8]]
+    assert closed_loop_sample(scenes, 3) == [scenes[0], scenes[4], scenes[9]]
+    assert len(closed_loop_sample(scenes, 7)) == 7
     assert closed_loop_sample(scenes, None) == scenes
     assert closed_loop_sample(scenes, 20) == scenes
 

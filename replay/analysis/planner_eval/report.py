@@ -69,6 +69,17 @@ def _open_loop(name: str, entry: dict[str, Any], plots: dict[str, str]) -> list[
             f"{_ms(f['all_agents_plan_ms']['median'])} / {_ms(f['all_agents_plan_ms']['p95'])} | "
             f"{'n/a' if ratio is None else f'{ratio:.2f}x'} |"
         )
+    lines.append("")
+    for filt, f in entry["filters"].items():
+        why = f.get("changed_why") or {}
+        if not why:
+            continue
+        shift = f.get("changed_shift_m") or {}
+        parts = ", ".join(f"{k} {n}" for k, n in why.items())
+        lines.append(
+            f"- {filt}: the changed frames by the first rule that caught them: {parts}; "
+            f"shifts of {_m(shift.get('median'))} m median, {_m(shift.get('p95'))} m p95."
+        )
     lines += [
         "",
         "*Blocking agent dropped*: of the frames where the all-agents plan named the agent "

@@ -267,6 +267,12 @@ def summarize(tables: PlanTables, *, n_boot: int = 1000, seed: int = 0) -> dict[
                 seed=seed,
             ),
             "changed_scenes": comparable.filter(pl.col("changed"))["scene"].n_unique(),
+            "changed_why": _why_counts(comparable.filter(pl.col("changed"))),
+            "changed_shift_m": _quantiles(
+                comparable.filter(pl.col("changed") & pl.col("why").str.starts_with("shift"))[
+                    "max_shift_m"
+                ].to_numpy()
+            ),
             "changed_egos": comparable.filter(pl.col("changed"))
             .select(["scene", "ego_id"])
             .unique()
@@ -302,6 +308,12 @@ def summarize(tables: PlanTables, *, n_boot: int = 1000, seed: int = 0) -> dict[
             .iter_rows(named=True)
         }
     return out
+
+
+def _why_counts(changed: pl.DataFrame) -> dict[str, int]:
+    """How many changed frames each rule caught first: shift, stop/go, lane, success."""
+    kinds = changed["why"].str.split(" ").list.first().str.strip_chars(":")
+    return {str(k): int(n) for k, n in kinds.value_counts(sort=True).iter_rows()}
 
 
 def _by_bins(rows: pl.DataFrame) -> list[dict[str, Any]]:
@@ -371,12 +383,13 @@ def _closed_task(item: tuple[str, PlanSettings, Any, int | None]) -> list[dict[s
 
 def closed_loop_sample(scenes: Sequence[pathlib.Path], sample: int | None) -> list[pathlib.Path]:
     """The scenes of a closed-loop sample of ``sample`` egos (one per scene, the one
-    present longest): every k-th scene in the order given, k = ceil(scenes / sample), so
-    that the sample spreads over every dataset; all scenes when ``sample`` is None."""
+    present longest): ``sample`` scenes spread evenly over the list (first and last
+    included), so that the sample covers every dataset; all scenes when ``sample`` is
+    None or not smaller than the list."""
     if sample is None or sample >= len(scenes):
         return list(scenes)
-    step = math.ceil(len(scenes) / sample)
-    return list(scenes[::step])[:sample]
+    picks = np.unique(np.round(np.linspace(0, len(scenes) - 1, sample)).astype(int))
+    return [scenes[i] for i in picks]
 
 
 def run_closed_loop(
@@ -550,7 +563,7 @@ def run_study(
     if closed_loop:
         summary["closed_loop_selection"] = (
             f"{closed_loop_sample} egos in all, one per scene (the one present longest) of "
-            "every k-th scene, k = ceil(scenes / sample)"
+            f"{closed_loop_sample} scenes spread evenly over the list of scenes"
             if closed_loop_sample is not None
             else f"at most {closed_loop_egos} egos per scene, those present longest"
             if closed_loop_egos is not None

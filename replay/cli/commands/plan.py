@@ -78,8 +78,8 @@ from risk.filtering import FILTER_FORMS
 )  # fmt: skip
 @click.option(
     "--closed-loop-sample", type=click.IntRange(min=1), default=None, metavar="N",
-    help="With --closed-loop: N egos in all, one per scene (the one present longest) of "
-    "every k-th scene, k = ceil(scenes / N), so that the sample spreads over the datasets.",
+    help="With --closed-loop: N egos in all, one per scene (the one present longest) of N "
+    "scenes spread evenly over the scenes given, so that the sample covers the datasets.",
 )  # fmt: skip
 @click.option(
     "--tolerance", "tolerance_m", type=click.FloatRange(min=0.0), default=0.5,
