@@ -147,7 +147,7 @@ def test_bad_option_values_are_one_line_errors(corpus, tmp_path, args, message):
     assert r.output.count("\n") == 1 and message in r.output, r.output
 
 
-def test_scene_shorter_than_the_horizon_is_evaluated_on_censored_frames(tmp_path):
+def test_scene_shorter_than_the_horizon_has_only_censored_frames(tmp_path):
     short = tmp_path / "d" / "short.mcap"
     short.parent.mkdir()
     write_scene(short, straight_scene(duration_s=4.0, crossing=True))
@@ -156,9 +156,19 @@ def test_scene_shorter_than_the_horizon_is_evaluated_on_censored_frames(tmp_path
     assert r.exit_code == 0, r.output
     assert "1 scene(s) shorter than the 5 s horizon" in r.output
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    # Complete windows (the default): none, so hindsight has no positive, said so ...
     h = summary["references"]["hindsight"]
-    assert h["negative_agent_frames"] == 0 and h["positive_agents"] == 1
+    assert h["negative_agent_frames"] == 0 and h["positive_agents"] == 0
+    assert "hindsight" in summary["references_without_positives"]
+    # ... while the old rule, reported beside it, counts the censored positive.
+    h_any = summary["references"]["hindsight_any"]
+    assert h_any["negative_agent_frames"] == 0 and h_any["positive_agents"] == 1
     assert summary["scenes_shorter_than_horizon"] == ["short"]
+    r = invoke("evaluate", short, "-o", tmp_path / "any", "--bootstrap", 10, "--workers", 1,
+               "--hindsight-windows", "any", "--no-progress", "--no-plots")  # fmt: skip
+    assert r.exit_code == 0, r.output
+    summary = json.loads((tmp_path / "any" / "summary.json").read_text())
+    assert summary["references"]["hindsight"]["positive_agents"] == 1
 
 
 def test_evaluate_inputs_takes_model_parameters(corpus):

@@ -3,6 +3,7 @@ consistency, budgets and every reference in ``replay evaluate``."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -13,13 +14,16 @@ from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from planner_scenes import BEHIND, PARKED_OFF_ROAD, STOPPED, yielding_road_scene
+from planner_scenes import BEHIND, PARKED_OFF_ROAD, STOPPED, road_map, yielding_road_scene
 from replay.analysis.corpus_evaluation import EvaluationSettings, evaluate_table
 from replay.cli.app import main
 from replay.core.engine import run_scene
 from replay.core.tables import TableSink
 from replay.planning.annotator import PlannerAnnotator
+from replay.planning.idm import IdmPlanner
+from replay.planning.inputs import plan_request
 from replay.planning.registry import make_planner
+from replay.planning.truth import planner_truth
 from risk.budgets import budget_recall, ranks_in_situation
 from risk.hindsight import (
     HindsightSettings,
@@ -27,6 +31,7 @@ from risk.hindsight import (
     rows_truth,
     tracks_from_states,
 )
+from risk.frame import Frame
 
 
 # ---------------------------------------------------------------------- the road
@@ -278,3 +283,52 @@ def test_an_unknown_planner_is_a_one_line_error(tmp_path):
     )
     assert r.exit_code != 0
     assert r.output.startswith("Error: ") and r.output.count("\n") == 1, r.output
+
+
+# ---------------------------------------------------------------------- the IDM skip
+class _EveryAgent(IdmPlanner):
+    """The IDM planner without its sole-constraint report: planner truth then plans
+    without every agent that may matter (the slow, obvious oracle)."""
+
+    def plan(self, request):
+        return dataclasses.replace(super().plan(request), sole_constraints=None)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.floats(-30, 120), st.sampled_from([0.0, 3.5, -6.0]), st.floats(0, 15),
+                  st.sampled_from([0.0, np.pi, np.pi / 2])),
+        min_size=1, max_size=8,
+    ),
+    st.floats(0, 15),
+)  # fmt: skip
+def test_idm_sole_constraints_skip_exactly_the_agents_that_cannot_change_the_plan(agents, v):
+    n = len(agents) + 1
+    xy = np.array([(0.0, 0.0), *((x, y) for x, y, _, _ in agents)])
+    heading = np.array([0.0, *(h for *_, h in agents)])
+    speed = np.array([v, *(s for _, _, s, _ in agents)])
+    paths = [np.array([p, p + 300 * np.array([np.cos(h), np.sin(h)])]) for p, h in zip(xy, heading)]
+    frame = Frame.from_arrays(
+        xy, heading, speed, np.full(n, 4.5), np.full(n, 1.8), paths, ego=0, ids=np.arange(n)
+    )
+    request = plan_request(frame, road_map(), target_speed_mps=12.0, horizon_s=5.0, dt_s=0.1)
+    fast, slow = IdmPlanner(), _EveryAgent()
+    a = planner_truth(fast, request, fast.plan(request))
+    b = planner_truth(slow, request, slow.plan(request))
+    np.testing.assert_array_equal(a.label, b.label)
+    np.testing.assert_allclose(a.shift_m, b.shift_m)
+    assert a.plans <= b.plans
+
+
+def test_idm_sole_constraints_on_the_road_label_the_standing_car_with_one_plan():
+    from planner_scenes import road_frame
+
+    request = plan_request(road_frame(), road_map(), target_speed_mps=10.0, horizon_s=5.0, dt_s=0.1)
+    planner = IdmPlanner()
+    reference = planner.plan(request)
+    assert list(reference.sole_constraints) == [STOPPED]
+    truth = planner_truth(planner, request, reference)
+    assert truth.plans == 1
+    assert truth.label[list(truth.ids).index(STOPPED)] == 1.0
+    assert truth.label.sum() == 1.0
