@@ -68,8 +68,15 @@ def main() -> None:
     cascade = CascadeConfig.default()
     make = functools.partial(planner_annotators, args.planner)
     jobs = [
-        SceneJob(f, f.name.removesuffix(".mcap"), cascade, None, "all", Stride(seconds=1.0),
-                 annotators=make)  # fmt: skip
+        SceneJob(
+            f,
+            f.name.removesuffix(".mcap"),
+            cascade,
+            None,
+            "all",
+            Stride(seconds=1.0),
+            annotators=make,
+        )
         for f in files
     ]
     start = time.perf_counter()

@@ -745,7 +745,11 @@ def rows_truth(
     a = tracks.index_of(np.asarray(agent_id, dtype=np.int64))
     ok = (k >= 0) & (k < tracks.n_frames) & (a >= 0) & (ego_col[ego_row] >= 0)
     idx = (k[ok], ego_row[ok], a[ok])
-    out.gap_m[ok], out.pet_s[ok], out.label[ok] = truth.gap_m[idx], truth.pet_s[idx], truth.label[idx]
+    out.gap_m[ok], out.pet_s[ok], out.label[ok] = (
+        truth.gap_m[idx],
+        truth.pet_s[idx],
+        truth.label[idx],
+    )
     out.complete[ok] = ~truth.censored[idx]
     if truth.yielded is not None and truth.track_ok is not None:
         out.yielded[ok] = truth.yielded[idx]

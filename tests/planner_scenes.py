@@ -142,14 +142,26 @@ def yielding_road_scene(agents: Iterable[int] = OTHERS, *, duration_s: float = 1
         ]
         frames.append(
             Frame.from_arrays(
-                xy=xy, heading=base.heading, speed=speed, length=base.length,
-                width=base.width, paths=paths, ego=0, ids=base.ids, kinds=base.kinds, t=float(t),
-            )  # fmt: skip
+                xy=xy,
+                heading=base.heading,
+                speed=speed,
+                length=base.length,
+                width=base.width,
+                paths=paths,
+                ego=0,
+                ids=base.ids,
+                kinds=base.kinds,
+                t=float(t),
+            )
         )
     return Scene(
         map=road_map(),
         frames=tuple(frames),
         frame_period_s=0.1,
-        metadata={"dataset": "hand-made", "scenario_id": "two-lane-road-yield", "converter": "tests"},
+        metadata={
+            "dataset": "hand-made",
+            "scenario_id": "two-lane-road-yield",
+            "converter": "tests",
+        },
         ego_id=EGO,
     )

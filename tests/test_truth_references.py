@@ -13,8 +13,8 @@ import pytest
 from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from planner_scenes import BEHIND, PARKED_OFF_ROAD, STOPPED, road_map, yielding_road_scene
+
 from replay.analysis.corpus_evaluation import EvaluationSettings, evaluate_table
 from replay.cli.app import main
 from replay.core.engine import run_scene
@@ -25,13 +25,13 @@ from replay.planning.inputs import plan_request
 from replay.planning.registry import make_planner
 from replay.planning.truth import planner_truth
 from risk.budgets import budget_recall, ranks_in_situation
+from risk.frame import Frame
 from risk.hindsight import (
     HindsightSettings,
     inconsistent_steps,
     rows_truth,
     tracks_from_states,
 )
-from risk.frame import Frame
 
 
 # ---------------------------------------------------------------------- the road
@@ -308,7 +308,10 @@ def test_idm_sole_constraints_skip_exactly_the_agents_that_cannot_change_the_pla
     xy = np.array([(0.0, 0.0), *((x, y) for x, y, _, _ in agents)])
     heading = np.array([0.0, *(h for *_, h in agents)])
     speed = np.array([v, *(s for _, _, s, _ in agents)])
-    paths = [np.array([p, p + 300 * np.array([np.cos(h), np.sin(h)])]) for p, h in zip(xy, heading)]
+    paths = [
+        np.array([p, p + 300 * np.array([np.cos(h), np.sin(h)])])
+        for p, h in zip(xy, heading, strict=True)
+    ]
     frame = Frame.from_arrays(
         xy, heading, speed, np.full(n, 4.5), np.full(n, 1.8), paths, ego=0, ids=np.arange(n)
     )

@@ -30,8 +30,8 @@ from replay.analysis.evaluation_plots import plot_budgets, plot_evaluation
 from replay.analysis.inputs import collect, resolve_inputs, scene_names
 from replay.core.engine import Stride
 from replay.errors import ReplayError
-from risk.cascade import CascadeConfig
 from risk.budgets import budget_recall
+from risk.cascade import CascadeConfig
 from risk.evaluation import (
     FPR_POINTS,
     TPR_TARGETS,
@@ -219,7 +219,7 @@ def evaluate_table(
         .to_series()
         .to_numpy()
     )
-    all_refs, missing = reference_arrays(
+    all_refs, absent = reference_arrays(
         df, baseline_threshold=settings.baseline_threshold, windows=settings.hindsight_windows
     )
     counts = {name: reference_counts(r, agent_key, scene_index) for name, r in all_refs.items()}
@@ -249,7 +249,9 @@ def evaluate_table(
             f"{', '.join(sorted(set(site)))}"
         )
     scores = {m: df[f"risk_{m}"].to_numpy().astype(np.float64) for m in models}
-    situations = df.select(pl.struct("scene", "ego_id", "frame").rank("dense")).to_series().to_numpy()
+    situations = (
+        df.select(pl.struct("scene", "ego_id", "frame").rank("dense")).to_series().to_numpy()
+    )
     result = evaluate_references(
         scores,
         refs,
@@ -273,13 +275,20 @@ def evaluate_table(
         if settings.n_boot > 0
         else None
     )
-    distance = df["distance_m"].to_numpy().astype(np.float64) if "distance_m" in df.columns else None
+    distance = (
+        df["distance_m"].to_numpy().astype(np.float64) if "distance_m" in df.columns else None
+    )
     budgets = {
         name: budget_recall(
-            scores, r, situations=situations, codes=scene_index, distance_m=distance,
+            scores,
+            r,
+            situations=situations,
+            codes=scene_index,
+            distance_m=distance,
             kept_sets={"cascade": kept[:, -1]} if kept is not None else None,
-            draws=draws, level=settings.level,
-        )  # fmt: skip
+            draws=draws,
+            level=settings.level,
+        )
         for name, r in refs.items()
     }
     short = _short_scenes(df, hindsight or HindsightSettings())
@@ -304,7 +313,7 @@ def evaluate_table(
         },
         **result,
         "reference_names": list(refs),
-        "references_missing": missing,
+        "references_missing": absent,
         "references_without_positives": no_positive,
         "budgets": budgets,
         "agreement": agreement(all_refs, df, agent_key),

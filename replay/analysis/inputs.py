@@ -120,7 +120,9 @@ def collect(
                 params=params,
                 prediction=prediction,
                 hindsight=hindsight,
-                annotators=None if planner is None else functools.partial(planner_annotators, planner),
+                annotators=None
+                if planner is None
+                else functools.partial(planner_annotators, planner),
             )
             for p, n in zip(inputs.scenes, names[: len(inputs.scenes)], strict=True)
         ]

@@ -135,7 +135,9 @@ class TableSink:
             for k in (*keys, *planner)
         }
         for k in labels:  # an ego's run without the list (another scene's): False
-            data[k] = np.concatenate([c.get(k, np.zeros(c["frame"].size, bool)) for c in self._chunks])
+            data[k] = np.concatenate(
+                [c.get(k, np.zeros(c["frame"].size, bool)) for c in self._chunks]
+            )
         truth = self._truth(data["t_s"], data["ego_id"], data["agent_id"])
         return TableColumns(
             keys=tuple([*keys, *labels]),
