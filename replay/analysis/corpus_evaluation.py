@@ -318,7 +318,7 @@ def evaluate_table(
         "budgets": budgets,
         "agreement": agreement(all_refs, df, agent_key),
         "composition": composition(df, all_refs),
-        "track_flags": _track_flags(df),
+        "track_flags": _track_flags(df, dataset),
     }
 
 
@@ -427,12 +427,14 @@ def composition(df: pl.DataFrame, refs: Mapping[str, np.ndarray]) -> dict[str, A
     return out
 
 
-def _track_flags(df: pl.DataFrame) -> dict[str, Any]:
+def _track_flags(df: pl.DataFrame, dataset: np.ndarray) -> dict[str, Any]:
     """Rows whose ego or agent track is inconsistent in the window (kept out of the
-    truth): count, distinct agents, per dataset-independent kind."""
+    truth): count, share, distinct agents, per kind and the share per dataset."""
     if "track_ok" not in df.columns:
         return {"available": False}
     bad = ~df["track_ok"].fill_null(True)
+    bad_np = bad.to_numpy().astype(bool)
+    share_by_dataset = {str(d): float(bad_np[dataset == d].mean()) for d in np.unique(dataset)}
     flagged = df.filter(bad)
     return {
         "available": True,
@@ -446,6 +448,7 @@ def _track_flags(df: pl.DataFrame) -> dict[str, Any]:
             str(k): int(v)
             for k, v in flagged.group_by(pl.col("kind").cast(pl.String)).len().iter_rows()
         },
+        "share_by_dataset": share_by_dataset,
     }
 
 

@@ -97,6 +97,7 @@ def run_evaluation(
             agents, settings=settings, datasets=datasets, hindsight=hs,
             inputs=[str(p) for p in inputs],
         )  # fmt: skip
+        summary["settings"]["planner"] = planner
         summary["time_s"] = {"replay / read": read_s, "evaluation": time.perf_counter() - start}
         show(format_evaluation(summary))
         run = EvaluationRun(summary)
