@@ -211,7 +211,7 @@ def _agreement_section(summary: Mapping[str, Any]) -> str:
                     "unknown: track flagged",
                 ],
                 rows,
-            )  # fmt: skip
+            )
         )
         b = planner.get("hindsight")
         if b:
@@ -275,7 +275,7 @@ def _windows_section(summary: Mapping[str, Any]) -> str:
                 f"{k}: {v}"
                 for k, v in summary.get("references_missing", {}).items()
                 if k.startswith("hindsight")
-            )  # fmt: skip
+            )
         )
     comp = summary.get("composition", {})
     rows = []
@@ -308,7 +308,7 @@ def _windows_section(summary: Mapping[str, Any]) -> str:
                     "share standing (< 0.5 m/s)",
                 ],
                 rows,
-            )  # fmt: skip
+            )
         )
     return "\n".join(lines)
 
