@@ -76,7 +76,7 @@ def scene_names(paths: Sequence[pathlib.Path]) -> list[str]:
 def planner_annotators(name: str) -> list[PlannerAnnotator]:
     """A planner annotator with planner truth (``planner_label`` columns), made in the
     worker process that replays the scene."""
-    return [PlannerAnnotator(make_planner(name), truth=True)]
+    return [PlannerAnnotator(make_planner(name), truth=True, filtered=False)]
 
 
 def collect(
