@@ -158,6 +158,11 @@ def reference_arrays(
     for c in df.columns:
         if c.startswith("label_"):
             refs[DATASET_PREFIX + c.removeprefix("label_")] = _codes(df[c])
+    if not any(c.startswith("label_") for c in df.columns):
+        missing["dataset labels"] = (
+            "no scene carries label lists (/labels: Waymo objects_of_interest / "
+            "tracks_to_predict, AV2 focal / scored)"
+        )
     return refs, missing
 
 

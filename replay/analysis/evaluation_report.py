@@ -420,6 +420,15 @@ def _undecided(summary: Mapping[str, Any]) -> list[str]:
         **summary.get("references_without_positives", {}),
     }.items():
         out.append(f"anything against {name}: {why}")
+    flags = summary.get("track_flags", {})
+    for d, share in sorted(flags.get("share_by_dataset", {}).items()):
+        if share > 0.1:
+            out.append(
+                f"hindsight on {d}: {100 * share:.0f} % of its agent-frames have an ego or "
+                "agent track that moves faster or accelerates harder than its kind can "
+                "within the window, so their truth is unknown; the recording itself is in "
+                "doubt there"
+            )
     if "planner" in _ref_names(summary):
         planner = summary["settings"].get("planner") or "one planner"
         out.append(
