@@ -120,8 +120,8 @@ Written by `benchmarks/bench_planner_truth.py` on {when:%Y-%m-%d %H:%M} UTC ({pl
 {platform.python_version()}). Command: `python {" ".join(sys.argv)}`.
 
 Every moving agent as the ego at 1 Hz (`--ego all --every 1s`), planner `{args.planner}` with
-planner truth (one plan with all agents, one with the cascade's, one without each agent
-that may matter), the hindsight truth and every model, each scene's agents table written
+planner truth (one plan with all agents, then one without each agent that alone sets a
+step of that plan: `replay.planning.truth`), the hindsight truth and every model, each scene's agents table written
 as Parquet; {args.workers} worker processes.
 
 | scenes | of | situations | agent-rows | wall s | wall scaled to the corpus s | CPU s in the workers | CPU / workers, scaled s | target s |

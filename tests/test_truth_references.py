@@ -265,7 +265,8 @@ def test_evaluate_with_a_planner_on_the_yielding_road(tmp_path):
     r = CliRunner().invoke(
         main,
         ["evaluate", str(folder), "-o", str(out), "--planner", "idm", "--every", "1s",
-         "--bootstrap", "5", "--workers", "1", "--no-progress", "--no-plots"],
+         "--bootstrap", "5", "--workers", "1", "--no-progress", "--no-plots",
+         "--report", str(tmp_path / "report.md"), "--report-note", "Made by hand."],
     )  # fmt: skip
     assert r.exit_code == 0, r.output
     summary = json.loads((out / "summary.json").read_text())
@@ -275,6 +276,9 @@ def test_evaluate_with_a_planner_on_the_yielding_road(tmp_path):
     assert planner["hindsight"]["negative_yielded"]["agent_frames"] >= 1
     budgets = pl.read_parquet(out / "budgets.parquet")
     assert set(budgets["reference"]) >= {"planner", "survival"}
+    report = (tmp_path / "report.md").read_text()
+    assert "- Made by hand." in report
+    assert "planner idm" in report and "**Yielded count:**" in report
 
 
 def test_an_unknown_planner_is_a_one_line_error(tmp_path):

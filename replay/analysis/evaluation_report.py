@@ -539,6 +539,7 @@ def write_report(
     sweep: SweepResult | None = None,
     command: str = "",
     datasets: Mapping[str, str] | None = None,
+    note: str = "",
 ) -> dict[str, pathlib.Path]:
     """The report at ``path`` and its plots (copied from ``out_dir``) in the folder of
     the same name without ``.md``; each file atomically. Returns name -> path."""
@@ -610,6 +611,7 @@ def write_report(
                 else "none"
             )
         ),
+        "note": f"- {note}\n" if note else "",
         "absent": "; ".join(
             f"{k}: {v}"
             for k, v in {

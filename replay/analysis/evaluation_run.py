@@ -78,6 +78,7 @@ def run_evaluation(
     extra_inputs: Sequence[pathlib.Path | None] = (),
     show: Callable[[str], None] = _quiet,
     planner: str | None = None,
+    report_note: str = "",
 ) -> EvaluationRun:
     """Evaluate the scenes or tables ``inputs`` into ``out_dir`` (and the Markdown report
     ``report_path``, made by ``command``). ``show`` receives the evaluation's and the
@@ -130,7 +131,7 @@ def run_evaluation(
             run.files.update(
                 write_report(
                     report_path, summary, agents, out_dir=out_dir, sweep=run.sweep,
-                    command=command, datasets=datasets,
+                    command=command, datasets=datasets, note=report_note,
                 )
             )  # fmt: skip
     return run

@@ -114,6 +114,11 @@ def _names(text: str | None) -> list[str]:
     "--sensitivity) to this .md file, its plots into the folder of the same name without "
     ".md (e.g. docs/recorded-evaluation.md and docs/recorded-evaluation/).",
 )  # fmt: skip
+@click.option(
+    "--report-note", default="",
+    help="A sentence for the report's 'What was evaluated' (e.g. how tables given as inputs "
+    "were made, or which scenes were left out and why).",
+)  # fmt: skip
 @click.option("--plots/--no-plots", default=True, show_default=True, help="Write the PNG plots.")
 @click.option(
     "--progress/--no-progress", default=True, show_default=True, help="Progress bar on stderr."
@@ -145,6 +150,7 @@ def evaluate(
     sensitivity_every: Stride | None = None,
     sensitivity_scenes: int = 1,
     report_path: pathlib.Path | None = None,
+    report_note: str = "",
     sets: tuple[str, ...] = (),
 ) -> None:
     """Which agents does each filter drop that really came close?
@@ -207,6 +213,7 @@ def evaluate(
         hindsight=HindsightSettings(**custom) if custom else None,
         workers=workers or default_workers(), progress=progress, ego=ego, every=every,
         plots=plots, sensitivity=sweep, report_path=report_path, planner=planner,
+        report_note=report_note,
         command=" ".join(["replay", "evaluate", *sys.argv[2:]]) if len(sys.argv) > 1 else "",
         extra_inputs=(cascade_file,), show=click.echo,
     )  # fmt: skip
