@@ -430,9 +430,10 @@ def _undecided(summary: Mapping[str, Any]) -> list[str]:
                 "doubt there"
             )
     if "planner" in _ref_names(summary):
-        planner = summary["settings"].get("planner") or "one planner"
+        planner = summary["settings"].get("planner")
+        which = f"planners other than {planner}" if planner else "other planners"
         out.append(
-            f"whether the planner truth holds for planners other than {planner}: the labels "
+            f"whether the planner truth holds for {which}: the labels "
             "are one planner's reactions to the toolkit's own predictions (constant speed "
             "along each agent's path), so an agent the prediction misplaces is judged by "
             "where it was predicted, not where it went"
