@@ -34,6 +34,25 @@ this gives, from the recording's own future within a horizon ``H``:
   (default ``coverage = 1``: every step). A censored pair that was not seen coming close
   has label *unknown* (-1, null in tables), never a silent negative.
 
+- **yielded** (kept apart from "came close"): the ego *braked*, i.e. within the window it
+  decelerated at :data:`YIELD_DECEL_MPS2` or harder, or its speed fell to
+  :data:`YIELD_SPEED_SHARE` of its speed at the frame (from at least
+  :data:`YIELD_MIN_SPEED_MPS`), *while the agent was ahead on its path*: at some step of
+  the window at which the ego was slowing down (or standing after braking), the agent's
+  centre was in the corridor ahead of the ego's recorded pose (ahead, within
+  :data:`AHEAD_REACH_M` plus :data:`AHEAD_HEADWAY_S` of its speed, and laterally within
+  the two half-widths plus :data:`AHEAD_MARGIN_M`). Speeds are finite differences of
+  recorded positions over :data:`SPEED_SPAN_S`. A standing car the ego stops behind is
+  yielded-to and never comes close.
+- **track consistency**: a step of an agent's track is *inconsistent* when the speed it
+  implies since the agent's previous recorded position (across any gap) or its
+  acceleration over :data:`SPEED_SPAN_S` is beyond what its kind can do
+  (:data:`KIND_LIMITS`: a teleport, a jump between tracks). A row whose ego or agent has
+  an inconsistent step in the window is *flagged* (``track_ok`` false) and kept out of the
+  truth: its label is unknown.
+- **complete**: the window is recorded for both at every step needed (the complement of
+  censoring); ``replay evaluate`` scores on complete windows only by default.
+
 Times are on the scene's frame grid ``t_k = t_0 + k dt``; ``H_steps = floor(H / dt)``
 (a horizon that is not a whole number of frames is rounded down; 1e-9 s tolerance).
 
@@ -61,6 +80,29 @@ LABEL_POSITIVE = 1
 TOUCH_M = 1e-9
 #: Elements of one (T, E, N) block of the vectorised computation (bounds memory).
 BLOCK_ELEMENTS = 400_000
+#: The yielded label (see the module docstring): hard braking (m/s^2), the share of the
+#: frame's speed that counts as "halved", the least frame speed for that rule (m/s), the
+#: span of the finite differences (s), a step "slowing down" (m/s^2) or "standing" (m/s).
+YIELD_DECEL_MPS2 = 3.0
+YIELD_SPEED_SHARE = 0.5
+YIELD_MIN_SPEED_MPS = 2.0
+SPEED_SPAN_S = 0.5
+SLOWING_MPS2 = 0.5
+STANDING_MPS = 0.5
+#: The corridor ahead of the ego: reach (m) plus headway (s) times its speed, lateral
+#: margin beyond the two half-widths (m).
+AHEAD_REACH_M = 10.0
+AHEAD_HEADWAY_S = 3.0
+AHEAD_MARGIN_M = 0.5
+#: Per kind code (vehicle, pedestrian, cyclist, other): the highest plausible speed (m/s)
+#: and acceleration magnitude (m/s^2) of a track. Generous: a sports car's top speed and
+#: about 1.5 g; a sprinter; a racing cyclist.
+KIND_LIMITS: dict[int, tuple[float, float]] = {
+    0: (70.0, 15.0),
+    1: (12.0, 10.0),
+    2: (25.0, 10.0),
+    3: (70.0, 15.0),
+}
 
 
 # ---------------------------------------------------------------------- settings
@@ -367,7 +409,10 @@ class Truth:
     - ``censored``: the window is not recorded enough (see the module docstring);
     - ``label``: 1 interaction, 0 none (window recorded enough), -1 unknown (censored
       without a close approach, or the ego or agent not recorded at the frame, or the
-      ego itself).
+      ego itself, or a flagged track);
+    - ``yielded``: the ego braked while the agent was ahead on its path (False where not
+      applicable or flagged);
+    - ``track_ok``: neither track has an inconsistent step in the window.
     """
 
     egos: np.ndarray  # (E,) column indices of the egos in the tracks
@@ -378,6 +423,8 @@ class Truth:
     label: np.ndarray
     horizon_steps: int
     settings: HindsightSettings
+    yielded: np.ndarray | None = None
+    track_ok: np.ndarray | None = None
 
 
 def hindsight_truth(
@@ -398,11 +445,15 @@ def hindsight_truth(
     gap = np.full(shape, np.nan)
     pet = np.full(shape, np.nan)
     observed = np.zeros(shape, dtype=np.int64)
+    ahead = np.zeros(shape, dtype=bool)
+    speed = track_speeds(tracks)
+    slowing = _slowing(tracks, speed)
     per_block = max(1, BLOCK_ELEMENTS // max(1, n_t * n))
     for start in range(0, egos_arr.size, per_block):  # blocks of egos, each vectorised
         block = egos_arr[start : start + per_block]
         sl = slice(start, start + block.size)
         gap[:, sl], pet[:, sl], observed[:, sl] = _block_truth(tracks, block, h)
+        ahead[:, sl] = _block_ahead(tracks, block, speed, slowing, h)
     need = settings.coverage * (h + 1) - 1e-9
     censored = observed < need
     close = (gap <= settings.gap_m) | (pet <= settings.pet_s + 1e-9)
@@ -410,7 +461,10 @@ def hindsight_truth(
     # Not applicable: the ego itself, or either one not recorded at the frame.
     here = tracks.valid[:, egos_arr][:, :, None] & tracks.valid[:, None, :]
     here &= egos_arr[None, :, None] != np.arange(n)[None, None, :]
-    label = np.where(here, label, LABEL_UNKNOWN).astype(np.int8)
+    bad = forward_window_sum(inconsistent_steps(tracks, speed).astype(np.int64), h + 1) > 0
+    track_ok = ~(bad[:, egos_arr][:, :, None] | bad[:, None, :])
+    yielded = here & track_ok & ahead
+    label = np.where(here & track_ok, label, LABEL_UNKNOWN).astype(np.int8)
     gap = np.where(here, gap, np.nan)
     pet = np.where(here, pet, np.nan)
     return Truth(
@@ -422,7 +476,110 @@ def hindsight_truth(
         label=label,
         horizon_steps=h,
         settings=settings,
+        yielded=yielded,
+        track_ok=track_ok,
     )
+
+
+# ---------------------------------------------------------------------- yielding, tracks
+def _span_steps(dt_s: float) -> int:
+    return max(1, round(SPEED_SPAN_S / dt_s))
+
+
+def track_speeds(tracks: Tracks) -> np.ndarray:
+    """Speed ``(T, N)`` m/s of every agent: the distance from frame ``k`` to frame
+    ``k + m`` over ``m dt`` (``m`` frames span :data:`SPEED_SPAN_S`); NaN where either end
+    is not recorded (or past the end)."""
+    m = _span_steps(tracks.dt_s)
+    n_t, n = tracks.valid.shape
+    v = np.full((n_t, n), np.nan)
+    if n_t > m:
+        d = np.hypot(*(tracks.xy[m:] - tracks.xy[:-m]).transpose(2, 0, 1))
+        ok = tracks.valid[m:] & tracks.valid[:-m]
+        v[:-m] = np.where(ok, d / (m * tracks.dt_s), np.nan)
+    return v
+
+
+def _deceleration(speed: np.ndarray, dt_s: float) -> np.ndarray:
+    """``(v[k] - v[k + m]) / (m dt)`` ``(T, N)``, NaN where unknown."""
+    m = _span_steps(dt_s)
+    out = np.full(speed.shape, np.nan)
+    if speed.shape[0] > m:
+        out[:-m] = (speed[:-m] - speed[m:]) / (m * dt_s)
+    return out
+
+
+def _slowing(tracks: Tracks, speed: np.ndarray) -> np.ndarray:
+    """``(T, N)``: the agent is slowing down or standing at frame ``k``."""
+    dec = _deceleration(speed, tracks.dt_s)
+    return (np.nan_to_num(dec, nan=-np.inf) >= SLOWING_MPS2) | (
+        np.nan_to_num(speed, nan=np.inf) <= STANDING_MPS
+    )
+
+
+def _braked(speed: np.ndarray, egos: np.ndarray, h: int) -> np.ndarray:
+    """``(T, E)``: within the window of frame ``f`` the ego braked hard or fell to
+    :data:`YIELD_SPEED_SHARE` of its speed at ``f`` (from :data:`YIELD_MIN_SPEED_MPS`)."""
+    v = speed[:, egos]
+    if v.shape[0] == 0:
+        return np.zeros(v.shape, dtype=bool)
+    low = forward_window_min(np.nan_to_num(v, nan=np.inf), h + 1)
+    return (np.nan_to_num(v, nan=0.0) >= YIELD_MIN_SPEED_MPS) & (low <= YIELD_SPEED_SHARE * v)
+
+
+def _block_ahead(
+    tracks: Tracks, egos: np.ndarray, speed: np.ndarray, slowing: np.ndarray, h: int
+) -> np.ndarray:
+    """``(T, E, N)``: at some step of the window of frame ``f`` the agent was in the
+    corridor ahead of the ego while the ego was slowing down or standing, and the ego braked
+    (hard, or to half its speed) within that window."""
+    x, y, hd = tracks.xy[..., 0], tracks.xy[..., 1], tracks.heading
+    ok = tracks.valid
+    e_x, e_y, e_h = x[:, egos][:, :, None], y[:, egos][:, :, None], hd[:, egos][:, :, None]
+    dx, dy = x[:, None, :] - e_x, y[:, None, :] - e_y
+    c, s = np.cos(e_h), np.sin(e_h)
+    lon = dx * c + dy * s
+    lat = np.abs(-dx * s + dy * c)
+    v_e = np.nan_to_num(speed[:, egos], nan=0.0)[:, :, None]
+    reach = (
+        AHEAD_REACH_M + AHEAD_HEADWAY_S * v_e
+        + (tracks.length[:, egos][:, :, None] + tracks.length[:, None, :]) / 2.0
+    )  # fmt: skip
+    half = (tracks.width[:, egos][:, :, None] + tracks.width[:, None, :]) / 2.0
+    now = (lon > 0) & (lon <= reach) & (lat <= half + AHEAD_MARGIN_M)
+    now &= ok[:, egos][:, :, None] & ok[:, None, :] & slowing[:, egos][:, :, None]
+    now &= egos[None, :, None] != np.arange(tracks.n_agents)[None, None, :]
+    ahead = forward_window_sum(now.astype(np.int64), h + 1) > 0
+    dec = np.nan_to_num(_deceleration(speed, tracks.dt_s)[:, egos], nan=-np.inf)
+    hard = forward_window_min(-dec, h + 1) <= -YIELD_DECEL_MPS2  # max deceleration
+    return ahead & (hard | _braked(speed, egos, h))[:, :, None]
+
+
+def inconsistent_steps(tracks: Tracks, speed: np.ndarray | None = None) -> np.ndarray:
+    """``(T, N)`` bool: the frames at which an agent's track does what its kind cannot
+    (:data:`KIND_LIMITS`): the speed implied since its previous recorded position (across
+    any gap: a teleport) or the acceleration over :data:`SPEED_SPAN_S` is too high."""
+    n_t, n = tracks.valid.shape
+    bad = np.zeros((n_t, n), dtype=bool)
+    if n_t < 2 or n == 0:
+        return bad
+    limits = np.array([KIND_LIMITS.get(int(k), KIND_LIMITS[0]) for k in tracks.kinds])
+    v_max, a_max = limits[:, 0], limits[:, 1]
+    frames = np.arange(n_t)[:, None]
+    last = np.where(tracks.valid, frames, -1)
+    prev = np.maximum.accumulate(np.vstack([np.full((1, n), -1), last[:-1]]), axis=0)
+    has = tracks.valid & (prev >= 0)
+    t_i, a_i = np.nonzero(has)
+    p_i = prev[t_i, a_i]
+    jump = np.hypot(*(tracks.xy[t_i, a_i] - tracks.xy[p_i, a_i]).T)
+    implied = jump / ((t_i - p_i) * tracks.dt_s)
+    bad[t_i[implied > v_max[a_i]], a_i[implied > v_max[a_i]]] = True
+    v = track_speeds(tracks) if speed is None else speed
+    m = _span_steps(tracks.dt_s)
+    if n_t > m:
+        acc = np.abs(v[m:] - v[:-m]) / (m * tracks.dt_s)
+        bad[m:] |= np.nan_to_num(acc, nan=0.0) > a_max[None, :]
+    return bad
 
 
 def _block_truth(
@@ -547,6 +704,57 @@ def _shared_truth(tracks: Tracks, egos: np.ndarray, settings: HindsightSettings)
     if key not in kept:
         kept[key] = hindsight_truth(tracks, egos, settings=settings)
     return kept[key]
+
+
+@dataclass(frozen=True, eq=False)
+class RowTruth:
+    """The truth of table rows, each ``(R,)``: ``gap_m``, ``pet_s``, ``label`` (codes),
+    ``complete`` (the window is recorded for both: not censored), ``yielded`` and
+    ``track_ok`` (see :class:`Truth`); rows outside the tracks: NaN, unknown, False, False,
+    True."""
+
+    gap_m: np.ndarray
+    pet_s: np.ndarray
+    label: np.ndarray
+    complete: np.ndarray
+    yielded: np.ndarray
+    track_ok: np.ndarray
+
+
+def rows_truth(
+    tracks: Tracks,
+    t_s: np.ndarray,
+    ego_id: np.ndarray,
+    agent_id: np.ndarray,
+    *,
+    settings: HindsightSettings | None = None,
+) -> RowTruth:
+    """:func:`truth_for_rows` with the complete-window, yielded and track flags."""
+    t_s = np.asarray(t_s, dtype=np.float64)
+    n = t_s.size
+    out = RowTruth(
+        np.full(n, np.nan), np.full(n, np.nan), np.full(n, LABEL_UNKNOWN, dtype=np.int8),
+        np.zeros(n, dtype=bool), np.zeros(n, dtype=bool), np.ones(n, dtype=bool),
+    )  # fmt: skip
+    if n == 0:
+        return out
+    egos, ego_row = np.unique(np.asarray(ego_id, dtype=np.int64), return_inverse=True)
+    ego_col = tracks.index_of(egos)
+    truth = _shared_truth(tracks, np.maximum(ego_col, 0), settings or HindsightSettings())
+    k = tracks.frame_of(t_s)
+    a = tracks.index_of(np.asarray(agent_id, dtype=np.int64))
+    ok = (k >= 0) & (k < tracks.n_frames) & (a >= 0) & (ego_col[ego_row] >= 0)
+    idx = (k[ok], ego_row[ok], a[ok])
+    out.gap_m[ok], out.pet_s[ok], out.label[ok] = (
+        truth.gap_m[idx],
+        truth.pet_s[idx],
+        truth.label[idx],
+    )
+    out.complete[ok] = ~truth.censored[idx]
+    if truth.yielded is not None and truth.track_ok is not None:
+        out.yielded[ok] = truth.yielded[idx]
+        out.track_ok[ok] = truth.track_ok[idx]
+    return out
 
 
 def truth_for_rows(

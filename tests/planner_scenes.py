@@ -113,3 +113,55 @@ def write_road_scene(path: str | pathlib.Path, agents: Iterable[int] = OTHERS) -
     from converters.scene.writer import write_scene  # tests only: keeps this module import light
 
     return write_scene(path, road_scene(agents))
+
+
+#: The yielding variant: the recorded ego brakes at this rate (m/s^2) from the start and
+#: stops 3.5 m behind ``STOPPED`` (its front at x = 34.25, the stopped car's rear at 37.75).
+YIELD_DECEL_MPS2 = EGO_SPEED_MPS**2 / (2 * 32.0)
+
+
+def yielding_road_scene(agents: Iterable[int] = OTHERS, *, duration_s: float = 10.0) -> Scene:
+    """:func:`road_scene`, but the recorded ego yields: it brakes at
+    :data:`YIELD_DECEL_MPS2` (1.5625 m/s^2, speed halved after 3.2 s) and stops at x = 32 m,
+    never within 3.5 m of ``STOPPED`` (a hindsight negative the ego reacted to)."""
+    chosen = tuple(agents)
+    stop_t = EGO_SPEED_MPS / YIELD_DECEL_MPS2
+    frames = []
+    for t in np.round(np.arange(0.0, duration_s + 1e-9, 0.1), 6):
+        base = road_frame(chosen, t=float(t))
+        tt = min(float(t), stop_t)
+        x = EGO_SPEED_MPS * tt - 0.5 * YIELD_DECEL_MPS2 * tt**2
+        v = max(0.0, EGO_SPEED_MPS - YIELD_DECEL_MPS2 * float(t))
+        xy = base.xy.copy()
+        speed = base.speed.copy()
+        xy[0] = (x, 0.0)
+        speed[0] = v
+        paths = [
+            _path(float(a), float(b), float(h))[: 1 if i == PARKED_OFF_ROAD else 2]
+            for i, (a, b), h in zip(base.ids, xy, base.heading, strict=True)
+        ]
+        frames.append(
+            Frame.from_arrays(
+                xy=xy,
+                heading=base.heading,
+                speed=speed,
+                length=base.length,
+                width=base.width,
+                paths=paths,
+                ego=0,
+                ids=base.ids,
+                kinds=base.kinds,
+                t=float(t),
+            )
+        )
+    return Scene(
+        map=road_map(),
+        frames=tuple(frames),
+        frame_period_s=0.1,
+        metadata={
+            "dataset": "hand-made",
+            "scenario_id": "two-lane-road-yield",
+            "converter": "tests",
+        },
+        ego_id=EGO,
+    )

@@ -109,13 +109,20 @@ def test_evaluate_reads_run_tables_parquet_and_csv(corpus, tmp_path):
     assert r.exit_code != 0 and "give the .mcap scenes" in r.output
 
 
-def test_no_agent_comes_close_says_so_and_fails(corpus, tmp_path):
+def test_no_agent_comes_close_is_reported_for_that_reference(corpus, tmp_path):
+    """A reference without positives is reported as such (issue 28), not a crash and not
+    a silent NaN; the other references are still evaluated."""
     out = tmp_path / "out"
     r = invoke("evaluate", corpus / "setA" / "S_SiteA-1_2.mcap", "-o", out, "--workers", 1,
-               "--no-progress")  # fmt: skip
-    assert r.exit_code != 0
-    assert r.output.count("\n") == 1 and r.output.startswith("Error: no agent came close")
-    assert not out.exists()
+               "--bootstrap", 5, "--no-progress")  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert "Reference hindsight: no positive among" in r.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert "hindsight" in summary["references_without_positives"]
+    assert "hindsight" not in summary["reference_names"]
+    assert "survival" in summary["reference_names"]
+    assert "hindsight" not in summary["models"]["current_distance"]
+    assert "planner" in summary["references_missing"]
 
 
 @pytest.mark.parametrize(
@@ -140,7 +147,7 @@ def test_bad_option_values_are_one_line_errors(corpus, tmp_path, args, message):
     assert r.output.count("\n") == 1 and message in r.output, r.output
 
 
-def test_scene_shorter_than_the_horizon_is_evaluated_on_censored_frames(tmp_path):
+def test_scene_shorter_than_the_horizon_has_only_censored_frames(tmp_path):
     short = tmp_path / "d" / "short.mcap"
     short.parent.mkdir()
     write_scene(short, straight_scene(duration_s=4.0, crossing=True))
@@ -149,9 +156,19 @@ def test_scene_shorter_than_the_horizon_is_evaluated_on_censored_frames(tmp_path
     assert r.exit_code == 0, r.output
     assert "1 scene(s) shorter than the 5 s horizon" in r.output
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    # Complete windows (the default): none, so hindsight has no positive, said so ...
     h = summary["references"]["hindsight"]
-    assert h["negative_agent_frames"] == 0 and h["positive_agents"] == 1
+    assert h["negative_agent_frames"] == 0 and h["positive_agents"] == 0
+    assert "hindsight" in summary["references_without_positives"]
+    # ... while the old rule, reported beside it, counts the censored positive.
+    h_any = summary["references"]["hindsight_any"]
+    assert h_any["negative_agent_frames"] == 0 and h_any["positive_agents"] == 1
     assert summary["scenes_shorter_than_horizon"] == ["short"]
+    r = invoke("evaluate", short, "-o", tmp_path / "any", "--bootstrap", 10, "--workers", 1,
+               "--hindsight-windows", "any", "--no-progress", "--no-plots")  # fmt: skip
+    assert r.exit_code == 0, r.output
+    summary = json.loads((tmp_path / "any" / "summary.json").read_text())
+    assert summary["references"]["hindsight"]["positive_agents"] == 1
 
 
 def test_evaluate_inputs_takes_model_parameters(corpus):

@@ -213,10 +213,11 @@ def test_table_has_one_row_per_frame_and_other_agent(tmp_path, suffix):
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]  # no temp file left
     df = pl.read_parquet(path) if suffix == ".parquet" else pl.read_csv(path)
     assert df.columns == [
-        "frame", "t_s", "ego_id", "agent_id", "kind", "x_m", "y_m", "speed_mps",
+        "frame", "t_s", "ego_id", "agent_id", "kind", "x_m", "y_m", "speed_mps", "distance_m",
         *(f"risk_{m}" for m in MODEL_NAMES),
         "kept_path_distance", "kept_gaussian", "dropped_by", "tier", "baseline",
-        "truth_gap_m", "truth_pet_s", "truth_label",
+        "truth_gap_m", "truth_pet_s", "truth_label", "truth_complete", "truth_yielded",
+        "track_ok",
     ]  # fmt: skip
     # A 3-frame scene is far shorter than the 5 s hindsight horizon: no negative label.
     assert not (df["truth_label"] == False).any()  # noqa: E712

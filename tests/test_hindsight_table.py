@@ -58,7 +58,9 @@ def test_run_table_carries_the_hindsight_truth(scene_file, tmp_path):
     )
     assert result.exit_code == 0, result.output
     df = pl.read_parquet(table)
-    assert df.columns[-3:] == ["truth_gap_m", "truth_pet_s", "truth_label"]
+    assert df.columns[-6:] == [
+        "truth_gap_m", "truth_pet_s", "truth_label", "truth_complete", "truth_yielded", "track_ok",
+    ]  # fmt: skip
     assert df.schema["truth_label"] == pl.Boolean
     # Independently: the truth from the decoded frames, looked up row by row.
     scene = read_scene(scene_file)

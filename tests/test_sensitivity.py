@@ -74,8 +74,10 @@ def paths(corpus):
 
 
 def aucs(summary):
+    # A reference without positives is left out of the models (and named in
+    # summary["references_without_positives"]): its AUC is undefined.
     return {
-        (m, ref): summary["models"][m][ref]["auc"]["value"]
+        (m, ref): summary["models"][m].get(ref, {"auc": {"value": None}})["auc"]["value"]
         for m in summary["models"]
         for ref in ("survival", "hindsight")
     }

@@ -26,12 +26,20 @@ import numpy as np
 import polars as pl
 
 from outputs.atomic import atomic_output
-from replay.analysis.evaluation_plots import plot_evaluation
+from replay.analysis.evaluation_plots import plot_budgets, plot_evaluation
 from replay.analysis.inputs import collect, resolve_inputs, scene_names
 from replay.core.engine import Stride
 from replay.errors import ReplayError
+from risk.budgets import budget_recall
 from risk.cascade import CascadeConfig
-from risk.evaluation import FPR_POINTS, TPR_TARGETS, evaluate_references, pooled_roc
+from risk.evaluation import (
+    FPR_POINTS,
+    TPR_TARGETS,
+    bootstrap_weights,
+    evaluate_references,
+    pooled_roc,
+    reference_counts,
+)
 from risk.hindsight import HindsightSettings
 from risk.prediction import PredictionSettings
 from risk.registry import BASELINE_THRESHOLD, MODELS
@@ -40,6 +48,14 @@ from risk.registry import BASELINE_THRESHOLD, MODELS
 GROUPINGS = ("dataset", "kind", "site")
 DEFAULT_GROUPINGS = ("dataset", "kind")
 REFERENCES = ("survival", "hindsight")
+#: Which hindsight windows are scored (``--hindsight-windows``): ``complete``, only frames
+#: whose whole horizon is recorded for the ego and the agent, positives and negatives
+#: alike (the default: a censored window can only ever be positive, so the old rule
+#: compares "moving and late in the scene" against "parked and early"); ``any``, also
+#: positives seen in censored windows (the rule before issue 28).
+HINDSIGHT_WINDOWS = ("complete", "any")
+#: Prefix of the dataset's own labels as references (table columns ``label_<name>``).
+DATASET_PREFIX = "dataset_"
 #: At most this many points per ROC curve in the roc table (the AUC uses all of them).
 ROC_TABLE_POINTS = 2000
 #: The threshold whose miss rates the plots and the printed table show: the pooled
@@ -82,6 +98,73 @@ class EvaluationSettings:
     n_boot: int = 1000
     level: float = 0.95
     seed: int = 0
+    hindsight_windows: str = "complete"  # one of HINDSIGHT_WINDOWS
+
+
+def _codes(column: pl.Series) -> np.ndarray:
+    """Label codes (1, 0, -1 null) of a nullable boolean column."""
+    col = column.cast(pl.Boolean)
+    return np.where(
+        col.is_null().to_numpy(), -1, col.fill_null(False).to_numpy().astype(np.int8)
+    ).astype(np.int8)
+
+
+def reference_arrays(
+    df: pl.DataFrame, *, baseline_threshold: float, windows: str = "complete"
+) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """Every reference the table carries, as ``(A,)`` label codes (or booleans), and a
+    note for each reference it lacks (name -> why).
+
+    - ``survival``: the survival baseline;
+    - ``hindsight``: the hindsight truth under ``windows``, and ``hindsight_<other>`` under
+      the other rule (both need ``truth_complete``; without it only ``any`` exists);
+    - ``planner``: ``planner_label`` (a planner beside the replay);
+    - ``dataset_<name>``: the dataset's own label lists (``label_<name>``; null in the
+      scenes without that list).
+    """
+    if windows not in HINDSIGHT_WINDOWS:
+        raise EvaluationError(
+            f"unknown hindsight window rule {windows!r}; expected one of "
+            f"{', '.join(HINDSIGHT_WINDOWS)}"
+        )
+    refs: dict[str, np.ndarray] = {}
+    missing: dict[str, str] = {}
+    if "risk_survival" in df.columns:
+        surv = df["risk_survival"].to_numpy()
+        refs["survival"] = np.nan_to_num(surv, nan=-np.inf) >= baseline_threshold
+    else:
+        refs["survival"] = df["baseline"].to_numpy().astype(bool)
+    any_rule = _codes(df["truth_label"])
+    if "truth_complete" in df.columns:
+        complete = df["truth_complete"].fill_null(False).to_numpy().astype(bool)
+        rules = {"any": any_rule, "complete": np.where(complete, any_rule, -1).astype(np.int8)}
+        other = next(w for w in HINDSIGHT_WINDOWS if w != windows)
+        refs["hindsight"] = rules[windows]
+        refs[f"hindsight_{other}"] = rules[other]
+    else:
+        refs["hindsight"] = any_rule
+        missing["hindsight_complete"] = (
+            "the table has no truth_complete column (written before complete windows were "
+            "recorded): hindsight is scored with censored positives ('any'); replay the scenes"
+        )
+        if windows == "complete":
+            missing["hindsight"] = "scored on 'any' windows: the table cannot tell complete ones"
+    if "planner_label" in df.columns:
+        refs["planner"] = _codes(df["planner_label"])
+    else:
+        missing["planner"] = (
+            "no planner_label column: give the scenes with --planner NAME, or tables written "
+            "by 'replay run --table T --planner NAME'"
+        )
+    for c in df.columns:
+        if c.startswith("label_"):
+            refs[DATASET_PREFIX + c.removeprefix("label_")] = _codes(df[c])
+    if not any(c.startswith("label_") for c in df.columns):
+        missing["dataset labels"] = (
+            "no scene carries label lists (/labels: Waymo objects_of_interest / "
+            "tracks_to_predict, AV2 focal / scored)"
+        )
+    return refs, missing
 
 
 def check_groupings(names: Sequence[str]) -> tuple[str, ...]:
@@ -142,18 +225,21 @@ def evaluate_table(
         .to_series()
         .to_numpy()
     )
-    if "risk_survival" in df.columns:
-        surv = df["risk_survival"].to_numpy()
-        baseline = np.nan_to_num(surv, nan=-np.inf) >= settings.baseline_threshold
-    else:
-        baseline = df["baseline"].to_numpy().astype(bool)
-    label = df["truth_label"]
-    truth = np.where(
-        label.is_null().to_numpy(), -1, label.fill_null(False).to_numpy().astype(np.int8)
+    all_refs, absent = reference_arrays(
+        df, baseline_threshold=settings.baseline_threshold, windows=settings.hindsight_windows
     )
-    truth = truth.astype(np.int8)
-    if not (truth == 1).any():
-        raise EvaluationError(_no_positive_message(df, truth, hindsight))
+    counts = {name: reference_counts(r, agent_key, scene_index) for name, r in all_refs.items()}
+    refs = {n: r for n, r in all_refs.items() if counts[n]["positive_agent_frames"] > 0}
+    no_positive = {
+        n: (
+            f"no positive among {c['agent_frames']} agent-frames ({c['negative_agent_frames']} "
+            f"negative, {c['unknown_agent_frames']} unknown): every rate against it is undefined"
+        )
+        for n, c in counts.items()
+        if n not in refs
+    }
+    if not refs:
+        raise EvaluationError(_no_positive_message(df, all_refs["hindsight"], hindsight))
     stages = [c.removeprefix("kept_") for c in df.columns if c.startswith("kept_")]
     kept = np.column_stack([df[f"kept_{s}"].to_numpy() for s in stages]) if stages else None
     groups = {"dataset": dataset, "kind": kind, "site": site}
@@ -169,9 +255,12 @@ def evaluate_table(
             f"{', '.join(sorted(set(site)))}"
         )
     scores = {m: df[f"risk_{m}"].to_numpy().astype(np.float64) for m in models}
+    situations = (
+        df.select(pl.struct("scene", "ego_id", "frame").rank("dense")).to_series().to_numpy()
+    )
     result = evaluate_references(
         scores,
-        {"survival": baseline, "hindsight": truth},
+        refs,
         scenes=scenes,
         agents=agent_key,
         groups={g: groups[g] for g in groupings},
@@ -179,15 +268,35 @@ def evaluate_table(
         stage_names=stages,
         sites=site,
         calibration_sites=calibration,
-        situations=df.select(pl.struct("scene", "ego_id", "frame").rank("dense"))
-        .to_series()
-        .to_numpy(),
+        situations=situations,
         targets=TPR_TARGETS,
         fpr_points=FPR_POINTS,
         n_boot=settings.n_boot,
         level=settings.level,
         seed=settings.seed,
     )
+    result["references"] = {**counts, **result["references"]}
+    draws = (
+        bootstrap_weights(scenes, n_boot=settings.n_boot, seed=settings.seed)[1]
+        if settings.n_boot > 0
+        else None
+    )
+    distance = (
+        df["distance_m"].to_numpy().astype(np.float64) if "distance_m" in df.columns else None
+    )
+    budgets = {
+        name: budget_recall(
+            scores,
+            r,
+            situations=situations,
+            codes=scene_index,
+            distance_m=distance,
+            kept_sets={"cascade": kept[:, -1]} if kept is not None else None,
+            draws=draws,
+            level=settings.level,
+        )
+        for name, r in refs.items()
+    }
     short = _short_scenes(df, hindsight or HindsightSettings())
     return {
         "inputs": list(inputs),
@@ -209,6 +318,143 @@ def evaluate_table(
             "tpr1_hindsight": "highest threshold keeping every hindsight positive",
         },
         **result,
+        "reference_names": list(refs),
+        "references_missing": absent,
+        "references_without_positives": no_positive,
+        "budgets": budgets,
+        "agreement": agreement(all_refs, df, agent_key),
+        "composition": composition(df, all_refs),
+        "track_flags": _track_flags(df, dataset),
+    }
+
+
+def _state(reference: np.ndarray) -> np.ndarray:
+    """``(A,)`` 'positive' / 'negative' / 'unknown' of label codes or booleans."""
+    r = np.asarray(reference)
+    if r.dtype == bool:
+        return np.where(r, "positive", "negative")
+    return np.where(r == 1, "positive", np.where(r == 0, "negative", "unknown"))
+
+
+def _count(mask: np.ndarray, agent_key: np.ndarray) -> dict[str, int]:
+    return {
+        "agent_frames": int(mask.sum()),
+        "agents": int(np.unique(agent_key[mask]).size),  # distinct (scene, ego, agent)
+    }
+
+
+def agreement(
+    refs: Mapping[str, np.ndarray], df: pl.DataFrame, agent_key: np.ndarray
+) -> dict[str, Any]:
+    """How the references agree, as counts: every pair's 3 x 3 table of agent-frames
+    (positive / negative / unknown under each), and for the planner-important agents
+    what hindsight says and why (the ego yielded, the window was censored, a track was
+    flagged). Agent counts are distinct (scene, ego, agent)."""
+    names = list(refs)
+    states = {n: _state(refs[n]) for n in names}
+    pairs = []
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            table = {
+                f"{sa}/{sb}": int(((states[a] == sa) & (states[b] == sb)).sum())
+                for sa in ("positive", "negative", "unknown")
+                for sb in ("positive", "negative", "unknown")
+            }
+            pairs.append({"a": a, "b": b, "counts": table})
+    out: dict[str, Any] = {"pairs": pairs}
+    n = df.height
+    yielded = (
+        df["truth_yielded"].fill_null(False).to_numpy().astype(bool)
+        if "truth_yielded" in df.columns
+        else np.zeros(n, bool)
+    )
+    complete = (
+        df["truth_complete"].fill_null(False).to_numpy().astype(bool)
+        if "truth_complete" in df.columns
+        else np.zeros(n, bool)
+    )
+    track_ok = (
+        df["track_ok"].fill_null(True).to_numpy().astype(bool)
+        if "track_ok" in df.columns
+        else np.ones(n, bool)
+    )
+    out["has_yielded"] = "truth_yielded" in df.columns
+    hind = [h for h in names if h.startswith("hindsight")]
+    out["yielded"] = {
+        "all": _count(yielded, agent_key),
+        **{
+            h: {st: _count(yielded & (states[h] == st), agent_key) for st in
+                ("positive", "negative", "unknown")}
+            for h in hind
+        },
+    }  # fmt: skip
+    if "planner" in refs:
+        important = states["planner"] == "positive"
+        block: dict[str, Any] = {"important": _count(important, agent_key)}
+        for h in hind:
+            pos = important & (states[h] == "positive")
+            neg = important & (states[h] == "negative")
+            unk = important & (states[h] == "unknown")
+            block[h] = {
+                "positive": _count(pos, agent_key),
+                "negative": _count(neg, agent_key),
+                "negative_yielded": _count(neg & yielded, agent_key),
+                "unknown": _count(unk, agent_key),
+                "unknown_yielded": _count(unk & yielded, agent_key),
+                "unknown_censored": _count(unk & ~complete, agent_key),
+                "unknown_track_flagged": _count(unk & ~track_ok, agent_key),
+            }
+        out["planner"] = block
+    return out
+
+
+def composition(df: pl.DataFrame, refs: Mapping[str, np.ndarray]) -> dict[str, Any]:
+    """What the positives and negatives of each hindsight rule are made of: agent-frames,
+    median time since the scene's first frame (s), median agent speed (m/s), the share of
+    standing agents (speed < 0.5 m/s) and the share from frames in the scene's first 2 s."""
+    t0 = df.select(pl.col("t_s") - pl.col("t_s").min().over("scene")).to_series().to_numpy()
+    speed = df["speed_mps"].to_numpy().astype(np.float64) if "speed_mps" in df.columns else None
+    out: dict[str, Any] = {}
+    for name, r in refs.items():
+        if not name.startswith("hindsight"):
+            continue
+        st = _state(r)
+        out[name] = {}
+        for label in ("positive", "negative"):
+            m = st == label
+            block: dict[str, Any] = {"agent_frames": int(m.sum())}
+            if m.any():
+                block["median_time_in_scene_s"] = float(np.median(t0[m]))
+                block["share_first_2s"] = float((t0[m] <= 2.0 + 1e-9).mean())
+                if speed is not None:
+                    block["median_speed_mps"] = float(np.nanmedian(speed[m]))
+                    block["share_standing"] = float((speed[m] < 0.5).mean())
+            out[name][label] = block
+    return out
+
+
+def _track_flags(df: pl.DataFrame, dataset: np.ndarray) -> dict[str, Any]:
+    """Rows whose ego or agent track is inconsistent in the window (kept out of the
+    truth): count, share, distinct agents, per kind and the share per dataset."""
+    if "track_ok" not in df.columns:
+        return {"available": False}
+    bad = ~df["track_ok"].fill_null(True)
+    bad_np = bad.to_numpy().astype(bool)
+    share_by_dataset = {str(d): float(bad_np[dataset == d].mean()) for d in np.unique(dataset)}
+    flagged = df.filter(bad)
+    return {
+        "available": True,
+        "agent_frames": int(flagged.height),
+        "share": float(flagged.height / max(1, df.height)),
+        "agents": int(flagged.select(pl.struct("scene", "agent_id").n_unique()).item())
+        if flagged.height
+        else 0,
+        "scenes": int(flagged["scene"].n_unique()) if flagged.height else 0,
+        "by_kind": {
+            str(k): int(v)
+            for k, v in flagged.group_by(pl.col("kind").cast(pl.String)).len().iter_rows()
+        },
+        "share_by_dataset": share_by_dataset,
     }
 
 
@@ -277,18 +523,14 @@ def positives_table(
 def roc_table(
     agents: pl.DataFrame, models: Sequence[str], summary: Mapping[str, Any]
 ) -> pl.DataFrame:
-    """Pooled ROC points of every model against both references (at most
+    """Pooled ROC points of every model against every reference with positives (at most
     :data:`ROC_TABLE_POINTS` per curve, evenly spread; the ends are kept)."""
-    truth = agents["truth_label"]
-    refs = {
-        "survival": np.nan_to_num(agents["risk_survival"].to_numpy(), nan=-np.inf)
-        >= summary["baseline"]["threshold"]
-        if "risk_survival" in agents.columns
-        else agents["baseline"].to_numpy().astype(bool),
-        "hindsight": np.where(
-            truth.is_null().to_numpy(), -1, truth.fill_null(False).to_numpy().astype(np.int8)
-        ).astype(np.int8),
-    }
+    all_refs, _ = reference_arrays(
+        agents, baseline_threshold=summary["baseline"]["threshold"],
+        windows=summary["settings"].get("hindsight_windows", "complete"),
+    )  # fmt: skip
+    names = summary.get("reference_names", list(all_refs))
+    refs = {n: all_refs[n] for n in names if n in all_refs}
     frames = []
     for m in models:
         s = agents[f"risk_{m}"].to_numpy().astype(np.float64)
@@ -312,6 +554,30 @@ def roc_table(
                 )
             )
     return pl.concat(frames) if frames else pl.DataFrame()
+
+
+def budget_table(summary: Mapping[str, Any]) -> pl.DataFrame:
+    """The budgets as rows: reference x rule x budget (K, radius or the cascade's fixed
+    set), with the mean kept agents per situation, the recall and its interval."""
+    rows = []
+    for ref, block in summary.get("budgets", {}).items():
+        for r in block:
+            ci = r.get("ci", [None, None])
+            rows.append(
+                {
+                    "reference": ref, "rule": r["rule"], "kind": r["kind"], "k": r["k"],
+                    "radius_m": r["radius_m"], "mean_kept": r["mean_kept"],
+                    "positives": r["positives"], "kept_positives": r["kept_positives"],
+                    "recall": r["value"], "ci_lo": ci[0], "ci_hi": ci[1],
+                }
+            )  # fmt: skip
+    schema = {
+        "reference": pl.String, "rule": pl.String, "kind": pl.String, "k": pl.Int64,
+        "radius_m": pl.Float64, "mean_kept": pl.Float64, "positives": pl.Int64,
+        "kept_positives": pl.Int64, "recall": pl.Float64, "ci_lo": pl.Float64,
+        "ci_hi": pl.Float64,
+    }  # fmt: skip
+    return pl.DataFrame(rows, schema=schema)
 
 
 def miss_table(summary: Mapping[str, Any]) -> pl.DataFrame:
@@ -361,6 +627,7 @@ def write_evaluation(
         "roc": roc_table(agents, models, summary),
         "miss_rates": miss_table(summary),
         "positives": positives_table(agents, datasets),
+        "budgets": budget_table(summary),
     }
     for name, df in tables.items():
         for suffix in (".parquet", ".csv"):
@@ -373,6 +640,7 @@ def write_evaluation(
             written[path.name] = path
     if plots:
         written.update(plot_evaluation(summary, tables["roc"], out, threshold=HEADLINE_THRESHOLD))
+        written.update(plot_budgets(tables["budgets"], out))
     path = out / "summary.json"
     text = json.dumps(
         _jsonable({**summary, "files": sorted([*written, "summary.json"])}),
@@ -401,40 +669,62 @@ def _jsonable(value: Any) -> Any:
 
 # ---------------------------------------------------------------------- text
 def format_evaluation(summary: Mapping[str, Any]) -> str:
-    """The end-of-run text: counts, each model's AUC against both references with
-    intervals, and its miss rate against hindsight at the headline threshold."""
+    """The end-of-run text: counts per reference, each model's AUC against every
+    reference with intervals, its miss rate against hindsight at the headline threshold,
+    the references missing or without positives, and the planner/hindsight agreement."""
     ref = summary["references"]
-    h, s = ref["hindsight"], ref["survival"]
+    names = list(summary.get("reference_names", [n for n in REFERENCES if n in ref]))
     level = summary["bootstrap"]["level"]
+    h, s = ref["hindsight"], ref["survival"]
+    windows = summary["settings"].get("hindsight_windows", "any")
     lines = [
         f"{summary['scenes']} scenes, {summary['egos']} egos, {summary['situations']} "
         f"situations, {h['agent_frames']} agent-frames",
-        f"Hindsight: {h['positive_agent_frames']} positive agent-frames ({h['positive_agents']} "
-        f"distinct agents, in {h['scenes_with_positive']} scenes), {h['negative_agent_frames']} "
-        f"negative, {h['unknown_agent_frames']} censored (left out)",
+        f"Hindsight ({windows} windows): {h['positive_agent_frames']} positive agent-frames "
+        f"({h['positive_agents']} distinct agents, in {h['scenes_with_positive']} scenes), "
+        f"{h['negative_agent_frames']} negative, {h['unknown_agent_frames']} unknown (left out)",
         f"Survival baseline: {s['positive_agent_frames']} important agent-frames "
         f"({s['positive_agents']} distinct agents)",
     ]
+    for name in names:
+        if name in ("hindsight", "survival"):
+            continue
+        c = ref[name]
+        lines.append(
+            f"{name}: {c['positive_agent_frames']} positive, {c['negative_agent_frames']} "
+            f"negative, {c['unknown_agent_frames']} unknown agent-frames"
+        )
+    for name, why in {
+        **summary.get("references_missing", {}),
+        **summary.get("references_without_positives", {}),
+    }.items():
+        lines.append(f"Reference {name}: {why}")
     short = summary.get("scenes_shorter_than_horizon") or []
     if short:
         hz = (summary.get("hindsight") or {}).get("horizon_s", HindsightSettings().horizon_s)
         shown = ", ".join(short[:5]) + (", ..." if len(short) > 5 else "")
         lines.append(
-            f"Note: {len(short)} scene(s) shorter than the {hz:g} s horizon are evaluated on "
-            f"censored frames only (their positives count, their negatives are unknown): {shown}"
+            f"Note: {len(short)} scene(s) shorter than the {hz:g} s horizon have no complete "
+            f"window: {shown}"
         )
     pct = f"{100 * level:g} %"
-    lines.append(
-        f"  {'model':<22}{'AUC survival':>14} {'[' + pct + ']':<15}{'AUC hindsight':>14} "
-        f"{'[' + pct + ']':<15}{'miss (hindsight) @ keep all survival':>38}"
-    )
+    lines.append(f"AUC per reference [{pct} scene-bootstrap interval]:")
+    lines.append(f"  {'model':<22}" + "".join(f"{n:>30}" for n in names))
     for model, per_ref in summary["models"].items():
-        a_s, a_h = per_ref["survival"]["auc"], per_ref["hindsight"]["auc"]
-        miss = per_ref["hindsight"]["miss_rate"].get(HEADLINE_THRESHOLD, {})
+        cells = [
+            f"{_f(per_ref[n]['auc']['value'])} {_ci(per_ref[n]['auc'])}" if n in per_ref else "n/a"
+            for n in names
+        ]
+        lines.append(f"  {model:<22}" + "".join(f"{c:>30}" for c in cells))
+    planner = summary.get("agreement", {}).get("planner")
+    if planner and "hindsight" in planner:
+        b = planner["hindsight"]
         lines.append(
-            f"  {model:<22}{_f(a_s['value']):>14} {_ci(a_s):<15}{_f(a_h['value']):>14} "
-            f"{_ci(a_h):<15}{_f(miss.get('value')):>12} {_ci(miss):<15} "
-            f"{miss.get('missed_agents', 0)} agents, keeps {_f(miss.get('kept_share'))}"
+            f"Planner-important: {planner['important']['agent_frames']} agent-frames; against "
+            f"hindsight {b['positive']['agent_frames']} positive, {b['negative']['agent_frames']} "
+            f"negative ({b['negative_yielded']['agent_frames']} with the ego yielding), "
+            f"{b['unknown']['agent_frames']} unknown ({b['unknown_yielded']['agent_frames']} "
+            "with the ego yielding)"
         )
     cascade = summary.get("cascade", {}).get("hindsight")
     if cascade:
@@ -502,10 +792,13 @@ def collect_agents(
     ego: int | str | None = None,
     every: int | Stride = 1,
     models: Sequence[str] | None = None,
+    planner: str | None = None,
 ) -> tuple[pl.DataFrame, dict[str, str], HindsightSettings]:
     """The agents table of scenes, tables or folders (as ``replay stats`` reads them),
     the dataset of each scene (the name of the folder its file is in) and the hindsight
-    settings of its truth columns. ``models``: the risk columns to compute (default: all)."""
+    settings of its truth columns. ``models``: the risk columns to compute (default: all).
+    ``planner``: replay the scenes with that planner's truth beside the engine (tables are
+    used as they are)."""
     found = resolve_inputs([pathlib.Path(p) for p in paths])
     if found.tables and hindsight is not None and hindsight != HindsightSettings():
         raise EvaluationError(
@@ -524,6 +817,7 @@ def collect_agents(
         hindsight=hs,
         ego=ego,
         every=Stride.of(every),
+        planner=planner,
     )
     files = [*found.scenes, *found.tables]
     names = scene_names(files)

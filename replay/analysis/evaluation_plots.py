@@ -23,7 +23,10 @@ def plot_evaluation(
     summary: Mapping[str, Any], roc: pl.DataFrame, out_dir: pathlib.Path, *, threshold: str
 ) -> dict[str, pathlib.Path]:
     """``roc_hindsight.png`` and one ``miss_rate_by_<grouping>.png`` per grouping (miss
-    rates at the operating threshold named ``threshold``)."""
+    rates at the operating threshold named ``threshold``); nothing when hindsight has no
+    positive."""
+    if "hindsight" not in summary.get("reference_names", ["hindsight"]):
+        return {}
     written = {"roc_hindsight.png": _roc(summary, roc, out_dir / "roc_hindsight.png")}
     for grouping, blocks in summary.get("by", {}).items():
         name = f"miss_rate_by_{grouping}.png"
@@ -104,6 +107,46 @@ def _miss(
     ax.legend(fontsize=7, ncol=3)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def plot_budgets(budgets: pl.DataFrame, out_dir: pathlib.Path) -> dict[str, pathlib.Path]:
+    """``budget_<reference>.png`` per reference: the share of its positives kept against
+    the agents kept per situation, one line per top-K rule (each model, nearest-K), the
+    radius rules as a dashed line at their mean kept counts, the cascade as a star."""
+    written: dict[str, pathlib.Path] = {}
+    if budgets.height == 0:
+        return written
+    for ref in dict.fromkeys(budgets["reference"].to_list()):
+        sub = budgets.filter(pl.col("reference") == ref)
+        fig, ax = plt.subplots(figsize=(7.5, 5.6), dpi=DPI)
+        for i, rule in enumerate(dict.fromkeys(sub["rule"].to_list())):
+            r = sub.filter(pl.col("rule") == rule).sort("mean_kept")
+            x = r["mean_kept"].to_numpy()
+            y = r["recall"].fill_null(np.nan).to_numpy()
+            lo = np.nan_to_num(y - r["ci_lo"].fill_null(np.nan).to_numpy())
+            hi = np.nan_to_num(r["ci_hi"].fill_null(np.nan).to_numpy() - y)
+            kind = r["kind"][0]
+            if kind == "fixed":
+                ax.errorbar(x, y, yerr=[lo, hi], fmt="*", ms=12, color="black",
+                            label=f"{rule} (mean kept {x[0]:.1f})")  # fmt: skip
+                continue
+            style = {"radius": ("--", "0.3"), "top_k": ("-", None)}[kind]
+            color = style[1] or MODEL_COLORS.get(rule, "0.5" if rule == "nearest" else f"C{i}")
+            ls = ":" if rule == "nearest" else style[0]
+            ax.errorbar(x, y, yerr=[lo, hi], ls=ls, marker="o", ms=3, lw=1.2, capsize=2,
+                        color=color, label=f"{rule} (R)" if kind == "radius" else rule)  # fmt: skip
+        ax.set_xscale("log", base=2)
+        ax.set_xlabel("agents kept per situation (K; mean for radius and cascade)")
+        ax.set_ylabel(f"share of {ref} positives kept")
+        n_pos = int(sub["positives"][0])
+        ax.set_title(f"Budgets against {ref} ({n_pos} positive agent-frames)")
+        ax.set_ylim(0, 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=2, loc="lower right")
+        fig.tight_layout()
+        name = f"budget_{ref}.png"
+        written[name] = _save(fig, out_dir / name)
+    return written
 
 
 def plot_sensitivity(rows: pl.DataFrame, path: pathlib.Path) -> pathlib.Path:

@@ -69,6 +69,8 @@ def _above(a: tuple[float, float, float], b: tuple[float, float, float]) -> str:
 def paper_findings(summary: Mapping[str, Any], ref: str) -> list[tuple[str, str]]:
     """(finding, verdict) of the paper's ranking findings against ``ref``. With fewer
     than two scenes there is no interval, so no order is "intervals apart"."""
+    if any(ref not in per for per in summary["models"].values()):
+        return []
     a = {m: _auc(summary, m, ref) for m in summary["models"]}
     if summary["scenes"] < 2:
         a = {m: (v[0], -math.inf, math.inf) for m, v in a.items()}
@@ -143,8 +145,225 @@ def _positives_section(agents: pl.DataFrame, datasets: Mapping[str, str] | None)
     )
 
 
+def _ref_names(summary: Mapping[str, Any]) -> list[str]:
+    return list(summary.get("reference_names", ["survival", "hindsight"]))
+
+
+def _auc_all(summary: Mapping[str, Any]) -> str:
+    """Every model's AUC against every reference with positives, side by side."""
+    names = _ref_names(summary)
+    rows = [
+        [TITLES.get(m, m), *(_fmt_ci(_auc(summary, m, n)) for n in names)]
+        for m in summary["models"]
+    ]
+    counts = summary["references"]
+    header = [
+        "model",
+        *(f"{n} ({counts[n]['positive_agent_frames']} pos. / "
+          f"{counts[n]['negative_agent_frames']} neg.)" for n in names),
+    ]  # fmt: skip
+    return _table(header, rows)
+
+
+def _agreement_section(summary: Mapping[str, Any]) -> str:
+    agree = summary.get("agreement", {})
+    lines = []
+    planner = agree.get("planner")
+    if planner:
+        imp = planner["important"]
+        lines.append(
+            f"Planner-important: {imp['agent_frames']} agent-frames, {imp['agents']} distinct "
+            "(scene, ego, agent). What hindsight says of them:\n"
+        )
+        rows = []
+        for h in [n for n in planner if n.startswith("hindsight")]:
+            b = planner[h]
+            rows.append(
+                [
+                    h,
+                    _n(b["positive"]),
+                    _n(b["negative"]),
+                    _n(b["negative_yielded"]),
+                    _n(b["unknown"]),
+                    _n(b["unknown_yielded"]),
+                    _n(b["unknown_censored"]),
+                    _n(b["unknown_track_flagged"]),
+                ]
+            )
+        lines.append(
+            _table(
+                [
+                    "hindsight rule",
+                    "positive (came close)",
+                    "negative",
+                    "negative, the ego yielded",
+                    "unknown",
+                    "unknown, the ego yielded",
+                    "unknown: censored window",
+                    "unknown: track flagged",
+                ],
+                rows,
+            )
+        )
+        b = planner.get("hindsight")
+        if b:
+            lines.append(
+                f"\n**Yielded count:** {b['negative_yielded']['agent_frames']} planner-important "
+                f"agent-frames ({b['negative_yielded']['agents']} distinct (scene, ego, agent)) "
+                "are hindsight negatives where the recorded ego braked hard or halved its "
+                "speed while the agent was ahead on its path: agents the driver reacted to, "
+                "which the came-close rule calls unimportant."
+            )
+    else:
+        lines.append("No planner truth in these inputs (give the scenes with `--planner NAME`).")
+    y = agree.get("yielded")
+    if y and agree.get("has_yielded"):
+        parts = [f"{y['all']['agent_frames']} agent-frames with the ego yielding in all"]
+        for h in [n for n in y if n.startswith("hindsight")]:
+            parts.append(
+                f"under {h}: {y[h]['positive']['agent_frames']} positive, "
+                f"{y[h]['negative']['agent_frames']} negative, {y[h]['unknown']['agent_frames']} "
+                "unknown"
+            )
+        lines.append("\nYielded (kept apart from came-close): " + "; ".join(parts) + ".")
+    pairs = agree.get("pairs", [])
+    if pairs:
+        lines.append(
+            "\nEvery pair of references, agent-frames (rows: the first, columns: the second):\n"
+        )
+        rows = []
+        for p in pairs:
+            c = p["counts"]
+            for sa in ("positive", "negative", "unknown"):
+                if not any(c[f"{sa}/{sb}"] for sb in ("positive", "negative", "unknown")):
+                    continue
+                rows.append(
+                    [f"{p['a']} {sa}", p["b"]]
+                    + [str(c[f"{sa}/{sb}"]) for sb in ("positive", "negative", "unknown")]
+                )
+        lines.append(_table(["first", "second", "positive", "negative", "unknown"], rows))
+    return "\n".join(lines)
+
+
+def _n(block: Mapping[str, Any]) -> str:
+    return f"{block['agent_frames']} ({block['agents']})"
+
+
+def _windows_section(summary: Mapping[str, Any]) -> str:
+    names = _ref_names(summary)
+    hs = [n for n in names if n.startswith("hindsight")]
+    lines = []
+    if len(hs) == 2:
+        a, b = hs
+        rows = []
+        for m in summary["models"]:
+            x, y = _auc(summary, m, a), _auc(summary, m, b)
+            rows.append([TITLES.get(m, m), _fmt_ci(x), _fmt_ci(y), _fmt(x[0] - y[0])])
+        lines.append(_table(["model", f"AUC {a}", f"AUC {b}", "difference"], rows))
+    else:
+        lines.append(
+            "Only one hindsight rule could be scored: "
+            + "; ".join(
+                f"{k}: {v}"
+                for k, v in summary.get("references_missing", {}).items()
+                if k.startswith("hindsight")
+            )
+        )
+    comp = summary.get("composition", {})
+    rows = []
+    for h, block in comp.items():
+        for label in ("positive", "negative"):
+            c = block.get(label, {})
+            rows.append(
+                [
+                    h, label, str(c.get("agent_frames", 0)),
+                    _fmt(c.get("median_time_in_scene_s", math.nan)),
+                    _fmt(c.get("share_first_2s", math.nan)),
+                    _fmt(c.get("median_speed_mps", math.nan)),
+                    _fmt(c.get("share_standing", math.nan)),
+                ]
+            )  # fmt: skip
+    if rows:
+        lines.append(
+            "\nWhat the positives and negatives are made of (time since the scene's first "
+            "frame, the agent's speed):\n"
+        )
+        lines.append(
+            _table(
+                [
+                    "rule",
+                    "label",
+                    "agent-frames",
+                    "median time in scene s",
+                    "share in the first 2 s",
+                    "median speed m/s",
+                    "share standing (< 0.5 m/s)",
+                ],
+                rows,
+            )
+        )
+    return "\n".join(lines)
+
+
+def _budget_section(summary: Mapping[str, Any], plot_dir: str, pngs: list[str]) -> str:
+    out = []
+    for ref, rows in summary.get("budgets", {}).items():
+        name = f"budget_{ref}.png"
+        if name in pngs:
+            out.append(f"![budgets against {ref}]({plot_dir}/{name})\n")
+        ks = sorted({r["k"] for r in rows if r["kind"] == "top_k"})
+        by_rule: dict[str, dict[int, Mapping[str, Any]]] = {}
+        for r in rows:
+            if r["kind"] == "top_k":
+                by_rule.setdefault(r["rule"], {})[r["k"]] = r
+        table = []
+        for rule, per in by_rule.items():
+            table.append([TITLES.get(rule, rule), *(_rc(per[k]) for k in ks)])
+        out.append(f"Against **{ref}** ({rows[0]['positives']} positive agent-frames): share kept "
+                   "at K agents per situation [95 %]:\n")  # fmt: skip
+        out.append(_table(["rule", *(f"K = {k}" for k in ks)], table))
+        extra = [
+            f"radius {r['radius_m']:g} m keeps {r['mean_kept']:.1f} agents on average: {_rc(r)}"
+            for r in rows
+            if r["kind"] == "radius"
+        ] + [
+            f"the {r['rule']} keeps {r['mean_kept']:.1f} agents on average: {_rc(r)}"
+            for r in rows
+            if r["kind"] == "fixed"
+        ]
+        if extra:
+            out.append("\n" + "; ".join(extra) + ".\n")
+    return "\n".join(out) or "No budgets (no reference with positives)."
+
+
+def _rc(r: Mapping[str, Any]) -> str:
+    v = math.nan if r.get("value") is None else float(r["value"])
+    ci = r.get("ci") or [None, None]
+    if ci[0] is None or not math.isfinite(v):
+        return _fmt(v)
+    return f"{_fmt(v)} [{_fmt(float(ci[0]))}, {_fmt(float(ci[1]))}]"
+
+
+def _tracks_section(summary: Mapping[str, Any]) -> str:
+    t = summary.get("track_flags", {})
+    if not t.get("available"):
+        return "The inputs carry no track flags (tables written before the check existed)."
+    kinds = ", ".join(f"{k} {v}" for k, v in sorted(t["by_kind"].items())) or "none"
+    shares = ", ".join(
+        f"{d} {100 * v:.1f} %" for d, v in sorted(t.get("share_by_dataset", {}).items())
+    )
+    return (
+        f"{t['agent_frames']} agent-frames ({100 * t['share']:.1f} %; {t['agents']} distinct "
+        f"agents in {t['scenes']} scenes) have an ego or agent track that moves faster or "
+        "accelerates harder than its kind can (or jumps) within the hindsight window; their "
+        f"hindsight truth is left unknown. Per kind: {kinds}. Share per dataset: {shares}."
+    )
+
+
 def _auc_section(summary: Mapping[str, Any]) -> str:
     rows = []
+    if "hindsight" not in _ref_names(summary):
+        return "Hindsight has no positive in these inputs: no miss rate against it."
     for m in summary["models"]:
         s, h = _auc(summary, m, "survival"), _auc(summary, m, "hindsight")
         miss = summary["models"][m]["hindsight"]["miss_rate"].get(HEADLINE_THRESHOLD, {})
@@ -169,6 +388,8 @@ def _auc_section(summary: Mapping[str, Any]) -> str:
 
 
 def _undecided(summary: Mapping[str, Any]) -> list[str]:
+    if "hindsight" not in _ref_names(summary):
+        return ["anything against hindsight: no positive in these inputs"]
     a = {m: _auc(summary, m, "hindsight") for m in RANKED if m in summary["models"]}
     order = sorted(a, key=lambda m: -a[m][0] if math.isfinite(a[m][0]) else math.inf)
     out = []
@@ -185,6 +406,29 @@ def _undecided(summary: Mapping[str, Any]) -> list[str]:
             f"anything about the {refs['unknown_agent_frames']} censored agent-frames "
             f"({100 * share:.0f} %): the recording ends or the agent leaves before the "
             "hindsight horizon, so whether they came close is unknown"
+        )
+    for name, why in {
+        **summary.get("references_missing", {}),
+        **summary.get("references_without_positives", {}),
+    }.items():
+        out.append(f"anything against {name}: {why}")
+    flags = summary.get("track_flags", {})
+    for d, share in sorted(flags.get("share_by_dataset", {}).items()):
+        if share > 0.1:
+            out.append(
+                f"hindsight on {d}: {100 * share:.0f} % of its agent-frames have an ego or "
+                "agent track that moves faster or accelerates harder than its kind can "
+                "within the window, so their truth is unknown; the recording itself is in "
+                "doubt there"
+            )
+    if "planner" in _ref_names(summary):
+        planner = summary["settings"].get("planner")
+        which = f"planners other than {planner}" if planner else "other planners"
+        out.append(
+            f"whether the planner truth holds for {which}: the labels "
+            "are one planner's reactions to the toolkit's own predictions (constant speed "
+            "along each agent's path), so an agent the prediction misplaces is judged by "
+            "where it was predicted, not where it went"
         )
     for grouping, blocks in summary.get("by", {}).items():
         for name, block in blocks.items():
@@ -288,6 +532,7 @@ def write_report(
     sweep: SweepResult | None = None,
     command: str = "",
     datasets: Mapping[str, str] | None = None,
+    note: str = "",
 ) -> dict[str, pathlib.Path]:
     """The report at ``path`` and its plots (copied from ``out_dir``) in the folder of
     the same name without ``.md``; each file atomically. Returns name -> path."""
@@ -306,7 +551,7 @@ def write_report(
         f"![{p.stem}]({rel}/{p.name})" for p in pngs if p.name.startswith("miss_rate_by_")
     )
     findings = []
-    for ref in ("hindsight", "survival"):
+    for ref in ("hindsight", "planner", "survival"):
         for name, verdict in paper_findings(summary, ref):
             findings.append([name, ref, verdict])
     cascade = summary.get("cascade", {}).get("hindsight") or []
@@ -332,14 +577,42 @@ def write_report(
         "egos": str(summary["egos"]),
         "situations": str(summary["situations"]),
         "times": ", ".join(f"{k} {v:.0f} s" for k, v in times.items()) or "not measured",
-        "hindsight": ", ".join(f"{k} {v}" for k, v in summary["hindsight"].items()),
+        "hindsight": ", ".join(f"{k} {v}" for k, v in (summary.get("hindsight") or {}).items())
+        or "as the tables were written",
         "baseline": f"{summary['baseline']['model']} >= {summary['baseline']['threshold']:g}",
         "n_boot": str(summary["bootstrap"]["n_boot"]),
         "positives": _positives_section(agents, datasets),
         "auc_table": _auc_section(summary),
         "findings": _table(["finding of the paper", "reference", "verdict"], findings),
         "cascade": cascade_text,
-        "roc_plot": f"![ROC against hindsight]({rel}/roc_hindsight.png)",
+        "roc_plot": f"![ROC against hindsight]({rel}/roc_hindsight.png)"
+        if any(p.name == "roc_hindsight.png" for p in pngs)
+        else "",
+        "auc_all": _auc_all(summary),
+        "agreement": _agreement_section(summary),
+        "windows_section": _windows_section(summary),
+        "budgets": _budget_section(summary, rel, [p.name for p in pngs]),
+        "tracks": _tracks_section(summary),
+        "windows": summary["settings"].get("hindsight_windows", "any"),
+        "planner_note": (
+            f"planner {summary['settings']['planner']}, with all agents and without each "
+            "agent that could change its plan (tolerance 0.5 m)"
+            if summary["settings"].get("planner")
+            else (
+                "from the tables' planner_label column"
+                if "planner" in summary["references"]
+                else "none"
+            )
+        ),
+        "note": f"- {note}\n" if note else "",
+        "absent": "; ".join(
+            f"{k}: {v}"
+            for k, v in {
+                **summary.get("references_missing", {}),
+                **summary.get("references_without_positives", {}),
+            }.items()
+        )
+        or "none",
         "miss_plots": miss_plots or "(no plots)",
         "sweep": _sweep_section(sweep, rel),
         "undecided": "\n".join(f"- {u}" for u in undecided) or "- nothing flagged",

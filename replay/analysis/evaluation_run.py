@@ -77,17 +77,20 @@ def run_evaluation(
     command: str = "",
     extra_inputs: Sequence[pathlib.Path | None] = (),
     show: Callable[[str], None] = _quiet,
+    planner: str | None = None,
+    report_note: str = "",
 ) -> EvaluationRun:
     """Evaluate the scenes or tables ``inputs`` into ``out_dir`` (and the Markdown report
     ``report_path``, made by ``command``). ``show`` receives the evaluation's and the
     sweep's text as soon as each is computed. ``extra_inputs`` (a cascade file) are
-    refused as outputs like ``inputs``."""
+    refused as outputs like ``inputs``. ``planner``: replay the scenes with that planner's
+    truth beside the engine."""
     guard = OutputGuard(inputs=[*inputs, *extra_inputs], folders=(out_dir,), files=(report_path,))
     with guard:  # checked and locked at once; every file appears together
         start = time.perf_counter()
         agents, datasets, hs = collect_agents(
             inputs, cascade=cascade, hindsight=hindsight, workers=workers,
-            progress=progress, ego=ego, every=every,
+            progress=progress, ego=ego, every=every, planner=planner,
         )  # fmt: skip
         read_s = time.perf_counter() - start
         start = time.perf_counter()
@@ -95,6 +98,7 @@ def run_evaluation(
             agents, settings=settings, datasets=datasets, hindsight=hs,
             inputs=[str(p) for p in inputs],
         )  # fmt: skip
+        summary["settings"]["planner"] = planner
         summary["time_s"] = {"replay / read": read_s, "evaluation": time.perf_counter() - start}
         show(format_evaluation(summary))
         run = EvaluationRun(summary)
@@ -127,7 +131,7 @@ def run_evaluation(
             run.files.update(
                 write_report(
                     report_path, summary, agents, out_dir=out_dir, sweep=run.sweep,
-                    command=command, datasets=datasets,
+                    command=command, datasets=datasets, note=report_note,
                 )
             )  # fmt: skip
     return run

@@ -3,6 +3,7 @@ and tables (read as written), into one agents table and one frames table."""
 
 from __future__ import annotations
 
+import functools
 import pathlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -21,6 +22,8 @@ from replay.core.engine import EVERY_FRAME, Stride
 from replay.core.pool import parallel_map
 from replay.core.worker import SceneJob, replay_job
 from replay.errors import ReplayError
+from replay.planning.annotator import PlannerAnnotator
+from replay.planning.registry import make_planner
 from risk.cascade import CascadeConfig
 from risk.hindsight import HindsightSettings
 from risk.prediction import PredictionSettings
@@ -72,6 +75,12 @@ def scene_names(paths: Sequence[pathlib.Path]) -> list[str]:
     return [s if stems.count(s) == 1 else str(p) for s, p in zip(stems, paths, strict=True)]
 
 
+def planner_annotators(name: str) -> list[PlannerAnnotator]:
+    """A planner annotator with planner truth (``planner_label`` columns), made in the
+    worker process that replays the scene."""
+    return [PlannerAnnotator(make_planner(name), truth=True, filtered=False)]
+
+
 def collect(
     inputs: Inputs,
     cascade: CascadeConfig,
@@ -84,18 +93,23 @@ def collect(
     hindsight: HindsightSettings | None = None,
     ego: int | str | None = None,
     every: Stride = EVERY_FRAME,
+    planner: str | None = None,
 ) -> tuple[pl.DataFrame, pl.DataFrame, list[str], list[str]]:
     """Agents and frames tables of every input, with the stage and tier names.
 
     ``params``, ``prediction`` go to every model evaluation of the replayed scenes,
     ``hindsight`` (``risk.hindsight.HindsightSettings``) to their truth columns; tables
-    are read as they were written."""
+    are read as they were written. ``planner``: a planner's name
+    (:func:`replay.planning.registry.make_planner`) whose truth the replayed scenes'
+    tables carry (``planner_label``, ``planner_shift_m``)."""
     stage_names = list(cascade.stage_names)
     cascade_tiers = [t.name for t in cascade.tiers]
     tier_names = cascade_tiers
     agents: list[pl.DataFrame] = []
     frames: list[pl.DataFrame] = []
     names = scene_names([*inputs.scenes, *inputs.tables])
+    if planner is not None:
+        make_planner(planner)  # an unknown name or a missing extra: one error, before any work
     if inputs.scenes:
         tasks = [
             SceneJob(
@@ -108,6 +122,9 @@ def collect(
                 params=params,
                 prediction=prediction,
                 hindsight=hindsight,
+                annotators=None
+                if planner is None
+                else functools.partial(planner_annotators, planner),
             )
             for p, n in zip(inputs.scenes, names[: len(inputs.scenes)], strict=True)
         ]

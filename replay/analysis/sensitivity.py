@@ -143,7 +143,12 @@ class SweepResult:
 def _auc_rows(summary: Mapping[str, Any], variant: Variant) -> list[dict[str, Any]]:
     rows = []
     for ref in REFERENCES:
-        ranked = {m: summary["models"][m][ref]["auc"] for m in summary["models"]}
+        # A reference without positives in this variant is left out of the summary
+        # (reported there as such): its AUCs are undefined here.
+        ranked = {
+            m: summary["models"][m].get(ref, {"auc": {"value": None}})["auc"]
+            for m in summary["models"]
+        }
         values = {m: a["value"] for m, a in ranked.items() if m in RANKED}
         order = sorted(values, key=lambda m: -_num(values[m]))
         for m, a in ranked.items():

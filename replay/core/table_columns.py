@@ -11,6 +11,12 @@ from typing import Any
 import numpy as np
 
 TRUTH_COLUMNS = ("truth_gap_m", "truth_pet_s", "truth_label")
+#: After the truth: the window is recorded for both (not censored), the ego yielded to the
+#: agent, and neither track is inconsistent in the window (:mod:`risk.hindsight`).
+TRUTH_FLAG_COLUMNS = ("truth_complete", "truth_yielded", "track_ok")
+#: The dataset's own labels of a scene (``/labels``: Waymo ``objects_of_interest``, AV2
+#: ``focal``, ...) as ``label_<name>`` columns: the agent is in that list.
+LABEL_PREFIX = "label_"
 #: With a planner beside the replay (``replay run --planner NAME --table T``): whether
 #: removing the agent alone changes the plan (true / false, null when unknown) and by how
 #: much (m); see :mod:`replay.planning.truth`.
@@ -28,3 +34,6 @@ class TableColumns:
     truth_gap_m: np.ndarray  # NaN: unknown
     truth_pet_s: np.ndarray  # NaN: the footprints do not meet, or unknown
     truth_label: np.ndarray  # int8 risk.hindsight labels
+    truth_complete: np.ndarray | None = None  # bool; None: unknown (all False)
+    truth_yielded: np.ndarray | None = None  # bool
+    track_ok: np.ndarray | None = None  # bool

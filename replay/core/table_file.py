@@ -14,7 +14,13 @@ import pathlib
 import numpy as np
 import polars as pl
 
-from replay.core.table_columns import PLANNER_COLUMNS, TRUTH_COLUMNS, TableColumns
+from replay.core.table_columns import (
+    LABEL_PREFIX,
+    PLANNER_COLUMNS,
+    TRUTH_COLUMNS,
+    TRUTH_FLAG_COLUMNS,
+    TableColumns,
+)
 from replay.errors import ReplayError
 from risk.frame import KIND_NAMES
 from risk.hindsight import LABEL_POSITIVE, LABEL_UNKNOWN
@@ -41,6 +47,16 @@ def dataframe(columns: TableColumns) -> pl.DataFrame:
         pl.Series("truth_pet_s", columns.truth_pet_s).fill_nan(None),
         pl.Series("truth_label", labels.tolist(), dtype=pl.Boolean),
     )
+    n = df.height
+    flags = {
+        "truth_complete": columns.truth_complete,
+        "truth_yielded": columns.truth_yielded,
+        "track_ok": columns.track_ok,
+    }
+    df = df.with_columns(
+        pl.Series(name, np.zeros(n, bool) if v is None else np.asarray(v, dtype=bool))
+        for name, v in flags.items()
+    )
     planner = [k for k in PLANNER_COLUMNS if k in data]
     if planner:
         label = np.asarray(data["planner_label"], dtype=np.float64)
@@ -52,9 +68,14 @@ def dataframe(columns: TableColumns) -> pl.DataFrame:
             ),
             pl.Series("planner_shift_m", np.asarray(data["planner_shift_m"])).fill_nan(None),
         )
+    labels_ = [k for k in keys if k.startswith(LABEL_PREFIX)]
+    core = [k for k in keys if not k.startswith(LABEL_PREFIX)]
     return df.select(
-        [*keys[:5], *keys[5:-3], "dropped_by", "tier", "baseline", *TRUTH_COLUMNS, *planner]
-    )
+        [
+            *core[:5], *core[5:-3], "dropped_by", "tier", "baseline", *TRUTH_COLUMNS,
+            *TRUTH_FLAG_COLUMNS, *planner, *labels_,
+        ]
+    )  # fmt: skip
 
 
 def write_temp(path: pathlib.Path, tmp: pathlib.Path, columns: TableColumns) -> None:

@@ -16,6 +16,12 @@ a risk value). Columns, in order:
   equal times within the horizon (m), post-encroachment time (s; null when the footprints
   do not meet), and whether the agent really came close (true / false, null when the
   window is censored). All null when the engine cannot give the recorded tracks.
+- ``truth_complete`` (the window is recorded for both: not censored), ``truth_yielded``
+  (the ego braked while the agent was ahead on its path), ``track_ok`` (false: the ego's
+  or the agent's track is inconsistent in the window, and the truth is left unknown);
+- ``distance_m``: the centre distance from the ego (m), for nearest-K and radius budgets;
+- ``label_<name>``: the dataset's own labels of the scene (``/labels``), one column per
+  list name: the agent is in it.
 - with a planner beside the replay: ``planner_label`` (removing the agent alone changes
   the plan; null when unknown) and ``planner_shift_m`` (m), :mod:`replay.planning.truth`.
 
@@ -35,9 +41,9 @@ import numpy as np
 from outputs import process as background_process
 from outputs.atomic import commit, temp_path_beside
 from outputs.sinks import FrameResult, SceneInfo
-from replay.core.table_columns import PLANNER_COLUMNS, TableColumns
+from replay.core.table_columns import LABEL_PREFIX, PLANNER_COLUMNS, TableColumns
 from replay.errors import ReplayError
-from risk.hindsight import LABEL_UNKNOWN, HindsightSettings, truth_for_rows
+from risk.hindsight import HindsightSettings, RowTruth, rows_truth
 
 if TYPE_CHECKING:
     import polars as pl
@@ -101,6 +107,7 @@ class TableSink:
             "x_m": frame.xy[rows, 0],
             "y_m": frame.xy[rows, 1],
             "speed_mps": frame.speed[rows],
+            "distance_m": np.hypot(*(frame.xy[rows] - frame.xy[frame.ego]).T),
         }
         for model in info.model_names:
             chunk[f"risk_{model}"] = result.risks[model][rows]
@@ -109,6 +116,8 @@ class TableSink:
         chunk["dropped_at"] = res.dropped_at[rows]
         chunk["tier"] = res.tier[rows]
         chunk["baseline"] = res.baseline[rows]
+        for name, ids in info.labels.items():  # the dataset's own labels
+            chunk[LABEL_PREFIX + name] = np.isin(frame.ids[rows], np.asarray(ids, dtype=np.int64))
         for name in PLANNER_COLUMNS:  # a planner's labels, when one ran beside the replay
             if name in result.extras:
                 chunk[name] = np.asarray(result.extras[name], dtype=np.float64)[rows]
@@ -118,20 +127,29 @@ class TableSink:
         """Everything added so far as numpy columns, the hindsight truth included."""
         info = self._require_info()
         keys = self._columns(info)
-        planner = [k for k in PLANNER_COLUMNS if self._chunks and k in self._chunks[0]]
+        extra = list(dict.fromkeys(k for c in self._chunks for k in c if k not in keys))
+        labels = [k for k in extra if k.startswith(LABEL_PREFIX)]
+        planner = [k for k in PLANNER_COLUMNS if k in extra]
         data: dict[str, Any] = {
             k: np.concatenate([c[k] for c in self._chunks]) if self._chunks else []
             for k in (*keys, *planner)
         }
-        gap, pet, label = self._truth(data["t_s"], data["ego_id"], data["agent_id"])
+        for k in labels:  # an ego's run without the list (another scene's): False
+            data[k] = np.concatenate(
+                [c.get(k, np.zeros(c["frame"].size, bool)) for c in self._chunks]
+            )
+        truth = self._truth(data["t_s"], data["ego_id"], data["agent_id"])
         return TableColumns(
-            keys=tuple(keys),
+            keys=tuple([*keys, *labels]),
             data=data,
             stage_names=tuple(info.cascade.stage_names),
             tier_names=tuple(t.name for t in info.cascade.tiers),
-            truth_gap_m=gap,
-            truth_pet_s=pet,
-            truth_label=label,
+            truth_gap_m=truth.gap_m,
+            truth_pet_s=truth.pet_s,
+            truth_label=truth.label,
+            truth_complete=truth.complete,
+            truth_yielded=truth.yielded,
+            track_ok=truth.track_ok,
         )
 
     def dataframe(self) -> pl.DataFrame:
@@ -141,20 +159,17 @@ class TableSink:
 
         return table_file.dataframe(self.columns())
 
-    def _truth(
-        self, t_s: np.ndarray, ego_id: np.ndarray, agent_id: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The hindsight gap, PET and label of rows (t_s, ego_id, agent_id), from the
-        scene's tracks (NaN, NaN, unknown without them)."""
-        n = len(t_s)
-        gap, pet = np.full(n, np.nan), np.full(n, np.nan)
-        label = np.full(n, LABEL_UNKNOWN, dtype=np.int8)
+    def _truth(self, t_s: np.ndarray, ego_id: np.ndarray, agent_id: np.ndarray) -> RowTruth:
+        """The hindsight truth of rows (t_s, ego_id, agent_id), from the scene's tracks
+        (unknown without them)."""
         get_tracks = self._require_info().tracks
-        if n and get_tracks is not None:
-            gap, pet, label = truth_for_rows(
-                get_tracks(), t_s, ego_id, agent_id, settings=self.hindsight
-            )
-        return gap, pet, label
+        if len(t_s) and get_tracks is not None:
+            return rows_truth(get_tracks(), t_s, ego_id, agent_id, settings=self.hindsight)
+        n = len(t_s)
+        return RowTruth(
+            np.full(n, np.nan), np.full(n, np.nan), np.full(n, -1, dtype=np.int8),
+            np.zeros(n, bool), np.zeros(n, bool), np.ones(n, bool),
+        )  # fmt: skip
 
     def close(self) -> None:
         if self.path is None:
@@ -190,7 +205,7 @@ class TableSink:
     @staticmethod
     def _columns(info: SceneInfo) -> list[str]:
         return [
-            "frame", "t_s", "ego_id", "agent_id", "kind", "x_m", "y_m", "speed_mps",
+            "frame", "t_s", "ego_id", "agent_id", "kind", "x_m", "y_m", "speed_mps", "distance_m",
             *(f"risk_{m}" for m in info.model_names),
             *(f"kept_{s}" for s in info.cascade.stage_names),
             "dropped_at", "tier", "baseline",

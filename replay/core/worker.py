@@ -12,13 +12,13 @@ from __future__ import annotations
 import os
 import pathlib
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import polars as pl
 
-from outputs.sinks import Sink
+from outputs.sinks import Annotator, Sink
 from replay.core.egos import ALL_EGOS, pooled, run_every_ego
 from replay.core.engine import (
     EVERY_FRAME,
@@ -56,6 +56,7 @@ def replay_scene(
     hindsight: HindsightSettings | None = None,
     ego: int | str | None = None,
     every: int | Stride = 1,
+    annotators: Sequence[Annotator] = (),
 ) -> SceneTables:
     """Replay ``source`` (a scene file, an open reader or an in-memory scene) into its
     tables, named ``name`` in their ``scene`` column; also write its ``.rrd`` to
@@ -65,7 +66,8 @@ def replay_scene(
     evaluation; ``hindsight``: the settings of the table's truth columns. ``ego``: an
     agent id, None for the recording's ego, or ``"all"`` for every moving agent in turn
     (:mod:`replay.core.egos`; a scene file only, and no recording). ``every``: the frame
-    stride."""
+    stride. ``annotators``: computed per frame beside the engine (a planner's labels, which
+    the agents table carries as columns)."""
     if ego == ALL_EGOS:
         if recording is not None:
             raise ValueError("a recording shows one ego's view; it cannot go with ego='all'")
@@ -74,7 +76,7 @@ def replay_scene(
         collect = StatsSink(name, hindsight=hindsight)
         egos = run_every_ego(
             source, sinks=[collect], cascade=cascade, models=models, every=every,
-            params=params, prediction=prediction, progress=False,
+            params=params, prediction=prediction, progress=False, annotators=annotators,
         )  # fmt: skip
         return SceneTables(collect.agents(), collect.frames(), pooled(egos))
     collect = StatsSink(name, hindsight=hindsight)
@@ -91,7 +93,7 @@ def replay_scene(
         summary = run_scene(
             source, sinks=sinks, cascade=cascade, models=models, params=params,
             prediction=prediction, progress=False, ego=None if ego is None else int(ego),
-            every=every,
+            every=every, annotators=annotators,
         )  # fmt: skip
     return SceneTables(collect.agents(), collect.frames(), summary)
 
@@ -109,6 +111,9 @@ class SceneJob:
     params: Mapping[str, Any] | None = None  # model name -> parameters, for every evaluation
     prediction: PredictionSettings | None = None
     hindsight: HindsightSettings | None = None  # settings of the truth columns
+    #: Makes the annotators in the worker process (a module-level function or a
+    #: functools.partial of one, so that the job pickles); None: no annotator.
+    annotators: Callable[[], Sequence[Annotator]] | None = None
 
 
 def replay_job(job: SceneJob) -> tuple[pl.DataFrame, pl.DataFrame]:
@@ -116,6 +121,7 @@ def replay_job(job: SceneJob) -> tuple[pl.DataFrame, pl.DataFrame]:
     tables = replay_scene(
         job.path, name=job.name, cascade=job.cascade, models=job.models, ego=job.ego,
         every=job.every, params=job.params, prediction=job.prediction, hindsight=job.hindsight,
+        annotators=job.annotators() if job.annotators is not None else (),
     )  # fmt: skip
     return tables.agents, tables.frames
 

@@ -27,8 +27,9 @@ from replay.planning.compare import DEFAULT_TOLERANCE_M, compare_plans
 from replay.planning.errors import NoReferencePath
 from replay.planning.inputs import plan_request
 from replay.planning.truth import planner_truth, target_speed
-from replay.planning.types import Plan, Planner
+from replay.planning.types import Plan, Planner, PlanRequest
 from risk.filtering import cascade_answer
+from risk.frame import Frame
 from risk.hindsight import Tracks
 
 
@@ -38,6 +39,9 @@ class PlannerAnnotator:
 
     planner: Planner
     truth: bool = False
+    #: Also plan with the cascade's agents and compare (``plan_filtered``,
+    #: ``plan_changed``); planner truth alone (``replay evaluate``) does not need it.
+    filtered: bool = True
     tolerance_m: float = DEFAULT_TOLERANCE_M
     horizon_s: float = 5.0
     dt_s: float = 0.1
@@ -115,6 +119,12 @@ class PlannerAnnotator:
                 out.update(planner_label=np.full(n, np.nan), planner_shift_m=np.full(n, np.nan))
             return out
         everyone = self.planner.plan(request)
+        if not self.filtered:
+            out.update(plan_all=everyone)
+            self.records.append((everyone.plan_ms, float("nan"), None))
+            if self.truth:
+                out.update(self._labels(frame, request, everyone))
+            return out
         kept = cascade_answer(frame, result.cascade, self.info.cascade).kept_ids
         keep = np.isin(request.agents.ids, kept)
         filtered = self.planner.plan(request.with_agents(request.agents.subset(keep)))
@@ -122,12 +132,17 @@ class PlannerAnnotator:
         out.update(plan_all=everyone, plan_filtered=filtered, plan_changed=change)
         self.records.append((everyone.plan_ms, filtered.plan_ms, change.changed))
         if self.truth:
-            labels = planner_truth(self.planner, request, everyone, tolerance_m=self.tolerance_m)
-            label = np.full(n, np.nan)
-            shift = np.full(n, np.nan)
-            index = np.searchsorted(frame.ids, labels.ids, sorter=np.argsort(frame.ids))
-            rows = np.argsort(frame.ids)[index]
-            label[rows] = labels.label
-            shift[rows] = labels.shift_m
-            out.update(planner_label=label, planner_shift_m=shift)
+            out.update(self._labels(frame, request, everyone))
         return out
+
+    def _labels(self, frame: Frame, request: PlanRequest, everyone: Plan) -> dict[str, Any]:
+        """``planner_label`` and ``planner_shift_m`` ``(N,)`` over the frame's agents."""
+        n = frame.n_agents
+        labels = planner_truth(self.planner, request, everyone, tolerance_m=self.tolerance_m)
+        label = np.full(n, np.nan)
+        shift = np.full(n, np.nan)
+        index = np.searchsorted(frame.ids, labels.ids, sorter=np.argsort(frame.ids))
+        rows = np.argsort(frame.ids)[index]
+        label[rows] = labels.label
+        shift[rows] = labels.shift_m
+        return {"planner_label": label, "planner_shift_m": shift}

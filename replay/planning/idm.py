@@ -137,6 +137,9 @@ class IdmPlanner:
         s[0] = float(project(ref, ego.xy[None])[1][0])
         v[0] = max(ego.speed_mps, 0.0)
         blocking_id = -1
+        # Agents that alone set a step's acceleration (see plan's docstring): the only
+        # ones whose removal can change this plan.
+        sole = np.zeros(ids.size, dtype=bool)
         for k in range(n_steps - 1):
             a_free = p.a0_mps2 * (1.0 - (v[k] / v0) ** p.delta)
             accel = a_free
@@ -156,6 +159,12 @@ class IdmPlanner:
                 accel = min(a_free, float(a_agent[worst]))
                 if blocking_id < 0 and accel < a_free - p.blocking_margin_mps2:
                     blocking_id = int(ids[worst])
+                # Without the worst agent the step takes the next worst (or a_free);
+                # when the clipped accelerations differ, the worst alone sets this step.
+                # (Ties: the next worst equals the worst, so no agent alone does.)
+                rest = np.partition(a_agent, 1)[1] if a_agent.size > 1 else np.inf
+                if _clip(min(a_free, float(rest)), p) != _clip(accel, p):
+                    sole[worst] = True
             accel = min(max(accel, -p.max_decel_mps2), p.a0_mps2)
             v_next = v[k] + accel * dt
             if v_next >= 0.0:
@@ -175,6 +184,7 @@ class IdmPlanner:
             lane=0,
             stops=bool((v < STOP_SPEED_MPS).any()),
             blocking_id=blocking_id,
+            sole_constraints=ids[sole].astype(np.int64),
         )
 
     def _constraints(
@@ -219,6 +229,10 @@ class IdmPlanner:
             gap = np.where(use, gap_c, gap)
             v_lead = np.where(use, 0.0, v_lead)
         return gap, v_lead
+
+
+def _clip(accel: float, p: IdmSettings) -> float:
+    return min(max(accel, -p.max_decel_mps2), p.a0_mps2)
 
 
 def _in_corridor(c: PathCoords, lane_width_m: float) -> np.ndarray:

@@ -4,8 +4,13 @@ An agent is *planner-important* when removing it alone changes the plan beyond t
 tolerance of :func:`replay.planning.compare.compare_plans` (Waymo's CausalAgents idea:
 an agent whose removal changes the ego's behaviour). The counterfactual plan is skipped
 only for the agents the planner itself says provably cannot change its plan
-(``Planner.may_matter`` False; each planner documents why): they are labelled
-unimportant, and counted as skipped.
+(``Planner.may_matter`` False; each planner documents why), and for the agents a plan
+that reports its sole constraints (``Plan.sole_constraints``, the IDM planner's) does not
+name: without any other agent that very plan comes out step for step the same (for IDM:
+every step's acceleration is the least over the agents, so only the agent that alone sets
+a step's acceleration can change it when removed, and with the same acceleration at every
+step the trajectory is the same by induction). They are labelled unimportant with shift
+0, and counted as skipped.
 
 Also the ego's *target speed* for replayed scenes, shared by every planner caller.
 """
@@ -53,6 +58,8 @@ def planner_truth(
     label = np.full(k, LABEL_UNKNOWN if not reference.ok else LABEL_FALSE)
     shift = np.zeros(k)
     may = np.asarray(planner.may_matter(request), dtype=bool) if k else np.zeros(0, bool)
+    if reference.ok and reference.sole_constraints is not None:
+        may &= np.isin(agents.ids, reference.sole_constraints)
     plans = 0
     if reference.ok:
         everyone = np.ones(k, dtype=bool)

@@ -197,6 +197,10 @@ class Plan:
     to the left, -1 one to the right. ``stops``: the plan comes to a stop (speed below
     STOP_SPEED_MPS) within the horizon. ``blocking_id``: the agent that constrained the
     plan, -1 when none or not reported. ``reason``: "" when ok, else why not.
+    ``sole_constraints``: the ids of the agents without which this very plan could differ
+    (for every other agent, the plan with all agents but that one is provably the same);
+    None when the planner does not report it. Planner truth plans counterfactually only
+    for these (:func:`replay.planning.truth.planner_truth`).
     """
 
     ok: bool
@@ -210,6 +214,7 @@ class Plan:
     blocking_id: int = -1
     reason: str = ""
     extras: dict[str, float] = field(default_factory=dict)  # planner-specific numbers
+    sole_constraints: np.ndarray | None = None  # (J,) int64 agent ids, or None
 
     def __post_init__(self) -> None:
         for name in ("times_s", "xy", "heading_rad", "speed_mps"):

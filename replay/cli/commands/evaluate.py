@@ -13,7 +13,12 @@ import sys
 
 import click
 
-from replay.analysis.corpus_evaluation import DEFAULT_GROUPINGS, GROUPINGS, EvaluationSettings
+from replay.analysis.corpus_evaluation import (
+    DEFAULT_GROUPINGS,
+    GROUPINGS,
+    HINDSIGHT_WINDOWS,
+    EvaluationSettings,
+)
 from replay.analysis.evaluation_run import SensitivityRequest, run_evaluation
 from replay.cli.ego_options import StrideParam, ego_option, every_option
 from replay.cli.settings_option import load_cascade, set_option
@@ -61,6 +66,19 @@ def _names(text: str | None) -> list[str]:
     help="Share of the horizon both agents must be recorded for a negative. Default: 1.",
 )  # fmt: skip
 @click.option(
+    "--hindsight-windows", type=click.Choice(HINDSIGHT_WINDOWS), default="complete",
+    show_default=True,
+    help="Score hindsight on complete windows only (the whole horizon recorded for ego and "
+    "agent, positives and negatives alike), or on any window (positives seen in censored "
+    "windows count too: the rule before). The other rule is reported beside it.",
+)  # fmt: skip
+@click.option(
+    "--planner", default=None,
+    help="Replay the scenes with this planner beside the engine (idm, fop, fiss, fiss_plus) "
+    "and score every model against planner truth: the agents whose removal alone changes "
+    "the plan. Tables are used as they are (their planner_label column, if any).",
+)  # fmt: skip
+@click.option(
     "--by", "groupings", default=",".join(DEFAULT_GROUPINGS), show_default=True,
     help=f"Break results down by these, comma-separated ({', '.join(GROUPINGS)}).",
 )  # fmt: skip
@@ -96,6 +114,11 @@ def _names(text: str | None) -> list[str]:
     "--sensitivity) to this .md file, its plots into the folder of the same name without "
     ".md (e.g. docs/recorded-evaluation.md and docs/recorded-evaluation/).",
 )  # fmt: skip
+@click.option(
+    "--report-note", default="",
+    help="A sentence for the report's 'What was evaluated' (e.g. how tables given as inputs "
+    "were made, or which scenes were left out and why).",
+)  # fmt: skip
 @click.option("--plots/--no-plots", default=True, show_default=True, help="Write the PNG plots.")
 @click.option(
     "--progress/--no-progress", default=True, show_default=True, help="Progress bar on stderr."
@@ -111,6 +134,8 @@ def evaluate(
     truth_gap: float | None,
     truth_pet: float | None,
     truth_coverage: float | None,
+    hindsight_windows: str,
+    planner: str | None,
     groupings: str,
     calibration_sites: str | None,
     n_boot: int,
@@ -125,28 +150,35 @@ def evaluate(
     sensitivity_every: Stride | None = None,
     sensitivity_scenes: int = 1,
     report_path: pathlib.Path | None = None,
+    report_note: str = "",
     sets: tuple[str, ...] = (),
 ) -> None:
     """Which agents does each filter drop that really came close?
 
     INPUTS are MCAP scenes, tables written by 'replay run --table' (.parquet or .csv,
     with the truth_* columns), or folders of them, as for 'replay stats'. Every model is
-    scored against two references: the survival baseline and the hindsight truth (the
-    agent came within --truth-gap of the ego, or crossed its path within --truth-pet,
-    within --truth-horizon of the recorded future; censored frames are left out and
-    counted). The dataset of a scene is the name of the folder its file is in.
+    scored against every reference the table carries: the survival baseline, the
+    hindsight truth (the agent came within --truth-gap of the ego, or crossed its path
+    within --truth-pet, within --truth-horizon of the recorded future; on complete
+    windows by default, see --hindsight-windows), the planner truth (--planner), and
+    the dataset's own labels (label_<name> columns). A reference the inputs lack, or
+    one without positives, is reported as such. The dataset of a scene is the name of
+    the folder its file is in.
 
     \b
     Writes into OUTPUT:
       summary.json              AUC, TPR at FPR 1/5/10 %, miss rates with 95 % scene-
                                 bootstrap intervals, per dataset and kind; the cascade's
-                                misses per stage; thresholds moved between sites
+                                misses per stage; thresholds moved between sites; the
+                                budgets; how the references agree
+      budgets.parquet/.csv      share of each reference's positives kept per frame by the
+                                top K of each model, nearest K, radius R, the cascade
       roc.parquet/.csv          pooled ROC points, every model x reference
       miss_rates.parquet/.csv   every miss rate as a row (all, per group)
       positives.parquet/.csv    every agent that really came close, and what dropped it
-      roc_hindsight.png, miss_rate_by_<grouping>.png
+      roc_hindsight.png, miss_rate_by_<grouping>.png, budget_<reference>.png
 
-    Exits non-zero when no agent came close (every rate against hindsight undefined).
+    Exits non-zero when no reference has a positive.
     """
     from replay.analysis.corpus_evaluation import check_groupings
     from replay.core.pool import default_workers
@@ -169,6 +201,7 @@ def evaluate(
         calibration_sites=tuple(_names(calibration_sites)) if calibration_sites else None,
         n_boot=n_boot,
         seed=seed,
+        hindsight_windows=hindsight_windows,
     )
     sweep = (
         SensitivityRequest(sensitivity_bootstrap, sensitivity_every, sensitivity_scenes)
@@ -179,7 +212,8 @@ def evaluate(
         inputs, out_dir, cascade=cascade, settings=settings,
         hindsight=HindsightSettings(**custom) if custom else None,
         workers=workers or default_workers(), progress=progress, ego=ego, every=every,
-        plots=plots, sensitivity=sweep, report_path=report_path,
+        plots=plots, sensitivity=sweep, report_path=report_path, planner=planner,
+        report_note=report_note,
         command=" ".join(["replay", "evaluate", *sys.argv[2:]]) if len(sys.argv) > 1 else "",
         extra_inputs=(cascade_file,), show=click.echo,
     )  # fmt: skip
