@@ -241,6 +241,9 @@ MODELS: dict[str, ModelSpec] = {
             fn=stochastic.survival,
             label="survival analysis",
             color="tab:olive",
+            # sum_k P_o(s_k) S_k with P_o a density (1/m^2): above 1 where two narrow
+            # Gaussians overlap closely (a pedestrian's sigma of 0.1 m allows P_o near 8)
+            risk_range=(0.0, math.inf),
             kernel_args=KernelArgs(
                 floats=("dt_over_escape_time",),
                 values=lambda p, horizon_s, dt_s: (dt_s / p.escape_time_s,),
