@@ -12,6 +12,10 @@ Entering the guard, before any work starts:
    resolved path otherwise, so symlinks and hard links count as the same file.
 2. **Paths.** An output file must not be a folder and its folder must exist (or be
    creatable, for commands that create folders); an output folder must not be a file.
+   An output that is a character device (``/dev/null``) is written through, never
+   replaced (see :mod:`base.atomic`); a named pipe, socket or block device is refused,
+   as is an input that is not a file or folder (a named pipe with no writer would block
+   the command for ever).
 3. **Lock.** Each output takes a lock file beside it (``.NAME.lock``, ``flock``): a second
    command writing the same outputs is refused with a clear message instead of mixing
    its files with the first one's. Creating the lock file also proves the folder is
@@ -59,6 +63,11 @@ TEMP_NAME = re.compile(r"^\.(?P<target>.+)\.[0-9a-f]{12}\.tmp$")
 
 LOCK_SUFFIX = ".lock"
 
+_KIND_NAMES = {
+    "device": "a device", "pipe": "a named pipe", "socket": "a socket",
+    "block device": "a block device",
+}  # fmt: skip
+
 
 class OutputError(RuntimeError):
     """An output path cannot be used: it is an input, used twice, locked or unwritable,
@@ -86,7 +95,8 @@ def free_bytes(folder: str | os.PathLike[str]) -> int | None:
 
 
 def target_of_temp(path: str | os.PathLike[str]) -> str | os.PathLike[str]:
-    """The target a temporary file of :mod:`base.atomic` stands for (else ``path``)."""
+    """The target a temporary file of :mod:`base.atomic` stands for (else ``path``; a
+    target whose name was too long to keep whole in the temporary name is not known)."""
     m = TEMP_NAME.match(os.path.basename(os.fspath(path)))
     if m is None:
         return path
@@ -95,7 +105,7 @@ def target_of_temp(path: str | os.PathLike[str]) -> str | os.PathLike[str]:
 
 def lock_path(target: pathlib.Path) -> pathlib.Path:
     """The lock file of an output file or folder: ``.NAME.lock`` beside it."""
-    return target.with_name(f".{target.name}{LOCK_SUFFIX}")
+    return target.with_name(f".{atomic.hidden_stem(target.name, len(LOCK_SUFFIX))}{LOCK_SUFFIX}")
 
 
 def stale_temps(target: pathlib.Path, *, folder: bool = False) -> list[pathlib.Path]:
@@ -109,11 +119,12 @@ def stale_temps(target: pathlib.Path, *, folder: bool = False) -> list[pathlib.P
         return sorted(found)
     parent = target.parent
     if parent.is_dir():
-        prefix = f".{target.name}."
+        stem = atomic.hidden_stem(target.name)
+        prefix = f".{stem}."
         with os.scandir(parent) as entries:
             for e in entries:
                 m = TEMP_NAME.match(e.name)
-                if m and e.name.startswith(prefix) and m.group("target") == target.name:
+                if m and e.name.startswith(prefix) and m.group("target") == stem:
                     found.append(pathlib.Path(e.path))
     return sorted(found)
 
@@ -213,8 +224,18 @@ class OutputGuard:
     # ------------------------------------------------------------------ checks
     def check(self) -> None:
         """The path checks alone (1 and 2 of the module docstring)."""
-        outputs = [*self.files, *self.folders]
+        for inp in self.inputs:
+            kind = atomic.target_kind(inp)
+            if kind not in ("file", "folder", "missing"):
+                raise OutputError(
+                    f"{inp}: is {_KIND_NAMES[kind]}, not a file; give the file itself"
+                    " (a pipe or device would be read for ever or not at all)"
+                )
+        devices = [p for p in self.files if self._device(p)]
+        outputs = [p for p in [*self.files, *self.folders] if p not in devices]
         for path in self.files:
+            if path in devices:
+                continue  # written through (base.atomic.place)
             if path.is_dir():
                 raise OutputError(f"{path}: is a folder; give a file name for this output")
             parent = path.parent
@@ -243,6 +264,13 @@ class OutputGuard:
                         " give each output its own path"
                     )
 
+    @staticmethod
+    def _device(path: pathlib.Path) -> bool:
+        try:
+            return atomic.check_target(path) == "device"
+        except OSError as exc:
+            raise OutputError(f"{path}: {exc.strerror}") from None
+
     def _check_target(self, target: pathlib.Path) -> None:
         for inp in self.inputs:
             if same_file(target, inp):
@@ -258,11 +286,12 @@ class OutputGuard:
             for folder in self._folders_to_create():
                 folder.mkdir()
                 self._created.append(folder)
-            for target in sorted({*self.files, *self.folders}, key=str):
+            devices = {p for p in self.files if self._device(p)}
+            for target in sorted({*self.files, *self.folders} - devices, key=str):
                 lock = _Lock(lock_path(target), target)
                 lock.acquire()
                 self._locks.append(lock)
-            for target in self.files:
+            for target in set(self.files) - devices:
                 self._remove_stale(stale_temps(target))
             for target in self.folders:
                 self._remove_stale(stale_temps(target, folder=True))
@@ -313,6 +342,11 @@ class OutputGuard:
         old = self._pending.pop(target, None)
         if old is not None and old != tmp:
             old.unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)
+            raise OutputError(
+                f"{target}: two outputs of this command would be written to this one file;"
+                " give each output its own path"
+            )
         self._pending[target] = tmp
 
     def pending(self) -> dict[pathlib.Path, pathlib.Path]:
@@ -325,6 +359,9 @@ class OutputGuard:
         target = pathlib.Path(target)
         tmp = self._pending.pop(target)
         backup = None
+        if atomic.target_kind(target) == "device":
+            atomic.place(tmp, target)
+            return target
         if target.exists():
             backup = target.with_name(f".{target.name}.{uuid.uuid4().hex[:12]}.tmp")
             os.link(target, backup)
@@ -335,8 +372,11 @@ class OutputGuard:
     def _commit_all(self) -> None:
         for target in self._pending:
             self._check_target(target)
-        for target, tmp in list(self._pending.items()):
-            os.replace(tmp, target)
+        # devices first: a device that refuses the bytes (/dev/full) fails the command
+        # before any file has been renamed into place
+        order = sorted(self._pending.items(), key=lambda kv: atomic.target_kind(kv[0]) != "device")
+        for target, tmp in order:
+            atomic.place(tmp, target)
             del self._pending[target]
         for _, backup in self._backups:
             if backup is not None:
