@@ -7,6 +7,7 @@ Subcommands live in ``replay/commands/<name>.py`` and are imported only when use
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import importlib
 import importlib.util
@@ -18,6 +19,7 @@ import click
 from base import background
 from base.guard import target_of_temp
 from replay.early_output import RECORDING_WRITER, TABLE_WRITER, output_writers
+from replay.lifeline import exit_status, signal_name, stop_on_signals
 from replay.user_errors import user_errors
 
 __all__ = ["RECORDING_WRITER", "TABLE_WRITER", "main", "output_writers"]
@@ -69,8 +71,13 @@ class LazyGroup(click.Group):
         return super().resolve_command(ctx, args)
 
     def invoke(self, ctx: click.Context):
+        if sys.stdout is None:  # started with stdout closed (``>&-``): fail on first use
+            sys.stdout = _ClosedStream()
         try:
-            return super().invoke(ctx)
+            with stop_on_signals():  # the one place SIGTERM / SIGHUP are handled
+                return super().invoke(ctx)
+        except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP: clean-up has run
+            _stopped(ctx, exc)
         except OSError as exc:
             if exc.errno != errno.EPIPE and not isinstance(exc, BrokenPipeError):
                 raise click.ClickException(_os_message(exc)) from None
@@ -79,8 +86,43 @@ class LazyGroup(click.Group):
             raise click.ClickException(str(exc) or type(exc).__name__) from None
 
 
+class _ClosedStream:
+    """Stands in for a closed stdout: writing to it fails (exit 1) instead of vanishing."""
+
+    def write(self, text: str) -> int:
+        raise OSError(errno.EBADF, "standard output is closed")
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return False
+
+
+def _stopped(ctx: click.Context, exc: BaseException) -> None:
+    """One line on stderr saying what was kept, then exit ``128 + signal``."""
+    _end_line(sys.stderr)
+    kept = getattr(exc, "kept", None) or (
+        "nothing was written (a command's outputs appear only when it finishes);"
+        " run it again to start over"
+    )
+    with contextlib.suppress(OSError, ValueError):
+        click.echo(f"Stopped by {signal_name(getattr(exc, 'signum', 2))}: {kept}", err=True)
+    ctx.exit(exit_status(exc))
+
+
+def _end_line(stream: object) -> None:
+    """Start a fresh line on ``stream`` if a progress bar left the cursor inside one."""
+    with contextlib.suppress(Exception):
+        if stream.isatty():  # type: ignore[attr-defined]
+            stream.write("\r\033[K")  # type: ignore[attr-defined]
+
+
 def _os_message(exc: OSError) -> str:
-    """The error's message, naming the target file rather than its temporary file."""
+    """The error's message, naming the target file rather than its temporary file (or
+    standard output, when that is what failed: ``replay models > /dev/full``)."""
+    if not exc.filename and exc.strerror and _stdout_failing():
+        return f"cannot write to standard output: {exc.strerror}"
     if exc.strerror and exc.filename:
         name = target_of_temp(exc.filename)
         if name != exc.filename:
@@ -90,6 +132,26 @@ def _os_message(exc: OSError) -> str:
     if exc.filename and str(exc.filename) not in message:
         message = f"{message}: {target_of_temp(exc.filename)}"
     return message
+
+
+def _stdout_failing() -> bool:
+    """True when stdout cannot take what it holds (a full disk, a closed descriptor);
+    further writes then go nowhere, so that the exit does not fail a second time."""
+    try:
+        sys.stdout.flush()
+        return False
+    except (OSError, ValueError):
+        _stdout_to_devnull()
+        return True
+
+
+def _stdout_to_devnull() -> None:
+    with contextlib.suppress(OSError, ValueError, AttributeError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, sys.stdout.fileno())
+        finally:
+            os.close(devnull)
 
 
 def quiet_broken_pipe() -> None:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pathlib
-import sys
 
 import click
 
@@ -14,7 +13,6 @@ from replay.commands.settings_option import load_cascade, set_option
 from replay.egos import ALL_EGOS
 from replay.engine import Stride
 from replay.errors import ReplayError
-from replay.lifeline import sigterm_as_interrupt
 from replay.limits import WORKERS
 
 _FAILURES_SHOWN = 5
@@ -140,7 +138,6 @@ def batch(
         ego=ego,
         every=every,
     )
-    sigterm_as_interrupt()  # SIGTERM stops like Ctrl-C; killed workers' outputs are atomic
     # Locked and checked at once; scenes are committed one by one (resumable), so no
     # deferred transaction here. Stale temporary files of a killed run are removed.
     guard = OutputGuard(inputs=[*inputs, cascade_file, map_osm], folders=(out_dir,),
@@ -151,11 +148,13 @@ def batch(
                 inputs, out_dir, settings, engine=engine, workers=workers,
                 ray_address=ray_address, progress=progress,
             )  # fmt: skip
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP (replay.lifeline)
         # Running scenes finished and are complete; the same command resumes.
-        click.echo("Interrupted. Run the same command again to resume: complete scenes "
-                   "are skipped.", err=True)  # fmt: skip
-        sys.exit(130)
+        exc.kept = (  # type: ignore[attr-defined]
+            f"complete scenes are kept in {out_dir}; run the same command again to resume"
+            " (they are skipped)"
+        )
+        raise
     click.echo(format_report(report, settings))
     if report.all_failed:
         raise ReplayError(
