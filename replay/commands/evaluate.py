@@ -183,7 +183,12 @@ def evaluate(
         seed=seed,
     )
     workers_n = workers or default_workers()
-    guard = OutputGuard(inputs=[*inputs, cascade_file], folders=(out_dir,), files=(report_path,))
+    found = resolve_inputs(list(inputs))  # (the files inside folders are inputs too)
+    report_dir = None if report_path is None else report_path.with_suffix("")
+    guard = OutputGuard(
+        inputs=[*inputs, *found.scenes, *found.tables, cascade_file],
+        folders=(out_dir, report_dir), files=(report_path,),
+    )  # fmt: skip
     with guard:  # checked and locked at once; every file appears together
         start = time.perf_counter()
         agents, datasets, hs = collect_agents(
@@ -202,7 +207,6 @@ def evaluate(
         sweep = None
         if sensitivity:
             start = time.perf_counter()
-            found = resolve_inputs(list(inputs))
             if found.tables:
                 raise EvaluationError(
                     "--sensitivity replays the scenes with other settings; give .mcap scenes, "
@@ -224,13 +228,14 @@ def evaluate(
             files.update(write_sweep(sweep, out_dir, plots=plots))
             click.echo(format_sweep(sweep))
         files.update(write_evaluation(summary, agents, out_dir, datasets=datasets, plots=plots))
-    if report_path is not None:  # after the guard: it copies the plots written above
-        command = " ".join(["replay", "evaluate", *sys.argv[2:]]) if len(sys.argv) > 1 else ""
-        with OutputGuard(files=(report_path,)):
+        if report_path is not None:  # same guard: it may not replace an input or output
+            command = " ".join(["replay", "evaluate", *sys.argv[2:]]) if len(sys.argv) > 1 else ""
+            pending = guard.pending()  # the plots above, not yet renamed into place
+            pngs = {p: pending.get(p, p) for p in files.values() if p.suffix == ".png"}
             files.update(
                 write_report(
                     report_path, summary, agents, out_dir=out_dir, sweep=sweep,
-                    command=command, datasets=datasets,
+                    command=command, datasets=datasets, plots=pngs,
                 )
             )  # fmt: skip
     click.echo("Time: " + ", ".join(f"{k} {v:.1f} s" for k, v in summary["time_s"].items()))
