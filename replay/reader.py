@@ -45,11 +45,13 @@ from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader, SeekingReader
 from mcap.records import Channel, Schema
 
+from base.atomic import target_kind
+from base.memory import check_fits
 from converters import scene_format as sf
 from replay.errors import SceneFormatError
-from risk.errors import FrameError
-from risk.frame import Frame, Lane, LaneMap, MapLine, Scene
-from risk.hindsight import Tracks, tracks_from_states
+from risk.errors import FrameError, RiskError
+from risk.frame import MAX_CANDIDATES, Frame, Lane, LaneMap, MapLine, Scene
+from risk.hindsight import Tracks, check_period, tracks_from_states
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _MAX_EXACT_MM = 2**53  # coordinates are exact integers of mm up to here
@@ -105,6 +107,12 @@ class SceneReader:
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = pathlib.Path(path)
+        kind = target_kind(self.path)
+        if kind not in ("file", "missing"):  # (missing: open() says so)
+            raise SceneFormatError(
+                f"{self.path}: is {'a folder' if kind == 'folder' else 'a ' + kind}, not a"
+                " scene file; give an .mcap file (a pipe would be read for ever)"
+            )
         with open(self.path, "rb") as f:
             _check_magic(self.path, f)
             reader = SeekingReader(f, validate_crcs=True)
@@ -241,6 +249,7 @@ class SceneReader:
         # (place among the /agents messages, (t_s, the agents' columns)), for tracks()
         states: list[tuple[int, tuple[float, dict[str, np.ndarray]]]] = []
         order: dict[int, int] = {}  # frame index -> its place among the /agents messages
+        previous: tuple[int, float] | None = None  # the last frame yielded: index, time
         for topic, data in self._messages([sf.TOPIC_AGENTS, sf.TOPIC_PATHS]):
             message = self._parse(classes[topic], data, topic)
             index = int(message.frame_index)
@@ -254,8 +263,18 @@ class SceneReader:
                 agents = pending[sf.TOPIC_AGENTS].pop(index)
                 paths = pending[sf.TOPIC_PATHS].pop(index)
                 entry, columns = self._decode(agents, paths, any_ego=any_ego)
-                states.append((order[index], (float(agents.t_s), columns)))
+                t_s = float(agents.t_s)
+                if previous is not None and (index <= previous[0] or not t_s > previous[1]):
+                    raise SceneFormatError(
+                        f"{self.path}: frame {index} (t={t_s:g} s) follows frame"
+                        f" {previous[0]} (t={previous[1]:g} s); frame indices and times must"
+                        " increase through the file: convert the source again"
+                    )
+                previous = (index, t_s)
+                states.append((order[index], (t_s, columns)))
                 yield entry
+        if len(states) > 1:  # (tracks are built after this pass: check before them)
+            self._grid_index(np.array([t for _, (t, _) in states]), np.empty(0), 0.0)
         for topic, left in pending.items():
             if left:
                 index = min(left)
@@ -333,8 +352,16 @@ class SceneReader:
             cols["t"].append(np.full(int(valid.sum()), t_s))
         flat = {k: np.concatenate(v) if v else np.empty(0) for k, v in cols.items()}
         t0 = float(min((c[0] for c in cols["t"] if c.size), default=0.0))
+        grid = self._grid_index(np.array([t for t, _ in states]), flat["t"], t0)
+        n_ids = np.unique(flat["ids"]).size
+        check_fits(
+            (int(grid.max(initial=-1)) + 1) * n_ids * _TRACK_BYTES,
+            f"{self.path}: the hindsight grid ({int(grid.max(initial=-1)) + 1} frames of"
+            f" {self.frame_period_s:g} s x {n_ids} agents)",
+            "replay a shorter part of the scene, or convert it with fewer agents",
+        )
         return tracks_from_states(
-            np.rint((flat["t"] - t0) / self.frame_period_s).astype(np.int64),
+            grid,
             flat["ids"],
             flat["kinds"],
             np.column_stack((flat["x_mm"], flat["y_mm"])) / sf.MM_PER_M,
@@ -344,6 +371,17 @@ class SceneReader:
             t0_s=t0,
             dt_s=self.frame_period_s,
         )
+
+    def _grid_index(self, frame_t: np.ndarray, t: np.ndarray, t0: float) -> np.ndarray:
+        """Grid frame of each time ``t``, after checking the metadata's frame period
+        against the frames themselves: the grid is as long as the scene's time span
+        over the period, so a period far below the frames' spacing (``1e-12``) would
+        size it from one bad number (78 TiB), and is refused."""
+        try:
+            check_period(frame_t, self.frame_period_s)
+        except RiskError as exc:
+            raise SceneFormatError(f"{self.path}: metadata: {exc}") from None
+        return np.rint((t - t0) / self.frame_period_s).astype(np.int64)
 
     def read(self, *, skip_missing_ego: bool = False) -> Scene:
         """The whole scene in memory.
@@ -447,6 +485,13 @@ class SceneReader:
             raise self._bad_length(index, "/paths candidates", candidates.size, n)
         if n and candidates.min() < 1:
             raise SceneFormatError(f"{self.path}: frame {index}: an agent has no path candidate")
+        if n and candidates.max() > MAX_CANDIDATES:
+            raise SceneFormatError(
+                f"{self.path}: frame {index}: an agent has {int(candidates.max())} path"
+                f" candidates, more than the {MAX_CANDIDATES} supported (every pair of"
+                " candidates is compared); convert the source again with fewer"
+                " (--max-candidates)"
+            )
         points = np.array(paths.points, dtype=np.int64)
         if points.size != candidates.sum():
             raise self._bad_length(index, "/paths points", points.size, int(candidates.sum()))
@@ -462,6 +507,13 @@ class SceneReader:
         # Gather every candidate into (M, P) slots; slots past a candidate's end repeat its
         # last point, which is the padding risk.Frame expects.
         width = int(points.max()) if points.size else 1
+        check_fits(
+            points.size * width * _PADDED_BYTES,
+            f"{self.path}: frame {index}: {points.size} path candidates padded to the"
+            f" longest ({width} points)",
+            "the paths of one frame are padded to their longest; convert the source"
+            " again with shorter paths (--horizon-s, --map-path-m)",
+        )
         starts = np.cumsum(points) - points
         gather = starts[:, None] + np.minimum(np.arange(width)[None, :], points[:, None] - 1)
         padded = np.stack((x[gather], y[gather]), axis=-1) / sf.MM_PER_M
@@ -499,6 +551,12 @@ class SceneReader:
 
 
 _TRACK_FIELDS = ("ids", "kinds", "x_mm", "y_mm", "heading_urad", "length_mm", "width_mm")
+#: Bytes per (frame, agent) of :class:`risk.hindsight.Tracks` (xy, heading, length,
+#: width float64, valid) and of the truth computed from it (about the same again).
+_TRACK_BYTES = 2 * (8 * 5 + 1)
+#: Bytes per padded path point while decoding (gather index, x and y, the float copy)
+#: and in the models' working arrays (about the same again).
+_PADDED_BYTES = 2 * (8 + 16 + 16)
 
 _STRUCTURAL_KEYS = ("frame_period_s", "format_version", "ego_id")
 """Metadata keys that describe the file rather than the source (not in Scene.metadata)."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from base.background import OutputProcessError  # standard library only: cheap to import
 from base.guard import OutputError
+from base.memory import MemoryLimitError
 
 
 def user_errors() -> tuple[type[BaseException], ...]:
@@ -20,5 +21,5 @@ def user_errors() -> tuple[type[BaseException], ...]:
 
     return (
         RiskError, ConversionError, ReplayError, RecordingError, OutputError,
-        OutputProcessError, OSError,
+        OutputProcessError, MemoryLimitError, OSError,
     )  # fmt: skip
