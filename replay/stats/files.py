@@ -78,7 +78,13 @@ def read_agents_table(path: str | os.PathLike[str], scene: str | None = None) ->
     except (pl.exceptions.PolarsError, OSError) as exc:
         if isinstance(exc, FileNotFoundError):
             raise
-        raise StatsError(f"{path}: not a readable table ({type(exc).__name__}: {exc})") from None
+        # polars' own words ("parquet: File out of specification") do not help here
+        detail = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
+        what = "a Parquet file" if suffix == ".parquet" else f"CSV ({detail})"
+        raise StatsError(
+            f"{path}: not a readable table (damaged, cut short or not {what}); write it"
+            " again with 'replay run --table'"
+        ) from None
     required = {"frame", "t_s", "agent_id", "baseline"}
     missing = sorted(required - set(df.columns))
     if missing or not model_names_of(df):
