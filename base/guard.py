@@ -439,6 +439,8 @@ class OutputGuard:
 # ---------------------------------------------------------------------- stalled I/O
 STALL_ENV = "RISKREPLAY_STALL_TIMEOUT_S"
 DEFAULT_STALL_S = 60.0
+#: Free space above which a stalled save is not blamed on a full disk.
+ROOMY_BYTES = 1 << 30
 
 
 def stall_timeout_s() -> float:
@@ -488,6 +490,15 @@ def run_with_stall_timeout(
             last_size, last_change = size, now
         elif now - last_change > limit:
             free = free_bytes(target.parent)
+            if free is not None and free > ROOMY_BYTES:
+                # Not the disk: the writer itself is stuck, or still encoding before it
+                # writes (a false "disk full" sent users to free space for nothing).
+                raise OutputError(
+                    f"could not write {target}: the writer made no progress for {limit:g} s"
+                    f" although {free / 2**30:.1f} GiB are free in {target.parent}; the"
+                    f" output may be too large to write in time (set {STALL_ENV} to wait"
+                    " longer) or the writer is stuck"
+                )
             space = "" if free is None else f", {free} bytes free in {target.parent}"
             raise OutputError(
                 f"could not write {target}: the save made no progress for {limit:g} s"

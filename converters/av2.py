@@ -202,6 +202,11 @@ def read_lane_map(path: pathlib.Path | None) -> LaneMap:
                 )
             )
         lines = av2_lines(data)
+    except RecursionError:  # (json and the walk below recurse once per level)
+        raise ConversionError(
+            f"{path}: not an Argoverse 2 map (nested deeper than Python can parse; a map"
+            " nests a few levels)"
+        ) from None
     except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise ConversionError(
             f"{path}: not an Argoverse 2 map ({type(exc).__name__}: {exc})"

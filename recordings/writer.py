@@ -83,6 +83,14 @@ def _write(
     options: WriteOptions,
 ) -> None:
     scene = _concatenate(frames, info)
+    n_agents = _agent_grid(scene)[0].size
+    if n_agents > MAX_RECORDED_AGENTS:
+        raise RecordingError(
+            f"could not write {output}: the scene has {n_agents} agents, more than the"
+            f" {MAX_RECORDED_AGENTS} a recording draws (each is its own entity in the"
+            " viewer, and encoding them takes minutes); write a table instead (--no-rrd"
+            " --table FILE)"
+        )
     models = tuple(info.model_names)
     log10_ranges = {
         m: _log10_range(scene.rows[f"risk:{m}"])
@@ -684,6 +692,16 @@ def _compute_agent_grid(scene: _Scene) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return agent_ids, column, first, last
 
 
+#: Agents (other than the ego) a recording draws at most: rerun encodes each as its own
+#: entity, about 1 ms each (20,000 agents in one frame: 23 s measured, and minutes before
+#: the timelines were bounded too).
+MAX_RECORDED_AGENTS = 5000
+
+#: Agents with their own risk timelines in one recording (the most important first; see
+#: :func:`focus_agents`). The scene view still draws every agent.
+MAX_TIMELINE_AGENTS = 1000
+
+
 def _log_timelines(
     rec, info: SceneInfo, scene: _Scene, log10_models: set[str], focus: Sequence[int]
 ) -> None:
@@ -698,6 +716,17 @@ def _log_timelines(
     """
     r = scene.rows
     agent_ids, column, first, last = _agent_grid(scene)
+    if agent_ids.size > MAX_TIMELINE_AGENTS:
+        # Every timeline is a column of one record batch, and rerun's encoding of a
+        # batch grows faster than its columns: 20,000 agents took minutes (seen as a
+        # stalled save). The views keep the agents that matter most, as they open on.
+        keep = np.isin(
+            agent_ids,
+            focus_agents(scene, MAX_TIMELINE_AGENTS, only_important=False),
+        )
+        remap = np.where(keep, np.cumsum(keep) - 1, -1)
+        column = np.where(column >= 0, remap[np.maximum(column, 0)], -1)
+        agent_ids, first, last = agent_ids[keep], first[keep], last[keep]
     n_frames, others = scene.times_s.size, column >= 0
     frame_pos = np.arange(n_frames)
     outside = (frame_pos[None, :] < first[:, None]) | (frame_pos[None, :] > last[:, None])
@@ -808,8 +837,11 @@ def _ego_points(scene: _Scene, info: SceneInfo) -> np.ndarray:
     return np.concatenate(lanes) if lanes else np.zeros((1, 2))
 
 
-def focus_agents(scene: _Scene, limit: int = L.FOCUS_AGENTS_MAX) -> list[int]:
-    """The agents the risk views open on: misses, hindsight positives and tier agents.
+def focus_agents(
+    scene: _Scene, limit: int = L.FOCUS_AGENTS_MAX, *, only_important: bool = True
+) -> list[int]:
+    """The agents the risk views open on: misses, hindsight positives and tier agents
+    (``only_important=False``: any agent, in the same order).
 
     Ordered by importance (missed at least once, then came close, then the deepest tier
     reached, then the highest survival risk), at most ``limit``; the others are one
@@ -834,4 +866,6 @@ def focus_agents(scene: _Scene, limit: int = L.FOCUS_AGENTS_MAX) -> list[int]:
         risk = per_agent(np.nan_to_num(np.log10(r["survival"]), nan=-np.inf), -np.inf)
     matter = (missed > 0) | (close > 0) | (tier >= 0)
     order = np.lexsort((-risk, -tier, -close, -missed))
+    if not only_important:
+        return [int(a) for a in agent_ids[order[:limit]]]
     return [int(agent_ids[a]) for a in order if matter[a]][:limit]

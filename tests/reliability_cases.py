@@ -418,6 +418,188 @@ def cases() -> list[Case]:
         osm.write_text(osm_text())
         return _run(["convert", "interaction", csv, "--map", osm, "-o", d / "o.mcap"], csv)
 
+    out += round3_cases()
+    return out
+
+
+# ---------------------------------------------------------------------- round 3 (issue 31)
+def tampered(folder: pathlib.Path, name: str, *, period: float | None = None,
+             tamper: Callable | None = None) -> pathlib.Path:  # fmt: skip
+    """The small scene rewritten frame by frame: another metadata period, or
+    ``tamper(agents, paths, k)`` applied to each frame's messages."""
+    from converters import scene_format as sf
+    from converters.mcap_io import SceneWriter, encode_frame
+    from replay.reader import read_scene
+
+    src = scene(folder, ".good.mcap")
+    good = read_scene(src)
+    src.unlink()
+    path = folder / name
+    w = SceneWriter(path, good.map, frame_period_s=period or good.frame_period_s,
+                    metadata={"converter": "test"})  # fmt: skip
+    for k, frame in enumerate(good.frames):
+        agents, paths = encode_frame(frame, k)
+        if tamper is not None:
+            tamper(agents, paths, k)
+        t = int(1e9 * frame.t)
+        w._write(sf.TOPIC_AGENTS, agents, t)
+        w._write(sf.TOPIC_PATHS, paths, t)
+        w._n_frames += 1
+    w.close()
+    return path
+
+
+def many_candidates(agents, paths, k, count: int = 100) -> None:
+    """Every agent's first path candidate repeated ``count`` times."""
+    cands, pts = list(paths.candidates), list(paths.points)
+    xs, ys = list(paths.x_mm), list(paths.y_mm)
+    new_c, new_p, new_x, new_y = [], [], [], []
+    pi = xi = 0
+    for c in cands:
+        n = pts[pi]
+        new_c.append(count)
+        new_p += [n] * count
+        new_x += xs[xi : xi + n] * count
+        new_y += ys[xi : xi + n] * count
+        xi += sum(pts[pi : pi + c])
+        pi += c
+    for field_, values in (("candidates", new_c), ("points", new_p), ("x_mm", new_x),
+                           ("y_mm", new_y)):  # fmt: skip
+        del getattr(paths, field_)[:]
+        getattr(paths, field_).extend(values)
+
+
+def _stats(table_path: pathlib.Path, d: pathlib.Path, *extra: str):
+    return _run(["stats", table_path, "-o", d / "st", "--no-plots", "--no-progress", *extra],
+                table_path)  # fmt: skip
+
+
+def _retyped(d: pathlib.Path, column: str, value: object, suffix: str = ".parquet"):
+    t = table(d, ".t.parquet")
+    df = pl.read_parquet(t).with_columns(pl.lit(value).alias(column))
+    t.unlink()
+    path = d / f"tab{suffix}"
+    if suffix == ".csv":
+        df.select(pl.all().cast(pl.String)).write_csv(path)
+    else:
+        df.write_parquet(path)
+    return path
+
+
+def round3_cases() -> list[Case]:
+    out: list[Case] = []
+
+    def add(name: str, kind: str, names_file: bool = True):
+        def deco(make):
+            out.append(Case(name, kind, make, names_file))
+            return make
+
+        return deco
+
+    # data destroyed: outputs that are pipes, reports that are inputs or outputs
+    @add("device-run-output-is-a-fifo", "device")
+    def _(d):
+        s = scene(d)
+        os.mkfifo(d / "pipe.rrd")
+        return _run(["run", s, "-o", d / "pipe.rrd", "--no-progress"], s)
+
+    @add("device-table-is-a-fifo", "device")
+    def _(d):
+        s = scene(d)
+        os.mkfifo(d / "pipe.parquet")
+        return _run(["run", s, "--no-rrd", "--table", d / "pipe.parquet", "--no-progress"], s)
+
+    @add("same-path-evaluate-report-is-an-input-in-a-folder", "same-path")
+    def _(d):
+        (d / "in").mkdir()
+        s = scene(d / "in")
+        return _run(["evaluate", d / "in", "-o", d / "ev", "--report", s, "--no-progress",
+                     "--bootstrap", "0"], s)  # fmt: skip
+
+    # hangs: a named pipe with no writer as an input
+    for cmd in ("run", "inspect", "stats", "evaluate"):
+
+        @add(f"hang-fifo-scene-{cmd}", "hang")
+        def _(d, cmd=cmd):
+            os.mkfifo(d / "p.mcap")
+            extra = {"run": ["--no-progress"], "inspect": [],
+                     "stats": ["-o", d / "st", "--no-progress"],
+                     "evaluate": ["-o", d / "ev", "--no-progress"]}[cmd]  # fmt: skip
+            return _run([cmd, d / "p.mcap", *extra])
+
+    @add("hang-many-path-candidates", "hang")
+    def _(d):
+        s = tampered(d, "c.mcap", tamper=many_candidates)
+        return _run(["run", s, "--no-rrd", "--no-progress"], s)
+
+    # memory from one number
+    for args in (["run", "--no-rrd", "--table", "t.parquet"], ["run", "--ego", "all",
+                 "--table", "t.parquet"], ["evaluate", "-o", "ev", "--bootstrap", "0"]):  # fmt: skip
+
+        @add(f"memory-period-1e-12-{'-'.join(a.lstrip('-') for a in args[1:3])}", "memory")
+        def _(d, args=args):
+            s = tampered(d, "p.mcap", period=1e-12)
+            return _run([args[0], s, *args[1:], "--no-progress"], s)
+
+    # bad frame order
+    def backwards(agents, paths, k):
+        if k == 5:
+            agents.t_s = 0.05
+
+    def repeated(agents, paths, k):
+        if k == 5:
+            agents.t_s -= 0.1
+
+    for name, tamper in (("backwards", backwards), ("repeated", repeated)):
+
+        @add(f"exit0-frame-times-{name}", "exit-0")
+        def _(d, tamper=tamper):
+            s = tampered(d, "b.mcap", tamper=tamper)
+            return _run(["run", s, "--no-rrd", "--table", d / "t.parquet", "--no-progress"], s)
+
+    # recursion
+    @add("recursion-cascade-toml", "recursion")
+    def _(d):
+        s = scene(d)
+        toml = d / "deep.toml"
+        toml.write_text("a = " + "[" * 50_000 + "]" * 50_000 + "\n")
+        return _run(["run", s, "--cascade", toml, "--no-rrd", "--no-progress"], s, toml)
+
+    @add("recursion-av2-map-json", "recursion")
+    def _(d):
+        p = av2_write_scenario(d / "sc")
+        m = next((d / "sc").glob("*.json"))
+        m.write_text('{"lane_segments": ' + "[" * 200_000 + "]" * 200_000 + "}")
+        return _run(["convert", "av2", d / "sc", "-o", d / "o.mcap"], p, m)
+
+    # stats on tables of the wrong types
+    for column, value, suffix in (
+        ("frame", "x", ".parquet"), ("ego_id", "x", ".parquet"), ("agent_id", "x", ".parquet"),
+        ("t_s", "x", ".parquet"), ("baseline", "maybe", ".csv"),
+    ):  # fmt: skip
+
+        @add(f"exit0-stats-{column}-{value}{suffix.replace('.', '-')}", "exit-0")
+        def _(d, column=column, value=value, suffix=suffix):
+            return _stats(_retyped(d, column, value, suffix), d)
+
+    @add("exit0-stats-models-empty", "exit-0", False)
+    def _(d):
+        return _stats(table(d), d, "--models", "")
+
+    for value in ("nan", "-1"):
+
+        @add(f"exit0-evaluate-baseline-threshold-{value}", "exit-0", False)
+        def _(d, value=value):
+            s = scene(d)
+            return _run(["evaluate", s, "-o", d / "ev", "--baseline-threshold", value,
+                         "--no-progress", "--bootstrap", "0"], s)  # fmt: skip
+
+    @add("message-cut-parquet", "foreign")
+    def _(d):
+        t = table(d)
+        t.write_bytes(t.read_bytes()[: t.stat().st_size // 2])
+        return _stats(t, d)
+
     return out
 
 

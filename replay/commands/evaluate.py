@@ -28,6 +28,7 @@ from replay.evaluation import (
 )
 from replay.evaluation_report import write_report
 from replay.inputs import resolve_inputs
+from replay.limits import RISK_THRESHOLDS, model_names
 from replay.sensitivity import format_sweep, run_sweep, sweep_subset, write_sweep
 from risk.hindsight import HindsightSettings
 
@@ -51,7 +52,7 @@ def _names(text: str | None) -> list[str]:
     help="Cascade TOML for the scenes. Default: the calibrated cascade shipped with riskreplay.",
 )  # fmt: skip
 @click.option(
-    "--baseline-threshold", type=float, default=None,
+    "--baseline-threshold", type=RISK_THRESHOLDS, default=None,
     help="Survival risk at or above which an agent is important. Default: 1e-25 (the paper's).",
 )  # fmt: skip
 @click.option("--truth-horizon", type=float, default=None, help="Hindsight horizon, s. Default: 5.")
@@ -163,7 +164,8 @@ def evaluate(
     from replay.pool import default_workers
     from risk.registry import resolve_models
 
-    chosen = tuple(resolve_models(_names(models))) if models else None
+    names = model_names(models)
+    chosen = tuple(resolve_models(names)) if names is not None else None
     by = check_groupings(_names(groupings))
     cascade = load_cascade(cascade_file, sets)
     given = {

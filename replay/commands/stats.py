@@ -13,7 +13,7 @@ from replay.commands.ego_options import ego_option, every_option
 from replay.commands.settings_option import load_cascade, set_option
 from replay.engine import Stride
 from replay.inputs import collect, resolve_inputs
-from replay.limits import WORKERS
+from replay.limits import WORKERS, model_names
 from replay.pool import default_workers
 from replay.stats import (
     DEFAULT_ERRORS_MODEL,
@@ -96,7 +96,8 @@ def stats(
       summary.json            AUC, std of TPR at TPR 0.95 and 1, kept agents, counts
       roc.png, errors.png, cascade_funnel.png
     """
-    chosen = resolve_models([m.strip() for m in models.split(",") if m.strip()]) if models else None
+    names = model_names(models)
+    chosen = resolve_models(names) if names is not None else None
     resolve_models([errors_model])
     cascade = load_cascade(cascade_file, sets)
     found = resolve_inputs(inputs)
