@@ -719,9 +719,10 @@ def _read_metadata(path: pathlib.Path, reader: SeekingReader) -> dict[str, str]:
     version = metadata.get("format_version", "")
     if not version.isdigit():
         raise SceneFormatError(f"{path}: metadata has no valid format_version ({version!r})")
-    if int(version) > sf.FORMAT_VERSION:
+    if len(version) > 9 or int(version) > sf.FORMAT_VERSION:  # (int() refuses 4,300+ digits)
         raise SceneFormatError(
-            f"{path}: written in scene format version {version}, this riskreplay reads up to"
+            f"{path}: written in scene format version {version[:12]}"
+            f"{'...' if len(version) > 12 else ''}, this riskreplay reads up to"
             f" version {sf.FORMAT_VERSION}; upgrade riskreplay"
         )
     return metadata

@@ -594,6 +594,123 @@ def round3_cases() -> list[Case]:
             return _run(["evaluate", s, "-o", d / "ev", "--baseline-threshold", value,
                          "--no-progress", "--bootstrap", "0"], s)  # fmt: skip
 
+    # converters: tracebacks and exit 0 on bad values
+    def commonroad(d, xml: str):
+        x = d / "c.xml"
+        x.write_text(xml)
+        return _run(["convert", "commonroad", x, "-o", d / "o.mcap"], x)
+
+    for name, old, new in (
+        ("commonroad-lanelet-point-inf", "<x>50</x><y>2</y>", "<x>inf</x><y>2</y>"),
+        ("commonroad-lanelet-point-nan", "<x>50</x><y>2</y>", "<x>nan</x><y>2</y>"),
+        ("commonroad-successor-abc", '<successor ref="2"/>', '<successor ref="abc"/>'),
+        ("commonroad-time-step-1e300", 'timeStepSize="0.1"', 'timeStepSize="1e300"'),
+        ("commonroad-obstacle-id-abc", '<dynamicObstacle id="7">', '<dynamicObstacle id="x7">'),
+        ("commonroad-lane-point-2^62", "<x>150</x><y>2</y>", f"<x>{2**62}</x><y>2</y>"),
+    ):  # fmt: skip
+
+        @add(f"converter-{name}", "converter")
+        def _(d, old=old, new=new):
+            xml = scenario_xml()
+            assert old in xml, old
+            return commonroad(d, xml.replace(old, new, 1))
+
+    def av2(d, change):
+        p = av2_write_scenario(d / "sc")
+        df = change(av2_rows().with_columns(pl.lit("tiny-0001").alias("scenario_id")))
+        df.write_parquet(p)
+        return _run(["convert", "av2", d / "sc", "-o", d / "o.mcap"], p)
+
+    for name, change in (
+        ("position-abc", lambda df: df.with_columns(
+            pl.col("position_x").cast(pl.String).set(0, "abc") if False else
+            pl.when(pl.col("timestep") == 3).then(pl.lit("abc"))
+            .otherwise(pl.col("position_x").cast(pl.String)).alias("position_x"))),
+        ("track-id-null", lambda df: df.with_columns(pl.lit(None, pl.String).alias("track_id"))),
+        ("start-timestamp-text", lambda df: df.with_columns(pl.lit("soon").alias("start_timestamp"))),
+        ("timestep-strings", lambda df: df.with_columns(pl.col("timestep").cast(pl.String))),
+    ):  # fmt: skip
+
+        @add(f"converter-av2-{name}", "converter")
+        def _(d, change=change):
+            return av2(d, change)
+
+    def interaction(d, edit_csv=None, edit_osm=None):
+        csv, osm = d / "t.csv", d / "m.osm"
+        text = vehicle_csv()
+        csv.write_text(edit_csv(text) if edit_csv else text)
+        o = osm_text()
+        osm.write_text(edit_osm(o) if edit_osm else o)
+        return _run(["convert", "interaction", csv, "--map", osm, "-o", d / "o.mcap"], csv, osm)
+
+    def frame_id(value: str, ms: str, line: int = 3):
+        """Car 1's row on ``line`` moved to frame ``value`` at ``ms`` (consistent)."""
+
+        def edit(text):
+            lines = text.splitlines()
+            cells = lines[line].split(",")
+            cells[1], cells[2] = value, ms
+            lines[line] = ",".join(cells)
+            return "\n".join(lines) + "\n"
+
+        return edit
+
+    def lat(value):
+        def edit(text):
+            import re
+
+            return re.sub(r'lat="[^"]*"', f'lat="{value}"', text, count=1)
+
+        return edit
+
+    def quoted_newline(text):
+        lines = text.splitlines()
+        cells = lines[3].split(",")
+        cells[3] = '"ca\nr"'
+        lines[3] = ",".join(cells)
+        return "\n".join(lines) + "\n"
+
+    for name, kwargs in (
+        ("frame-id-fractional", {"edit_csv": frame_id("2.5", "250")}),
+        ("frame-id-9e6", {"edit_csv": frame_id("9000000", "900000000", line=5)}),
+        ("quoted-newline", {"edit_csv": quoted_newline}),
+        ("osm-lat-north", {"edit_osm": lat("north")}),
+        ("osm-lat-1e300", {"edit_osm": lat("1e300")}),
+    ):  # fmt: skip
+
+        @add(f"converter-interaction-{name}", "converter")
+        def _(d, kwargs=kwargs):
+            return interaction(d, **kwargs)
+
+    @add("converter-inspect-format-version-5000-digits", "converter")
+    def _(d):
+        from converters import scene_format as sf
+        from converters.mcap_io import SceneWriter
+
+        s = scene(d)
+        data = bytearray(s.read_bytes())
+        key = b"format_version"
+        at = data.find(key)
+        assert at > 0
+        # (the value follows its length prefix: replace the whole file via the writer)
+        del data
+        meta = {"converter": "test"}
+        from replay.reader import read_scene
+
+        good = read_scene(s)
+        w = SceneWriter(d / "v.mcap", good.map, frame_period_s=good.frame_period_s,
+                        metadata=meta)  # fmt: skip
+        for f in good.frames:
+            w.add_frame(f)
+        w._final_metadata = lambda: {  # type: ignore[method-assign]
+            "format_version": "9" * 5000, "frame_period_s": str(good.frame_period_s),
+            "converter": "test",
+        }  # fmt: skip
+        w.close()
+        s.unlink()
+        assert sf.METADATA_NAME
+        return _run(["inspect", d / "v.mcap"], d / "v.mcap")
+
     @add("message-cut-parquet", "foreign")
     def _(d):
         t = table(d)
