@@ -342,6 +342,14 @@ def miss_table(summary: Mapping[str, Any]) -> pl.DataFrame:
     return pl.DataFrame(rows, infer_schema_length=None)
 
 
+#: Tables that ``replay evaluate`` writes into its output folder (with the sweep's):
+#: never read back as inputs from there.
+EVALUATION_TABLES = (
+    "roc", "miss_rates", "positives", "sensitivity", "sensitivity_ranking",
+    "sensitivity_findings",
+)  # fmt: skip
+
+
 def write_evaluation(
     summary: Mapping[str, Any],
     agents: pl.DataFrame,
@@ -501,11 +509,16 @@ def collect_agents(
     ego: int | str | None = None,
     every: Any = 1,
     models: Sequence[str] | None = None,
+    output_dir: str | os.PathLike[str] | None = None,
 ) -> tuple[pl.DataFrame, dict[str, str], HindsightSettings]:
     """The agents table of scenes, tables or folders (as ``replay stats`` reads them),
     the dataset of each scene (the name of the folder its file is in) and the hindsight
     settings of its truth columns. ``models``: the risk columns to compute (default: all)."""
-    found = resolve_inputs([pathlib.Path(p) for p in paths])
+    found = resolve_inputs(
+        [pathlib.Path(p) for p in paths],
+        output_dir=None if output_dir is None else pathlib.Path(output_dir),
+        output_stems=EVALUATION_TABLES,
+    )
     if found.tables and hindsight is not None and hindsight != HindsightSettings():
         raise EvaluationError(
             "tables carry the hindsight truth they were written with; to evaluate other "

@@ -122,7 +122,13 @@ class SceneReader:
             self.channels: tuple[ChannelInfo, ...] = _channel_infos(summary)
             self._channel_ids = {c.topic: c.id for c in summary.channels.values()}
             _check_channels(self.path, summary)
-            counts = summary.statistics.channel_message_counts if summary.statistics else {}
+            counts = (
+                summary.statistics.channel_message_counts
+                if summary.statistics
+                else self._count_messages(reader)  # (Statistics are optional in MCAP)
+            )
+            if not summary.statistics:
+                self.channels = _channel_infos(summary, counts)
             self.n_frames: int = int(counts.get(self._channel_ids[sf.TOPIC_AGENTS], 0))
             n_paths = int(counts.get(self._channel_ids[sf.TOPIC_PATHS], 0))
             if self.n_frames == 0:
@@ -141,6 +147,17 @@ class SceneReader:
             self.labels: dict[str, tuple[int, ...]] = self._read_labels(reader)
         #: Every frame's /agents columns (file order), kept by a complete entries() pass.
         self._agent_states: list[tuple[float, dict[str, np.ndarray]]] | None = None
+
+    def _count_messages(self, reader: SeekingReader) -> dict[int, int]:
+        """Messages per channel id, counted by reading them: for files without the
+        optional Statistics record (other MCAP writers may leave it out)."""
+        counts: dict[int, int] = {}
+        try:
+            for _, channel, _ in reader.iter_messages(log_time_order=False):
+                counts[channel.id] = counts.get(channel.id, 0) + 1
+        except _DAMAGE as exc:
+            raise self._damaged(exc) from None
+        return counts
 
     # ------------------------------------------------------------------ static parts
     def _single(self, reader: SeekingReader, topic: str) -> bytes | None:
@@ -666,8 +683,9 @@ def _header_library(reader: SeekingReader) -> str:
         return ""
 
 
-def _channel_infos(summary: Any) -> tuple[ChannelInfo, ...]:
-    counts = summary.statistics.channel_message_counts if summary.statistics else {}
+def _channel_infos(summary: Any, counts: dict[int, int] | None = None) -> tuple[ChannelInfo, ...]:
+    if counts is None:
+        counts = summary.statistics.channel_message_counts if summary.statistics else {}
     infos = []
     for channel in sorted(summary.channels.values(), key=lambda c: c.id):
         schema: Schema | None = summary.schemas.get(channel.schema_id)

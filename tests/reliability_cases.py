@@ -486,6 +486,33 @@ def _retyped(d: pathlib.Path, column: str, value: object, suffix: str = ".parque
     return path
 
 
+def without_statistics(src: pathlib.Path, path: pathlib.Path) -> pathlib.Path:
+    """A copy of the scene ``src`` written without MCAP's optional Statistics record."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(src, "rb") as f_in, open(path, "wb") as f_out:
+        reader = make_reader(f_in)
+        summary = reader.get_summary()
+        w = Writer(f_out, use_statistics=False)
+        w.start(profile="", library="test")
+        schema_ids = {
+            sid: w.register_schema(s.name, s.encoding, s.data)
+            for sid, s in summary.schemas.items()
+        }
+        channel_ids = {
+            cid: w.register_channel(c.topic, c.message_encoding, schema_ids[c.schema_id])
+            for cid, c in summary.channels.items()
+        }
+        for _, channel, message in reader.iter_messages(log_time_order=False):
+            w.add_message(channel_ids[channel.id], message.log_time, message.data,
+                          message.publish_time)  # fmt: skip
+        for record in reader.iter_metadata():
+            w.add_metadata(record.name, record.metadata)
+        w.finish()
+    return path
+
+
 def round3_cases() -> list[Case]:
     out: list[Case] = []
 

@@ -20,6 +20,7 @@ from replay.commands.settings_option import load_cascade, set_option
 from replay.engine import Stride
 from replay.evaluation import (
     DEFAULT_GROUPINGS,
+    EVALUATION_TABLES,
     GROUPINGS,
     EvaluationError,
     EvaluationSettings,
@@ -185,7 +186,7 @@ def evaluate(
         seed=seed,
     )
     workers_n = workers or default_workers()
-    found = resolve_inputs(list(inputs))  # (the files inside folders are inputs too)
+    found = resolve_inputs(list(inputs), output_dir=out_dir, output_stems=EVALUATION_TABLES)
     report_dir = None if report_path is None else report_path.with_suffix("")
     guard = OutputGuard(
         inputs=[*inputs, *found.scenes, *found.tables, cascade_file],
@@ -195,7 +196,7 @@ def evaluate(
         start = time.perf_counter()
         agents, datasets, hs = collect_agents(
             inputs, cascade=cascade, hindsight=hindsight, workers=workers_n,
-            progress=progress, ego=ego, every=every,
+            progress=progress, ego=ego, every=every, output_dir=out_dir,
         )  # fmt: skip
         read_s = time.perf_counter() - start
         start = time.perf_counter()

@@ -19,6 +19,7 @@ from replay.stats import (
     DEFAULT_ERRORS_MODEL,
     DatasetStats,
 )
+from replay.stats.files import OUTPUT_TABLES
 from replay.stats.run import run_stats
 from risk.registry import resolve_models
 
@@ -100,7 +101,7 @@ def stats(
     chosen = resolve_models(names) if names is not None else None
     resolve_models([errors_model])
     cascade = load_cascade(cascade_file, sets)
-    found = resolve_inputs(inputs)
+    found = resolve_inputs(inputs, output_dir=out_dir, output_stems=OUTPUT_TABLES)
     guard = OutputGuard(inputs=(*found.scenes, *found.tables, cascade_file), folders=(out_dir,))
     with guard:  # checked and locked before the replays; all files appear together
         engine_models = None

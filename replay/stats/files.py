@@ -115,6 +115,10 @@ def concat_agents(tables: Sequence[pl.DataFrame]) -> pl.DataFrame:
         raise StatsError(f"the tables do not fit together: {exc}") from None
 
 
+#: The tables :func:`write_stats` writes (as NAME.parquet and NAME.csv): never inputs.
+OUTPUT_TABLES = ("roc", "errors", "funnel", "per_frame", "per_scene")
+
+
 def write_stats(stats: DatasetStats, out_dir: str | os.PathLike[str]) -> dict[str, pathlib.Path]:
     """Write every table as Parquet and CSV and the summary as JSON into ``out_dir``
     (created if needed); each file atomically. Returns name -> path."""
@@ -128,6 +132,7 @@ def write_stats(stats: DatasetStats, out_dir: str | os.PathLike[str]) -> dict[st
         "per_frame": stats.per_frame,
         "per_scene": stats.per_scene,
     }
+    assert tuple(tables) == OUTPUT_TABLES
     for name, df in tables.items():
         for suffix in (".parquet", ".csv"):
             path = out / f"{name}{suffix}"
