@@ -287,7 +287,7 @@ def _frames(
     bounds = np.searchsorted(rows.frame, np.arange(steps.size + 1))
     frames: list[Frame] = []
     for f, step in enumerate(
-        tqdm(steps, desc="frames", unit="frame", disable=not progress, leave=False)
+        tqdm(steps, desc="frames", unit="frame", disable=None if progress else True, leave=False)
     ):
         lo, hi = bounds[f], bounds[f + 1]
         count = rows.count[lo:hi]

@@ -80,9 +80,11 @@ class LazyGroup(click.Group):
             _stopped(ctx, exc)
         except OSError as exc:
             if exc.errno != errno.EPIPE and not isinstance(exc, BrokenPipeError):
+                _end_line(sys.stderr)
                 raise click.ClickException(_os_message(exc)) from None
             quiet_broken_pipe()
         except user_errors() as exc:
+            _end_line(sys.stderr)  # (a progress bar may have left the cursor mid-line)
             raise click.ClickException(str(exc) or type(exc).__name__) from None
 
 

@@ -170,7 +170,7 @@ def run_every_ego(
     wrapped = [_KeepOpen(s) for s in sinks]
     runs: list[RunSummary] = []
     bar = tqdm(
-        egos.tolist(), disable=not progress, file=sys.stderr, unit="ego",
+        egos.tolist(), disable=None if progress else True, file=sys.stderr, unit="ego",
         desc=f"egos of {scene.path.name if scene.path else 'scene'}", leave=False,
     )  # fmt: skip
     try:

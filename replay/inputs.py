@@ -146,7 +146,7 @@ def collect(
             tasks,
             workers=min(workers, len(tasks)),
             progress=progress,
-            desc="stats: scenes",
+            desc="replaying scenes",
             unit="scene",
         ):
             agents.append(a)

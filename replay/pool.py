@@ -252,7 +252,7 @@ def parallel_map(
     weights = list(weights) if weights is not None else [1] * len(tasks)
     bar = tqdm(
         total=sum(weights),
-        disable=not progress,
+        disable=None if progress else True,
         file=sys.stderr,
         desc=desc,
         unit=unit,

@@ -451,7 +451,7 @@ def _execute(
     eng = make_engine(engine, workers=workers, address=ray_address) if own else engine
     bar = tqdm(
         total=len(run.replay_todo), unit="scene", desc=f"batch ({eng.name}, {eng.workers} workers)",
-        file=sys.stderr, disable=not progress, dynamic_ncols=True, smoothing=0.05,
+        file=sys.stderr, disable=None if progress else True, dynamic_ncols=True, smoothing=0.05,
     )  # fmt: skip
     try:
         with bar:

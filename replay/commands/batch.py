@@ -8,6 +8,7 @@ import click
 
 from base.guard import OutputGuard
 from replay.batch import CONVERT_KINDS, ENGINES, BatchReport, BatchSettings, run_batch
+from replay.batch.engines import check_engine
 from replay.commands.ego_options import ego_option, every_option
 from replay.commands.settings_option import load_cascade, set_option
 from replay.egos import ALL_EGOS
@@ -128,6 +129,7 @@ def batch(
             "--rrd writes one recording per scene, which shows one ego's view; it cannot go "
             "with --ego all"
         )
+    check_engine(engine)
     cascade = load_cascade(cascade_file, sets)
     settings = BatchSettings(
         cascade=cascade,
