@@ -163,6 +163,8 @@ class SceneRecorder:
     ignored where that cannot help (one CPU) or cannot work (no ``fork``).
     """
 
+    timing_name = "writing the recording"  # (named for the timing line, not the class)
+
     def __init__(
         self,
         output: str | os.PathLike[str],

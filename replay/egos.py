@@ -87,7 +87,8 @@ class _KeepOpen:
 
     def __init__(self, sink: Sink) -> None:
         self.sink = sink
-        self.timing_name = type(sink).__name__  # what replay.engine reports its time as
+        # what replay.engine reports its time as
+        self.timing_name = getattr(sink, "timing_name", type(sink).__name__)
 
     def begin(self, info: SceneInfo) -> None:
         self.sink.begin(info)

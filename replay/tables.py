@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from base import background as background_process
-from base.atomic import commit, temp_path_beside
+from base.atomic import commit, target_kind, temp_path_beside
 from base.sinks import FrameResult, SceneInfo
 from replay.errors import ReplayError
 from risk.hindsight import LABEL_UNKNOWN, HindsightSettings, truth_for_rows
@@ -70,6 +70,8 @@ class TableSink:
     that cannot help (one CPU) or cannot work (no ``fork``).
     """
 
+    timing_name = "writing the table"  # (the run's timing line names stages, not classes)
+
     def __init__(
         self,
         path: str | os.PathLike[str] | None,
@@ -85,7 +87,7 @@ class TableSink:
         self.path = None if path is None else pathlib.Path(path)
         if self.path is None:
             return
-        if self.path.suffix.lower() not in SUFFIXES:
+        if self.path.suffix.lower() not in SUFFIXES and target_kind(self.path) != "device":
             raise ReplayError(
                 f"{self.path}: table files must end in .parquet or .csv, got "
                 f"{self.path.suffix or 'no suffix'!r}"

@@ -497,8 +497,7 @@ def without_statistics(src: pathlib.Path, path: pathlib.Path) -> pathlib.Path:
         w = Writer(f_out, use_statistics=False)
         w.start(profile="", library="test")
         schema_ids = {
-            sid: w.register_schema(s.name, s.encoding, s.data)
-            for sid, s in summary.schemas.items()
+            sid: w.register_schema(s.name, s.encoding, s.data) for sid, s in summary.schemas.items()
         }
         channel_ids = {
             cid: w.register_channel(c.topic, c.message_encoding, schema_ids[c.schema_id])
@@ -557,7 +556,7 @@ def round3_cases() -> list[Case]:
     @add("hang-many-path-candidates", "hang")
     def _(d):
         s = tampered(d, "c.mcap", tamper=many_candidates)
-        return _run(["run", s, "--no-rrd", "--no-progress"], s)
+        return _run(["run", s, "--no-rrd", "--table", d / "t.parquet", "--no-progress"], s)
 
     # memory from one number
     for args in (["run", "--no-rrd", "--table", "t.parquet"], ["run", "--ego", "all",
@@ -590,7 +589,8 @@ def round3_cases() -> list[Case]:
         s = scene(d)
         toml = d / "deep.toml"
         toml.write_text("a = " + "[" * 50_000 + "]" * 50_000 + "\n")
-        return _run(["run", s, "--cascade", toml, "--no-rrd", "--no-progress"], s, toml)
+        return _run(["run", s, "--cascade", toml, "--no-rrd", "--table", d / "t.parquet",
+                     "--no-progress"], s, toml)  # fmt: skip
 
     @add("recursion-av2-map-json", "recursion")
     def _(d):

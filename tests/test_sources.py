@@ -307,8 +307,11 @@ def test_convert_and_run_say_which_agent_is_the_ego_and_why(tmp_path):
     assert result.exit_code == 0, result.output
     why = "the vehicle that travels farthest (14.0 m)"
     assert f"vehicle_tracks_001: ego 6 (id 6): {why}" in result.stderr
-    result = runner.invoke(main, ["run", str(out), "--no-rrd", "--no-progress"])
+    table = str(out.with_suffix(".parquet"))
+    result = runner.invoke(main, ["run", str(out), "--no-rrd", "--table", table, "--no-progress"])
     assert result.exit_code == 0, result.output
     assert f"Ego: agent 6 (source track 6): {why}" in result.stderr
-    result = runner.invoke(main, ["run", str(out), "--no-rrd", "--no-progress", "--ego", "4"])
+    result = runner.invoke(
+        main, ["run", str(out), "--no-rrd", "--table", table, "--no-progress", "--ego", "4"]
+    )
     assert result.exit_code == 0 and "Ego:" not in result.stderr  # the user chose it

@@ -13,6 +13,7 @@ from replay.commands.settings_option import load_cascade, set_option
 from replay.egos import ALL_EGOS, EgosSummary, pooled, run_every_ego
 from replay.engine import ReplayWarning, RunSummary, Sink, Stride, run_scene
 from replay.reader import open_scene
+from replay.tally import HindsightTally, format_counts
 
 
 @click.command("run")
@@ -66,6 +67,11 @@ def run(
     cascade = load_cascade(cascade_file, sets)
     if no_rrd and output is not None:
         raise click.UsageError("--output names the recording; it cannot go with --no-rrd")
+    if no_rrd and table is None and ego != ALL_EGOS:
+        raise click.UsageError(
+            "--no-rrd without --table would write nothing; add --table FILE (or --table"
+            " /dev/null to print the summary only)"
+        )
     inputs = (scene, cascade_file)
     if ego == ALL_EGOS:
         if output is not None:
@@ -88,7 +94,8 @@ def run(
         return
     rrd = None if no_rrd else (output or scene.with_suffix(".rrd"))
     with OutputGuard(inputs=inputs, files=(rrd, table)):  # checked before the replay
-        sinks = make_sinks(rrd, table)
+        tally = HindsightTally()
+        sinks = [*make_sinks(rrd, table), tally]
         reader = open_scene(scene)
         if ego is None:  # the scene's own ego: say which agent it is and why
             click.echo(ego_note(reader.metadata), err=True)
@@ -96,6 +103,8 @@ def run(
             reader, sinks=sinks, cascade=cascade, ego=ego, progress=progress, every=every
         )
     click.echo(format_summary(summary))
+    if tally.counts is not None:
+        click.echo(format_counts(tally.counts))
 
 
 def ego_note(metadata: dict[str, str]) -> str:
