@@ -34,7 +34,7 @@ import time
 
 def make_scenes(folder: pathlib.Path, n: int, agents: int, duration_s: float) -> int:
     """Write ``n`` synthetic scenes; returns the total number of frames."""
-    from converters.mcap_io import write_scene
+    from converters.scene.writer import write_scene
     from converters.synthetic import SyntheticSettings, generate_scene
 
     settings = SyntheticSettings(n_agents=agents, duration_s=duration_s, frame_period_s=0.1)

@@ -30,7 +30,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from converters.mcap_io import write_scene  # noqa: E402
+from converters.scene.writer import write_scene  # noqa: E402
 from converters.sources import SOURCES, ReadOptions, SourceInput  # noqa: E402
 from converters.tracks import Skipped  # noqa: E402
 

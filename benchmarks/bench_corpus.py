@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from converters.lanegraph import PathSettings  # noqa: E402
-from converters.mcap_io import write_scene  # noqa: E402
+from converters.scene.writer import write_scene  # noqa: E402
 from converters.sources import SOURCES, ReadOptions, discover  # noqa: E402
 from converters.tracks import Skipped  # noqa: E402
 

@@ -16,8 +16,8 @@ import pathlib
 import tempfile
 import time
 
-from converters.mcap_io import write_scene
-from replay.reader import read_scene
+from converters.scene.reader import read_scene
+from converters.scene.writer import write_scene
 
 
 def main() -> None:

@@ -22,7 +22,7 @@ Rows:
 - ``replay run`` on the converted Waymo sample and ``replay demo``, end to end in new
   processes with a warm kernel cache, on the ahead-of-time kernel (``risk.kernel_aot``,
   built first when missing) and on numba's just-in-time one (``RISKREPLAY_KERNEL=jit``),
-  with the output process (``base.background``) on and off, all four in turns (``--no-rrd`` is not used: the recording is part of
+  with the output process (``outputs.process``) on and off, all four in turns (``--no-rrd`` is not used: the recording is part of
   the job); start-up = ``replay run --help`` / ``replay demo --help`` in a new process
   (the CLI and that one subcommand's imports; ``replay --help`` imports every
   subcommand, which no real command does). That start-up leaves out the libraries the
@@ -129,7 +129,7 @@ def medians(frames: list[Frame], fn: Callable[[Frame], object], repeat: int) -> 
 
 
 #: (kernel, output process): the ahead-of-time kernel or numba's just-in-time one
-#: (``RISKREPLAY_KERNEL``), the output process (base.background) on or off.
+#: (``RISKREPLAY_KERNEL``), the output process (outputs.process) on or off.
 MODES = (("aot", "on"), ("aot", "off"), ("jit", "on"), ("jit", "off"))
 
 
@@ -306,8 +306,8 @@ kernel.warm_up()
 """
 
 AOT_BUILD = """
-from risk import kernel_aot
-kernel_aot.main([])
+from risk import kernel_aot_build
+kernel_aot_build.main([])
 """
 
 #: Every module ``replay demo`` imports in the replay's process, one name per line
@@ -331,8 +331,8 @@ print("\\n".join(sorted(m for m in sys.modules if not m.startswith("__"))))
 #: included), then waits until the output process has its imports and lets it go.
 DEMO_STARTUP = """
 import importlib
-from base import background
-from replay.early_output import start_for
+from outputs import process as background
+from replay.cli.output_prestart import start_for
 process = start_for(["demo"])
 try:
     for name in open({modules!r}).read().split():
@@ -356,7 +356,7 @@ for name in open({modules!r}).read().split():
         importlib.import_module(name)
     except Exception:
         pass
-from replay.cli import main
+from replay.cli.app import main
 w, c = time.perf_counter(), time.process_time()
 with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
     try:
@@ -445,10 +445,10 @@ def main(argv: list[str] | None = None) -> int:
         help="do not wait for the machine's fast state before each group (MachineSpeed)",
     )  # fmt: skip
     args = ap.parse_args(argv)
-    from risk import kernel, kernel_aot
+    from risk import kernel, kernel_aot_build
 
     if kernel.IMPLEMENTATION != "aot":  # built once, so that the rows measure what they say
-        print(f"  building the ahead-of-time kernel: {kernel_aot.build(kernel.CACHE_DIR)}",
+        print(f"  building the ahead-of-time kernel: {kernel_aot_build.build(kernel.CACHE_DIR)}",
               file=sys.stderr)  # fmt: skip
         os.execv(sys.executable, [sys.executable, *sys.argv])  # again, on the built kernel
     print(f"  in-process rows: the {kernel.IMPLEMENTATION} kernel", file=sys.stderr)

@@ -47,7 +47,7 @@ class _Collect:
 def replay_results(agents: int, seed: int) -> _Collect:
     """Run the engine once on a synthetic scene and keep its results."""
     from converters.synthetic import SyntheticSettings, generate_scene
-    from replay.engine import run_scene
+    from replay.core.engine import run_scene
     from risk.cascade import DEFAULT_CASCADE_PATH, CascadeConfig, Stage, Tier
 
     scene = generate_scene(SyntheticSettings(n_agents=agents + 1, duration_s=10.0), seed=seed)

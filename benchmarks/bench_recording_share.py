@@ -9,7 +9,7 @@ Two shares per scene, each over ``--repeat`` runs (medians, with the range):
 - **end to end**: ``replay run SCENE -o OUT.rrd --no-progress`` in a new process (warm
   kernel cache); the recorder's time is the one the command prints, the run's time the
   process's wall time, start-up and imports included: what a user waits for. With the
-  output process (``base.background``) the printed time is the replay's wait for the
+  output process (``outputs.process``) the printed time is the replay's wait for the
   process to finish the file, after its frames;
 - **added by recording**: the wall time of that command minus the same command with
   ``--no-rrd`` (runs in turns), against the former: what writing the recording adds to
@@ -33,7 +33,7 @@ import tempfile
 import time
 
 from recordings import SceneRecorder
-from replay.engine import run_scene
+from replay.core.engine import run_scene
 
 REPLAY = str(pathlib.Path(sys.executable).with_name("replay"))
 PRINTED = re.compile(r"SceneRecorder ([0-9.]+) s")

@@ -25,12 +25,12 @@ import sys
 import tempfile
 import time
 
-from replay.commands.demo import DEMO_SEED
+from replay.core.scene_run import DEMO_SEED
 
 
 def make_scene(folder: pathlib.Path, agents: int, seed: int) -> pathlib.Path:
-    from converters.mcap_io import write_scene
-    from replay.commands.demo import demo_scene
+    from converters.scene.writer import write_scene
+    from replay.core.scene_run import demo_scene
 
     return write_scene(folder / "bench.mcap", demo_scene(n_agents=agents, seed=seed))
 
@@ -46,8 +46,8 @@ def end_to_end(scene: pathlib.Path) -> float:
 
 def breakdown(scene: pathlib.Path) -> dict[str, float]:
     from recordings import SceneRecorder
-    from replay.engine import run_scene
-    from replay.tables import TableSink
+    from replay.core.engine import run_scene
+    from replay.core.tables import TableSink
 
     sinks = [SceneRecorder(scene.with_suffix(".rrd")), TableSink(scene.with_suffix(".parquet"))]
     start = time.perf_counter()

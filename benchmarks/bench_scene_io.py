@@ -25,12 +25,12 @@ from collections.abc import Callable
 
 import numpy as np
 
-from converters import mcap_io
-from converters import scene_format as sf
 from converters.intersection import IntersectionSettings
-from converters.mcap_io import encode_frame, write_scene
+from converters.scene import schema as sf
+from converters.scene import writer as mcap_io
+from converters.scene.reader import open_scene, read_scene
+from converters.scene.writer import encode_frame, write_scene
 from converters.synthetic import SyntheticSettings, generate_scene, generate_situation
-from replay.reader import open_scene, read_scene
 
 
 def timed(fn: Callable[[], object], repeat: int) -> tuple[float, list[float], object]:

@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from converters.lanegraph import PathSettings  # noqa: E402
-from converters.mcap_io import write_scene  # noqa: E402
+from converters.scene.writer import write_scene  # noqa: E402
 from converters.tfrecord import read_records  # noqa: E402
 from converters.waymo import decode_scenario, scenario_to_scene  # noqa: E402
 

@@ -31,7 +31,7 @@ import numpy as np
 import polars as pl
 
 from converters.errors import ConversionError
-from converters.finite import check_grid
+from converters.input_checks import check_grid
 from converters.lanegraph import PathSettings, lanelet_centerline
 from converters.map_lines import av2_lines
 from converters.tracks import Skipped, TrackTable, build_scene, integer_ids
@@ -163,7 +163,7 @@ def scenario_tracks(df: pl.DataFrame, where: str) -> tuple[TrackTable, list[str]
         raise ConversionError(f"{where}: negative timestep")
     n_steps = int(step.max()) + 1
     if "num_timestamps" in df.columns:
-        n_steps = max(n_steps, int(df["num_timestamps"].max()))
+        n_steps = max(n_steps, int(df["num_timestamps"].to_numpy().max()))
     check_grid(n_steps, len(names), source=where, what="timesteps")  # before allocating
     agent = np.array([col[t] for t in df["track_id"].to_list()], dtype=np.int64)
     if np.unique(step * len(names) + agent).size != df.height:

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from converters.errors import ConversionError
-from converters.finite import MAX_STEPS, check_grid, check_points, integer_id
+from converters.input_checks import MAX_STEPS, check_grid, check_points, integer_id
 from converters.lanegraph import PathSettings, dedupe, lanelet_centerline
 from converters.map_lines import commonroad_lines
 from converters.tracks import Skipped, TrackTable, build_scene, moving_ego
@@ -119,7 +119,7 @@ def _value(elem: ET.Element | None, what: str) -> float:
 
 def _optional(elem: ET.Element | None, what: str) -> float:
     """NaN when the element is absent (filled in later); an explicit NaN in the file is a
-    bad value, not a missing one, so it becomes inf for converters.finite's rule."""
+    bad value, not a missing one, so it becomes inf for converters.input_checks's rule."""
     if elem is None:
         return np.nan
     value = _value(elem, what)
@@ -206,7 +206,7 @@ def _fill_motion(
         vel = np.stack([np.gradient(xy[:, 0], t), np.gradient(xy[:, 1], t)], axis=1)
         speed = np.where(np.isnan(speed), np.hypot(*vel.T), speed)
         heading = np.where(np.isnan(heading), np.arctan2(vel[:, 1], vel[:, 0]), heading)
-    # Missing values (NaN) of a lone state become 0; infinities stay, for converters.finite.
+    # Missing values (NaN) of a lone state become 0; infinities stay, for converters.input_checks.
     return np.where(np.isnan(heading), 0.0, heading), np.where(np.isnan(speed), 0.0, speed)
 
 

@@ -41,7 +41,7 @@ import polars as pl
 from lanelet2.projection import UtmProjector
 
 from converters.errors import ConversionError
-from converters.finite import MAX_STEPS, check_gaps, check_grid
+from converters.input_checks import MAX_STEPS, check_gaps, check_grid
 from converters.lanegraph import PathSettings, lanelet_centerline
 from converters.tracks import Skipped, TrackTable, build_scene, integer_ids, moving_ego
 from risk.frame import Kind, Lane, LaneMap, Scene
@@ -213,7 +213,7 @@ def read_rows(
     required = [c for c in REQUIRED_COLUMNS if c in numeric]
     bad = parsed.filter(
         # Unparseable values are bad rows; NaN/inf in a state's values (x, y, vx, ...)
-        # follow converters.finite's rule later, but the time columns must be finite.
+        # follow converters.input_checks's rule later, but the time columns must be finite.
         pl.any_horizontal([pl.col(c).is_null() for c in required])
         | ~pl.col("frame_id").is_finite()
         | ~pl.col("timestamp_ms").is_finite()

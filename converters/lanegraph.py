@@ -633,7 +633,7 @@ def _interp(P: np.ndarray, C: np.ndarray, K: np.ndarray, s: np.ndarray) -> np.nd
 
 def _round_robin(groups: Sequence[Sequence]) -> list:
     """First items of every group, then second items, ...: ``[[a1, a2], [b1]] -> [a1, b1, a2]``."""
-    out = []
+    out: list = []
     depth = max((len(g) for g in groups), default=0)
     for d in range(depth):
         out.extend(g[d] for g in groups if d < len(g))
@@ -644,4 +644,5 @@ def _total_turn(points: np.ndarray) -> float:
     """Absolute heading change between a polyline's first and last segment, rad."""
     d0 = points[1] - points[0]
     d1 = points[-1] - points[-2]
-    return abs(float(wrap_angle(math.atan2(d1[1], d1[0]) - math.atan2(d0[1], d0[0]))))
+    turn = np.array(math.atan2(d1[1], d1[0]) - math.atan2(d0[1], d0[0]))
+    return abs(float(wrap_angle(turn)))

@@ -23,7 +23,7 @@ import re
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
-from converters import av2, av2_sensor, commonroad, interaction, waymo
+from converters import av2, av2_sensor, commonroad, interaction, scenarionet, waymo
 from converters.errors import ConversionError
 from converters.lanegraph import PathSettings
 from converters.tfrecord import RecordError, masked_crc32c, read_records
@@ -178,9 +178,9 @@ def _av2_sensor_group(files: Sequence[pathlib.Path]) -> list[SourceInput]:
 # ---------------------------------------------------------------------- conversions
 def _waymo_scenes(inp: SourceInput, opt: ReadOptions, skipped: Skipped) -> Iterator[SceneBuild]:
     if not opt.skip_bad:  # every CRC first: a damaged file stops before anything is written
-        for item in read_records(inp.path):
-            if isinstance(item, RecordError):
-                raise item
+        for record in read_records(inp.path):
+            if isinstance(record, RecordError):
+                raise record
     for item in waymo.read_scenarios(inp.path, skip_bad=opt.skip_bad, skipped=skipped):
 
         def build(item: waymo.ScenarioRecord = item) -> Scene:
@@ -283,6 +283,38 @@ def _interaction_companions(inp: SourceInput) -> list[pathlib.Path]:
         return [*inp.extra, _interaction_map(inp)]
     except ConversionError:
         return list(inp.extra)
+
+
+def _scenarionet_group(files: Sequence[pathlib.Path]) -> list[SourceInput]:
+    """One input per folder of scenario pickles: a database folder (its index names its
+    scenarios, perhaps in sub-folders, which it then claims) or a plain folder (all its
+    scenarios). Shallow folders first, so a merged database claims its parts."""
+    files = sorted(set(files))
+    claimed: set[pathlib.Path] = set()
+    out = []
+    for folder in sorted({f.parent for f in files}, key=lambda p: (len(p.parts), p)):
+        mine = [f for f in files if f.parent == folder and f not in claimed]
+        if not mine:
+            continue
+        claimed.update(mine)
+        if scenarionet.is_database(folder):
+            claimed.update(p.absolute() for p in scenarionet.companions(folder))
+        out.append(SourceInput(source="scenarionet", path=folder))
+    return out
+
+
+def _scenarionet_scenes(
+    inp: SourceInput, opt: ReadOptions, skipped: Skipped
+) -> Iterator[SceneBuild]:
+    for f in scenarionet.scenario_files(inp.path):  # every named file exists, or nothing starts
+
+        def build(f: pathlib.Path = f) -> Scene:
+            return scenarionet.read_scene(
+                f, paths=opt.paths, settings=opt.settings, progress=opt.progress,
+                skip_bad=opt.skip_bad, skipped=skipped,
+            )  # fmt: skip
+
+        yield f.stem, build
 
 
 # ---------------------------------------------------------------------- the registry
@@ -403,6 +435,32 @@ SOURCES: dict[str, SourceSpec] = {
             ego_option=True,
             map_option=True,
         ),
+        SourceSpec(
+            name="scenarionet",
+            title="ScenarioNet scenarios (nuScenes, nuPlan, Lyft, Waymo, AV2 as pickles)",
+            help="Convert ScenarioNet scenarios to MCAP scenes, one per scenario.\n\n"
+            "INPUT is a scenario .pkl or a ScenarioNet database folder: the files its "
+            "dataset_mapping.pkl (or dataset_summary.pkl) names, else every *.pkl in it. "
+            "Files are loaded without running anything from them: a pickle that names any "
+            "Python global other than numpy's arrays and builtin containers is refused. The "
+            "ego is metadata.sdc_id; cones and barriers are standing 'other' agents; "
+            "lanes without successor links (nuScenes) are chained where one starts at "
+            "another's end, and a vehicle off every lane follows its recorded future; "
+            "Waymo's objects_of_interest / tracks_to_predict travel as labels.",
+            examples=(
+                "replay convert scenarionet sd_nuscenes_v1.0-mini_scene-0061.pkl -o scene.mcap",
+                "replay convert scenarionet nuscenes_db/ -o scenes/",
+            ),
+            argument="INPUT",
+            patterns=("*.pkl",),
+            detect=scenarionet.is_scenario_file,
+            scenes=_scenarionet_scenes,
+            records="scenarios",
+            group=_scenarionet_group,
+            companions=lambda inp: scenarionet.companions(inp.path),
+            folder_input=True,
+            multi_scene=True,
+        ),
     )
 }
 
@@ -428,10 +486,12 @@ def _matches(path: pathlib.Path, patterns: Iterable[str]) -> bool:
 
 
 def detect(path: pathlib.Path) -> SourceSpec | None:
-    """The source of one file (or of a log folder), or None."""
+    """The source of one file (or of a log folder or ScenarioNet database folder), or None."""
     path = pathlib.Path(path)
     if path.is_dir():
-        return SOURCES["av2-sensor"] if av2_sensor.is_log_dir(path) else None
+        if av2_sensor.is_log_dir(path):
+            return SOURCES["av2-sensor"]
+        return SOURCES["scenarionet"] if scenarionet.is_database(path) else None
     for s in SOURCES.values():
         if _matches(path, s.patterns) and s.detect(path):
             return s

@@ -35,7 +35,8 @@ Choices the paper leaves open (each a field of :class:`SyntheticSettings`):
   its route from its current position to the route's end.
 - **Ids**: the ego is id 0, the others 1..N-1.
 
-Determinism: the same settings and seed give the same scene, bit for bit.
+Determinism: the same settings and seed give the same scene, bit for bit on one machine
+(numpy's ``sin`` and ``cos`` may be other code on another CPU).
 """
 
 from __future__ import annotations

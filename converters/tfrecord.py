@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import google_crc32c
 
-from base.atomic import atomic_output
 from converters.errors import ConversionError
+from outputs.atomic import atomic_output
 
 _MASK_DELTA = 0xA282EAD8
 _HEADER = struct.Struct("<QI")

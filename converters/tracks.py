@@ -15,39 +15,34 @@ use them. Their number is recorded in the metadata as ``steps_without_ego``.
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from tqdm import tqdm
 
 from converters.errors import ConversionError
-from converters.finite import REASONS, apply_bad_rule, bad_states
-from converters.hindsight import Hindsight
+from converters.hindsight_paths import Hindsight
+from converters.input_checks import REASONS, Skipped, apply_bad_rule, bad_states
 from converters.lanegraph import LaneGraph, PathRows, PathSettings, straight_rows
 from risk.frame import Frame, Kind, LaneMap, Scene
 from risk.motion import MIN_TRAVEL_M, track_extents
 
 PATH_MODES: tuple[str, ...] = ("map", "hindsight")
+OFF_LANE_MODES: tuple[str, ...] = ("straight", "hindsight")
+
+LANE_GRAPH, RECORDED, STRAIGHT = 0, 1, 2
+PATH_SOURCE_NAMES: tuple[str, ...] = ("lane_graph", "recorded_future", "straight")
+"""Where an agent's path in a frame came from (codes 0, 1, 2)."""
+PATH_SOURCE_LABELS: tuple[str, ...] = tuple(f"paths_{n}" for n in PATH_SOURCE_NAMES)
+"""Label names of :func:`build_scene`'s ``path_source_labels``, in code order."""
 
 MOVING_EGO_MIN_M = MIN_TRAVEL_M
 """A default ego must move at least this far (m; risk.motion's threshold for "moves")."""
 
 _INTEGER = re.compile(r"[+-]?\d{1,18}")
-
-
-@dataclass
-class Skipped:
-    """What a ``skip_bad`` conversion left out, one line per record, and why."""
-
-    what: list[str] = field(default_factory=list)
-
-    def add(self, message: str) -> None:
-        self.what.append(message)
-
-    def __len__(self) -> int:
-        return len(self.what)
 
 
 def integer_ids(names: Sequence[str]) -> tuple[np.ndarray, dict[str, int]]:
@@ -166,6 +161,8 @@ def build_scene(
     progress: bool = False,
     skip_bad: bool = False,
     skipped: Skipped | None = None,
+    off_lane: str = "straight",
+    path_source_labels: bool = False,
 ) -> Scene:
     """Frames with paths for every step at which any track is valid; the scene's ego is
     track index ``ego``.
@@ -175,13 +172,21 @@ def build_scene(
     scene's ``ego_id`` names the real ego, so a replay from it skips such frames.
 
     ``paths`` is ``map`` (lane graph of ``lane_map``) or ``hindsight`` (recorded future).
+    With ``map``, ``off_lane`` says what a vehicle or cyclist that matches no lane gets:
+    ``straight`` (along its heading) or ``hindsight`` (its recorded future, for maps
+    that cover only part of the roads); with ``path_source_labels`` the scene's labels
+    say, per agent, where its paths came from (:data:`PATH_SOURCE_LABELS`: an agent is in
+    every list whose source gave it a path in at least one frame) and the metadata
+    ``path_source_agent_frames`` counts the (frame, agent) paths of each source.
     ``source`` names the input in error messages. Raises ConversionError when the ego is
     never valid or a track id repeats. Valid states with non-finite or out-of-range
-    values follow the rule of :mod:`converters.finite`: an error, or with ``skip_bad``
+    values follow the rule of :mod:`converters.input_checks`: an error, or with ``skip_bad``
     dropped, noted in ``skipped`` and counted in the metadata (``bad_states_dropped``).
     """
     if paths not in PATH_MODES:
         raise ConversionError(f"unknown path mode {paths!r}; expected one of {PATH_MODES}")
+    if off_lane not in OFF_LANE_MODES:
+        raise ConversionError(f"unknown off-lane mode {off_lane!r}; expected {OFF_LANE_MODES}")
     if len(np.unique(table.ids)) != table.n_tracks:
         raise ConversionError(f"{source}: a track id appears more than once")
     bad, reason = bad_states(
@@ -203,7 +208,9 @@ def build_scene(
     steps = np.flatnonzero(valid.any(axis=1))
     frame_of_step = np.full(table.n_steps, -1, dtype=np.int64)
     frame_of_step[steps] = np.arange(steps.size)
-    rows = _path_rows(table, valid, steps, frame_of_step, lane_map, paths, settings)
+    rows, path_source = _path_rows(
+        table, valid, steps, frame_of_step, lane_map, paths, settings, off_lane
+    )
     frames = _frames(table, valid, steps, ego, rows, progress, source)
     facts = {
         **metadata,
@@ -216,6 +223,12 @@ def build_scene(
         "invalid_states_dropped": str(dropped),
         "bad_states_dropped": str(n_bad),
     }
+    labels = dict(labels or {})
+    if path_source_labels:
+        for code, name in enumerate(PATH_SOURCE_LABELS):
+            labels[name] = tuple(int(i) for i in table.ids[(path_source == code).any(axis=0)])
+        counts = {n: int((path_source == c).sum()) for c, n in enumerate(PATH_SOURCE_NAMES)}
+        facts["path_source_agent_frames"] = json.dumps(counts)
     if paths == "map":
         facts.update(
             map_path_m=f"{settings.map_path_m:g}",
@@ -228,7 +241,7 @@ def build_scene(
         frames=frames,
         frame_period_s=float(frame_period_s),
         metadata=facts,
-        labels=dict(labels or {}),
+        labels=labels,
         ego_id=int(table.ids[ego]),
     )
 
@@ -248,8 +261,11 @@ def _path_rows(
     lane_map: LaneMap,
     paths: str,
     settings: PathSettings,
-) -> PathRows:
-    """Path candidates of every valid (frame, agent), plus a one-point row per invalid one."""
+    off_lane: str = "straight",
+) -> tuple[PathRows, np.ndarray]:
+    """Path candidates of every valid (frame, agent), plus a one-point row per invalid one;
+    also ``(F, N)`` int8 codes of where each valid agent's path came from (an index of
+    :data:`PATH_SOURCE_NAMES`; -1 where the agent is not valid)."""
     in_scene = np.zeros(table.n_steps, dtype=bool)
     in_scene[steps] = True
     q_step, q_agent = np.nonzero(valid & in_scene[:, None])
@@ -259,12 +275,14 @@ def _path_rows(
     q_speed = table.speed[q_step, q_agent]
     q_kind = table.kinds[q_agent]
     parts: list[PathRows] = []
+    q_source = np.full(q_step.size, RECORDED, dtype=np.int8)
     if paths == "hindsight":
         hindsight = Hindsight(table.xy, table.heading, valid, settings)
         parts.append(hindsight.rows(q_step, q_frame, q_agent, q_xy, q_speed))
     else:
         follows_lanes = (q_kind == Kind.VEHICLE) | (q_kind == Kind.CYCLIST)
         straight = ~follows_lanes
+        off = np.zeros(q_step.size, dtype=bool)
         graph = LaneGraph(lane_map, settings)
         if graph.n_lanes and follows_lanes.any():
             sel = np.flatnonzero(follows_lanes)
@@ -272,9 +290,19 @@ def _path_rows(
                 q_frame[sel], q_agent[sel], q_xy[sel], q_heading[sel], q_speed[sel], q_kind[sel]
             )
             parts.append(lane_rows)
-            straight[sel[unmatched]] = True
+            off[sel[unmatched]] = True
         else:
-            straight[:] = True
+            off = follows_lanes.copy()
+        q_source[:] = LANE_GRAPH
+        if off_lane == "hindsight" and off.any():
+            hindsight = Hindsight(table.xy, table.heading, valid, settings)
+            parts.append(
+                hindsight.rows(q_step[off], q_frame[off], q_agent[off], q_xy[off], q_speed[off])
+            )
+            q_source[off] = RECORDED
+        else:
+            straight |= off
+        q_source[straight] = STRAIGHT
         parts.append(
             straight_rows(
                 q_frame[straight],
@@ -295,7 +323,10 @@ def _path_rows(
     )
     rows = PathRows.concat(parts)
     order = np.lexsort((rows.agent, rows.frame))  # stable: keeps candidate order
-    return PathRows(rows.frame[order], rows.agent[order], rows.points[order], rows.count[order])
+    source = np.full((steps.size, table.n_tracks), -1, dtype=np.int8)
+    source[q_frame, q_agent] = q_source
+    rows = PathRows(rows.frame[order], rows.agent[order], rows.points[order], rows.count[order])
+    return rows, source
 
 
 def _frames(

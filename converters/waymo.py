@@ -2,7 +2,7 @@
 
 No TensorFlow and no Waymo package: :mod:`converters.tfrecord` reads the framing and
 ``waymo.proto`` (our own minimal definition, the fields below only) decodes each record;
-its message classes are built at import time by :func:`converters.scene_format.parse_proto`.
+its message classes are built at import time by :func:`converters.scene.schema.parse_proto`.
 
 Mapping (docs/recorded-data.md has the full table):
 
@@ -35,7 +35,7 @@ from google.protobuf.message import DecodeError
 from converters.errors import ConversionError
 from converters.lanegraph import PathSettings
 from converters.map_lines import waymo_lines
-from converters.scene_format import parse_proto
+from converters.scene.schema import parse_proto
 from converters.tfrecord import Record, RecordError, read_records
 from converters.tracks import Skipped, TrackTable, build_scene
 from risk.frame import Kind, Lane, LaneMap, Scene

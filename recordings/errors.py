@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from risk.errors import RiskReplayError
 
-class RecordingError(RuntimeError):
+
+class RecordingError(RiskReplayError, RuntimeError):
     """A recording could not be written."""

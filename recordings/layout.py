@@ -35,6 +35,8 @@ MAP_LINES = {
 }
 EGO_BODY = "/scene/ego/body"  # capsule + heading nose, label "ego <id>"
 EGO_PATH = "/scene/ego/path"
+PLAN_ALL = "/scene/ego/plan_all_agents"  # a planner's plan with every agent
+PLAN_FILTERED = "/scene/ego/plan_filtered"  # and with the agents the cascade kept
 AGENTS = "/scene/agents"  # one subtree per other agent: /scene/agents/<id>/...
 LINKS = "/scene/links"  # optional: one child per stage, ego -> every agent kept after it
 
@@ -103,6 +105,8 @@ MAP_LINE_WIDTHS_UI = {
     "other": 0.7,
 }
 EGO = (40, 200, 90)
+PLAN_ALL_COLOR = (250, 250, 250)  # white: the reference plan
+PLAN_FILTERED_COLOR = (255, 150, 30)  # orange: the plan with the filtered agents
 DROPPED = (150, 150, 158)  # lighter than every map line: agents stay on top
 RISK_LOW = (255, 200, 200)  # survivor with the lowest survival risk on the scale
 RISK_HIGH = (215, 25, 25)  # survivor with survival risk >= 1
@@ -374,7 +378,11 @@ def blueprint(
     ]
     misses_view = rrb.TextLogView(name="Misses (click a row: select the agent)", origin=AGENTS)
     summary_view = rrb.TextDocumentView(name="Summary", origin=SUMMARY)
-    active = list(model_names).index(active_model) if active_model in model_names else 0
+    active = (
+        list(model_names).index(active_model)
+        if active_model is not None and active_model in model_names
+        else 0
+    )
     left = rrb.Vertical(
         scene, rrb.Horizontal(funnel, missed, timing), row_shares=[2.4, 1.3], name="Scene"
     )

@@ -1,4 +1,4 @@
-"""The Rerun recording of a replay: a :class:`base.sinks.Sink` that writes one ``.rrd``.
+"""The Rerun recording of a replay: a :class:`outputs.sinks.Sink` that writes one ``.rrd``.
 
 ``add()`` keeps only the arrays the recording needs (valid agents, the cascade outcome,
 every model's risk, the paths to draw); ``close()`` adds the hindsight labels and writes
@@ -6,7 +6,7 @@ everything at once with :func:`recordings.writer.write_file` (batched, atomic: a
 temporary file renamed at the end; ``abort()`` or any error leaves nothing behind).
 
 This module does not import rerun. With ``background=True`` the writing runs in the
-output process (:mod:`base.background`), started by ``begin()`` or earlier by the
+output process (:mod:`outputs.process`), started by ``begin()`` or earlier by the
 command, which imports rerun (about 1 s) while the replay computes; ``close()`` hands it
 the collected frames, waits for the temporary file and renames it into place. On one CPU,
 or where processes cannot be forked (Windows, macOS), the recorder writes in its own
@@ -22,129 +22,22 @@ from __future__ import annotations
 import contextlib
 import os
 import pathlib
-from dataclasses import dataclass, fields, replace
-from typing import Literal
+from dataclasses import replace
+from typing import Any, Literal
 
 import numpy as np
 
-from base import background as output_process
-from base.atomic import commit, temp_path_beside
-from base.sinks import FrameResult, SceneInfo
+from outputs import process as output_process
+from outputs.atomic import commit, temp_path_beside
+from outputs.sinks import FrameResult, SceneInfo
 from recordings.errors import RecordingError
+from recordings.frames import APPLICATION_ID, FrameRows, PackedFrames, WriteOptions
 from risk.hindsight import LABEL_POSITIVE, LABEL_UNKNOWN, truth_for_rows
 
 LabelMode = Literal["kept", "all", "none"]
 LABEL_MODES: tuple[str, ...] = ("kept", "all", "none")
-APPLICATION_ID = "riskreplay"
 #: The module that writes the file (imports rerun).
 WRITER = "recordings.writer"
-
-
-@dataclass(frozen=True)
-class WriteOptions:
-    """How to draw the recording (see :class:`SceneRecorder`)."""
-
-    labels: str = "kept"
-    links: bool = False
-    log10_decades: float = 4.0
-    application_id: str = APPLICATION_ID
-
-
-@dataclass
-class FrameRows:
-    """One frame, restricted to its valid agents (ego included). ``n`` valid agents."""
-
-    index: int
-    t: float
-    ids: np.ndarray  # (n,) int64
-    xy: np.ndarray  # (n, 2) m
-    heading: np.ndarray  # (n,) rad
-    length: np.ndarray  # (n,) m
-    width: np.ndarray  # (n,) m
-    is_ego: np.ndarray  # (n,) bool
-    kept: np.ndarray  # (S, n) bool, kept after stage s
-    dropped_at: np.ndarray  # (n,) int, stage that dropped the agent, -1 otherwise
-    tier: np.ndarray  # (n,) int, deepest tier, -1 none
-    survival: np.ndarray  # (n,) R_S of the survivors, NaN otherwise
-    baseline: np.ndarray  # (n,) bool, baseline-important (others only)
-    truth: np.ndarray  # (n,) float, hindsight label: 1 came close, 0 did not, NaN unknown
-    risks: dict[str, np.ndarray]  # model -> (n,)
-    false_negatives: np.ndarray  # (S,) int
-    stage_time_s: np.ndarray  # (S,) s
-    sort_time_s: float
-    survival_all_time_s: float
-    ego_paths: list[np.ndarray]  # the ego's path candidates, each (P, 2) m
-    survivor_paths: np.ndarray  # (R, P, 2) m, deeper-tier survivors' candidates (padded)
-    survivor_path_risk: np.ndarray  # (R,) R_S of each candidate's owner (colour)
-    survivor_path_owner: np.ndarray  # (R,) id of each candidate's owner
-
-
-@dataclass(frozen=True)
-class PackedFrames:
-    """A list of :class:`FrameRows` as a few large arrays, to hand to the output process:
-    pickling the demo's 100 frames (about 3,000 small arrays) took 36 ms and unpickling
-    18 ms, this form about 2 ms each. :meth:`unpack` gives the frames back, equal field
-    by field (their arrays are views of the large ones)."""
-
-    n_frames: int
-    scalars: dict[str, np.ndarray]  # field -> (F,) values
-    #: (field, key) -> (values of all items raveled, their shapes (I, ndim)); the key is
-    #: the dict key of ``risks``, else "". One item per frame, or a list's items.
-    arrays: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]]
-    list_lengths: dict[str, np.ndarray]  # list field -> (F,) items per frame
-
-    @classmethod
-    def pack(cls, frames: list[FrameRows]) -> PackedFrames:
-        scalars: dict[str, np.ndarray] = {}
-        arrays: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] = {}
-        lengths: dict[str, np.ndarray] = {}
-        for f in fields(FrameRows):
-            values = [getattr(fr, f.name) for fr in frames]
-            if f.type in ("int", "float"):
-                scalars[f.name] = np.array(values, dtype=f.type)
-            elif f.type.startswith("dict"):
-                for key in values[0] if values else ():
-                    arrays[f.name, key] = _stack([v[key] for v in values])
-            elif f.type.startswith("list"):
-                lengths[f.name] = np.array([len(v) for v in values], dtype=np.int64)
-                arrays[f.name, ""] = _stack([a for v in values for a in v])
-            else:
-                arrays[f.name, ""] = _stack(values)
-        return cls(len(frames), scalars, arrays, lengths)
-
-    def unpack(self) -> list[FrameRows]:
-        items = {k: _unstack(*v) for k, v in self.arrays.items()}
-        out: list[dict[str, object]] = [{} for _ in range(self.n_frames)]
-        for name, values in self.scalars.items():
-            for row, v in zip(out, values.tolist(), strict=True):
-                row[name] = v
-        for f in fields(FrameRows):
-            if f.type.startswith("dict"):
-                keys = [k for (name, k) in items if name == f.name]
-                for i, row in enumerate(out):
-                    row[f.name] = {k: items[f.name, k][i] for k in keys}
-            elif f.type.startswith("list"):
-                ends = np.cumsum(self.list_lengths[f.name]).tolist()
-                for row, start, end in zip(out, [0, *ends], ends, strict=False):
-                    row[f.name] = items[f.name, ""][start:end]
-            elif f.name not in self.scalars:
-                for i, row in enumerate(out):
-                    row[f.name] = items[f.name, ""][i]
-        return [FrameRows(**row) for row in out]  # type: ignore[arg-type]
-
-
-def _stack(arrays: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Arrays of one dtype and rank as (their values raveled and joined, their shapes)."""
-    if not arrays:
-        return np.zeros(0), np.zeros((0, 1), dtype=np.int64)
-    flat = np.concatenate([np.ravel(a) for a in arrays])
-    return flat, np.array([a.shape for a in arrays], dtype=np.int64).reshape(len(arrays), -1)
-
-
-def _unstack(flat: np.ndarray, shapes: np.ndarray) -> list[np.ndarray]:
-    ends = np.cumsum(np.prod(shapes, axis=1)).tolist()
-    starts = [0, *ends][:-1]
-    return [flat[a:b].reshape(sh) for a, b, sh in zip(starts, ends, shapes.tolist(), strict=True)]
 
 
 class SceneRecorder:
@@ -349,7 +242,21 @@ def _collect(result: FrameResult, info: SceneInfo, *, keep_paths: bool) -> Frame
         survivor_path_owner=np.asarray(frame.ids, dtype=np.int64)[
             _path_owner_rows(frame, idx[deep], keep_paths)
         ],
+        **_plans(result),
     )
+
+
+def _plans(result: FrameResult) -> dict[str, Any]:
+    """The planner's two plans of the frame, when one ran beside the replay."""
+    out: dict[str, Any] = {}
+    for key in ("plan_all", "plan_filtered"):
+        plan = result.extras.get(key)
+        if plan is None:
+            continue
+        ok = bool(getattr(plan, "ok", False))
+        out[key] = np.asarray(plan.xy, dtype=np.float64) if ok else np.zeros((0, 2))
+        out[f"{key}_ms"] = float(plan.plan_ms)
+    return out
 
 
 def _with_hindsight(frames: list[FrameRows], info: SceneInfo) -> list[FrameRows]:
@@ -388,7 +295,7 @@ def _truth(result: FrameResult, n: int) -> np.ndarray:
         raise RecordingError(
             f"frame {result.index}: truth_label has {raw.size} values, expected {n}"
         )
-    unknown = np.equal(raw, None)
+    unknown = np.array([v is None for v in raw.tolist()], dtype=bool)
     values = np.where(unknown, np.nan, raw).astype(np.float64)
     return np.where(np.isnan(values), np.nan, (values != 0).astype(np.float64))
 

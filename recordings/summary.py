@@ -8,15 +8,12 @@ views, the cascade, then the scene's facts.
 from __future__ import annotations
 
 import pathlib
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from base.sinks import SceneInfo
+from outputs.sinks import SceneInfo
 from recordings import layout as L
-
-if TYPE_CHECKING:
-    from recordings.writer import _Scene
+from recordings.frames import SceneRows
 
 
 def recording_name(info: SceneInfo) -> str:
@@ -35,7 +32,7 @@ def _mean(values: np.ndarray) -> float:
     return float(np.mean(values)) if values.size else float("nan")
 
 
-def summary_markdown(info: SceneInfo, scene: _Scene) -> str:
+def summary_markdown(info: SceneInfo, scene: SceneRows) -> str:
     """The summary document (markdown) of a recorded scene."""
     lines = [f"# {_cell(recording_name(info))}", "", _headline(info, scene), ""]
     lines += _legend_section(info)
@@ -44,7 +41,7 @@ def summary_markdown(info: SceneInfo, scene: _Scene) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _headline(info: SceneInfo, scene: _Scene) -> str:
+def _headline(info: SceneInfo, scene: SceneRows) -> str:
     n, r = scene.times_s.size, scene.rows
     if n == 0:
         return f"No frame recorded (the scene has {info.n_frames}; the ego was never present)."
@@ -60,7 +57,7 @@ def _headline(info: SceneInfo, scene: _Scene) -> str:
     )
 
 
-def _scene_section(info: SceneInfo, scene: _Scene) -> list[str]:
+def _scene_section(info: SceneInfo, scene: SceneRows) -> list[str]:
     n = scene.times_s.size
     others = ~scene.rows["is_ego"]
     duration = f"{scene.times_s[-1] - scene.times_s[0]:.1f} s" if n else "-"
@@ -84,7 +81,7 @@ def _scene_section(info: SceneInfo, scene: _Scene) -> list[str]:
     return [*out, ""]
 
 
-def _cascade_section(info: SceneInfo, scene: _Scene) -> list[str]:
+def _cascade_section(info: SceneInfo, scene: SceneRows) -> list[str]:
     casc, r = info.cascade, scene.rows
     n = scene.times_s.size
     per_frame = lambda mask: np.bincount(scene.frame_of[mask], minlength=n)  # noqa: E731

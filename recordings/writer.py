@@ -8,7 +8,7 @@ and one per timeline entity. Measured with rerun-sdk 0.41 (see ``docs/recording.
 frame. The recorder renames the temporary file into place when it is complete.
 
 This module is kept apart from the recorder so that the recorder can run it in the output
-process (:mod:`base.background`; importing rerun takes about 1 s) while the replay
+process (:mod:`outputs.process`; importing rerun takes about 1 s) while the replay
 computes; see ``SceneRecorder(background=True)``.
 """
 
@@ -19,6 +19,7 @@ import os
 import pathlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 # rerun's native log: its I/O errors (a full disk) also reach us as exceptions, which the
 # CLI reports in one line; without this they print two more lines of Rust log first.
@@ -30,30 +31,15 @@ import numpy.ma  # (rerun's blueprint code needs it: 40 ms, here while idle)
 import pyarrow as pa
 import rerun as rr
 
-from base.guard import run_with_stall_timeout
-from base.sinks import SceneInfo
+from outputs.sinks import SceneInfo
+from outputs.transaction import run_with_stall_timeout
 from recordings import columns as C
 from recordings import layout as L
 from recordings.errors import RecordingError
-from recordings.recorder import FrameRows, PackedFrames, WriteOptions
+from recordings.frames import FrameRows, PackedFrames, SceneRows, WriteOptions
 from recordings.summary import recording_name, summary_markdown
 from risk.cascade import SURVIVAL_MODEL
 from risk.registry import MODELS
-
-
-@dataclass
-class _Scene:
-    """All frames concatenated: ``K`` agent rows in total, ``F`` frames."""
-
-    times_s: np.ndarray  # (F,) s
-    frame_index: np.ndarray  # (F,) int
-    frame_of: np.ndarray  # (K,) row -> position in the frame list
-    false_negatives: np.ndarray  # (F, S) int, cumulative per stage
-    stage_time_ms: np.ndarray  # (F, S) ms
-    sort_time_ms: np.ndarray  # (F,) ms
-    survival_all_time_ms: np.ndarray  # (F,) ms
-    rows: dict[str, np.ndarray] = field(default_factory=dict)  # name -> (K, ...) or (S, K)
-    grid: tuple[np.ndarray, ...] | None = None  # _agent_grid's result, computed once
 
 
 def write_temp(
@@ -116,7 +102,7 @@ def _write(
         if frames:
             _log_scene_layers(rec, info, scene, frames, options=options)
             _log_timelines(rec, info, scene, set(log10_ranges), focus)
-            _log_cascade_series(rec, info, scene)
+            _log_cascade_series(rec, info, scene, frames)
         rec.flush()
     except (OSError, RuntimeError) as exc:  # I/O and rerun's native errors; bugs propagate
         raise RecordingError(f"could not write {output}: {exc}") from exc
@@ -128,10 +114,10 @@ def _write(
         )
 
 
-def _concatenate(frames: Sequence[FrameRows], info: SceneInfo) -> _Scene:
+def _concatenate(frames: Sequence[FrameRows], info: SceneInfo) -> SceneRows:
     """Stack all frames' rows: one flat array per field, ``frame_of`` maps rows to frames."""
     n_stages = len(info.cascade.stages)
-    scene = _Scene(
+    scene = SceneRows(
         times_s=np.array([f.t for f in frames], dtype=np.float64),
         frame_index=np.array([f.index for f in frames], dtype=np.int64),
         frame_of=np.repeat(np.arange(len(frames)), [f.ids.size for f in frames]).astype(np.int64),
@@ -142,7 +128,12 @@ def _concatenate(frames: Sequence[FrameRows], info: SceneInfo) -> _Scene:
         sort_time_ms=np.array([f.sort_time_s for f in frames], dtype=np.float64) * 1e3,
         survival_all_time_ms=np.array([f.survival_all_time_s for f in frames]) * 1e3,
     )
-    dtypes = {"ids": np.int64, "xy": np.float64, "heading": np.float64, "length": np.float64}
+    dtypes: dict[str, type] = {
+        "ids": np.int64,
+        "xy": np.float64,
+        "heading": np.float64,
+        "length": np.float64,
+    }
     dtypes |= {"width": np.float64, "is_ego": bool, "dropped_at": np.int64, "tier": np.int64}
     dtypes |= {"survival": np.float64, "baseline": bool, "truth": np.float64}
     for name, dtype in dtypes.items():
@@ -163,7 +154,7 @@ def _concatenate(frames: Sequence[FrameRows], info: SceneInfo) -> _Scene:
 
 
 # ---------------------------------------------------------------------- static entities
-def _log_static(rec: rr.RecordingStream, info: SceneInfo, scene: _Scene) -> None:
+def _log_static(rec: rr.RecordingStream, info: SceneInfo, scene: SceneRows) -> None:
     rec.log(L.SCENE, rr.Transform3D(scale=[1.0, -1.0, 1.0]), static=True, strict=True)
     lanes = [np.asarray(lane.centerline, dtype=np.float64) for lane in info.map.lanes]
     lanes = [c for c in lanes if c.ndim == 2 and c.shape[0] >= 2]
@@ -212,14 +203,14 @@ def _log_map_lines(rec: rr.RecordingStream, info: SceneInfo) -> None:
 
 
 # ---------------------------------------------------------------------- scene layers
-def _time_columns(scene: _Scene) -> list[rr.TimeColumn]:
+def _time_columns(scene: SceneRows) -> list[rr.TimeColumn]:
     return [
         rr.TimeColumn(L.TIMELINE, duration=scene.times_s),
         rr.TimeColumn(L.FRAME_TIMELINE, sequence=scene.frame_index),
     ]
 
 
-def _timed_batch(scene: _Scene) -> C.Batch:
+def _timed_batch(scene: SceneRows) -> C.Batch:
     """An empty batch over the scene's two timelines (one row per recorded frame)."""
     ns = np.rint(scene.times_s * 1e9).astype(np.int64)
     return C.Batch(
@@ -333,7 +324,7 @@ def _add_entities(
 
 
 def _log_scene_layers(
-    rec, info: SceneInfo, scene: _Scene, frames, *, options: WriteOptions
+    rec, info: SceneInfo, scene: SceneRows, frames, *, options: WriteOptions
 ) -> None:
     """Every layer of the scene view, all frames: one timed and one static record batch."""
     batch, static = _timed_batch(scene), C.Batch()
@@ -343,12 +334,13 @@ def _log_scene_layers(
     if options.links:
         _add_links(batch, static, info, scene)
     _add_paths(batch, static, info, scene, frames)
+    _add_plans(batch, static, scene, frames)
     static.send(rec)
     batch.send(rec)
     _log_misses(rec, info, scene)
 
 
-def _add_ego(batch: C.Batch, static: C.Batch, scene: _Scene, labels: np.ndarray) -> None:
+def _add_ego(batch: C.Batch, static: C.Batch, scene: SceneRows, labels: np.ndarray) -> None:
     """The ego: a green capsule with a dark heading nose and the label ``ego <id>``."""
     r = scene.rows
     ego = r["is_ego"]
@@ -370,7 +362,7 @@ def _add_agents(
     batch: C.Batch,
     static: C.Batch,
     info: SceneInfo,
-    scene: _Scene,
+    scene: SceneRows,
     labels: np.ndarray,
     *,
     show: bool,
@@ -427,7 +419,7 @@ def _add_agents(
     _add_entities(batch, static, paths, n_frames, columns, None, labels=show)
 
 
-def _add_links(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: _Scene) -> None:
+def _add_links(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: SceneRows) -> None:
     """Fig. 2 overlay (option ``links``): per stage, ego -> every agent kept after it."""
     r, n_frames = scene.rows, scene.times_s.size
     ego_xy = np.zeros((n_frames, 2))
@@ -447,7 +439,7 @@ def _add_links(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: _Scene) 
         )  # fmt: skip
 
 
-def _add_paths(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: _Scene, frames) -> None:
+def _add_paths(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: SceneRows, frames) -> None:
     """The ego's path candidates; each deeper-tier survivor's under its own subtree."""
     n_frames = scene.times_s.size
     ego = [p for f in frames for p in f.ego_paths]
@@ -486,6 +478,28 @@ def _add_paths(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: _Scene, 
     _add_entities(batch, static, paths, n_frames, cols, L.ORDER_PATHS, labels=False)
 
 
+def _add_plans(batch: C.Batch, static: C.Batch, scene: SceneRows, frames) -> None:
+    """A planner's two plans per frame (replay run --planner): white with every agent,
+    orange with the cascade's agents (drawn thinner, on top, so both show where equal)."""
+    n_frames = scene.times_s.size
+    for path, key, color, width in (
+        (L.PLAN_ALL, "plan_all", L.PLAN_ALL_COLOR, 2.2),
+        (L.PLAN_FILTERED, "plan_filtered", L.PLAN_FILTERED_COLOR, 1.2),
+    ):
+        plans = [getattr(f, key) for f in frames]
+        if not any(len(p) >= 2 for p in plans):
+            continue
+        parts = _Parts()
+        for f, plan in enumerate(plans):
+            if len(plan) >= 2:
+                parts.add(
+                    np.array([f]), plan[None], _tile((*color, 230), 1),
+                    np.full(1, -L.PATH_WIDTH_UI * width),
+                )  # fmt: skip
+        cols = parts.columns(n_frames)
+        _add_entities(batch, static, [path], n_frames, cols, L.ORDER_PATHS + 1.0, labels=False)
+
+
 # ---------------------------------------------------------------------- labels and misses
 def _tier_tags(names: tuple[str, ...]) -> np.ndarray:
     """Short tier marks for labels: initials (B, I, C) when unique, else 1, 2, 3."""
@@ -504,7 +518,7 @@ def _references(rows: dict[str, np.ndarray]) -> np.ndarray:
     )
 
 
-def _label_texts(info: SceneInfo, scene: _Scene, mode: str) -> np.ndarray:
+def _label_texts(info: SceneInfo, scene: SceneRows, mode: str) -> np.ndarray:
     """The label of every row (``""``: none; the id still shows on hover).
 
     ``"kept"`` (default): the ego, the tier agents (``17 I``) and the misses
@@ -545,7 +559,7 @@ def _label_texts(info: SceneInfo, scene: _Scene, mode: str) -> np.ndarray:
 
 
 def _declutter(
-    scene: _Scene, wanted: np.ndarray, priority: np.ndarray, spacing_m: float
+    scene: SceneRows, wanted: np.ndarray, priority: np.ndarray, spacing_m: float
 ) -> np.ndarray:
     """``wanted`` rows minus those within ``spacing_m`` of a more important wanted row.
 
@@ -571,7 +585,7 @@ def _declutter(
     return shown
 
 
-def miss_episodes(scene: _Scene, info: SceneInfo) -> list[dict[str, object]]:
+def miss_episodes(scene: SceneRows, info: SceneInfo) -> list[dict[str, Any]]:
     """The misses, one entry per episode: an agent dropped although important, over
     consecutive recorded frames with the same stage and reference.
 
@@ -609,7 +623,7 @@ def miss_episodes(scene: _Scene, info: SceneInfo) -> list[dict[str, object]]:
     ]
 
 
-def _log_misses(rec, info: SceneInfo, scene: _Scene) -> None:
+def _log_misses(rec, info: SceneInfo, scene: SceneRows) -> None:
     """The misses list: a text log row per episode on the agent's body entity.
 
     A row at the episode's first frame reads ``agent 17 · dropped by stage 2
@@ -668,13 +682,13 @@ def _log10_range(values: np.ndarray, window_decades: float = 30.0) -> tuple[floa
     return max(bottom, top - window_decades) - 0.5, top + 0.5
 
 
-def _agent_grid(scene: _Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _agent_grid(scene: SceneRows) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     if scene.grid is None:
         scene.grid = _compute_agent_grid(scene)
     return scene.grid
 
 
-def _compute_agent_grid(scene: _Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _compute_agent_grid(scene: SceneRows) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The other agents as columns of a frame x agent grid.
 
     Returns ``agent_ids (A,)``, ``column (K,)`` (-1 for the ego rows), and each agent's
@@ -703,7 +717,7 @@ MAX_TIMELINE_AGENTS = 1000
 
 
 def _log_timelines(
-    rec, info: SceneInfo, scene: _Scene, log10_models: set[str], focus: Sequence[int]
+    rec, info: SceneInfo, scene: SceneRows, log10_models: set[str], focus: Sequence[int]
 ) -> None:
     """``/scene/agents/<id>/risk/<model>``: each agent's risk from its first to its last
     frame, in the agent's own subtree (beside its body and path).
@@ -758,7 +772,7 @@ def _log_timelines(
     static.send(rec)
 
 
-def _log_threshold(rec, scene: _Scene, model: str, threshold: float, is_log: bool) -> None:
+def _log_threshold(rec, scene: SceneRows, model: str, threshold: float, is_log: bool) -> None:
     """The stage threshold as a flat line in the model's risk view."""
     if is_log and threshold <= 0:
         return
@@ -779,7 +793,7 @@ def _log_threshold(rec, scene: _Scene, model: str, threshold: float, is_log: boo
 
 
 # ---------------------------------------------------------------------- cascade series
-def _log_cascade_series(rec, info: SceneInfo, scene: _Scene) -> None:
+def _log_cascade_series(rec, info: SceneInfo, scene: SceneRows, frames=()) -> None:
     """Funnel counts, cumulative false negatives and compute times, one value per frame."""
     r, n_frames = scene.rows, scene.times_s.size
     per_frame = lambda mask: np.bincount(scene.frame_of[mask], minlength=n_frames)  # noqa: E731
@@ -798,6 +812,17 @@ def _log_cascade_series(rec, info: SceneInfo, scene: _Scene) -> None:
         path = f"{L.FUNNEL}/tier_{k + 1}_{tier.name}"
         series.append((path, tier.name, L.tier_color(k), per_frame(r["tier"] >= k)))
     total_ms = scene.stage_time_ms.sum(axis=1) + scene.sort_time_ms
+    plan_ms = {
+        key: np.array([getattr(f, key) for f in frames], dtype=np.float64)
+        for key in ("plan_all_ms", "plan_filtered_ms")
+    }
+    if np.isfinite(plan_ms["plan_all_ms"]).any():
+        series += [
+            (f"{L.TIMING}/plan_all_agents", "plan, all agents", L.PLAN_ALL_COLOR,
+             plan_ms["plan_all_ms"]),
+            (f"{L.TIMING}/plan_filtered", "plan, cascade's agents", L.PLAN_FILTERED_COLOR,
+             plan_ms["plan_filtered_ms"]),
+        ]  # fmt: skip
     series += [
         (f"{L.TIMING}/sort", "sort into tiers", L.tier_color(1), scene.sort_time_ms),
         (f"{L.TIMING}/cascade_total", "cascade total", L.OTHERS_SERIES, total_ms),
@@ -826,7 +851,7 @@ def _units(models: Sequence[str]) -> dict[str, str]:
     return {m: MODELS[m].unit for m in models if m in MODELS}
 
 
-def _ego_points(scene: _Scene, info: SceneInfo) -> np.ndarray:
+def _ego_points(scene: SceneRows, info: SceneInfo) -> np.ndarray:
     """Where the scene view opens: the ego's positions (without frames, the map)."""
     r = scene.rows
     if r["is_ego"].any():
@@ -838,7 +863,7 @@ def _ego_points(scene: _Scene, info: SceneInfo) -> np.ndarray:
 
 
 def focus_agents(
-    scene: _Scene, limit: int = L.FOCUS_AGENTS_MAX, *, only_important: bool = True
+    scene: SceneRows, limit: int = L.FOCUS_AGENTS_MAX, *, only_important: bool = True
 ) -> list[int]:
     """The agents the risk views open on: misses, hindsight positives and tier agents
     (``only_important=False``: any agent, in the same order).

@@ -1,14 +1,12 @@
-"""Exceptions raised by the replay package (reading scenes, running, statistics)."""
+"""Exceptions raised by the replay package (running, statistics)."""
 
 from __future__ import annotations
 
+from risk.errors import RiskReplayError
 
-class ReplayError(RuntimeError):
+
+class ReplayError(RiskReplayError, RuntimeError):
     """Base class of replay errors; the message says what is wrong and what to do."""
-
-
-class SceneFormatError(ReplayError):
-    """A file is not a readable scene: not MCAP, truncated, or missing our channels."""
 
 
 class StatsError(ReplayError):

@@ -216,7 +216,6 @@ _TIER_KEYS = {"name", "min_survival_risk", "max_agents"}
 
 
 def _parse_config(data: Mapping[str, Any], source: str) -> CascadeConfig:
-    from risk import MODELS  # the registry; imported late so this module loads alone
 
     def fail(key: str, problem: str) -> CascadeConfigError:
         return CascadeConfigError(key, problem, source=source)

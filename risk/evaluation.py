@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from risk.errors import RiskError
-from risk.metrics import exact_sweep
+from risk.metrics import SortedScores, exact_sweep, trapezoid_auc, trapezoid_auc_rows
 
 POSITIVE, NEGATIVE, UNKNOWN = 1, 0, -1
 #: FPRs at which the TPR is reported.
@@ -40,58 +40,6 @@ RATE_TOLERANCE = 1e-12
 
 
 # ---------------------------------------------------------------------- the sweep
-@dataclass(frozen=True, eq=False)
-class SortedScores:
-    """Included agent-frames sorted by descending score, ready for weighted sweeps.
-
-    ``scores (A',)`` descending; ``positive (A',)`` bool; ``cluster (A',)`` cluster
-    codes; ``group_end (K,)``: index of the last agent-frame of each run of equal scores
-    (one operating point each, strictest first).
-    """
-
-    scores: np.ndarray
-    positive: np.ndarray
-    cluster: np.ndarray
-    group_end: np.ndarray
-
-    @classmethod
-    def build(
-        cls, scores: np.ndarray, positive: np.ndarray, cluster: np.ndarray | None = None
-    ) -> SortedScores:
-        s = np.asarray(scores, dtype=np.float64)
-        p = np.asarray(positive, dtype=bool)
-        c = np.zeros(s.size, dtype=np.int64) if cluster is None else np.asarray(cluster)
-        if s.shape != p.shape or s.shape != c.shape or s.ndim != 1:
-            raise RiskError(
-                f"scores, positive and cluster must all have shape (A,), got {s.shape}, "
-                f"{p.shape} and {c.shape}"
-            )
-        if np.isinf(s).any():
-            raise RiskError("scores must be finite or NaN (not an agent)")
-        ok = ~np.isnan(s)
-        order = np.argsort(-s[ok], kind="stable")
-        sd = s[ok][order]
-        end = np.flatnonzero(np.r_[sd[1:] != sd[:-1], True]) if sd.size else np.empty(0, int)
-        return cls(sd, p[ok][order], c[ok][order].astype(np.int64), end)
-
-    def rates(self, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """``(tpr, fpr)`` ``(K,)`` at each operating point, strictest first (weights
-        ``(A',)`` per sorted agent-frame; default 1). NaN when there is no positive (or
-        no negative)."""
-        w = np.ones(self.scores.size) if weights is None else weights
-        wp = np.cumsum(np.where(self.positive, w, 0.0))
-        wn = np.cumsum(np.where(self.positive, 0.0, w))
-        tot_p, tot_n = (wp[-1], wn[-1]) if wp.size else (0.0, 0.0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            tpr = wp[self.group_end] / tot_p if tot_p > 0 else np.full(self.group_end.size, np.nan)
-            fpr = wn[self.group_end] / tot_n if tot_n > 0 else np.full(self.group_end.size, np.nan)
-        return tpr, fpr
-
-    def kept_before(self, threshold: float) -> int:
-        """How many sorted agent-frames have ``score >= threshold``."""
-        return int(np.searchsorted(-self.scores, -threshold, side="right"))
-
-
 @dataclass(frozen=True, eq=False)
 class PooledRoc:
     """A pooled ROC curve: ``thresholds (K,)`` ascending, ``tpr``, ``fpr (K,)`` (keep
@@ -106,14 +54,6 @@ class PooledRoc:
     n_negative: int
 
 
-def _auc(tpr_desc: np.ndarray, fpr_desc: np.ndarray) -> float:
-    if tpr_desc.size == 0 or np.isnan(tpr_desc).any() or np.isnan(fpr_desc).any():
-        return math.nan
-    x = np.r_[0.0, fpr_desc, 1.0]
-    y = np.r_[0.0, tpr_desc, 1.0]
-    return float(np.sum(np.diff(x) * (y[1:] + y[:-1]) / 2.0))
-
-
 def pooled_roc(scores: np.ndarray, reference: np.ndarray) -> PooledRoc:
     """The pooled ROC of ``scores (A,)`` (NaN: not an agent) against ``reference (A,)``
     label codes (1, 0, -1 = unknown, left out) or booleans. Exact: every distinct score is
@@ -126,7 +66,7 @@ def pooled_roc(scores: np.ndarray, reference: np.ndarray) -> PooledRoc:
         thresholds=srt.scores[srt.group_end][::-1],
         tpr=tpr[::-1],
         fpr=fpr[::-1],
-        auc=_auc(tpr, fpr),
+        auc=trapezoid_auc(fpr, tpr),
         n_positive=int(srt.positive.sum()),
         n_negative=int((~srt.positive).sum()),
     )
@@ -254,7 +194,7 @@ def evaluate_scores(
     out: dict[str, Any] = {
         "agent_frames": int(srt.scores.size),
         "positives": int(srt.positive.sum()),
-        "auc": {"value": _auc(tpr, fpr)},
+        "auc": {"value": trapezoid_auc(fpr, tpr)},
         "auc_situation_mean": _situation_mean_auc(s, include, positive, situations),
         "tpr_at_fpr": {f"{f:g}": {"value": tpr_at_fpr(tpr, fpr, f)} for f in fpr_points},
         "miss_rate": {},
@@ -340,10 +280,7 @@ def _replicates(
         with np.errstate(invalid="ignore", divide="ignore"):
             tpr = np.where(tp > 0, wp / tp, np.nan)
             fpr = np.where(tn > 0, wn / tn, np.nan)
-        ones = np.ones((blk.shape[0], 1))
-        x = np.concatenate([0 * ones, fpr, ones], axis=1)
-        y = np.concatenate([0 * ones, tpr, ones], axis=1)
-        auc[start : start + step] = np.sum(np.diff(x, axis=1) * (y[:, 1:] + y[:, :-1]) / 2, axis=1)
+        auc[start : start + step] = trapezoid_auc_rows(fpr, tpr)
         rows = np.arange(blk.shape[0])
         for k, f in enumerate(fpr_points):
             with np.errstate(invalid="ignore"):

@@ -3,7 +3,7 @@
 :func:`run`, :func:`warm_up`).
 
 The code is :mod:`risk.kernel_numba`. It runs compiled in one of two forms, bit for bit
-the same:
+the same on one machine:
 
 - **ahead of time** (:mod:`risk.kernel_aot`): an extension module built once into the
   cache folder by numba's ``pycc``. Loading it imports neither numba nor LLVM: about
@@ -14,7 +14,7 @@ the same:
 
 The replay's commands start the ahead-of-time build in the background the first time
 they run on the just-in-time form (:func:`risk.kernel_aot.start_background_build`);
-``python -m risk.kernel_aot`` builds it in the foreground.
+``python -m risk.kernel_aot_build`` builds it in the foreground.
 
 :data:`IMPLEMENTATION` says which form this process runs. Every array argument of the
 entry points must be read-only and C-contiguous with the dtype :func:`warm_up` uses (one
@@ -248,7 +248,7 @@ def warm_up(compiled: types.ModuleType | None = None, *, build_ahead_of_time: bo
 
     Call it once in a parent process before starting workers (pytest-xdist, batch, Ray),
     so that they load the cached kernels instead of each compiling them. ``compiled``:
-    the form to warm up (default: the one this process runs; :mod:`risk.kernel_aot`
+    the form to warm up (default: the one this process runs; :mod:`risk.kernel_aot_build`
     passes :mod:`risk.kernel_numba` to compile the signatures it builds).
 
     ``build_ahead_of_time``: when this process runs the just-in-time form (and

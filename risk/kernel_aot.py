@@ -15,7 +15,8 @@ another machine sharing the folder gets its own build; the newest :data:`KEEP_BU
 are kept.
 
 Building needs a C compiler (``pycc`` compiles numba's runtime helpers) and takes about
-10 s on top of the just-in-time compile. ``python -m risk.kernel_aot`` builds it now;
+10 s on top of the just-in-time compile. ``python -m risk.kernel_aot_build`` (the build,
+:mod:`risk.kernel_aot_build`) builds it now;
 :func:`start_background_build` starts that in a detached process (the replay's commands
 do it the first time they run just in time). A failed build is remembered (a
 ``.failed`` file beside the builds, with the reason) so that later commands do not retry
@@ -25,7 +26,6 @@ replacement yet; if it goes, the just-in-time form stays, only slower to start.
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import importlib.machinery
 import importlib.util
@@ -33,34 +33,23 @@ import logging
 import os
 import pathlib
 import platform
-import shutil
 import subprocess
 import sys
-import tempfile
 import time
 import types
-import warnings
 
 import numpy
-
-from risk.kernel_shared import cache_dir
 
 log = logging.getLogger("risk")
 
 MODULE_NAME = "riskreplay_kernel_aot"
 #: The compiled functions that :mod:`risk.kernel` calls.
 ENTRY_POINTS = ("evaluate_agents", "reachable", "tiers", "cascade_agents")
-#: Builds kept in the cache folder (the newest; older sources and installations go).
-KEEP_BUILDS = 4
 #: A build lock older than this is taken to be left by a killed build.
 STALE_LOCK_S = 15 * 60
 HERE = pathlib.Path(__file__).resolve().parent
 #: The files whose content the compiled code depends on.
-SOURCES = ("kernel_numba.py", "kernel_shared.py", "kernel_aot.py")
-
-
-class AotBuildError(RuntimeError):
-    """The ahead-of-time module could not be built (no C compiler, a numba error, ...)."""
+SOURCES = ("kernel_numba.py", "kernel_shared.py", "kernel_aot.py", "kernel_aot_build.py")
 
 
 def _package_stamp(name: str) -> str:
@@ -145,103 +134,8 @@ def _lock_path(cache_dir: str | os.PathLike[str], key: str) -> pathlib.Path:
     return builds_dir(cache_dir) / f"{key}.lock"
 
 
-def _take_lock(lock: pathlib.Path) -> bool:
-    lock.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        if time.time() - lock.stat().st_mtime > STALE_LOCK_S:
-            lock.unlink(missing_ok=True)
-    except FileNotFoundError:
-        pass
-    try:
-        fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-    except FileExistsError:
-        return False
-    os.write(fd, str(os.getpid()).encode())
-    os.close(fd)
-    return True
-
-
-def _wrappers(kernel_numba: types.ModuleType) -> dict[str, types.FunctionType]:
-    """One plain function per entry point that calls the ``@njit`` function: compiled by
-    ``pycc``, it keeps the callee's own options (numpy's error model) in the module."""
-    out: dict[str, types.FunctionType] = {}
-    for name in ENTRY_POINTS:
-        dispatcher = getattr(kernel_numba, name)
-        if not dispatcher.nopython_signatures:
-            continue  # (cascade_agents where the CPU has no cycle counter)
-        n_args = len(dispatcher.nopython_signatures[0].args)
-        params = ", ".join(f"a{i}" for i in range(n_args))
-        namespace: dict[str, object] = {"compiled": dispatcher}
-        exec(f"def {name}({params}):\n    return compiled({params})\n", namespace)
-        out[name] = namespace[name]  # type: ignore[assignment]
-    return out
-
-
-def build(cache_dir: str | os.PathLike[str]) -> pathlib.Path:
-    """Build the module for this installation into ``cache_dir`` (no-op when it exists)
-    and return its path. Raises :class:`AotBuildError` when it cannot be built, and
-    ``FileExistsError`` while another process builds it."""
-    key = build_key()
-    target = module_path(cache_dir, key)
-    if target.is_file():
-        return target
-    lock = _lock_path(cache_dir, key)
-    if not _take_lock(lock):
-        raise FileExistsError(f"another process is building {target.parent} ({lock})")
-    work: pathlib.Path | None = None
-    try:
-        work = pathlib.Path(tempfile.mkdtemp(prefix=".build-", dir=builds_dir(cache_dir)))
-        # numba only here: the module itself imports neither numba nor LLVM
-        from risk import kernel, kernel_numba
-
-        kernel.warm_up(kernel_numba)  # one signature per entry point, from the JIT cache
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # pycc's pending-deprecation warning
-                from numba.pycc import CC  # (checks for a C compiler)
-
-                cc = CC(MODULE_NAME)
-                cc.output_dir = str(work)
-                cc.target_cpu = "host"
-                cc.verbose = False
-                for name, wrapper in _wrappers(kernel_numba).items():
-                    signature = getattr(kernel_numba, name).nopython_signatures[0]
-                    cc.export(name, signature)(wrapper)
-                cc.compile()
-        except Exception as exc:  # no C compiler, a linker or numba failure
-            message = " ".join(f"{type(exc).__name__}: {exc}".split())[:300]
-            _failed_marker(cache_dir, key).write_text(message + "\n")
-            raise AotBuildError(message) from exc
-        built = work / target.name
-        final = work / "module"
-        final.mkdir()
-        built.rename(final / target.name)
-        try:
-            os.rename(final, target.parent)
-        except OSError:
-            if not target.is_file():
-                raise
-        _failed_marker(cache_dir, key).unlink(missing_ok=True)
-        _prune(cache_dir, keep=target.parent)
-        return target
-    finally:
-        if work is not None:
-            shutil.rmtree(work, ignore_errors=True)
-        lock.unlink(missing_ok=True)
-
-
-def _prune(cache_dir: str | os.PathLike[str], keep: pathlib.Path) -> None:
-    """Remove all but the newest :data:`KEEP_BUILDS` builds (``keep`` always stays)."""
-    builds = [
-        p for p in builds_dir(cache_dir).iterdir() if p.is_dir() and not p.name.startswith(".")
-    ]
-    builds.sort(key=lambda p: p.stat().st_mtime, reverse=True)
-    for old in [p for p in builds if p != keep][KEEP_BUILDS - 1 :]:
-        shutil.rmtree(old, ignore_errors=True)
-
-
 def start_background_build(cache_dir: str | os.PathLike[str]) -> bool:
-    """Start ``python -m risk.kernel_aot --background`` in a detached process unless the
+    """Start ``python -m risk.kernel_aot_build --background`` in a detached process unless the
     module exists, is being built, or failed to build for this installation. True when
     started. Its output goes to ``<cache>/aot/build.log``."""
     key = build_key()
@@ -254,7 +148,7 @@ def start_background_build(cache_dir: str | os.PathLike[str]) -> bool:
         builds_dir(cache_dir).mkdir(parents=True, exist_ok=True)
         with open(builds_dir(cache_dir) / "build.log", "ab") as out:
             subprocess.Popen(
-                [sys.executable, "-m", "risk.kernel_aot", "--background"],
+                [sys.executable, "-m", "risk.kernel_aot_build", "--background"],
                 stdin=subprocess.DEVNULL,
                 stdout=out,
                 stderr=out,
@@ -268,34 +162,9 @@ def start_background_build(cache_dir: str | os.PathLike[str]) -> bool:
     return True
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m risk.kernel_aot",
-        description="Build the risk kernel ahead of time into the kernel cache folder "
-        "(NUMBA_CACHE_DIR, else ~/.cache/riskreplay/numba), so that new processes load it "
-        "in about 1 ms instead of setting up numba (about 0.9 s). Needs a C compiler.",
-    )
-    parser.add_argument(
-        "--background", action="store_true", help="quiet; as started by the replay commands"
-    )
-    args = parser.parse_args(argv)
-    folder = cache_dir()
-    start = time.perf_counter()
-    try:
-        path = build(folder)
-    except FileExistsError as exc:
-        print(f"riskreplay: {exc}; try again when it ends", file=sys.stderr)
-        return 0 if args.background else 1
-    except AotBuildError as exc:
-        print(f"Error: the ahead-of-time kernel cannot be built: {exc}", file=sys.stderr)
-        return 1
-    if not args.background:
-        print(f"Built in {time.perf_counter() - start:.1f} s: {path}")
-    else:
-        stamp = time.strftime("%Y-%m-%d %H:%M:%S")
-        print(f"{stamp} built {path} in {time.perf_counter() - start:.1f} s", flush=True)
-    return 0
-
-
 if __name__ == "__main__":
-    raise SystemExit(main())
+    # ``python -m risk.kernel_aot`` (the README's command) runs the build, which lives in
+    # risk/kernel_aot_build.py: it imports risk.kernel, which imports this module.
+    import runpy
+
+    runpy.run_module("risk.kernel_aot_build", run_name="__main__", alter_sys=True)

@@ -16,8 +16,10 @@ nothing grows with ``N^2`` and memory stays cache-sized; only the ego's candidat
 kept for the whole call. The maths follows the vectorised numpy modules
 (:mod:`risk.distance`, :mod:`risk.temporal`, :mod:`risk.stochastic`, :mod:`risk.prediction`)
 operation by operation, including numpy's pairwise summation, so that the results agree
-with them bit for bit except where ``exp`` differs in the last bit; those modules and
-:mod:`risk.reference` are the oracles the tests compare with.
+with them within a few ulps, mostly bit for bit (numpy's AVX-512 ``exp`` differs from the C
+library's in the last bit; the pruned distance search may round a least distance another
+way; tests/exactness.py); those modules and :mod:`risk.reference` are the oracles the
+tests compare with.
 
 Compile cost: every function is ``@njit(cache=True)`` and none is recursive (a recursive
 cached function crashed on cache load). The cache folder is ``NUMBA_CACHE_DIR`` when set,

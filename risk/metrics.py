@@ -81,6 +81,72 @@ def confusion_counts(
 
 
 @dataclass(frozen=True, eq=False)
+class SortedScores:
+    """Included agent-frames sorted by descending score, ready for weighted sweeps.
+
+    ``scores (A',)`` descending; ``positive (A',)`` bool; ``cluster (A',)`` cluster
+    codes; ``group_end (K,)``: index of the last agent-frame of each run of equal scores
+    (one operating point each, strictest first).
+    """
+
+    scores: np.ndarray
+    positive: np.ndarray
+    cluster: np.ndarray
+    group_end: np.ndarray
+
+    @classmethod
+    def build(
+        cls,
+        scores: np.ndarray,
+        positive: np.ndarray,
+        cluster: np.ndarray | None = None,
+        *,
+        finite: bool = True,
+    ) -> SortedScores:
+        """Sort ``scores (A,)`` (NaN: not an agent, left out) riskiest first, stable (ties
+        keep their input order), with ``positive (A,)`` and ``cluster (A,)`` alongside.
+        ``finite``: refuse infinite scores (the pooled evaluation's thresholds must be
+        finite; the mean sweep takes them)."""
+        s = np.asarray(scores, dtype=np.float64)
+        p = np.asarray(positive, dtype=bool)
+        c = np.zeros(s.size, dtype=np.int64) if cluster is None else np.asarray(cluster)
+        if s.shape != p.shape or s.shape != c.shape or s.ndim != 1:
+            raise RiskError(
+                f"scores, positive and cluster must all have shape (A,), got {s.shape}, "
+                f"{p.shape} and {c.shape}"
+            )
+        if finite and np.isinf(s).any():
+            raise RiskError("scores must be finite or NaN (not an agent)")
+        ok = ~np.isnan(s)
+        order = np.argsort(-s[ok], kind="stable")
+        sd = s[ok][order]
+        end = np.flatnonzero(np.r_[sd[1:] != sd[:-1], True]) if sd.size else np.empty(0, int)
+        return cls(sd, p[ok][order], c[ok][order].astype(np.int64), end)
+
+    def at_thresholds(self, weights: np.ndarray) -> np.ndarray:
+        """``(K,)``: the sum of ``weights`` (one per sorted agent-frame) over the agent-frames
+        each operating point keeps (``score >= threshold``), strictest first."""
+        return np.cumsum(weights)[self.group_end]
+
+    def rates(self, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(tpr, fpr)`` ``(K,)`` at each operating point, strictest first (weights
+        ``(A',)`` per sorted agent-frame; default 1). NaN when there is no positive (or
+        no negative)."""
+        w = np.ones(self.scores.size) if weights is None else weights
+        wp = np.cumsum(np.where(self.positive, w, 0.0))
+        wn = np.cumsum(np.where(self.positive, 0.0, w))
+        tot_p, tot_n = (wp[-1], wn[-1]) if wp.size else (0.0, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tpr = wp[self.group_end] / tot_p if tot_p > 0 else np.full(self.group_end.size, np.nan)
+            fpr = wn[self.group_end] / tot_n if tot_n > 0 else np.full(self.group_end.size, np.nan)
+        return tpr, fpr
+
+    def kept_before(self, threshold: float) -> int:
+        """How many sorted agent-frames have ``score >= threshold``."""
+        return int(np.searchsorted(-self.scores, -threshold, side="right"))
+
+
+@dataclass(frozen=True, eq=False)
 class Sweep:
     """A model's mean ROC curve over ``S`` situations, exact at every distinct score.
 
@@ -143,22 +209,22 @@ def exact_sweep(
         raise RiskError("situation must hold integer situation indices >= 0")
     n_sit = int(sit_all.max()) + 1 if n_situations is None and sit_all.size else n_situations
     ok = ~np.isnan(s)
-    s, base, sit = s[ok], base_all[ok], sit_all[ok].astype(np.int64)
-    if s.size == 0 or not n_sit:
+    base, sit = base_all[ok], sit_all[ok].astype(np.int64)
+    if not ok.any() or not n_sit:
         raise RiskError("no agent has a risk value (every score is NaN)")
     pos = np.bincount(sit[base], minlength=n_sit)
     neg = np.bincount(sit[~base], minlength=n_sit)
     n_pos_sits, n_neg_sits = int((pos > 0).sum()), int((neg > 0).sum())
-    order = np.argsort(-s, kind="stable")  # riskiest first
-    s_desc, b_desc, sit_desc = s[order], base[order], sit[order]
+    srt = SortedScores.build(s, base_all, sit_all, finite=False)  # riskiest first
+    b_desc, sit_desc = srt.positive, srt.cluster
     with np.errstate(divide="ignore", invalid="ignore"):
         w_tpr = np.where(b_desc, 1.0 / pos[sit_desc], 0.0)
         w_fpr = np.where(~b_desc, 1.0 / neg[sit_desc], 0.0)
         w_sq = np.where(b_desc, (2.0 * _rank_in_situation(sit_desc, b_desc) + 1.0)
                         / pos[sit_desc] ** 2, 0.0)  # fmt: skip
     # The last agent of each run of equal scores closes that threshold.
-    last = np.flatnonzero(np.r_[s_desc[1:] != s_desc[:-1], True])
-    cum_tpr, cum_fpr, cum_sq = (np.cumsum(w)[last] for w in (w_tpr, w_fpr, w_sq))
+    last = srt.group_end
+    cum_tpr, cum_fpr, cum_sq = (srt.at_thresholds(w) for w in (w_tpr, w_fpr, w_sq))
     mean_tpr = _normalised(cum_tpr, n_pos_sits)
     mean_fpr = _normalised(cum_fpr, n_neg_sits)
     # E[TPR^2] is 1 when everyone is kept, like the mean: normalise it the same way.
@@ -170,12 +236,12 @@ def exact_sweep(
     kept = (last + 1) / n_sit
     rev = slice(None, None, -1)  # descending -> ascending thresholds
     return Sweep(
-        thresholds=s_desc[last][rev],
+        thresholds=srt.scores[last][rev],
         mean_tpr=mean_tpr[rev],
         mean_fpr=mean_fpr[rev],
         std_tpr=std[rev],
         mean_kept=kept[rev],
-        auc=_auc(mean_fpr, mean_tpr),
+        auc=trapezoid_auc(mean_fpr, mean_tpr),
         n_situations=n_sit,
         n_no_positive=n_sit - n_pos_sits,
         n_no_negative=n_sit - n_neg_sits,
@@ -204,14 +270,24 @@ def _normalised(cum: np.ndarray, n_sits: int) -> np.ndarray:
     return np.minimum(cum / cum[-1], 1.0)
 
 
-def _auc(fpr_desc: np.ndarray, tpr_desc: np.ndarray) -> float:
-    """Trapezoids under the curve from the strictest threshold, closed with (0, 0) and
-    (1, 1); NaN when the curve is undefined."""
-    if np.isnan(fpr_desc).any() or np.isnan(tpr_desc).any():
+def trapezoid_auc(fpr_desc: np.ndarray, tpr_desc: np.ndarray) -> float:
+    """The area under a ROC curve given from its strictest threshold on ``(K,)``:
+    trapezoids, closed with (0, 0) (a threshold above every score keeps nothing) and
+    (1, 1) (at or below the lowest score everything is kept); NaN when the curve is empty
+    or undefined anywhere. The one AUC of the project (the mean sweep, the pooled
+    evaluation and its bootstrap, through :func:`trapezoid_auc_rows`)."""
+    if tpr_desc.size == 0 or np.isnan(fpr_desc).any() or np.isnan(tpr_desc).any():
         return math.nan
-    x = np.r_[0.0, fpr_desc, 1.0]
-    y = np.r_[0.0, tpr_desc, 1.0]
-    return float(np.sum(np.diff(x) * (y[1:] + y[:-1]) / 2.0))
+    return float(trapezoid_auc_rows(fpr_desc[None, :], tpr_desc[None, :])[0])
+
+
+def trapezoid_auc_rows(fpr_desc: np.ndarray, tpr_desc: np.ndarray) -> np.ndarray:
+    """:func:`trapezoid_auc` of each row of ``(B, K)`` curves, ``(B,)`` (NaN where a row
+    has a NaN rate)."""
+    ones = np.ones((fpr_desc.shape[0], 1))
+    x = np.concatenate([0 * ones, fpr_desc, ones], axis=1)
+    y = np.concatenate([0 * ones, tpr_desc, ones], axis=1)
+    return np.sum(np.diff(x, axis=1) * (y[:, 1:] + y[:, :-1]) / 2, axis=1)
 
 
 class _Curve(Protocol):

@@ -12,6 +12,7 @@ differently.)
 from __future__ import annotations
 
 import functools
+import math
 import types
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, fields
@@ -47,7 +48,13 @@ class ModelSpec:
     complexity: str
     params_type: type
     fn: ModelFn
+    #: the model's name inside a sentence of a report ("... ranks above {label}")
+    label: str
+    #: its colour in every plot (a matplotlib colour name; the paper's, Sec. V)
+    color: str
     unit: str = ""  # unit of the risk value ("" = dimensionless)
+    #: the closed range of its risk values (tables read back are checked against it)
+    risk_range: tuple[float, float] = (0.0, 1.0)
 
     def default_params(self) -> Any:
         """The spec's defaults."""
@@ -78,6 +85,8 @@ MODELS: dict[str, ModelSpec] = {
             complexity="O(1)",
             params_type=distance.CurrentDistanceParams,
             fn=distance.current_distance,
+            label="current distance",
+            color="tab:blue",
         ),
         ModelSpec(
             name="path_distance",
@@ -87,6 +96,8 @@ MODELS: dict[str, ModelSpec] = {
             complexity="O(p^2)",
             params_type=distance.PathDistanceParams,
             fn=distance.path_distance,
+            label="path distance",
+            color="tab:orange",
         ),
         ModelSpec(
             name="trajectory_distance",
@@ -96,6 +107,8 @@ MODELS: dict[str, ModelSpec] = {
             complexity="O(p^2)",
             params_type=distance.TrajectoryDistanceParams,
             fn=distance.trajectory_distance,
+            label="trajectory distance",
+            color="tab:green",
         ),
         ModelSpec(
             name="closest_encounter",
@@ -105,6 +118,8 @@ MODELS: dict[str, ModelSpec] = {
             complexity="O(n)",
             params_type=temporal.ClosestEncounterParams,
             fn=temporal.closest_encounter,
+            label="closest encounter",
+            color="tab:red",
         ),
         ModelSpec(
             name="headway",
@@ -114,6 +129,8 @@ MODELS: dict[str, ModelSpec] = {
             complexity="O(n + p)",
             params_type=temporal.HeadwayParams,
             fn=temporal.headway,
+            label="closest encounter + headway",
+            color="tab:purple",
         ),
         ModelSpec(
             name="headway_2d",
@@ -123,6 +140,8 @@ MODELS: dict[str, ModelSpec] = {
             complexity="O(n + p^2)",
             params_type=temporal.Headway2DParams,
             fn=temporal.headway_2d,
+            label="closest encounter + 2D headway",
+            color="tab:brown",
         ),
         ModelSpec(
             name="circles",
@@ -132,6 +151,8 @@ MODELS: dict[str, ModelSpec] = {
             complexity="O(k n)",
             params_type=stochastic.CirclesParams,
             fn=stochastic.circles,
+            label="circles",
+            color="tab:pink",
         ),
         ModelSpec(
             name="gaussian",
@@ -141,6 +162,9 @@ MODELS: dict[str, ModelSpec] = {
             complexity="O(n)",
             params_type=stochastic.GaussianParams,
             fn=stochastic.gaussian,
+            label="2D Gaussians",
+            color="tab:gray",
+            risk_range=(0.0, math.inf),
             unit="1/m^2",
         ),
         ModelSpec(
@@ -151,6 +175,8 @@ MODELS: dict[str, ModelSpec] = {
             complexity="O(n)",
             params_type=stochastic.SurvivalParams,
             fn=stochastic.survival,
+            label="survival analysis",
+            color="tab:olive",
         ),
     )
 }

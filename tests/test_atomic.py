@@ -8,7 +8,7 @@ import stat
 
 import pytest
 
-from base.atomic import atomic_output, atomic_write, safe_name, write_text
+from outputs.atomic import atomic_output, atomic_write, safe_name, write_text
 
 
 def test_success_replaces_target_with_umask_permissions(tmp_path):

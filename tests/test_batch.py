@@ -27,7 +27,7 @@ N_GOOD = 6
 
 # ---------------------------------------------------------------------- the dataset
 def _write_dataset(folder: pathlib.Path) -> pathlib.Path:
-    from converters.mcap_io import SceneWriter, write_scene
+    from converters.scene.writer import SceneWriter, write_scene
     from converters.synthetic import SyntheticSettings, generate_scene
 
     folder.mkdir(parents=True, exist_ok=True)

@@ -10,13 +10,13 @@ import pytest
 from click.testing import CliRunner
 
 from replay.batch import read_failures
-from replay.cli import main
+from replay.cli.app import main
 
 
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory: pytest.TempPathFactory) -> pathlib.Path:
     """Three short synthetic scenes and one damaged file."""
-    from converters.mcap_io import write_scene
+    from converters.scene.writer import write_scene
     from converters.synthetic import SyntheticSettings, generate_scene
 
     folder = tmp_path_factory.mktemp("cli-batch") / "scenes"

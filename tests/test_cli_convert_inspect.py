@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from converters import mcap_io
-from converters import scene_format as sf
+from converters.scene import schema as sf
+from converters.scene import writer as mcap_io
+from converters.scene.reader import open_scene, read_scene
 from converters.synthetic import SyntheticSettings, generate_scene
-from replay.cli import main
-from replay.reader import open_scene, read_scene
+from replay.cli.app import main
 
 
 @pytest.fixture

@@ -10,9 +10,14 @@ import polars as pl
 import pytest
 from click.testing import CliRunner
 
-from converters.mcap_io import write_scene
-from replay.cli import main
-from replay.evaluation import EvaluationSettings, collect_agents, evaluate_inputs, site_of
+from converters.scene.writer import write_scene
+from replay.analysis.corpus_evaluation import (
+    EvaluationSettings,
+    collect_agents,
+    evaluate_inputs,
+    site_of,
+)
+from replay.cli.app import main
 from risk.frame import Frame, LaneMap, Scene
 
 

@@ -6,7 +6,7 @@ import json
 
 from click.testing import CliRunner
 
-from replay.cli import main
+from replay.cli.app import main
 from risk import MODELS
 
 

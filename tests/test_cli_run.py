@@ -9,7 +9,7 @@ import polars as pl
 import pytest
 from click.testing import CliRunner
 
-from replay.cli import main
+from replay.cli.app import main
 from risk import MODELS
 from risk.cascade import CascadeConfig
 
@@ -24,7 +24,7 @@ def small_scene(seed: int = 3, n_agents: int = 30, duration_s: float = 2.0):
 @pytest.fixture(scope="module")
 def scene_file(tmp_path_factory) -> pathlib.Path:
     """A 30-agent, 2 s synthetic intersection (20 frames)."""
-    from converters.mcap_io import write_scene
+    from converters.scene.writer import write_scene
 
     return write_scene(tmp_path_factory.mktemp("scene") / "small.mcap", small_scene())
 
@@ -55,7 +55,7 @@ def test_run_writes_the_recording_beside_the_scene_and_a_table(scene, tmp_path):
     assert f"Open the recording with: rerun {rrd}" in out and str(table) in out
 
     df = pl.read_parquet(table)
-    from replay.reader import read_scene
+    from converters.scene.reader import read_scene
 
     frames = read_scene(scene).frames
     assert df.height == sum(int(f.others.sum()) for f in frames)
@@ -140,7 +140,7 @@ def test_missing_key_in_cascade_file(scene, tmp_path):
 
 
 def test_frames_without_the_ego_are_skipped_with_a_warning(tmp_path):
-    from converters.mcap_io import SceneWriter
+    from converters.scene.writer import SceneWriter
 
     sc = small_scene()
     path = tmp_path / "gaps.mcap"
@@ -190,7 +190,7 @@ def test_demo_writes_scene_recording_and_table(tmp_path):
 def test_calibrate_then_run_drops_no_baseline_agent(tmp_path):
     """End to end: thresholds calibrated with --max-fn-rate 0 on two scenes give a cascade
     with no false negative on those scenes."""
-    from converters.mcap_io import write_scene
+    from converters.scene.writer import write_scene
 
     scenes = [write_scene(tmp_path / f"s{k}.mcap", small_scene(seed=k)) for k in (11, 12)]
     toml = tmp_path / "c.toml"

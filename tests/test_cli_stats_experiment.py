@@ -8,7 +8,7 @@ import polars as pl
 import pytest
 from click.testing import CliRunner
 
-from replay.cli import main
+from replay.cli.app import main
 
 
 def run(args: list[str]):
@@ -109,7 +109,7 @@ def test_experiment_uses_worker_processes(tmp_path):
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory):
     """Two short synthetic scenes as MCAP, and tables of the first one."""
-    from converters.mcap_io import write_scene
+    from converters.scene.writer import write_scene
     from converters.synthetic import SyntheticSettings, generate_scene
 
     folder = tmp_path_factory.mktemp("scenes")
@@ -241,7 +241,7 @@ def test_stats_on_a_real_argoverse_scene(shared_data, tmp_path):
 
 # ---------------------------------------------------------------------- experiment helpers
 def test_finding_verdicts():
-    from replay.experiment import Finding
+    from replay.analysis.experiment import Finding
 
     def f(*met):
         return Finding("claim", "measured", tuple((f"c{k}", m) for k, m in enumerate(met)))
@@ -252,7 +252,7 @@ def test_finding_verdicts():
 
 
 def test_median_ratio_and_its_interval():
-    from replay.experiment import median_ratio
+    from replay.analysis.experiment import median_ratio
 
     a = [1.0, 2.0, 3.0, 4.0, 5.0]
     ratio, lo, hi = median_ratio(a, [2.0 * x for x in a])
@@ -263,7 +263,7 @@ def test_median_ratio_and_its_interval():
 
 
 def test_situation_seeds_chunks_and_relinks(tmp_path):
-    from replay.experiment import calibration_seeds, chunks, relink, situation_seed
+    from replay.analysis.experiment import calibration_seeds, chunks, relink, situation_seed
     from risk.cascade import CascadeConfig
 
     seeds = [situation_seed(0, i) for i in range(100)]

@@ -14,8 +14,8 @@ from click.testing import CliRunner
 
 from converters.av2 import DEFAULT_SIZES, parquet_to_scene, read_scenes
 from converters.errors import ConversionError
-from replay.cli import main
-from replay.reader import read_scene
+from converters.scene.reader import read_scene
+from replay.cli.app import main
 from risk.frame import Kind
 
 SCENARIO_ID = "tiny-0001"

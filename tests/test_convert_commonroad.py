@@ -12,9 +12,9 @@ from click.testing import CliRunner
 from converters.commonroad import read_scene
 from converters.errors import ConversionError
 from converters.lanegraph import lanelet_centerline
+from converters.scene.reader import read_scene as read_mcap
 from converters.tracks import Skipped
-from replay.cli import main
-from replay.reader import read_scene as read_mcap
+from replay.cli.app import main
 from risk.frame import Kind
 
 

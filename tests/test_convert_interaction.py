@@ -20,9 +20,9 @@ from converters.interaction import (
     read_rows,
     read_scene,
 )
+from converters.scene.reader import read_scene as read_mcap
 from converters.tracks import Skipped
-from replay.cli import main
-from replay.reader import read_scene as read_mcap
+from replay.cli.app import main
 from risk.frame import Kind
 
 # node id -> local (x, y)

@@ -15,6 +15,7 @@ import pytest
 from click.testing import CliRunner
 
 from converters.errors import ConversionError
+from converters.scene.reader import read_scene
 from converters.tfrecord import (
     Record,
     RecordError,
@@ -24,8 +25,7 @@ from converters.tfrecord import (
     write_records,
 )
 from converters.waymo import read_scenes, scenario_to_scene
-from replay.cli import main
-from replay.reader import read_scene
+from replay.cli.app import main
 from risk.frame import Kind
 
 

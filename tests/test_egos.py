@@ -11,12 +11,12 @@ from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from converters.mcap_io import write_scene
-from replay.cli import main
-from replay.egos import run_every_ego
-from replay.engine import Stride
+from converters.scene.writer import write_scene
+from replay.cli.app import main
+from replay.core.egos import run_every_ego
+from replay.core.engine import Stride
+from replay.core.tables import TableSink
 from replay.errors import ReplayError
-from replay.tables import TableSink
 from risk.frame import Frame, LaneMap, Scene
 from risk.motion import moving_agent_ids, travel_extents
 

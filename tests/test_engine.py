@@ -8,10 +8,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-import replay.engine as engine
-from replay.engine import FrameResult, ReplayWarning, SceneInfo, run_scene
+import replay.core.engine as engine
+from replay.core.engine import FrameResult, ReplayWarning, SceneInfo, run_scene
+from replay.core.tables import TableSink
 from replay.errors import ReplayError
-from replay.tables import TableSink
 from risk.cascade import CascadeConfig, Stage, Tier
 from risk.frame import Frame, Lane, LaneMap, Scene
 
@@ -259,7 +259,7 @@ def test_no_warning_without_skipped_frames():
 def write_mcap(path, scene: Scene, *, ego_less: tuple[int, ...] = ()) -> None:
     """Write ``scene``; frames in ``ego_less`` name agent 7 as ego although it is invalid
     there, which readers report as frames without their ego."""
-    from converters.mcap_io import SceneWriter
+    from converters.scene.writer import SceneWriter
 
     with SceneWriter(path, scene.map, frame_period_s=scene.frame_period_s,
                      metadata=scene.metadata) as writer:  # fmt: skip

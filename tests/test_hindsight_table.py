@@ -1,4 +1,4 @@
-"""The hindsight columns of the ``replay run --table`` table (replay.tables, reader)."""
+"""The hindsight columns of the ``replay run --table`` table (replay.core.tables, reader)."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import polars as pl
 import pytest
 from click.testing import CliRunner
 
-from converters.mcap_io import write_scene
+from converters.scene.reader import open_scene, read_scene
+from converters.scene.writer import write_scene
 from converters.synthetic import SyntheticSettings, generate_scene
-from replay.cli import main
-from replay.engine import run_scene
-from replay.reader import open_scene, read_scene
-from replay.tables import TableSink
+from replay.cli.app import main
+from replay.core.engine import run_scene
+from replay.core.tables import TableSink
 from risk.cascade import CascadeConfig
 from risk.hindsight import HindsightSettings, hindsight_truth, tracks_from_frames
 
@@ -93,7 +93,7 @@ def test_in_memory_scene_and_a_shorter_horizon(scene_file):
 
 
 def test_every_ego_gets_its_own_truth(scene_file):
-    from replay.worker import replay_scene
+    from replay.core.worker import replay_scene
 
     tables = replay_scene(
         scene_file, name="s", cascade=CascadeConfig.default(),

@@ -2,9 +2,16 @@
 oracles: the vectorised numpy modules (risk.registry.evaluate_numpy) and the plain-loop
 reference (risk.reference).
 
-Tolerances: 1e-9 relative for the distance-like models, 1e-6 in log10 for the Gaussian
-and survival models (values below 1e-300 are subnormal and compared absolutely). On the
-benchmark's lane frames the kernel also agrees with numpy bit for bit.
+Against numpy: within the ulps of the exactness contract (tests/exactness.py). The two
+do the same operations in the same order, but numpy's ``exp`` is its own SIMD code on
+CPUs with AVX-512 and the C library's elsewhere, so the last bits agree on one CPU and
+not on another. Against the reference, which orders its operations differently: 1e-9
+relative for the distance-like models, 1e-6 in log10 for the Gaussian and survival
+models (values below 1e-300 are subnormal and compared absolutely); measured on 300
+mixed frames: at most 24 ulps for the distance and time models, 10150 ulps (2.2e-12) for
+the Gaussian, where ``exp`` multiplies the exponent's rounding by its size.
+
+Bit for bit: a model asked alone or with the other (the same compiled code).
 """
 
 from __future__ import annotations
@@ -17,6 +24,7 @@ import sys
 
 import numpy as np
 import pytest
+from exactness import assert_exact, assert_within_ulps, kernel_ulps
 from frames import mixed_frame as random_frame
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
@@ -40,9 +48,20 @@ from risk.temporal import ClosestEncounterParams, Headway2DParams, HeadwayParams
 
 STOCHASTIC = ("gaussian", "survival")
 SHORT = PredictionSettings(horizon_s=3.0, dt_s=0.25)
+DEFAULT = PredictionSettings()
 
 
-def assert_close(fast: dict, slow: dict, label: str = "") -> None:
+def assert_numpy_contract(fast: dict, slow: dict, params=None, prediction=None) -> None:
+    """The kernel's results ``fast`` within the contract's ulps of numpy's ``slow``."""
+    horizon = (prediction or DEFAULT).horizon_s
+    survival = (params or {}).get("survival", SurvivalParams())
+    for name in fast:
+        bound = kernel_ulps(name, horizon, survival.escape_time_s)
+        assert_within_ulps(fast[name], slow[name], bound, f"kernel vs numpy: {name}")
+
+
+def assert_close_to_reference(fast: dict, slow: dict, label: str = "") -> None:
+    """The reference's tolerances (module doc): a different order of operations."""
     for name in fast:
         a, b = fast[name], slow[name]
         np.testing.assert_array_equal(np.isnan(a), np.isnan(b), err_msg=f"{label}{name}")
@@ -59,15 +78,17 @@ def assert_close(fast: dict, slow: dict, label: str = "") -> None:
 
 def assert_oracles(frame: Frame, params=None, prediction=None, reference: bool = True) -> dict:
     fast = evaluate(frame, None, params, prediction=prediction)
-    assert_close(fast, evaluate_numpy(frame, None, params, prediction=prediction), "numpy: ")
+    slow = evaluate_numpy(frame, None, params, prediction=prediction)
+    assert_numpy_contract(fast, slow, params, prediction)
     if reference:
         slow = reference_evaluate(frame, None, params, prediction=prediction)
         slow = settle_rounding_touches(fast, slow, frame, params, prediction)
-        assert_close(fast, slow, "reference: ")
+        assert_close_to_reference(fast, slow, "reference: ")
     return fast
 
 
 # ---------------------------------------------------------------------- random frames
+@pytest.mark.exactness
 @settings(max_examples=150, deadline=None)
 @given(st.integers(0, 2**32 - 1))
 @example(235345)  # a touch within rounding: the kernel follows the distance (oracle_ties)
@@ -96,6 +117,7 @@ GROWING = UncertaintyTable(
 )  # fmt: skip
 
 
+@pytest.mark.exactness
 @settings(max_examples=40, deadline=None)
 @given(st.integers(0, 2**32 - 1))
 @example(41)  # a touch within rounding that the kernel and the reference both call a miss
@@ -106,6 +128,7 @@ def test_every_baseline_choice_is_honoured(seed):
     assert_oracles(random_frame(np.random.default_rng(seed)), OTHER, pred)
 
 
+@pytest.mark.exactness
 def test_time_growth_reaches_standing_agents():
     """g_t > 0 widens the Gaussian of an agent that stands now (k v s is 0 for it)."""
     f = Frame.from_arrays(
@@ -133,8 +156,11 @@ def test_encounter_rules():
     assert kept["closest_encounter"][1] == pytest.approx(1.0 / (1.0 + 94.0))  # 100 - 2 * 3
 
 
-def test_lane_frames_match_numpy_bit_for_bit():
-    """The benchmark's intersection frames: every model identical to the numpy code."""
+@pytest.mark.exactness
+def test_lane_frames_match_numpy_within_the_contract():
+    """The benchmark's intersection frames (T = 12 s, dt = 0.1 s): every model within the
+    contract's ulps of the numpy code (up to 2 ulps apart on AVX-512, 0 here with numpy's
+    baseline code: benchmarks/ulp_table.py)."""
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
     from bench_models import random_frame as lane_frame
 
@@ -142,14 +168,16 @@ def test_lane_frames_match_numpy_bit_for_bit():
     for n in (2, 40, 120):
         f = lane_frame(n, rng)
         fast, slow = evaluate(f), evaluate_numpy(f)
-        for name in MODELS:
-            np.testing.assert_array_equal(fast[name], slow[name], err_msg=name)
+        assert list(fast) == list(MODELS)
+        assert_numpy_contract(fast, slow)
 
 
+@pytest.mark.exactness
 @pytest.mark.parametrize("gap_m", [10.0, 15.0, 20.0, 25.0])
-def test_tiny_overlaps_stay_exact(gap_m):
+def test_tiny_overlaps_stay_nonzero_and_follow_numpy(gap_m):
     """Far apart, every step's P_o is tiny (the kernel computes exp at few of them): the
-    Gaussian risk is still the exact maximum (not 0) and survival the numpy value."""
+    Gaussian risk is still the maximum (not 0) and survival the numpy value, within the
+    contract's ulps (numpy's exp may differ from the C library's in the last bit)."""
     f = Frame.from_arrays(
         np.array([[0.0, 0.0], [0.0, gap_m]]), np.zeros(2), np.array([8.0, 8.0]),
         np.full(2, 4.5), np.full(2, 1.9),
@@ -160,20 +188,23 @@ def test_tiny_overlaps_stay_exact(gap_m):
     slow = evaluate_numpy(f, STOCHASTIC)
     for name in STOCHASTIC:
         assert 0.0 < slow[name][1] < 1e-20, name
-        assert fast[name][1] == slow[name][1], name
+        assert 0.0 < fast[name][1] < 1e-20, name
+    assert_numpy_contract(fast, slow)
 
 
+@pytest.mark.exactness
 @settings(max_examples=60, deadline=None)
 @given(st.integers(0, 2**32 - 1))
 def test_each_stochastic_model_alone_equals_it_with_the_other(seed):
     """Asked alone, the Gaussian (and survival) skip exp at other steps than asked
-    together: the values stay the same, bit for bit, and follow numpy."""
+    together: the values stay the same, bit for bit (the same compiled code), and follow
+    numpy within the contract."""
     f = random_frame(np.random.default_rng(seed))
     both = evaluate(f, STOCHASTIC)
     for name in STOCHASTIC:
         alone = evaluate(f, [name])[name]
-        np.testing.assert_array_equal(alone, both[name], err_msg=name)
-    assert_close(both, evaluate_numpy(f, STOCHASTIC))
+        assert_exact(alone, both[name], name)
+    assert_numpy_contract(both, evaluate_numpy(f, STOCHASTIC))
 
 
 # ---------------------------------------------------------------------- degenerate frames
@@ -198,6 +229,7 @@ def test_ego_alone_and_all_invalid():
         assert np.isnan(r).all(), name
 
 
+@pytest.mark.exactness
 def test_zero_length_paths_and_coincident_agents():
     """One-point paths, repeated points, standing and moving agents, and agents placed
     exactly on the ego (same point, same path)."""
@@ -217,6 +249,7 @@ def test_zero_length_paths_and_coincident_agents():
     assert r["current_distance"][2] == 1.0 and r["path_distance"][2] == 1.0
 
 
+@pytest.mark.exactness
 def test_two_thousand_agents():
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
     from bench_models import random_frame as lane_frame

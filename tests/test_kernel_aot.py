@@ -1,6 +1,7 @@
 """The ahead-of-time kernel (risk/kernel_aot.py): built from the same code, it loads
-without numba and agrees with the just-in-time kernel bit for bit; a broken, failed or
-running build leaves the just-in-time kernel in charge."""
+without numba and agrees with the just-in-time kernel built on the same machine bit for
+bit (the exact side of the contract in tests/exactness.py); a broken, failed or running
+build leaves the just-in-time kernel in charge."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 from conftest import ROOT
 
-from risk import kernel, kernel_aot
+from risk import kernel, kernel_aot, kernel_aot_build
 
 #: A new process: evaluate every model and run the default cascade on random frames
 #: (N = 2 to 120, the mixed oracle frames too); save every array to ``argv[1]`` (.npz)
@@ -64,7 +65,7 @@ def built_cache(tmp_path_factory) -> pathlib.Path:
         kernel.CACHE_DIR, cache, dirs_exist_ok=True, ignore=shutil.ignore_patterns("aot")
     )
     build = subprocess.run(
-        [sys.executable, "-m", "risk.kernel_aot"],
+        [sys.executable, "-m", "risk.kernel_aot_build"],
         env={**os.environ, "NUMBA_CACHE_DIR": str(cache)},
         capture_output=True, text=True, timeout=900, cwd=ROOT,
     )  # fmt: skip
@@ -73,12 +74,14 @@ def built_cache(tmp_path_factory) -> pathlib.Path:
     return cache
 
 
+@pytest.mark.exactness
 @pytest.mark.slow  # (the build: about 10 s)
 def test_built_module_loads_without_numba_and_agrees_bit_for_bit(built_cache, tmp_path):
     path = kernel_aot.module_path(built_cache)
     assert path.is_file() and path.stat().st_size > 0
     code = RESULTS.format(tests=str(ROOT / "tests"), benchmarks=str(ROOT / "benchmarks"))
-    aot = _run(code, built_cache, str(tmp_path / "aot.npz"))
+    # (auto: also when the tests run with RISKREPLAY_KERNEL=jit, as .ci/run's second pass)
+    aot = _run(code, built_cache, str(tmp_path / "aot.npz"), RISKREPLAY_KERNEL="auto")
     jit = _run(code, built_cache, str(tmp_path / "jit.npz"), RISKREPLAY_KERNEL="jit")
     assert aot.returncode == 0, aot.stderr
     assert jit.returncode == 0, jit.stderr
@@ -94,7 +97,7 @@ def test_built_module_loads_without_numba_and_agrees_bit_for_bit(built_cache, tm
 @pytest.mark.slow
 def test_building_again_is_a_no_op(built_cache):
     before = kernel_aot.module_path(built_cache).stat().st_mtime_ns
-    assert kernel_aot.build(built_cache) == kernel_aot.module_path(built_cache)
+    assert kernel_aot_build.build(built_cache) == kernel_aot.module_path(built_cache)
     assert kernel_aot.module_path(built_cache).stat().st_mtime_ns == before
     assert not kernel_aot.start_background_build(built_cache)
 
@@ -136,7 +139,7 @@ def test_background_build_starts_once_and_not_after_a_failure(tmp_path, monkeypa
     monkeypatch.setattr(kernel_aot.subprocess, "Popen", FakePopen)
     key = kernel_aot.build_key()
     assert kernel_aot.start_background_build(tmp_path)
-    assert started == [[sys.executable, "-m", "risk.kernel_aot", "--background"]]
+    assert started == [[sys.executable, "-m", "risk.kernel_aot_build", "--background"]]
     lock = tmp_path / "aot" / f"{key}.lock"
     lock.write_text("123")  # a build running
     assert not kernel_aot.start_background_build(tmp_path)
@@ -155,7 +158,7 @@ def test_a_failed_build_is_remembered_and_reported(tmp_path, monkeypatch):
     )
     # no C compiler: pycc's toolchain finds none
     run = subprocess.run(
-        [sys.executable, "-m", "risk.kernel_aot"],
+        [sys.executable, "-m", "risk.kernel_aot_build"],
         env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "CC": "/nonexistent/cc"},
         capture_output=True, text=True, timeout=900, cwd=ROOT,
     )  # fmt: skip

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from converters.errors import ConversionError
-from converters.hindsight import Hindsight
+from converters.hindsight_paths import Hindsight
 from converters.lanegraph import LaneGraph, PathSettings, arc_length, simplify, straight_rows
 from converters.tracks import Skipped, TrackTable, build_scene, integer_ids
 from risk.frame import Kind, Lane, LaneMap

@@ -29,8 +29,8 @@ def test_importing_does_not_load_the_kernel_and_the_first_call_does(mode):
     loads the kernel: numba with RISKREPLAY_KERNEL=jit, either form by default."""
     loaded = "[m for m in ('numba', 'riskreplay_kernel_aot') if m in sys.modules]"
     code = (
-        "import sys; import risk, risk.cascade, replay.engine, replay.pool, "
-        "recordings.writer, replay.table_file, replay.commands.run; "
+        "import sys; import risk, risk.cascade, replay.core.engine, replay.core.pool, "
+        "recordings.writer, replay.core.table_file, replay.cli.commands.run; "
         f"print({loaded} == []); "
         "import numpy as np; from risk import Frame, evaluate, kernel; "
         + TWO_AGENTS

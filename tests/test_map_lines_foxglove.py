@@ -19,11 +19,11 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
 from converters import av2, commonroad, map_lines, waymo
-from converters import foxglove_scene as fg
-from converters import scene_format as sf
-from converters.mcap_io import write_scene
-from replay.cli import main
-from replay.reader import read_scene
+from converters.scene import foxglove as fg
+from converters.scene import schema as sf
+from converters.scene.reader import read_scene
+from converters.scene.writer import write_scene
+from replay.cli.app import main
 from risk.frame import Frame, Lane, LaneMap, MapLine, Scene
 
 HERE = pathlib.Path(__file__).parent

@@ -137,3 +137,75 @@ def test_exact_sweep_matches_a_direct_count(rows):
             assert r.fpr[0, k] == pytest.approx((keep & ~b).sum() / (~b).sum())
     # the lowest threshold keeps everything
     assert r.kept[0, 0] == s.size
+
+
+def test_one_auc_for_single_curves_and_rows():
+    """Hand-computed: the curve (0, 0) -> (0, 0.5) -> (0.5, 1) -> (1, 1) has area 0.875."""
+    from risk.metrics import trapezoid_auc, trapezoid_auc_rows
+
+    fpr, tpr = np.array([0.0, 0.5]), np.array([0.5, 1.0])
+    assert trapezoid_auc(fpr, tpr) == 0.875
+    rows = trapezoid_auc_rows(
+        np.array([[0.0, 0.5], [1.0, 1.0]]), np.array([[0.5, 1.0], [1.0, 1.0]])
+    )
+    assert rows.tolist() == [0.875, 0.5]  # the second: the chance diagonal
+    assert np.isnan(trapezoid_auc(np.array([np.nan]), np.array([0.5])))
+    assert np.isnan(trapezoid_auc(np.zeros(0), np.zeros(0)))
+
+
+def test_the_sweep_and_the_pooled_evaluation_share_one_sort():
+    """One situation: the mean sweep is the pooled curve (same thresholds, rates, AUC)."""
+    from risk.evaluation import pooled_roc
+
+    rng = np.random.default_rng(3)
+    scores = np.round(rng.random(200), 2)  # ties
+    positive = rng.random(200) < 0.3
+    sweep = exact_sweep(scores, np.zeros(200, dtype=np.int64), positive)
+    pooled = pooled_roc(scores, positive)
+    assert np.array_equal(sweep.thresholds, pooled.thresholds)
+    assert np.allclose(sweep.mean_tpr, pooled.tpr) and np.allclose(sweep.mean_fpr, pooled.fpr)
+    assert sweep.auc == pytest.approx(pooled.auc, abs=1e-12)
+
+
+@pytest.mark.exactness
+@pytest.mark.parametrize("exp_ulps", [0, 1])
+def test_roc_points_of_kernel_and_numpy_risks_agree_except_ties(exp_ulps):
+    """Across code paths: the sweep of the kernel's risks and of the numpy modules'
+    (with numpy's own exp, or one moved by up to a float: another CPU's, simulated) over
+    20 frames. Thresholds within the contract's ulps and every ROC point (TPR, FPR, agents
+    kept, AUC) exactly the same, after leaving out by name the agent-frames whose place
+    may differ: a score within the tolerance of another (tests/exactness.py,
+    score_ties) or a survival risk within it of the baseline threshold."""
+    from exactness import FLOOR, kernel_ulps, near, numpy_exp_off_by, score_ties, ulp_distance
+    from frames import scattered_frame
+
+    from risk import BASELINE_THRESHOLD, evaluate
+    from risk.registry import evaluate_numpy
+
+    frames = [scattered_frame(seed) for seed in range(20)]
+    rng = np.random.default_rng(exp_ulps)
+    fast = [evaluate(f) for f in frames]
+    with numpy_exp_off_by(exp_ulps, rng):
+        slow = [evaluate_numpy(f) for f in frames]
+    situation = np.concatenate([np.full(f.n_agents, i) for i, f in enumerate(frames)])
+    surv_k, surv_n = (np.concatenate([r["survival"] for r in side]) for side in (fast, slow))
+    tol_s = kernel_ulps("survival")
+    for model in ("path_distance", "trajectory_distance", "circles", "gaussian"):
+        k, n = (np.concatenate([r[model] for r in side]) for side in (fast, slow))
+        ties = score_ties(k, n, kernel_ulps(model)) | near(surv_k, BASELINE_THRESHOLD, tol_s)
+        agents = int((~np.isnan(k)).sum())
+        # Scores below the contract's floor (1e-300: Gaussians of far agents, subnormal or
+        # 0) are all within its tolerance of each other: one block of ties, left out.
+        above = ties & (k >= FLOOR)
+        assert above.sum() <= agents // 20, f"{model}: {above.sum()} of {agents} agent-frames tie"
+        a = exact_sweep(np.where(ties, NAN, k), situation, surv_k >= BASELINE_THRESHOLD)
+        b = exact_sweep(np.where(ties, NAN, n), situation, surv_n >= BASELINE_THRESHOLD)
+        assert a.thresholds.size == b.thresholds.size > agents // 3, model
+        assert ulp_distance(a.thresholds, b.thresholds).max() <= kernel_ulps(model), model
+        for name in ("mean_tpr", "mean_fpr", "std_tpr", "mean_kept"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=model)
+        assert (a.auc, a.n_no_positive, a.n_no_negative) == (
+            b.auc,
+            b.n_no_positive,
+            b.n_no_negative,
+        )

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from exactness import assert_exact, assert_within_ulps, kernel_ulps
 
 from risk import (
     BASELINE_MODEL,
@@ -98,6 +99,28 @@ def test_registry_order_and_metadata():
     assert BASELINE_MODEL == "survival" and BASELINE_THRESHOLD == 1e-25
 
 
+def test_the_registry_drives_colours_titles_and_ranges():
+    """Plot colours, report titles and table ranges come from ModelSpec, not from lists
+    of names in replay/ (so a new model needs no edit there)."""
+    import matplotlib.colors
+
+    from replay.analysis.evaluation_report import TITLES
+    from replay.analysis.stats.plots import MODEL_COLORS
+    from replay.core.tablecheck import RANGES
+
+    colors = [spec.color for spec in MODELS.values()]
+    assert len(set(colors)) == len(colors)  # one colour per model in the ROC plot
+    assert all(matplotlib.colors.is_color_like(c) for c in colors)
+    assert all(spec.label.strip() for spec in MODELS.values())
+    for name, spec in MODELS.items():
+        lo, hi = spec.risk_range
+        assert 0.0 <= lo < hi
+        assert MODEL_COLORS[name] == spec.color and TITLES[name] == spec.label
+        assert RANGES[name] == spec.risk_range
+    assert MODELS["gaussian"].risk_range == (0.0, math.inf)
+    assert {spec.risk_range for n, spec in MODELS.items() if n != "gaussian"} == {(0.0, 1.0)}
+
+
 @pytest.mark.parametrize("name", ORDER)
 def test_shape_dtype_and_nan_only_for_ego_and_invalid(name):
     r = evaluate(FRAME, [name], prediction=PRED)[name]
@@ -107,16 +130,26 @@ def test_shape_dtype_and_nan_only_for_ego_and_invalid(name):
     assert np.all(np.isfinite(r[FRAME.others]))
 
 
+@pytest.mark.exactness
 @pytest.mark.parametrize("name", ORDER)
 def test_deterministic_and_the_same_alone_or_together(name):
+    """Twice, alone or with the others: the same compiled code, so bit for bit."""
     alone = evaluate(FRAME, [name], prediction=PRED)[name]
     again = evaluate(FRAME, [name], prediction=PRED)[name]
     together = evaluate(FRAME, prediction=PRED)[name]
-    np.testing.assert_array_equal(alone, again)
-    np.testing.assert_array_equal(alone, together)
-    # The spec callable gives the same as evaluate.
+    assert_exact(alone, again, "twice")
+    assert_exact(alone, together, "alone vs together")
+
+
+@pytest.mark.exactness
+@pytest.mark.parametrize("name", ORDER)
+def test_the_spec_callable_gives_what_evaluate_gives(name):
+    """The spec callable (the numpy code) against evaluate (the compiled kernel): within
+    the exactness contract's ulps (tests/exactness.py), not bit for bit, since numpy's
+    exp is its own SIMD code on some CPUs."""
+    kernel = evaluate(FRAME, [name], prediction=PRED)[name]
     direct = MODELS[name].fn(FrameContext(FRAME, PRED), MODELS[name].default_params())
-    np.testing.assert_array_equal(alone, direct)
+    assert_within_ulps(kernel, direct, kernel_ulps(name, PRED.horizon_s), name)
 
 
 @pytest.mark.parametrize("name", ORDER)

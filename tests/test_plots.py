@@ -1,4 +1,4 @@
-"""Plots (replay.stats.plots): the files exist and the figures say what they show."""
+"""Plots (replay.analysis.stats.plots): the files exist and the figures say what they show."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-import replay.stats.plots as plots
-from replay.stats import compute_stats, frames_from_agents
+import replay.analysis.stats.plots as plots
+from replay.analysis.stats import compute_stats, frames_from_agents
 
 MODELS = ("current_distance", "path_distance", "survival")
 

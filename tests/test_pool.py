@@ -1,4 +1,4 @@
-"""replay.pool.parallel_map: the ordered map of replay stats and replay experiment on the
+"""replay.core.pool.parallel_map: the ordered map of replay stats and replay experiment on the
 project's one process pool (LocalEngine): order, errors, a dead worker, a reused pool."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import os
 
 import pytest
 
-from replay.pool import LocalEngine, WorkerDied, chunks, parallel_map
+from replay.core.pool import LocalEngine, WorkerDied, chunks, parallel_map
 
 
 def _square(x: int) -> int:

@@ -10,9 +10,9 @@ import pytest
 from click.testing import CliRunner
 from rerun import chunk as rr_chunk
 
+from converters.scene.reader import read_scene
 from recordings import layout as L
-from replay.cli import main
-from replay.reader import read_scene
+from replay.cli.app import main
 from risk import MODELS
 
 pytestmark = pytest.mark.realdata

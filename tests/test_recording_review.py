@@ -13,12 +13,12 @@ import pytest
 from click.testing import CliRunner
 from test_recordings import TIMES, make_results, read_rrd, rgba
 
-from base.sinks import FrameResult
+from outputs.sinks import FrameResult
 from recordings import SceneRecorder
 from recordings import layout as L
 from recordings import writer as W
-from replay.cli import main
-from replay.tables import TableSink
+from replay.cli.app import main
+from replay.core.tables import TableSink
 from risk import MODELS
 from risk.frame import MapLine
 
@@ -144,9 +144,9 @@ def test_truth_label_of_the_wrong_length_is_refused(tmp_path):
         rec.add(with_truth(results, {0: [True, False]})[0])
 
 
-def toy_scene(xy: np.ndarray, frame_of: np.ndarray) -> W._Scene:
+def toy_scene(xy: np.ndarray, frame_of: np.ndarray) -> W.SceneRows:
     n_frames = int(frame_of.max()) + 1
-    scene = W._Scene(
+    scene = W.SceneRows(
         times_s=np.arange(n_frames, dtype=float), frame_index=np.arange(n_frames),
         frame_of=frame_of, false_negatives=np.zeros((n_frames, 1), int),
         stage_time_ms=np.zeros((n_frames, 1)), sort_time_ms=np.zeros(n_frames),

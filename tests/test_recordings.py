@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from recordings import SceneRecorder
 from recordings import layout as L
 from recordings.errors import RecordingError
-from replay.engine import FrameResult, SceneInfo, Sink
+from replay.core.engine import FrameResult, SceneInfo, Sink
 from risk.cascade import CascadeConfig, CascadeResult, Stage, Tier
 from risk.frame import Frame, Lane, LaneMap
 
@@ -632,7 +632,7 @@ class _Keep:
 def test_synthetic_replay_round_trip(tmp_path):
     """The engine on a small synthetic intersection: every timeline value comes back."""
     from converters.synthetic import SyntheticSettings, generate_scene
-    from replay.engine import run_scene
+    from replay.core.engine import run_scene
 
     scene = generate_scene(SyntheticSettings(n_agents=12, duration_s=1.5), seed=3)
     keep, out = _Keep(), tmp_path / "synthetic.rrd"

@@ -31,12 +31,12 @@ from reliability_cases import (
     session_members,
 )
 
-from base import atomic
-from base.guard import OutputError, OutputGuard, run_with_stall_timeout, same_file
-from converters import scene_format as sf
-from converters.mcap_io import SceneWriter, encode_frame
-from replay.cli import main
-from replay.reader import read_scene
+from converters.scene import schema as sf
+from converters.scene.reader import read_scene
+from converters.scene.writer import SceneWriter, encode_frame
+from outputs import atomic
+from outputs.transaction import OutputError, OutputGuard, run_with_stall_timeout, same_file
+from replay.cli.app import main
 
 
 @pytest.mark.parametrize("case", cases(), ids=lambda c: c.name)
@@ -129,7 +129,7 @@ def test_guard_refuses_a_second_writer_and_names_the_holder(tmp_path):
 
 
 def test_stalled_save_times_out_with_a_clear_error(tmp_path, monkeypatch):
-    from base import guard
+    from outputs import transaction as guard
 
     watch = tmp_path / ".o.rrd.0123456789ab.tmp"
     watch.write_bytes(b"")
@@ -145,7 +145,7 @@ def test_stalled_save_times_out_with_a_clear_error(tmp_path, monkeypatch):
 def test_a_stall_with_room_on_the_disk_is_not_called_a_full_disk(tmp_path, monkeypatch):
     """Issue 31: 20,000 agents kept rerun encoding for minutes before it wrote a byte,
     and the save was reported as "disk full or stalled" with 74 GiB free."""
-    from base import guard
+    from outputs import transaction as guard
 
     watch = tmp_path / ".o.rrd.0123456789ab.tmp"
     watch.write_bytes(b"")
@@ -346,7 +346,7 @@ def _assert_clean_failure(code, err, disk: pathlib.Path, seconds: float) -> None
 
 @pytest.mark.slow
 def test_run_on_a_full_disk_fails_fast_and_leaves_nothing(tiny_disk, tmp_path):
-    from converters.mcap_io import write_scene
+    from converters.scene.writer import write_scene
     from converters.synthetic import SyntheticSettings, generate_scene
 
     big = tmp_path / "big.mcap"
@@ -418,7 +418,7 @@ def _children_of(pid: int) -> list[int]:
 @pytest.mark.slow
 @pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGTERM])
 def test_batch_leaves_no_orphans_when_its_driver_dies(how, tmp_path):
-    from converters.mcap_io import write_scene
+    from converters.scene.writer import write_scene
     from converters.synthetic import SyntheticSettings, generate_scene
 
     scenes = tmp_path / "scenes"

@@ -14,12 +14,12 @@ from mcap.reader import make_reader
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.decoder import DecoderFactory
 
-from converters import mcap_io
-from converters import scene_format as sf
 from converters.errors import ConversionError
-from converters.mcap_io import SceneWriter, write_scene
-from replay.errors import SceneFormatError
-from replay.reader import open_scene, read_scene
+from converters.scene import schema as sf
+from converters.scene import writer as mcap_io
+from converters.scene.errors import SceneFormatError
+from converters.scene.reader import open_scene, read_scene
+from converters.scene.writer import SceneWriter, write_scene
 from risk import Frame, Kind, Lane, LaneMap, Scene
 
 # ---------------------------------------------------------------------- fixtures
@@ -547,7 +547,7 @@ def test_parser_matches_protoc():
     """The import-time parser gives exactly protoc's descriptor of scene.proto.
 
     The fixture came from ``python -m grpc_tools.protoc -Iconverters
-    --descriptor_set_out=tests/fixtures/scene_proto_protoc.pb converters/scene.proto``
+    --descriptor_set_out=tests/fixtures/scene_proto_protoc.pb converters/scene/scene.proto``
     (grpcio-tools 1.85.1); regenerate it after changing scene.proto.
     """
     from google.protobuf import descriptor_pb2

@@ -1,4 +1,4 @@
-"""The sensitivity sweep (``replay.sensitivity``) on a small synthetic corpus, the
+"""The sensitivity sweep (``replay.analysis.sensitivity``) on a small synthetic corpus, the
 ``--set`` option of every command, and ``replay evaluate --sensitivity --report``."""
 
 from __future__ import annotations
@@ -11,10 +11,9 @@ import polars as pl
 import pytest
 from click.testing import CliRunner
 
-from converters.mcap_io import write_scene
-from replay.cli import main
-from replay.evaluation import EvaluationSettings, collect_agents, evaluate_inputs
-from replay.sensitivity import (
+from converters.scene.writer import write_scene
+from replay.analysis.corpus_evaluation import EvaluationSettings, collect_agents, evaluate_inputs
+from replay.analysis.sensitivity import (
     Variant,
     affected_models,
     default_variants,
@@ -22,6 +21,7 @@ from replay.sensitivity import (
     sweep_subset,
     sweep_table,
 )
+from replay.cli.app import main
 from risk.cascade import CascadeConfig
 from risk.frame import Frame, LaneMap, Scene
 from risk.registry import MODELS

@@ -9,9 +9,9 @@ import numpy as np
 import polars as pl
 import pytest
 
-from converters.mcap_io import write_scene
-from replay.engine import run_scene
-from replay.tables import TableSink
+from converters.scene.writer import write_scene
+from replay.core.engine import run_scene
+from replay.core.tables import TableSink
 from risk.cascade import CascadeConfig, CascadeConfigError
 from risk.prediction import PredictionSettings
 from risk.registry import BASELINE_THRESHOLD, MODELS

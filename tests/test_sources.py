@@ -14,11 +14,11 @@ from click.testing import CliRunner
 from converters import av2_sensor, sources
 from converters.errors import ConversionError
 from converters.interaction import read_scene as read_interaction
+from converters.scene.reader import read_scene as read_mcap
 from converters.sources import SOURCES, ReadOptions, SourceInput
 from converters.tracks import Skipped, TrackTable, moving_ego
 from replay.batch.driver import discover as batch_discover
-from replay.cli import main
-from replay.reader import read_scene as read_mcap
+from replay.cli.app import main
 from risk import MODELS, evaluate
 from risk.frame import Kind
 

@@ -1,4 +1,4 @@
-"""Dataset statistics (replay.stats): hand-computed ROC, FN/FP and cascade answers, the
+"""Dataset statistics (replay.analysis.stats): hand-computed ROC, FN/FP and cascade answers, the
 exact sweep against its oracle (tests/roc_oracle.py), degenerate situations, tables from the engine."""
 
 from __future__ import annotations
@@ -13,8 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from roc_oracle import roc_curve
 
-from replay.engine import run_scene
-from replay.stats import (
+from replay.analysis.stats import (
     Situations,
     StatsError,
     StatsSink,
@@ -30,7 +29,8 @@ from replay.stats import (
     tier_names_of,
     write_stats,
 )
-from replay.tables import TableSink
+from replay.core.engine import run_scene
+from replay.core.tables import TableSink
 from risk.cascade import CascadeConfig, Stage, Tier
 from risk.metrics import exact_sweep
 

@@ -6,7 +6,7 @@ One **task** is one unit of work a worker runs from start to finish:
   interaction``) into MCAP scenes under ``OUT/scenes/`` (a Waymo TFRecord may hold many
   scenarios: one scene each);
 - a *replay task* replays one MCAP scene through every model and the cascade
-  (:func:`replay.engine.run_scene`) into its per-scene table (and, with ``rrd``, its
+  (:func:`replay.core.engine.run_scene`) into its per-scene table (and, with ``rrd``, its
   Rerun recording).
 
 The driver (:func:`run_batch`) plans the tasks, hands them to an :class:`Engine`, starts
@@ -34,8 +34,8 @@ Layout of ``OUT`` (``NAME`` is a scene's name, see :func:`discover`)::
 
     scenes/NAME.mcap          converted scenes (only with --convert); NAME keeps the
                               input's sub-folders, e.g. sind/NAME
-    tables/NAME.parquet       per-scene agents tables (replay.tables' columns + scene)
-    frames/NAME.parquet       per-scene frames tables (replay.stats: cascade per frame)
+    tables/NAME.parquet       per-scene agents tables (replay.core.tables' columns + scene)
+    frames/NAME.parquet       per-scene frames tables (replay.analysis.stats: cascade per frame)
     recordings/NAME.rrd       Rerun recordings (only with --rrd)
     .done/NAME.json           replay done-markers
     .done/convert/NAME.json   conversion done-markers (only with --convert)
@@ -87,7 +87,7 @@ from replay.batch.records import (
     SceneDone,
 )
 from replay.batch.tasks import CONVERT_KINDS, convert_one, replay_one
-from replay.pool import LocalEngine, WorkerDied, default_workers
+from replay.core.pool import LocalEngine, WorkerDied, default_workers
 
 __all__ = [
     "CONVERT_KINDS",

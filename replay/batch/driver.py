@@ -21,9 +21,10 @@ from typing import Any
 import polars as pl
 from tqdm import tqdm
 
-from base.atomic import safe_name, write_text
 from converters import sources
+from outputs.atomic import safe_name, write_text
 from replay import __version__
+from replay.analysis.stats import DEFAULT_ERRORS_MODEL, concat_agents
 from replay.batch.engines import Engine, make_engine
 from replay.batch.markers import (
     MARKER_FORMAT,
@@ -33,9 +34,8 @@ from replay.batch.markers import (
 )
 from replay.batch.records import ConvertTask, Failure, ReplayTask, SceneDone
 from replay.batch.tasks import convert_one, one_line, replay_one
-from replay.engine import EVERY_FRAME, Stride
+from replay.core.engine import EVERY_FRAME, Stride
 from replay.errors import ReplayError
-from replay.stats import DEFAULT_ERRORS_MODEL, concat_agents
 from risk.cascade import CascadeConfig
 from risk.registry import MODELS
 
@@ -83,7 +83,7 @@ class BatchSettings:
                 "version": _package_version(),
                 "convert": self.convert,
                 "paths": self.paths,
-                "map": None if self.map_osm is None else [str(self.map_osm), *map_fp],
+                "map": None if map_fp is None else [str(self.map_osm), *map_fp],
             }
         )
 
@@ -448,7 +448,11 @@ def _execute(
     if not (run.replay_todo or run.convert_todo):
         return (engine if isinstance(engine, str) else engine.name), 0
     own = isinstance(engine, str)
-    eng = make_engine(engine, workers=workers, address=ray_address) if own else engine
+    eng = (
+        make_engine(engine, workers=workers, address=ray_address)
+        if isinstance(engine, str)
+        else engine
+    )
     bar = tqdm(
         total=len(run.replay_todo), unit="scene", desc=f"batch ({eng.name}, {eng.workers} workers)",
         file=sys.stderr, disable=None if progress else True, dynamic_ncols=True, smoothing=0.05,
@@ -571,10 +575,10 @@ def dataset_stats(
     Scenes are merged in the order given (the driver sorts them by name), so the result
     does not depend on the order in which workers finished.
     """
-    # Imported here, not at the top: replay.stats.run loads matplotlib (about 1 s with
+    # Imported here, not at the top: replay.analysis.stats.run loads matplotlib (about 1 s with
     # ``python -X importtime``), and every spawned worker imports this package to run
     # replay_one; only the driver ever gets here.
-    from replay.stats.run import run_stats  # the tail shared with ``replay stats``
+    from replay.analysis.stats.run import run_stats  # the tail shared with ``replay stats``
 
     agents = concat_agents([pl.read_parquet(d.table) for d in done])
     frames = pl.concat([pl.read_parquet(d.frames_table) for d in done], how="vertical_relaxed")

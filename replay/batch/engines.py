@@ -1,5 +1,5 @@
 """Engines: where the tasks run. One small interface (:class:`Engine`), two engines:
-worker processes on this machine (:class:`replay.pool.LocalEngine`, the project's one
+worker processes on this machine (:class:`replay.core.pool.LocalEngine`, the project's one
 process pool) and Ray (:class:`RayEngine`)."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from replay.batch.tasks import one_line
+from replay.core.pool import LocalEngine, default_workers
 from replay.errors import ReplayError
-from replay.pool import LocalEngine, default_workers
 from risk import kernel
 
 ENGINES: tuple[str, ...] = ("local", "ray")

@@ -14,7 +14,7 @@ import os
 import pathlib
 from typing import Any
 
-from base.atomic import atomic_output, write_text
+from outputs.atomic import atomic_output, write_text
 from replay.batch.records import ConvertTask, Failure, ReplayTask, SceneDone
 
 MARKER_FORMAT = 1

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from replay.engine import EVERY_FRAME, Stride
+from replay.core.engine import EVERY_FRAME, Stride
 from risk.cascade import CascadeConfig
 
 STAGES: tuple[str, ...] = ("setup", "convert", "read", "replay", "record", "write", "worker")
@@ -33,8 +33,8 @@ class ReplayTask:
     input: str
     scene: str  # the MCAP file
     name: str
-    table: str  # agents table (replay.tables columns + scene)
-    frames_table: str  # frames table of replay.stats (cascade counts and times per frame)
+    table: str  # agents table (replay.core.tables columns + scene)
+    frames_table: str  # frames table of replay.analysis.stats (cascade counts and times per frame)
     recording: str | None
     marker: str
     digest: str

@@ -14,9 +14,11 @@ import traceback
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING
 
-from base.atomic import safe_name
+from converters.scene.errors import SceneFormatError
+from converters.scene.reader import open_scene
 from converters.sources import SOURCES, ReadOptions, SourceInput, SourceSpec
 from converters.tracks import Skipped
+from outputs.atomic import safe_name
 from replay.batch.markers import write_convert_marker, write_parquet, write_replay_marker
 from replay.batch.records import (
     ConvertOutcome,
@@ -26,11 +28,9 @@ from replay.batch.records import (
     ReplayTask,
     SceneDone,
 )
-from replay.egos import ALL_EGOS
-from replay.errors import SceneFormatError
-from replay.reader import open_scene
-from replay.user_errors import user_errors
-from replay.worker import replay_scene
+from replay.core.egos import ALL_EGOS
+from replay.core.worker import replay_scene
+from risk.errors import RiskReplayError
 
 if TYPE_CHECKING:
     from risk.frame import Scene
@@ -83,7 +83,7 @@ def convert_one(task: ConvertTask) -> ConvertOutcome:
     """
     start = time.perf_counter()
     try:
-        from converters.mcap_io import write_scene
+        from converters.scene.writer import write_scene
     except Exception as exc:
         failure = failure_from(task.input, "", "setup", exc)
         return ConvertOutcome(task, (), (failure,), time.perf_counter() - start)
@@ -185,7 +185,7 @@ def failure_from(input_: str, scene: str, stage: str, exc: BaseException) -> Fai
     reason = one_line(str(exc)) or type(exc).__name__
     if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in reason:
         reason = f"{reason}: {exc.filename}"
-    if not isinstance(exc, user_errors()):
+    if not isinstance(exc, (RiskReplayError, OSError)):
         reason += _where(exc)  # an unexpected error: say where, for a bug report
     return Failure(input_, scene, stage, type(exc).__name__, reason)
 

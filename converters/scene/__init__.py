@@ -1,0 +1,1 @@
+"""The scene file: its format, schema, reader, writer, Foxglove channel and errors."""

@@ -1,0 +1,1 @@
+"""Analysis over many scenes: statistics, evaluation, sensitivity, calibration, the experiment."""

@@ -1,0 +1,141 @@
+"""``replay evaluate``'s workflow as one library function: collect the agents of scenes or
+tables, evaluate every model against both references, optionally sweep the baseline's
+settings (:mod:`replay.analysis.sensitivity`), and write the files and the report.
+
+The maths is :mod:`risk.evaluation`; the corpus-level steps are
+:mod:`replay.analysis.corpus_evaluation`; this module only puts them in order, inside one
+all-or-nothing output transaction (:class:`outputs.transaction.OutputGuard`).
+"""
+
+from __future__ import annotations
+
+import pathlib
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from outputs.transaction import OutputGuard
+from replay.analysis.corpus_evaluation import (
+    EVALUATION_TABLES,
+    EvaluationError,
+    EvaluationSettings,
+    collect_agents,
+    evaluate_table,
+    format_evaluation,
+    write_evaluation,
+)
+from replay.analysis.evaluation_report import write_report
+from replay.analysis.inputs import resolve_inputs
+from replay.analysis.sensitivity import (
+    SweepResult,
+    format_sweep,
+    run_sweep,
+    sweep_subset,
+    write_sweep,
+)
+from replay.core.engine import EVERY_FRAME, Stride
+from risk.cascade import CascadeConfig
+from risk.hindsight import HindsightSettings
+
+
+@dataclass(frozen=True)
+class SensitivityRequest:
+    """The sensitivity sweep's own settings (``--sensitivity-*``)."""
+
+    bootstrap: int = 200  # bootstrap replicates of each variant
+    every: Stride | None = None  # frame stride of the sweep (None: the evaluation's)
+    scenes: int = 1  # every K-th scene of each folder (1: all)
+
+
+@dataclass
+class EvaluationRun:
+    """What :func:`run_evaluation` computed and wrote."""
+
+    summary: dict[str, Any]
+    sweep: SweepResult | None = None
+    files: dict[str, pathlib.Path] = field(default_factory=dict)
+
+
+def _quiet(text: str) -> None:
+    pass
+
+
+def run_evaluation(
+    inputs: Sequence[pathlib.Path],
+    out_dir: pathlib.Path,
+    *,
+    cascade: CascadeConfig,
+    settings: EvaluationSettings,
+    hindsight: HindsightSettings | None = None,
+    workers: int = 1,
+    progress: bool = True,
+    ego: int | str | None = None,
+    every: Stride = EVERY_FRAME,
+    plots: bool = True,
+    sensitivity: SensitivityRequest | None = None,
+    report_path: pathlib.Path | None = None,
+    command: str = "",
+    extra_inputs: Sequence[pathlib.Path | None] = (),
+    show: Callable[[str], None] = _quiet,
+) -> EvaluationRun:
+    """Evaluate the scenes or tables ``inputs`` into ``out_dir`` (and the Markdown report
+    ``report_path``, made by ``command``). ``show`` receives the evaluation's and the
+    sweep's text as soon as each is computed. ``extra_inputs`` (a cascade file) are
+    refused as outputs like ``inputs``."""
+    found = resolve_inputs(list(inputs), output_dir=out_dir, output_stems=EVALUATION_TABLES)
+    report_dir = None if report_path is None else report_path.with_suffix("")
+    # One guard for every input (the files inside folders too) and every output, the
+    # report included: a report given a scene's path replaced that scene (issue 31).
+    guard = OutputGuard(
+        inputs=[*inputs, *found.scenes, *found.tables, *extra_inputs],
+        folders=(out_dir, report_dir), files=(report_path,),
+    )  # fmt: skip
+    with guard:  # checked and locked at once; every file appears together
+        start = time.perf_counter()
+        agents, datasets, hs = collect_agents(
+            inputs, cascade=cascade, hindsight=hindsight, workers=workers,
+            progress=progress, ego=ego, every=every, output_dir=out_dir,
+        )  # fmt: skip
+        read_s = time.perf_counter() - start
+        start = time.perf_counter()
+        summary = evaluate_table(
+            agents, settings=settings, datasets=datasets, hindsight=hs,
+            inputs=[str(p) for p in inputs],
+        )  # fmt: skip
+        summary["time_s"] = {"replay / read": read_s, "evaluation": time.perf_counter() - start}
+        show(format_evaluation(summary))
+        run = EvaluationRun(summary)
+        if sensitivity is not None:
+            start = time.perf_counter()
+            if found.tables:
+                raise EvaluationError(
+                    "--sensitivity replays the scenes with other settings; give .mcap scenes, "
+                    "not tables"
+                )
+            subset = sweep_subset(found.scenes, sensitivity.scenes)
+            same = sensitivity.scenes == 1 and sensitivity.every in (None, every)
+            run.sweep = run_sweep(
+                subset, default_agents=agents if same else None,
+                datasets=datasets if same else None, cascade=cascade, hindsight=hs,
+                settings=replace(settings, n_boot=sensitivity.bootstrap), workers=workers,
+                progress=progress, ego=ego, every=sensitivity.every or every,
+            )  # fmt: skip
+            summary["sensitivity"] = {
+                "scenes": len(subset), "every": str(sensitivity.every or every),
+                "bootstrap": sensitivity.bootstrap, "time_s": run.sweep.time_s,
+            }  # fmt: skip
+            summary["time_s"]["sensitivity"] = time.perf_counter() - start
+            run.files.update(write_sweep(run.sweep, out_dir, plots=plots))
+            show(format_sweep(run.sweep))
+        run.files.update(write_evaluation(summary, agents, out_dir, datasets=datasets, plots=plots))
+        if report_path is not None:  # same guard: it may not replace an input or output
+            pending = guard.pending()  # the plots above, not yet renamed into place
+            pngs = {p: pending.get(p, p) for p in run.files.values() if p.suffix == ".png"}
+            run.files.update(
+                write_report(
+                    report_path, summary, agents, out_dir=out_dir, sweep=run.sweep,
+                    command=command, datasets=datasets, plots=pngs,
+                )
+            )  # fmt: skip
+    return run

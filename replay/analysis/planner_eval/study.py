@@ -1,0 +1,634 @@
+"""``replay plan`` as a library: run the open loop over many scenes, summarise, write.
+
+The summary answers the issue's two questions per filter: how much planning time does the
+filter save (median and p95 of the filter's time plus the filtered plan against the
+all-agents plan, overall and by agent-count bins), and how often does the plan change
+(share of comparable ego-frames, with a 95 % scene-bootstrap interval: frames of one scene
+are not independent, so scenes are resampled whole).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import math
+import os
+import pathlib
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import polars as pl
+
+from outputs.atomic import atomic_write, write_text
+from replay.analysis.planner_eval.closed_loop import closed_loop_scene
+from replay.analysis.planner_eval.open_loop import (
+    ALL_AGENTS,
+    SCHEMA,
+    PlanSettings,
+    ScenePlans,
+    _egos,
+    ego_frames,
+    plan_scene,
+    scene_key,
+)
+from replay.core.egos import load_scene
+from replay.core.engine import Stride
+from replay.core.pool import parallel_map
+from risk.evaluation import bootstrap_weights, percentile_interval
+from risk.filtering import CascadeFilter
+
+#: Agent-count bins of the timing table (others in the frame).
+COUNT_BINS = (0, 10, 25, 50, 100, 10**9)
+
+
+@dataclasses.dataclass(frozen=True)
+class PlanTables:
+    """The rows of a ``replay plan`` run and what it covered."""
+
+    plans: pl.DataFrame
+    truth: pl.DataFrame | None
+    scenes: tuple[pathlib.Path, ...]
+    ego_frames: int
+    no_path: int
+    datasets: dict[str, str]
+
+
+def _task(item: tuple[str, PlanSettings, Any, Any]) -> ScenePlans:
+    path, settings, ego, every = item
+    return plan_scene(path, settings, ego=ego, every=every)
+
+
+def _dataset_of(path: pathlib.Path) -> str:
+    return path.parent.name or "."
+
+
+def run_open_loop(
+    scenes: Sequence[pathlib.Path],
+    settings: PlanSettings,
+    *,
+    ego: int | str | None = None,
+    every: Stride | int = 1,
+    workers: int = 1,
+    progress: bool = True,
+) -> PlanTables:
+    """Every scene in open loop (:func:`plan_scene`), on ``workers`` processes."""
+    settings.make_filters()  # a bad spec fails here, before any worker starts
+    tasks = [(str(p), settings, ego, every) for p in scenes]
+    results: list[ScenePlans] = parallel_map(
+        _task, tasks, workers=min(workers, len(tasks)), progress=progress,
+        desc=f"plan ({settings.planner})", unit="scene",
+    )  # fmt: skip
+    datasets = {scene_key(p): _dataset_of(p) for p in scenes}
+    plans = _frame([r.plans for r in results], datasets)
+    truth = _frame([r.truth for r in results if r.truth is not None], datasets)
+    return PlanTables(
+        plans=plans,
+        truth=truth if settings.truth else None,
+        scenes=tuple(scenes),
+        ego_frames=sum(r.ego_frames for r in results),
+        no_path=sum(r.no_path for r in results),
+        datasets=datasets,
+    )
+
+
+_POLARS_TYPES = {"str": pl.String, "int": pl.Int64, "float": pl.Float64, "bool": pl.Boolean}
+
+
+def _frame(parts: list[dict[str, list[Any]]], datasets: dict[str, str]) -> pl.DataFrame:
+    frames = [
+        pl.DataFrame(p, schema={k: _POLARS_TYPES[SCHEMA[k]] for k in p})
+        for p in parts
+        if p and p["scene"]
+    ]
+    if not frames:
+        return pl.DataFrame()
+    df = pl.concat(frames, how="diagonal_relaxed")
+    # The dataset is the scene's folder, as in replay evaluate (the scene's own word,
+    # e.g. "commonroad", names a format rather than a recording site).
+    return df.with_columns(df["scene"].replace_strict(datasets, default="").alias("dataset"))
+
+
+# ---------------------------------------------------------------------- matched cuts
+#: The spec suffix that asks for a nearest-K or radius cut matched to the cascade.
+MATCH = "match"
+
+
+def _kept_and_distances(item: tuple[str, PlanSettings, Any, Any]) -> tuple[list[int], np.ndarray]:
+    """Per ego-frame of one scene: the cascade's kept count, and every other agent's
+    centre distance to the ego (all frames concatenated, with the frame's number)."""
+    path, settings, ego, every = item
+    scene = load_scene(path)
+    cascade = CascadeFilter(settings.cascade)
+    kept: list[int] = []
+    distances: list[np.ndarray] = []
+    for n, (_, _, frame) in enumerate(ego_frames(scene, _egos(scene, ego), Stride.of(every))):
+        kept.append(cascade.apply(frame).n_kept)
+        d = frame.xy[frame.others] - frame.xy[frame.ego]
+        distances.append(np.stack([np.full(d.shape[0], n), np.hypot(d[:, 0], d[:, 1])], axis=1))
+    return kept, (np.concatenate(distances) if distances else np.zeros((0, 2)))
+
+
+def matched_cuts(
+    scenes: Sequence[pathlib.Path],
+    settings: PlanSettings,
+    *,
+    ego: int | str | None = None,
+    every: Stride | int = 1,
+    workers: int = 1,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """The nearest-K and radius cuts that keep as many agents per ego-frame, on average,
+    as the cascade: K the rounded mean, R found by bisection on the ego-frames' distances
+    (the mean count within R is a step function of R; R is the smallest radius reaching
+    the cascade's mean)."""
+    tasks = [(str(p), settings, ego, every) for p in scenes]
+    parts = parallel_map(
+        _kept_and_distances, tasks, workers=min(workers, len(tasks)), progress=progress,
+        desc="cascade (matching the cuts)", unit="scene",
+    )  # fmt: skip
+    kept = np.concatenate([np.asarray(k, dtype=np.float64) for k, _ in parts] or [np.zeros(0)])
+    distances = np.concatenate([d[:, 1] for _, d in parts] or [np.zeros(0)])
+    frames = kept.size
+    mean_kept = float(kept.mean()) if frames else 0.0
+    # The mean count within R is (number of distances <= R) / frames: the smallest R with
+    # at least mean_kept * frames distances at or below it.
+    need = math.ceil(mean_kept * frames - 1e-9)
+    ordered = np.sort(distances)
+    radius = float(ordered[need - 1]) if 0 < need <= ordered.size else 0.0
+    return {
+        "ego_frames": frames,
+        "cascade_mean_kept": mean_kept,
+        "nearest_k": round(mean_kept),
+        "radius_m": math.ceil(radius * 100.0) / 100.0,  # cm: never below the match
+    }
+
+
+def resolve_matched(settings: PlanSettings, matched: dict[str, Any]) -> PlanSettings:
+    """``settings`` with ``nearest:match`` and ``radius:match`` replaced by the cuts."""
+    specs = []
+    for spec in settings.filters:
+        kind, _, arg = spec.partition(":")
+        if arg == MATCH and kind == "nearest":
+            spec = f"nearest:{matched['nearest_k']}"
+        elif arg == MATCH and kind == "radius":
+            spec = f"radius:{matched['radius_m']:g}"
+        specs.append(spec)
+    return dataclasses.replace(settings, filters=tuple(specs))
+
+
+def wants_matching(settings: PlanSettings) -> bool:
+    return any(spec.partition(":")[2] == MATCH for spec in settings.filters)
+
+
+# ---------------------------------------------------------------------- summary
+def _share_with_interval(
+    hits: np.ndarray, scenes: np.ndarray, *, n_boot: int, seed: int
+) -> dict[str, Any]:
+    """Share of True in ``hits`` with a 95 % scene-bootstrap interval."""
+    n = int(hits.size)
+    if n == 0:
+        return {"share": None, "ci95": None, "n": 0, "count": 0}
+    codes, counts = bootstrap_weights(scenes, n_boot=n_boot, seed=seed)
+    per_scene_hits = np.bincount(codes, weights=hits.astype(np.float64), minlength=counts.shape[1])
+    per_scene_n = np.bincount(codes, minlength=counts.shape[1]).astype(np.float64)
+    num = counts @ per_scene_hits
+    den = counts @ per_scene_n
+    with np.errstate(invalid="ignore", divide="ignore"):
+        reps = num / den
+    lo, hi = percentile_interval(reps)
+    return {
+        "share": float(hits.mean()),
+        "ci95": [lo, hi],
+        "n": n,
+        "count": int(hits.sum()),
+    }
+
+
+def _quantiles(values: np.ndarray) -> dict[str, float | None]:
+    v = values[np.isfinite(values)]
+    if v.size == 0:
+        return {"median": None, "p95": None}
+    return {"median": float(np.median(v)), "p95": float(np.quantile(v, 0.95))}
+
+
+def summarize(tables: PlanTables, *, n_boot: int = 1000, seed: int = 0) -> dict[str, Any]:
+    """Per filter: kept agents, plan success, changed share (scene-bootstrap 95 %), times
+    (all agents vs the filter's time plus the filtered plan) overall and by agent-count
+    bins, and how often the filter dropped the agent that constrained the full plan."""
+    df = tables.plans
+    out: dict[str, Any] = {
+        "scenes": len(tables.scenes),
+        "ego_frames": tables.ego_frames,
+        "ego_frames_without_path": tables.no_path,
+        "distinct_egos": 0,
+        "filters": {},
+        "by_agent_count": {},
+    }
+    if df.is_empty():
+        return out
+    out["planner"] = str(df["planner"][0])
+    out["distinct_egos"] = df.select(["scene", "ego_id"]).unique().height
+    key = ["scene", "ego_id", "frame"]
+    reference = df.filter(pl.col("filter") == ALL_AGENTS).select(
+        [*key, pl.col("plan_ms").alias("all_plan_ms"), pl.col("plan_ok").alias("all_ok"),
+         pl.col("n_agents").alias("all_agents")]
+    )  # fmt: skip
+    out["all_agents"] = {
+        "plan_ok_share": _float(reference["all_ok"].mean() or 0.0),
+        "mean_agents": _float(reference["all_agents"].mean() or 0.0),
+        "plan_ms": _quantiles(reference.filter(pl.col("all_ok"))["all_plan_ms"].to_numpy()),
+    }
+    for name in df["filter"].unique(maintain_order=True).to_list():
+        if name == ALL_AGENTS:
+            continue
+        rows = df.filter(pl.col("filter") == name).join(reference, on=key, how="left")
+        comparable = rows.filter(pl.col("changed").is_not_null())
+        both_ok = rows.filter(pl.col("plan_ok") & pl.col("all_ok"))
+        total_ms = (both_ok["filter_ms"] + both_ok["plan_ms"]).to_numpy()
+        all_ms = both_ok["all_plan_ms"].to_numpy()
+        blocking = rows.filter(pl.col("blocking_dropped").is_not_null())
+        ratio = None
+        if total_ms.size:
+            ratio = (
+                float(np.median(total_ms) / np.median(all_ms)) if np.median(all_ms) > 0 else None
+            )
+        out["filters"][name] = {
+            "ego_frames": rows.height,
+            "mean_kept": _float(rows["n_agents"].mean() or 0.0),
+            "plan_ok_share": _float(rows["plan_ok"].mean() or 0.0),
+            "not_comparable": rows.height - comparable.height,
+            "changed": _share_with_interval(
+                comparable["changed"].to_numpy().astype(bool),
+                comparable["scene"].to_numpy(),
+                n_boot=n_boot,
+                seed=seed,
+            ),
+            "changed_scenes": comparable.filter(pl.col("changed"))["scene"].n_unique(),
+            "changed_egos": comparable.filter(pl.col("changed"))
+            .select(["scene", "ego_id"])
+            .unique()
+            .height,
+            "blocking_agent_dropped": _share_with_interval(
+                blocking["blocking_dropped"].to_numpy().astype(bool),
+                blocking["scene"].to_numpy(),
+                n_boot=n_boot,
+                seed=seed,
+            ),
+            "filter_ms": _quantiles(rows["filter_ms"].to_numpy()),
+            "filtered_plan_ms": _quantiles(both_ok["plan_ms"].to_numpy()),
+            "filter_plus_plan_ms": _quantiles(total_ms),
+            "all_agents_plan_ms": _quantiles(all_ms),
+            "median_time_ratio": ratio,
+        }
+        out["by_agent_count"][name] = _by_bins(both_ok)
+        out.setdefault("by_dataset", {})[name] = {
+            str(d["dataset"]): {
+                "ego_frames": int(d["n"]),
+                "changed_share": None if d["share"] is None else float(d["share"]),
+                "mean_kept": float(d["kept"]),
+                "mean_others": float(d["others"]),
+            }
+            for d in rows.group_by("dataset")
+            .agg(
+                pl.len().alias("n"),
+                pl.col("changed").cast(pl.Float64).mean().alias("share"),
+                pl.col("n_agents").mean().alias("kept"),
+                pl.col("n_others").mean().alias("others"),
+            )
+            .sort("dataset")
+            .iter_rows(named=True)
+        }
+    return out
+
+
+def _by_bins(rows: pl.DataFrame) -> list[dict[str, Any]]:
+    bins = []
+    counts = rows["n_others"].to_numpy() if rows.height else np.zeros(0)
+    for lo, hi in itertools.pairwise(COUNT_BINS):
+        inside = (counts >= lo) & (counts < hi)
+        if not inside.any():
+            continue
+        part = rows.filter(pl.Series(inside))
+        total = (part["filter_ms"] + part["plan_ms"]).to_numpy()
+        all_ms = part["all_plan_ms"].to_numpy()
+        bins.append(
+            {
+                "agents": f"{lo}-{hi - 1}" if hi < 10**9 else f"{lo}+",
+                "ego_frames": int(inside.sum()),
+                "all_agents_plan_ms": _quantiles(all_ms),
+                "filter_plus_plan_ms": _quantiles(total),
+                "changed_share": _float(part["changed"].cast(pl.Float64).mean() or 0.0),
+            }
+        )
+    return bins
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    """The end-of-run text of ``replay plan``."""
+    lines = [
+        f"Planner {summary.get('planner', '?')}: {summary['scenes']} scenes, "
+        f"{summary['ego_frames']} ego-frames ({summary['distinct_egos']} distinct egos; "
+        f"{summary['ego_frames_without_path']} without a path to plan along)",
+    ]
+    every = summary.get("all_agents")
+    if every:
+        ms = every["plan_ms"]
+        lines.append(
+            f"  all agents: {every['mean_agents']:.1f} agents per frame, plan found in "
+            f"{100 * every['plan_ok_share']:.1f} %, plan {_ms(ms['median'])} median, "
+            f"{_ms(ms['p95'])} p95"
+        )
+    for name, f in summary["filters"].items():
+        ch = f["changed"]
+        share = "n/a" if ch["share"] is None else f"{100 * ch['share']:.1f} %"
+        ci = ch["ci95"]
+        interval = "" if not ci or ci[0] is None or math.isnan(ci[0]) else (
+            f" [{100 * ci[0]:.1f}, {100 * ci[1]:.1f}]"
+        )  # fmt: skip
+        ratio = f["median_time_ratio"]
+        lines.append(
+            f"  {name}: {f['mean_kept']:.1f} agents kept; plan changed in {share}{interval} "
+            f"of {ch['n']} comparable frames ({f['changed_egos']} egos, "
+            f"{f['changed_scenes']} scenes); filter + plan {_ms(f['filter_plus_plan_ms']['median'])}"
+            f" vs {_ms(f['all_agents_plan_ms']['median'])} median"
+            + ("" if ratio is None else f" ({ratio:.2f}x)")
+        )
+    return "\n".join(lines)
+
+
+def _ms(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.2f} ms"
+
+
+# ---------------------------------------------------------------------- closed loop
+def _closed_task(item: tuple[str, PlanSettings, Any, int | None]) -> list[dict[str, Any]]:
+    path, settings, ego, egos_per_scene = item
+    return closed_loop_scene(path, settings, ego=ego, egos_per_scene=egos_per_scene)
+
+
+def closed_loop_sample(scenes: Sequence[pathlib.Path], sample: int | None) -> list[pathlib.Path]:
+    """The scenes of a closed-loop sample of ``sample`` egos (one per scene, the one
+    present longest): every k-th scene in the order given, k = ceil(scenes / sample), so
+    that the sample spreads over every dataset; all scenes when ``sample`` is None."""
+    if sample is None or sample >= len(scenes):
+        return list(scenes)
+    step = math.ceil(len(scenes) / sample)
+    return list(scenes[::step])[:sample]
+
+
+def run_closed_loop(
+    scenes: Sequence[pathlib.Path],
+    settings: PlanSettings,
+    *,
+    ego: int | str | None = None,
+    workers: int = 1,
+    progress: bool = True,
+    egos_per_scene: int | None = None,
+    sample: int | None = None,
+) -> pl.DataFrame:
+    """Closed-loop runs (:func:`closed_loop_scene`): one row per (scene, ego, filter).
+    ``sample``: at most this many egos in all, one per scene (see
+    :func:`closed_loop_sample`)."""
+    if sample is not None:
+        egos_per_scene = 1
+    settings.make_filters()
+    tasks = [(str(p), settings, ego, egos_per_scene) for p in closed_loop_sample(scenes, sample)]
+    results = parallel_map(
+        _closed_task, tasks, workers=min(workers, len(tasks)), progress=progress,
+        desc=f"closed loop ({settings.planner})", unit="scene",
+    )  # fmt: skip
+    rows = [row for scene_rows in results for row in scene_rows]
+    if not rows:
+        return pl.DataFrame()
+    df = pl.DataFrame(rows, infer_schema_length=None)
+    datasets = {scene_key(p): _dataset_of(p) for p in scenes}
+    return df.with_columns(df["scene"].replace_strict(datasets, default="").alias("dataset"))
+
+
+def summarize_closed_loop(df: pl.DataFrame) -> dict[str, Any]:
+    """Per filter: collisions, least gap, time below 1 s headway, progress and planning
+    time, and the paired differences against the all-agents run of the same ego."""
+    if df.is_empty():
+        return {"runs": 0, "filters": {}}
+    key = ["scene", "ego_id"]
+    reference = df.filter(pl.col("filter") == ALL_AGENTS)
+    out: dict[str, Any] = {
+        "runs": reference.height,
+        "distinct_egos": reference.select(key).unique().height,
+        "scenes": reference["scene"].n_unique(),
+        "filters": {},
+    }
+    for name in df["filter"].unique(maintain_order=True).to_list():
+        rows = df.filter(pl.col("filter") == name)
+        entry: dict[str, Any] = {
+            "runs": rows.height,
+            "collisions": int(rows["collisions"].sum()),
+            "rear_end_collisions": int(rows["rear_end_collisions"].sum()),
+            "runs_with_collision": int((rows["collisions"] > 0).sum()),
+            "min_gap_m": _quantiles(rows["min_gap_m"].to_numpy()),
+            "time_headway_below_1s_s": float(rows["time_headway_below_1s_s"].sum()),
+            "progress_m": _quantiles(rows["progress_m"].to_numpy()),
+            "plan_ms_median": _quantiles(rows["plan_ms_median"].to_numpy())["median"],
+            "plan_ms_p95": _quantiles(rows["plan_ms_p95"].to_numpy())["median"],
+            "mean_agents": _float(rows["mean_agents"].mean() or 0.0),
+            "plan_failures": int(rows["plan_failures"].sum()),
+        }
+        if name != ALL_AGENTS:
+            paired = rows.join(reference, on=key, suffix="_all")
+            entry["paired"] = {
+                "runs": paired.height,
+                "more_collisions": int((paired["collisions"] > paired["collisions_all"]).sum()),
+                "fewer_collisions": int((paired["collisions"] < paired["collisions_all"]).sum()),
+                "progress_change_m": _quantiles(
+                    (paired["progress_m"] - paired["progress_m_all"]).to_numpy()
+                ),
+                "min_gap_change_m": _quantiles(
+                    (paired["min_gap_m"] - paired["min_gap_m_all"]).to_numpy()
+                ),
+            }
+        out["filters"][name] = entry
+    return out
+
+
+def format_closed_loop(summary: dict[str, Any]) -> str:
+    """The closed-loop part of ``replay plan``'s end-of-run text."""
+    if not summary.get("runs"):
+        return "Closed loop: no run"
+    lines = [
+        f"Closed loop: {summary['runs']} egos in {summary['scenes']} scenes, once with all "
+        "agents and once per filter (the others replay their log)"
+    ]
+    for name, f in summary["filters"].items():
+        gap = f["min_gap_m"]["median"]
+        progress = f["progress_m"]["median"]
+        lines.append(
+            f"  {name}: {f['collisions']} collisions ({f['rear_end_collisions']} from behind) "
+            f"in {f['runs_with_collision']} runs; least gap {_m(gap)} median; progress "
+            f"{_m(progress)} median; plan {_ms(f['plan_ms_median'])} median"
+        )
+        if "paired" in f:
+            p = f["paired"]
+            lines.append(
+                f"    vs all agents: {p['more_collisions']} runs with more collisions, "
+                f"{p['fewer_collisions']} with fewer; progress change "
+                f"{_m(p['progress_change_m']['median'])} median"
+            )
+    return "\n".join(lines)
+
+
+def _m(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.1f} m"
+
+
+# ---------------------------------------------------------------------- output
+@dataclasses.dataclass(frozen=True)
+class StudyResult:
+    """Everything one ``replay plan`` run computed: the tables of every planner (told
+    apart by their ``planner`` column) and the summary (``summary["planners"][name]``)."""
+
+    plans: pl.DataFrame
+    truth: pl.DataFrame | None
+    closed_loop: pl.DataFrame | None
+    summary: dict[str, Any]
+
+
+def run_study(
+    scenes: Sequence[pathlib.Path],
+    settings: PlanSettings,
+    *,
+    planners: Sequence[str],
+    ego: int | str | None = None,
+    every: Stride | int = 1,
+    workers: int = 1,
+    progress: bool = True,
+    closed_loop: bool = False,
+    closed_loop_egos: int | None = None,
+    closed_loop_sample: int | None = None,
+    notify: Any = None,
+) -> StudyResult:
+    """``replay plan``: the matched cuts (when asked for), then per planner the open loop
+    and, with ``closed_loop``, the closed loop; one summary for all."""
+    summary: dict[str, Any] = {"planners": {}, "time_s": {}}
+    if wants_matching(settings):
+        start = time.perf_counter()
+        matched = matched_cuts(
+            scenes, settings, ego=ego, every=every, workers=workers, progress=progress
+        )
+        settings = resolve_matched(settings, matched)
+        summary["matched_cuts"] = matched
+        summary["time_s"]["matching"] = time.perf_counter() - start
+        if notify is not None:
+            notify(
+                f"Matched to the cascade's {matched['cascade_mean_kept']:.1f} agents per "
+                f"ego-frame: nearest:{matched['nearest_k']}, radius:{matched['radius_m']:g}"
+            )
+    plans, truths, closed = [], [], []
+    for name in planners:
+        own = dataclasses.replace(settings, planner=name)
+        start = time.perf_counter()
+        tables = run_open_loop(
+            scenes, own, ego=ego, every=every, workers=workers, progress=progress
+        )
+        entry = summarize(tables)
+        summary["time_s"][f"open_loop:{name}"] = time.perf_counter() - start
+        plans.append(tables.plans)
+        if tables.truth is not None:
+            truths.append(tables.truth)
+        if closed_loop:
+            start = time.perf_counter()
+            runs = run_closed_loop(
+                scenes, own, ego=ego, workers=workers, progress=progress,
+                egos_per_scene=closed_loop_egos, sample=closed_loop_sample,
+            )  # fmt: skip
+            entry["closed_loop"] = summarize_closed_loop(runs)
+            summary["time_s"][f"closed_loop:{name}"] = time.perf_counter() - start
+            closed.append(runs)
+        summary["planners"][name] = entry
+    if closed_loop:
+        summary["closed_loop_selection"] = (
+            f"{closed_loop_sample} egos in all, one per scene (the one present longest) of "
+            "every k-th scene, k = ceil(scenes / sample)"
+            if closed_loop_sample is not None
+            else f"at most {closed_loop_egos} egos per scene, those present longest"
+            if closed_loop_egos is not None
+            else "every ego"
+        )
+    summary["filters"] = list(settings.filters)
+    summary["tolerance_m"] = settings.tolerance_m
+    summary["horizon_s"] = settings.horizon_s
+    return StudyResult(
+        plans=_concat(plans),
+        truth=_concat(truths) if settings.truth else None,
+        closed_loop=_concat(closed) if closed_loop else None,
+        summary=summary,
+    )
+
+
+def _concat(frames: list[pl.DataFrame]) -> pl.DataFrame:
+    frames = [f for f in frames if not f.is_empty()]
+    return pl.concat(frames, how="diagonal_relaxed") if frames else pl.DataFrame()
+
+
+def format_study(summary: dict[str, Any]) -> str:
+    """The end-of-run text of ``replay plan``: every planner's open and closed loop."""
+    lines = []
+    for entry in summary["planners"].values():
+        lines.append(format_summary(entry))
+        if "closed_loop" in entry:
+            lines.append(format_closed_loop(entry["closed_loop"]))
+    return "\n".join(lines)
+
+
+def write_study(
+    result: StudyResult, out_dir: pathlib.Path, *, plots: bool = True
+) -> dict[str, pathlib.Path]:
+    """``plans.parquet``, ``agents.parquet`` (with truth), ``closed_loop.parquet`` (with
+    a closed loop), ``summary.json`` and the plots into ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    files: dict[str, pathlib.Path] = {}
+    files["plans"] = atomic_write(out_dir / "plans.parquet", result.plans.write_parquet)
+    if result.closed_loop is not None:
+        files["closed_loop"] = atomic_write(
+            out_dir / "closed_loop.parquet", result.closed_loop.write_parquet
+        )
+    if result.truth is not None:
+        files["agents"] = atomic_write(out_dir / "agents.parquet", result.truth.write_parquet)
+    files["summary"] = write_text(
+        out_dir / "summary.json",
+        json.dumps(json_safe(result.summary), indent=2, allow_nan=False) + "\n",
+    )
+    if plots and not result.plans.is_empty():
+        from replay.analysis.planner_eval import plots as planner_plots  # matplotlib: about 1 s
+
+        files.update(planner_plots.write_plots(result.plans, result.summary, out_dir))
+    return files
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` with every NaN or infinite float replaced by None (JSON has neither)."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def scene_files(paths: Sequence[os.PathLike[str] | str]) -> list[pathlib.Path]:
+    """The ``.mcap`` scenes among ``paths`` (folders searched recursively)."""
+    found: list[pathlib.Path] = []
+    for p in map(pathlib.Path, paths):
+        if p.is_dir():
+            found += sorted(f for f in p.rglob("*.mcap") if f.is_file())
+        else:
+            found.append(p)
+    return list(dict.fromkeys(found))
+
+
+def _float(value: Any) -> float:
+    """A polars aggregate (typed as any Python literal) as a float."""
+    return float(value)

@@ -1,0 +1,1 @@
+"""The ``replay`` command line: the only package that imports click."""

@@ -1,0 +1,177 @@
+"""``replay plan``: a planner in the loop, with all agents and with each filter's agents."""
+
+from __future__ import annotations
+
+import pathlib
+import shlex
+import sys
+
+import click
+
+from outputs.transaction import OutputGuard
+from replay.analysis.planner_eval.open_loop import PlanSettings
+from replay.analysis.planner_eval.report import write_report
+from replay.analysis.planner_eval.study import (
+    format_study,
+    resolve_matched,
+    run_study,
+    scene_files,
+    write_study,
+)
+from replay.cli.ego_options import ego_option, every_option
+from replay.cli.settings_option import load_cascade, set_option
+from replay.core.engine import Stride
+from replay.core.pool import default_workers
+from replay.errors import ReplayError
+from replay.planning.registry import PLANNERS, make_planner
+from risk.filtering import FILTER_FORMS
+
+
+@click.command("plan")
+@click.argument(
+    "scenes", nargs=-1, required=True,
+    type=click.Path(exists=True, path_type=pathlib.Path),
+)  # fmt: skip
+@click.option(
+    "-o", "--output", "out_dir", required=True,
+    type=click.Path(file_okay=False, path_type=pathlib.Path),
+    help="Output folder (created): plans.parquet, summary.json, plots.",
+)  # fmt: skip
+@ego_option("Default: each scene's own ego.")
+@every_option
+@click.option(
+    "--planner", "planners", multiple=True, default=("idm",), show_default=True,
+    type=click.Choice(list(PLANNERS)),
+    help="The planner (repeatable: each runs the same frames). idm: the built-in IDM "
+    "planner along the ego's path (core dependencies only); fop, fiss, fiss_plus: "
+    "fiss-planner's Frenet planners (pip install 'riskreplay[planner]').",
+)  # fmt: skip
+@click.option(
+    "--filter", "filters", multiple=True, default=("cascade",), show_default=True,
+    metavar="SPEC",
+    help="A filter to compare with all agents (repeatable): " + ", ".join(FILTER_FORMS)
+    + ". cascade: the shipped thresholds or --cascade FILE; model:NAME: NAME's stage "
+    "threshold in that cascade, or model:NAME:THRESHOLD; nearest:match and radius:match: "
+    "the cut that keeps as many agents per frame, on average, as the cascade.",
+)  # fmt: skip
+@click.option(
+    "--cascade", "cascade_file",
+    type=click.Path(exists=True, dir_okay=False, path_type=pathlib.Path),
+    help="Cascade TOML for the cascade filter (default: the shipped calibrated cascade).",
+)  # fmt: skip
+@click.option(
+    "--truth", is_flag=True,
+    help="Also plan without each agent in turn and write agents.parquet: an agent is "
+    "planner-important when removing it alone changes the plan (agents the planner "
+    "provably cannot react to are labelled without that plan).",
+)  # fmt: skip
+@click.option(
+    "--closed-loop", is_flag=True,
+    help="Also drive the ego with the planner while the others replay their log "
+    "(non-reactive, as nuPlan's CLS-NR): re-plan at 10 Hz, the ego follows each plan "
+    "perfectly; once with all agents and once per filter. Writes closed_loop.parquet.",
+)  # fmt: skip
+@click.option(
+    "--closed-loop-egos", type=click.IntRange(min=1), default=None, metavar="K",
+    help="With --closed-loop: at most K egos per scene, those present longest "
+    "(default: every ego of --ego).",
+)  # fmt: skip
+@click.option(
+    "--closed-loop-sample", type=click.IntRange(min=1), default=None, metavar="N",
+    help="With --closed-loop: N egos in all, one per scene (the one present longest) of "
+    "every k-th scene, k = ceil(scenes / N), so that the sample spreads over the datasets.",
+)  # fmt: skip
+@click.option(
+    "--tolerance", "tolerance_m", type=click.FloatRange(min=0.0), default=0.5,
+    show_default=True,
+    help="A plan changed when it moves more than this many metres from the all-agents "
+    "plan at an equal time within the horizon, or its stop/go, lane or success differs.",
+)  # fmt: skip
+@click.option("--horizon", "horizon_s", type=click.FloatRange(min=0.5, max=30.0), default=5.0,
+              show_default=True, help="Planning horizon (s).")  # fmt: skip
+@click.option(
+    "--report", "report_path", default=None,
+    type=click.Path(dir_okay=False, path_type=pathlib.Path),
+    help="Also write a Markdown report of the run (e.g. docs/planner-evaluation.md), its "
+    "plots into the folder of the same name without .md.",
+)  # fmt: skip
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="Worker processes (default: one per core).")  # fmt: skip
+@click.option("--plots/--no-plots", default=True, show_default=True, help="Write the PNG plots.")
+@click.option(
+    "--progress/--no-progress", default=True, show_default=True, help="Progress bar on stderr."
+)
+@set_option
+def plan(
+    scenes: tuple[pathlib.Path, ...],
+    out_dir: pathlib.Path,
+    ego: int | str | None,
+    every: Stride,
+    planners: tuple[str, ...],
+    filters: tuple[str, ...],
+    cascade_file: pathlib.Path | None,
+    truth: bool,
+    closed_loop: bool,
+    closed_loop_egos: int | None,
+    closed_loop_sample: int | None,
+    tolerance_m: float,
+    horizon_s: float,
+    workers: int | None,
+    report_path: pathlib.Path | None,
+    plots: bool,
+    progress: bool,
+    sets: tuple[str, ...] = (),
+) -> None:
+    """Plan every frame of SCENES with all agents and with each filter's agents.
+
+    SCENES are MCAP scenes or folders of them (searched recursively). At each replayed
+    frame (see --every) the planner gets the ego's state, its path, its lanes and the
+    other agents with their predicted trajectories; it plans once with all of them and
+    once per --filter, and each filtered plan is compared with the all-agents plan.
+
+    \b
+    Writes into OUTPUT:
+      plans.parquet    one row per (scene, ego, frame, filter): n_agents, filter_ms,
+                       plan_ms, plan_ok, changed, max_shift_m, blocking_dropped, ...
+      closed_loop.parquet  with --closed-loop: one row per (scene, ego, filter):
+                       collisions, min_gap_m, time_headway_below_1s_s, progress_m,
+                       plan_ms_median, plan_ms_p95
+      agents.parquet   with --truth: one row per (scene, ego, frame, agent):
+                       planner_label, planner_shift_m
+      summary.json     per filter: kept agents, changed share (95 % scene bootstrap),
+                       planning time vs all agents, by agent-count bins
+      plan_time.png, plan_changed.png
+    """
+    cascade = load_cascade(cascade_file, sets)
+    planners = tuple(dict.fromkeys(planners))
+    settings = PlanSettings(
+        planner=planners[0], filters=tuple(filters), cascade=cascade,
+        tolerance_m=tolerance_m, horizon_s=horizon_s, truth=truth,
+    )  # fmt: skip
+    resolve_matched(settings, {"nearest_k": 1, "radius_m": 1.0}).make_filters()  # bad specs
+    for name in planners:
+        make_planner(name)  # a missing optional extra fails before anything is read
+    found = scene_files(scenes)
+    if not found:
+        raise ReplayError(f"{', '.join(map(str, scenes))}: no .mcap scene found")
+    report_folder = None if report_path is None else report_path.with_suffix("")
+    with OutputGuard(
+        inputs=[*found, cascade_file], folders=(out_dir, report_folder), files=(report_path,)
+    ):
+        result = run_study(
+            found, settings, planners=planners, ego=ego, every=every,
+            workers=workers or default_workers(), progress=progress,
+            closed_loop=closed_loop, closed_loop_egos=closed_loop_egos,
+            closed_loop_sample=closed_loop_sample,
+            notify=lambda message: click.echo(message, err=True),
+        )  # fmt: skip
+        files = write_study(result, out_dir, plots=plots or report_path is not None)
+        if report_path is not None:
+            words = ["replay", "plan", *sys.argv[2:]] if len(sys.argv) > 2 else ["replay plan"]
+            files.update(
+                write_report(report_path, result.summary, result.plans, command=shlex.join(words))
+            )
+    click.echo(format_study(result.summary))
+    click.echo("Wrote:")
+    for path in files.values():
+        click.echo(f"  {path}")

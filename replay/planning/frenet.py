@@ -1,0 +1,258 @@
+"""Frenet sampling planners from fiss-planner (PyPI, Apache-2.0; an optional extra).
+
+``FrenetPlanner("fop")`` is Werling et al.'s Frenet optimal planner (ICRA 2010: every
+candidate generated, the cheapest valid one kept); ``"fiss"`` and ``"fiss_plus"`` are Sun
+et al.'s iterative search (RA-L 2022) and its refinement (IROS 2023) over the same
+candidates, costs and checks.
+
+The adapter:
+
+- reference line: ``request.reference``; corridor: ``lanes_right`` + the ego's lane +
+  ``lanes_left`` parallel lanes of ``lane_width_m`` (``fp.Corridor.parallel_lanes``);
+- ego: projected onto the reference (arc ``s``, offset ``d``; speed split along and
+  across the path by the heading's angle to it);
+- obstacles: each agent's forecast, time-stamped, with its box (static when it never
+  moves); the binding takes one ``fp.Obstacle`` per agent, so this conversion is the one
+  loop over agents (about 2 us each, measured in benchmarks/bench_planner.py);
+- the planner is reset before every call: FISS starts its search from the previous
+  solution, and a counterfactual plan must not depend on the plan made before it;
+- the trajectory: fiss-planner samples end times between ``min_t`` (3 s) and the horizon,
+  so a plan can end before the horizon (a braking plan often does). It is resampled onto
+  the request's times up to its own end and not continued beyond: a continuation would
+  be a trajectory the planner never checked. ``compare_plans`` compares plans over their
+  common times;
+- ``plan_ms``: wall time of the whole call (obstacle conversion and planning);
+  ``extras["core_ms"]`` is the planner's own ``stats.time_ms``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+from replay.planning.errors import PlannerUnavailable, PlanningError
+from replay.planning.path_coords import path_coords, project
+from replay.planning.types import STOP_SPEED_MPS, Plan, PlanRequest
+
+VARIANTS: tuple[str, ...] = ("fop", "fiss", "fiss_plus")
+INSTALL_HINT = "pip install 'riskreplay[planner]'"
+
+#: Slack (m) added to every range in ``may_matter``: covers the lateral overshoot of the
+#: quintic lateral profiles and the spline fit of the reference line.
+MAY_MATTER_SLACK_M = 2.0
+
+
+def load_fiss_planner() -> ModuleType:
+    """The ``fiss_planner`` module, or PlannerUnavailable naming the extra to install."""
+    try:
+        import fiss_planner  # the optional extra: loaded only when a Frenet planner is made
+    except ImportError:
+        raise PlannerUnavailable(
+            f"the Frenet planners need the optional package fiss-planner; {INSTALL_HINT}"
+        ) from None
+    return fiss_planner
+
+
+class FrenetPlanner:
+    """fiss-planner behind the :class:`~replay.planning.types.Planner` interface.
+
+    ``overrides``: attribute paths of ``fp.PlannerConfig`` to set, e.g.
+    ``{"sampling.num_width": 7}``.
+    """
+
+    def __init__(self, variant: str = "fop", *, overrides: dict[str, Any] | None = None) -> None:
+        if variant not in VARIANTS:
+            raise PlanningError(
+                f"unknown Frenet planner variant {variant!r}; expected one of {', '.join(VARIANTS)}"
+            )
+        self.fp = load_fiss_planner()
+        self.variant = variant
+        self.name = variant
+        self.overrides = dict(overrides or {})
+        self._planners: dict[tuple[float, float, float, float], Any] = {}
+
+    # ------------------------------------------------------------------ the planner
+    def _config(self) -> Any:
+        """The variant's configuration with the overrides applied."""
+        config = self.fp.make_config(self.variant)
+        for path, value in self.overrides.items():
+            *parents, last = path.split(".")
+            target = config
+            for part in parents:
+                target = getattr(target, part)
+            setattr(target, last, value)
+        return config
+
+    def _planner(self, request: PlanRequest) -> Any:
+        """One fiss-planner instance per (dt, horizon, ego size), reset for each call."""
+        key = (request.dt_s, request.horizon_s, request.ego.length_m, request.ego.width_m)
+        planner = self._planners.get(key)
+        if planner is None:
+            config = self._config()
+            config.sampling.dt = request.dt_s
+            config.sampling.max_t = request.horizon_s
+            config.sampling.min_t = min(config.sampling.min_t, request.horizon_s)
+            vehicle = self.fp.VehicleParams()
+            if request.ego.length_m > 0 and request.ego.width_m > 0:
+                vehicle.length = request.ego.length_m
+                vehicle.width = request.ego.width_m
+            planner = self.fp.make_planner(config, vehicle)
+            self._planners[key] = planner
+        planner.reset()
+        return planner
+
+    def _obstacles(self, request: PlanRequest) -> list[Any]:
+        a = request.agents
+        times = a.times_s.tolist()
+        moves = np.asarray((np.abs(np.diff(a.xy, axis=1)) > 1e-9).any(axis=(1, 2)), dtype=bool)
+        static = (~moves).tolist()
+        make = self.fp.Obstacle.from_arrays
+        return [
+            make(int(i), float(ln), float(w), times, x, y, h, bool(still))
+            for i, ln, w, x, y, h, still in zip(
+                a.ids.tolist(),
+                a.length_m.tolist(),
+                a.width_m.tolist(),
+                a.xy[..., 0].tolist(),
+                a.xy[..., 1].tolist(),
+                a.heading_rad.tolist(),
+                static,
+                strict=True,
+            )
+        ]
+
+    def plan(self, request: PlanRequest) -> Plan:
+        fp = self.fp
+        start = time.perf_counter()
+        ref = fp.ReferenceLine(request.reference[:, 0], request.reference[:, 1])
+        corridor = fp.Corridor.parallel_lanes(
+            0.0, ref.length, request.lane_width_m, request.lanes_left, request.lanes_right
+        )
+        ego = request.ego
+        proj = ref.project(float(ego.xy[0]), float(ego.xy[1]))
+        rel = ego.heading_rad - ref.at(proj.s).yaw
+        state = fp.FrenetState(
+            s=proj.s,
+            s_d=ego.speed_mps * math.cos(rel),
+            s_dd=ego.accel_mps2 * math.cos(rel),
+            d=proj.d,
+            d_d=ego.speed_mps * math.sin(rel),
+        )
+        obstacles = self._obstacles(request)
+        planner = self._planner(request)
+        result = planner.plan(
+            state, ref, corridor, obstacles, target_speed=float(request.target_speed_mps)
+        )
+        stats = result.stats
+        blocking = int(stats.blocking_id)
+        if not result.success:
+            return Plan.failed(
+                "no feasible trajectory",
+                plan_ms=(time.perf_counter() - start) * 1e3,
+                blocking_id=blocking,
+            )
+        times, xy, heading, speed = self._resample(result.trajectory, request.times_s)
+        plan_ms = (time.perf_counter() - start) * 1e3
+        return Plan(
+            ok=True,
+            times_s=times,
+            xy=xy,
+            heading_rad=heading,
+            speed_mps=speed,
+            plan_ms=plan_ms,
+            lane=int(result.trajectory.lane),
+            stops=bool((speed < STOP_SPEED_MPS).any()),
+            blocking_id=blocking,
+            extras={"core_ms": float(stats.time_ms), "candidates": float(stats.num_generated)},
+        )
+
+    @staticmethod
+    def _resample(
+        traj: Any, times: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The trajectory on the request's times (T,) up to its own end time: times
+        ``(T',)``, points ``(T', 2)``, headings and speeds ``(T',)``."""
+        t = np.asarray(traj.t, dtype=np.float64)
+        keep = times <= t[-1] + 1e-9
+        out_t = times[keep]
+        yaw = np.unwrap(np.asarray(traj.yaw, dtype=np.float64))
+        xy = np.stack(
+            [np.interp(out_t, t, np.asarray(traj.x)), np.interp(out_t, t, np.asarray(traj.y))],
+            axis=1,
+        )
+        heading = (np.interp(out_t, t, yaw) + np.pi) % (2 * np.pi) - np.pi
+        return out_t, xy, heading, np.interp(out_t, t, np.asarray(traj.v, dtype=np.float64))
+
+    # ------------------------------------------------------------------ may_matter
+    def may_matter(self, request: PlanRequest) -> np.ndarray:
+        """``(K,)`` bool: False for agents that stay out of every range at which
+        fiss-planner looks at an obstacle, around every trajectory it can generate.
+
+        The argument. Every candidate is a Frenet trajectory along the reference: its
+        lateral offset moves between the ego's offset and a sampled lane offset within the
+        corridor (quintic, with a small overshoot), its arc length grows at most at the
+        vehicle's maximum speed (``VehicleParams.max_speed``) plus its maximum acceleration
+        over the horizon. fiss-planner reads an obstacle in four places, all documented as
+        functions of the ego-obstacle distance at equal times: the collision check (boxes
+        inflated by ``collision.margin_lon``/``margin_lat``), the safety envelope
+        (``safety.min_gap`` plus ``min_time_headway`` and ``min_ttc`` times speeds), the
+        costs (``cost.desired_clearance`` across; ``desired_gap`` + ``desired_time_headway``
+        x speed, ``desired_ttc`` x closing speed and ``follow_time`` x speed along) and the
+        lead gap. So an obstacle whose boxes, at every forecast time, lie farther from the
+        reachable region than the largest of those ranges (with both speeds at their
+        maximum, plus MAY_MATTER_SLACK_M) can change neither a check nor a cost, hence not
+        the plan. Across the path the range is the clearance/margin/gap range; along it
+        (ahead of and behind the region) the headway/TTC/follow range. Points that project
+        onto the reference's ends are measured with the longer range in every direction.
+
+        This rests on the package's documented parameters, not on a reading of its C++
+        source (v1.0's core is not in the stored sources); tests/test_planning.py checks
+        it empirically (an agent with may_matter False never changes the plan).
+        """
+        a = request.agents
+        if a.n == 0:
+            return np.zeros(0, dtype=bool)
+        config = self._config()
+        vehicle = self.fp.VehicleParams()
+        cost, safety, coll = config.cost, config.safety, config.collision
+        horizon = request.horizon_s
+        ego = request.ego
+        v_ego = max(ego.speed_mps, request.target_speed_mps, vehicle.max_speed)
+        reach_m = v_ego * horizon + 0.5 * vehicle.max_accel * horizon**2
+
+        c = path_coords(request.reference, a)
+        ego_d, s0 = (float(v[0]) for v in project(request.reference, ego.xy[None]))
+        ref_len = float(np.sum(np.linalg.norm(np.diff(request.reference, axis=0), axis=1)))
+        w = request.lane_width_m
+        road = max((request.lanes_left + 0.5) * w, (request.lanes_right + 0.5) * w)
+        half_ego = 0.5 * max(ego.length_m, ego.width_m, vehicle.length, vehicle.width)
+        band = max(road, abs(ego_d)) + half_ego + MAY_MATTER_SLACK_M  # candidates' reach across
+        across = max(coll.margin_lat, cost.desired_clearance, safety.min_gap) + MAY_MATTER_SLACK_M
+        v_agent = np.abs(c.speed_along_mps).max(axis=1) + np.abs(
+            np.diff(a.xy, axis=1) / np.diff(a.times_s)[None, :, None]
+        ).max(axis=(1, 2), initial=0.0)  # (K,), generous: along-path rate + any axis rate
+        closing = v_ego + v_agent
+        along = (
+            np.maximum.reduce(
+                [
+                    np.full(a.n, cost.desired_gap + cost.desired_time_headway * v_ego),
+                    np.full(a.n, cost.follow_time * v_ego),
+                    cost.desired_ttc * closing,
+                    safety.min_gap + safety.min_time_headway * v_ego + safety.min_ttc * closing,
+                    np.full(a.n, coll.margin_lon),
+                ]
+            )
+            + 2 * half_ego
+            + MAY_MATTER_SLACK_M
+        )[:, None]  # (K, 1)
+        lo = s0 - along - c.half_along_m
+        hi = s0 + reach_m + along + c.half_along_m
+        near_along = (c.arc_m >= lo) & (c.arc_m <= hi)
+        at_end = (c.arc_m >= ref_len - 1e-6) | (c.arc_m <= 1e-6)
+        gap = c.lateral_m - c.half_across_m
+        near_across = np.where(at_end, gap <= band + along, gap <= band + across)
+        return np.asarray((near_along & near_across).any(axis=1))
