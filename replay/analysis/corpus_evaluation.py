@@ -408,6 +408,13 @@ def _jsonable(value: Any) -> Any:
 
 
 # ---------------------------------------------------------------------- text
+#: How these AUCs are computed, and why ``replay stats``' differ (issue 31).
+EVALUATION_AUC_NOTE = (
+    "AUC: one ROC curve pooled over every agent-frame of every scene; 'replay stats'"
+    " averages per-situation curves (the paper's measure), so its AUCs differ"
+)
+
+
 def format_evaluation(summary: Mapping[str, Any]) -> str:
     """The end-of-run text: counts, each model's AUC against both references with
     intervals, and its miss rate against hindsight at the headline threshold."""
@@ -432,6 +439,7 @@ def format_evaluation(summary: Mapping[str, Any]) -> str:
             f"censored frames only (their positives count, their negatives are unknown): {shown}"
         )
     pct = f"{100 * level:g} %"
+    lines.append(EVALUATION_AUC_NOTE)
     lines.append(
         f"  {'model':<22}{'AUC survival':>14} {'[' + pct + ']':<15}{'AUC hindsight':>14} "
         f"{'[' + pct + ']':<15}{'miss (hindsight) @ keep all survival':>38}"

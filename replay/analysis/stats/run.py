@@ -105,6 +105,15 @@ def stats_of_inputs(
     return result, times
 
 
+#: How this AUC is computed, and why ``replay evaluate``'s differs (0.615 against 0.771
+#: on the same scenes surprised a user; issue 31).
+STATS_AUC_NOTE = (
+    "AUC: area under the mean of the per-situation ROC curves against the survival"
+    " baseline (each situation's TPR and FPR averaged at every threshold, as the paper"
+    " does); 'replay evaluate' pools all agent-frames into one curve, so its AUCs differ"
+)
+
+
 def format_stats(stats: DatasetStats, times: dict[str, float] | None = None) -> str:
     """The end-of-run summary: situations, each model's AUC and operating points, the
     cascade."""
@@ -115,6 +124,7 @@ def format_stats(stats: DatasetStats, times: dict[str, float] | None = None) -> 
         f"{sit['empty_baseline']} (TPR undefined), full in {sit['full_baseline']} (FPR "
         f"undefined), no agents in {sit['without_agents']}; "
         f"{s['baseline']['mean_important_per_situation']:.1f} important agents per situation",
+        STATS_AUC_NOTE,
         f"  {'model':<22}{'AUC':>7}{'σTPR@.95':>10}{'FPR@.95':>9}{'kept@.95':>10}{'kept@1':>8}",
     ]
     for name, m in s["models"].items():
