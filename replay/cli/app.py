@@ -126,7 +126,8 @@ def _end_line(stream: object) -> None:
 def _os_message(exc: OSError) -> str:
     """The error's message, naming the target file rather than its temporary file (or
     standard output, when that is what failed: ``replay models > /dev/full``)."""
-    if not exc.filename and exc.strerror and _stdout_failing():
+    if not exc.filename and exc.strerror and _from_stdout(exc):
+        _stdout_to_devnull()  # (so that the exit's own flush does not fail again)
         return f"cannot write to standard output: {exc.strerror}"
     if exc.strerror and exc.filename:
         name = target_of_temp(exc.filename)
@@ -139,15 +140,16 @@ def _os_message(exc: OSError) -> str:
     return message
 
 
-def _stdout_failing() -> bool:
-    """True when stdout cannot take what it holds (a full disk, a closed descriptor);
-    further writes then go nowhere, so that the exit does not fail a second time."""
-    try:
-        sys.stdout.flush()
-        return False
-    except (OSError, ValueError):
-        _stdout_to_devnull()
-        return True
+def _from_stdout(exc: OSError) -> bool:
+    """True when ``exc`` came from ``click.echo`` writing to stdout (not stderr): an
+    error without a file name (``replay models > /dev/full``) then names stdout."""
+    tb = exc.__traceback__
+    while tb is not None:
+        frame = tb.tb_frame
+        if frame.f_code.co_name == "echo" and frame.f_globals.get("__name__") == "click.utils":
+            return not frame.f_locals.get("err", False)
+        tb = tb.tb_next
+    return False
 
 
 def _stdout_to_devnull() -> None:
