@@ -16,7 +16,6 @@ import pathlib
 import signal
 import stat
 import subprocess
-import sys
 import threading
 import time
 
@@ -367,5 +366,17 @@ def test_time_line_names_what_was_written_not_classes(tmp_path):
     assert "TableSink" not in result.output and "SceneRecorder" not in result.output
 
 
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(pytest.main([__file__, "-q"]))
+
+
+def test_sensitivity_plot_takes_an_interval_that_misses_its_estimate(tmp_path):
+    """Issue 31: on two recorded scenes a bootstrap interval lay above its AUC and
+    matplotlib raised "'yerr' must not contain negative values"."""
+    from replay.analysis.evaluation_plots import plot_sensitivity
+
+    rows = pl.DataFrame({
+        "group": ["defaults", "tau"], "variant": ["-", "0.8"],
+        "reference": ["hindsight", "hindsight"], "model": ["gaussian", "gaussian"],
+        "auc": [0.60, 0.70], "ci_lo": [0.65, 0.50], "ci_hi": [0.80, 0.68],
+    })  # fmt: skip
+    out = plot_sensitivity(rows, tmp_path / "sensitivity.png")
+    assert out.is_file() and out.stat().st_size > 0
