@@ -366,8 +366,6 @@ def test_time_line_names_what_was_written_not_classes(tmp_path):
     assert "TableSink" not in result.output and "SceneRecorder" not in result.output
 
 
-
-
 def test_sensitivity_plot_takes_an_interval_that_misses_its_estimate(tmp_path):
     """Issue 31: on two recorded scenes a bootstrap interval lay above its AUC and
     matplotlib raised "'yerr' must not contain negative values"."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+from typing import Any
 
 import click
 
@@ -46,7 +47,7 @@ class FiniteRange(click.FloatRange):
     """A ``FloatRange`` that also refuses NaN and infinities (click's lets NaN through:
     every comparison with it is false)."""
 
-    def convert(self, value, param, ctx):  # type: ignore[no-untyped-def]
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
         rv = super().convert(value, param, ctx)
         if not math.isfinite(rv):
             self.fail(f"{value!r} is not a finite number", param, ctx)
