@@ -378,3 +378,40 @@ def test_sensitivity_plot_takes_an_interval_that_misses_its_estimate(tmp_path):
     })  # fmt: skip
     out = plot_sensitivity(rows, tmp_path / "sensitivity.png")
     assert out.is_file() and out.stat().st_size > 0
+
+
+def test_ctrl_c_while_batch_workers_start_prints_no_traceback(tmp_path, long_scene):
+    """Issue 31: Ctrl-C early in ``batch --workers 2`` made the starting workers print
+    KeyboardInterrupt tracebacks (they now start with SIGINT blocked)."""
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    for k in range(3):
+        os.link(long_scene, scenes / f"s{k}.mcap")
+    proc = subprocess.Popen(
+        [*REPLAY, "batch", str(scenes), "-o", "out", "--workers", "2", "--no-progress"],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and len(session_members(proc.pid)) < 3:
+        time.sleep(0.02)  # workers are being spawned: interrupt them while they import
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert "Stopped by SIGINT: complete scenes are kept" in err
+
+
+def test_sigterm_during_convert_situations_leaves_nothing(tmp_path):
+    args = ["convert", "synthetic", "--situations", "400", "-o", "sit", "--no-progress"]
+    proc = subprocess.Popen([*REPLAY, *args], cwd=tmp_path, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)  # fmt: skip
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not (tmp_path / "sit").exists():
+        time.sleep(0.05)
+    time.sleep(0.5)
+    os.killpg(proc.pid, signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err and "Stopped by SIGTERM" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == [], "partial or temporary files left"
