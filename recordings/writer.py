@@ -749,6 +749,7 @@ def _log_timelines(
     # agent added in the viewer takes the view's quiet grey. The series name is the
     # entity path, which holds the agent id.
     coloured = np.isin(agent_ids, np.asarray(focus, dtype=np.int64))
+    names = C.one_per_row([f"agent {int(a)}" for a in agent_ids], pa.utf8())
     static, batch = C.Batch(), _timed_batch(scene)  # every model in one record batch
     thresholds = {s.model: s.threshold for s in info.cascade.stages}
     for model in info.model_names:
@@ -766,6 +767,8 @@ def _log_timelines(
                 batch.add(path, C.SCALARS, cells.slice(a * n_frames, n_frames))
                 if coloured[a]:
                     static.add(path, C.SERIES_COLORS, colors.slice(a, 1))
+                    # the tab's legend names the agent (else: its entity path)
+                    static.add(path, C.SERIES_NAMES, names.slice(a, 1))
             if model in thresholds:
                 _log_threshold(rec, scene, model, thresholds[model], is_log)
     batch.send(rec)

@@ -415,3 +415,20 @@ def test_sigterm_during_convert_situations_leaves_nothing(tmp_path):
     assert proc.returncode == 143, err
     assert "Traceback" not in err and "Stopped by SIGTERM" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == [], "partial or temporary files left"
+
+
+def test_risk_tabs_have_a_legend_naming_their_agents(tmp_path):
+    from test_recordings import read_rrd
+
+    from recordings import layout as L
+
+    s = scene(tmp_path)
+    rrd = tmp_path / "s.rrd"
+    result = CliRunner().invoke(main, ["run", str(s), "-o", str(rrd), "--no-progress"])
+    assert result.exit_code == 0, result.output
+    ents = read_rrd(rrd)
+    named = {p: e.static["names"] for p, e in ents.items() if "/risk" in p and "names" in e.static}
+    assert named, "no risk timeline carries a series name"
+    for path, names in named.items():
+        agent = path.removeprefix(L.AGENTS + "/").split("/")[0]
+        assert names == [f"agent {agent}"], (path, names)
