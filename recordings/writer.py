@@ -535,8 +535,12 @@ def _label_texts(info: SceneInfo, scene: SceneRows, mode: str) -> np.ndarray:
         shown = np.ones(n, dtype=bool)
     else:
         survivor_tier = np.where(r["dropped_at"] < 0, r["tier"], -1)
-        wanted = r["is_ego"] | r["miss"] | (survivor_tier >= 0)
+        lead = _lead_rows(scene)
+        wanted = r["is_ego"] | r["miss"] | (survivor_tier >= 0) | lead
         priority = np.where(r["is_ego"], 1000, np.where(r["miss"], 100, survivor_tier + 1))
+        # The agent directly ahead of the ego keeps its label over any other but the
+        # ego's: de-cluttering hid it behind a tier agent beside it (issue 31).
+        priority = np.where(lead & ~r["is_ego"], 500, priority)
         shown = _declutter(scene, wanted, priority, L.LABEL_SPACING_M)
     # Texts only for the labelled rows (string operations are slow in numpy).
     rows = np.flatnonzero(shown)
@@ -549,13 +553,44 @@ def _label_texts(info: SceneInfo, scene: SceneRows, mode: str) -> np.ndarray:
             r["miss"][rows], np.char.add(np.char.add(ids, " MISS ✗"), stage),
             np.where(
                 r["dropped_at"][rows] >= 0, np.char.add(np.char.add(ids, " ✗"), stage),
-                np.char.rstrip(np.char.add(np.char.add(ids, " "), tags[r["tier"][rows]])),
+                np.where(
+                    r["tier"][rows] >= 0,
+                    np.char.rstrip(np.char.add(np.char.add(ids, " "), tags[r["tier"][rows]])),
+                    ids,  # (kept below the first tier: labelled as the agent ahead)
+                ),
             ),
         ),
     )  # fmt: skip
     out = np.full(n, "", dtype=text.dtype if text.size else "<U1")
     out[rows] = text
     return out
+
+
+#: Half the width of the corridor in which an agent counts as directly ahead of the ego.
+LEAD_HALF_WIDTH_M = 2.0
+
+
+def _lead_rows(scene: SceneRows) -> np.ndarray:
+    """Per frame, the row of the nearest agent ahead of the ego: in front of it along
+    its heading and within :data:`LEAD_HALF_WIDTH_M` of its centre line (vectorised
+    over all rows)."""
+    r = scene.rows
+    n_frames = scene.times_s.size
+    ego_row = np.full(n_frames, -1)
+    ego_rows = np.flatnonzero(r["is_ego"])
+    ego_row[scene.frame_of[ego_rows]] = ego_rows
+    e = ego_row[scene.frame_of]
+    has_ego = (e >= 0) & ~r["is_ego"]
+    e = np.maximum(e, 0)
+    d = r["xy"] - r["xy"][e]
+    c, s_ = np.cos(r["heading"][e]), np.sin(r["heading"][e])
+    lon = d[:, 0] * c + d[:, 1] * s_
+    lat = -d[:, 0] * s_ + d[:, 1] * c
+    ahead = has_ego & (lon > 0) & (np.abs(lat) < LEAD_HALF_WIDTH_M)
+    key = np.where(ahead, lon, np.inf)
+    best = np.full(n_frames, np.inf)
+    np.minimum.at(best, scene.frame_of, key)
+    return ahead & (key == best[scene.frame_of])
 
 
 def _declutter(

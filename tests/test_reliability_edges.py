@@ -432,3 +432,22 @@ def test_risk_tabs_have_a_legend_naming_their_agents(tmp_path):
     for path, names in named.items():
         agent = path.removeprefix(L.AGENTS + "/").split("/")[0]
         assert names == [f"agent {agent}"], (path, names)
+
+
+def test_the_agent_directly_ahead_of_the_ego_is_found_per_frame():
+    """Hand-made rows: frame 0 with the ego heading east, frame 1 heading north."""
+    from types import SimpleNamespace
+
+    from recordings.writer import _lead_rows
+
+    xy = np.array([
+        [0, 0], [10, 0.5], [5, 3], [-3, 0], [20, 0],  # frame 0: ego east; lead: (10, 0.5)
+        [0, 0], [1, 8], [0, 30], [0, -4],  # frame 1: ego north; lead: (1, 8)
+    ], dtype=float)  # fmt: skip
+    heading = np.array([0.0] * 5 + [np.pi / 2] * 4)
+    is_ego = np.array([1, 0, 0, 0, 0, 1, 0, 0, 0], dtype=bool)
+    scene_rows = SimpleNamespace(
+        rows={"xy": xy, "heading": heading, "is_ego": is_ego},
+        frame_of=np.array([0] * 5 + [1] * 4), times_s=np.array([0.0, 0.1]),
+    )  # fmt: skip
+    assert np.flatnonzero(_lead_rows(scene_rows)).tolist() == [1, 6]
