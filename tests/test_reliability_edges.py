@@ -225,8 +225,8 @@ def test_a_huge_truth_horizon_costs_no_more_than_the_scene(tmp_path):
     result = CliRunner().invoke(main, ["evaluate", str(s), "-o", str(tmp_path / "ev"),
                                        "--truth-horizon", "1e9", "--bootstrap", "0",
                                        "--no-plots", "--no-progress"])  # fmt: skip
-    assert result.exception is None or isinstance(result.exception, SystemExit), result.output
-    assert "Traceback" not in result.output and "MemoryError" not in result.output
+    assert result.exit_code == 0, result.output  # (7 TiB of padding before issue 31)
+    assert "shorter than the 1e+09 s horizon" in result.output
     assert time.monotonic() - start < 60
 
 
@@ -337,12 +337,16 @@ def test_stats_and_evaluate_say_how_their_auc_is_computed(tmp_path):
     assert stats.exit_code == 0, stats.output
     assert "mean of the per-situation ROC curves" in stats.output
     assert "'replay evaluate' pools" in stats.output
+    summary = json.loads((tmp_path / "st" / "summary.json").read_text())
+    assert summary["auc_method"].startswith("mean of the per-situation ROC curves")
     s = scene(tmp_path)
     ev = runner.invoke(main, ["evaluate", str(s), "-o", str(tmp_path / "ev"), "--bootstrap",
                               "0", "--no-plots", "--no-progress"])  # fmt: skip
-    if ev.exit_code == 0:
-        assert "pooled over every agent-frame" in ev.output
-        assert "'replay stats' averages per-situation curves" in ev.output
+    assert ev.exit_code == 0, ev.output  # (this scene has hindsight positives)
+    assert "pooled over every agent-frame" in ev.output
+    assert "'replay stats' averages per-situation curves" in ev.output
+    summary = json.loads((tmp_path / "ev" / "summary.json").read_text())
+    assert summary["auc_method"] == "one ROC curve pooled over every agent-frame"
 
 
 def test_batch_with_ray_missing_leaves_nothing(tmp_path):

@@ -191,6 +191,8 @@ def evaluate_table(
     short = _short_scenes(df, hindsight or HindsightSettings())
     return {
         "inputs": list(inputs),
+        # how every "auc" is computed (replay stats averages per situation; issue 31)
+        "auc_method": "one ROC curve pooled over every agent-frame",
         "settings": {
             **{k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(settings).items()},
             "models": models,
