@@ -455,3 +455,14 @@ def test_the_agent_directly_ahead_of_the_ego_is_found_per_frame():
         frame_of=np.array([0] * 5 + [1] * 4), times_s=np.array([0.0, 0.1]),
     )  # fmt: skip
     assert np.flatnonzero(_lead_rows(scene_rows)).tolist() == [1, 6]
+
+
+def test_evaluate_exits_non_zero_when_nothing_comes_close(tmp_path):
+    s = _crowd(tmp_path / "apart.mcap", 3, frames=30)  # 8 m apart, all driving east
+    out = tmp_path / "ev"
+    result = CliRunner().invoke(main, ["evaluate", str(s), "-o", str(out), "--truth-gap", "0",
+                                       "--truth-pet", "0", "--bootstrap", "0", "--no-plots",
+                                       "--no-progress"])  # fmt: skip
+    line = _clean_error(result)
+    assert "no agent came close in hindsight" in line
+    assert not out.exists()
