@@ -486,15 +486,18 @@ def _retyped(d: pathlib.Path, column: str, value: object, suffix: str = ".parque
     return path
 
 
-def without_statistics(src: pathlib.Path, path: pathlib.Path) -> pathlib.Path:
-    """A copy of the scene ``src`` written without MCAP's optional Statistics record."""
+def without_statistics(
+    src: pathlib.Path, path: pathlib.Path, *, statistics: bool = False, edit_map=None
+) -> pathlib.Path:
+    """A copy of the scene ``src`` written without MCAP's optional Statistics record
+    (``statistics=True``: with it), its ``/map`` message passed through ``edit_map``."""
     from mcap.reader import make_reader
     from mcap.writer import Writer
 
     with open(src, "rb") as f_in, open(path, "wb") as f_out:
         reader = make_reader(f_in)
         summary = reader.get_summary()
-        w = Writer(f_out, use_statistics=False)
+        w = Writer(f_out, use_statistics=statistics)
         w.start(profile="", library="test")
         schema_ids = {
             sid: w.register_schema(s.name, s.encoding, s.data) for sid, s in summary.schemas.items()
@@ -504,7 +507,15 @@ def without_statistics(src: pathlib.Path, path: pathlib.Path) -> pathlib.Path:
             for cid, c in summary.channels.items()
         }
         for _, channel, message in reader.iter_messages(log_time_order=False):
-            w.add_message(channel_ids[channel.id], message.log_time, message.data,
+            data = message.data
+            if channel.topic == "/map" and edit_map is not None:
+                from converters.scene import schema as sf
+
+                m = sf.Map()
+                m.ParseFromString(data)
+                edit_map(m)
+                data = m.SerializeToString()
+            w.add_message(channel_ids[channel.id], message.log_time, data,
                           message.publish_time)  # fmt: skip
         for record in reader.iter_metadata():
             w.add_metadata(record.name, record.metadata)
@@ -728,6 +739,16 @@ def round3_cases() -> list[Case]:
         w.close()
         s.unlink()
         return _run(["inspect", d / "v.mcap"], d / "v.mcap")
+
+    @add("exit0-scene-lane-point-2^62-mm", "exit-0")
+    def _(d):
+        def far(m):
+            m.lanes[0].x_mm[0] = 2**62
+
+        s = without_statistics(scene(d, ".ok.mcap"), d / "far.mcap", statistics=True,
+                               edit_map=far)  # fmt: skip
+        (d / ".ok.mcap").unlink()
+        return _run(["run", s, "--no-rrd", "--table", d / "t.parquet", "--no-progress"], s)
 
     @add("message-cut-parquet", "foreign")
     def _(d):

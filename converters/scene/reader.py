@@ -184,12 +184,11 @@ class SceneReader:
                 raise SceneFormatError(
                     f"{self.path}: /map lane {lane.id}: x_mm and y_mm differ in length"
                 )
-            line = (
-                np.column_stack(
-                    (np.array(lane.x_mm, dtype=np.int64), np.array(lane.y_mm, dtype=np.int64))
-                )
-                / sf.MM_PER_M
+            mm = np.column_stack(
+                (np.array(lane.x_mm, dtype=np.int64), np.array(lane.y_mm, dtype=np.int64))
             )
+            self._check_map_exact(f"lane {lane.id}", mm)
+            line = mm / sf.MM_PER_M
             lanes.append(
                 Lane(
                     id=int(lane.id),
@@ -211,6 +210,7 @@ class SceneReader:
             points = np.column_stack(
                 (np.array(line.x_mm, dtype=np.int64), np.array(line.y_mm, dtype=np.int64))
             )
+            self._check_map_exact(f"line {line.id}", points)
             kind = line.kind if line.kind in sf.MAP_LINE_KINDS else "other"
             lines.append(
                 MapLine(
@@ -546,6 +546,14 @@ class SceneReader:
             raise SceneFormatError(
                 f"{self.path}: frame {index}: {what} holds a value beyond the format's"
                 " 2**53 mm limit; the file is damaged, convert the source again"
+            )
+
+    def _check_map_exact(self, what: str, values: np.ndarray) -> None:
+        """A map point beyond 2**53 mm (2**62 mm converted and replayed without a word)."""
+        if values.size and np.abs(values).max() > _MAX_EXACT_MM:
+            raise SceneFormatError(
+                f"{self.path}: /map {what} holds a point beyond the format's 2**53 mm limit;"
+                " the file is damaged, convert the source again"
             )
 
     def _bad_length(self, index: int, what: str, got: int, expected: int) -> SceneFormatError:
