@@ -7,9 +7,13 @@ own session, with a time limit) and returns an :class:`Outcome`: exit status, wh
 traceback was printed, whether it hung, the ``Error:`` lines, whether the inputs changed
 (SHA-256) and which files were left behind in the case's folder.
 
-Kinds: corrupted, truncated, foreign, non-finite, out-of-range, same-path, unwritable.
-Full-disk and killed-mid-write cases need a tmpfs or signals; they live in the test
-module.
+Kinds: corrupted, truncated, foreign, non-finite, out-of-range, same-path, unwritable;
+and from issue 31 (:func:`round3_cases`): device (outputs that are named pipes), hang
+(named pipes as inputs, path candidates beyond the cap), memory (a metadata period that
+would size a 78 TiB grid), exit-0 (bad values that used to convert or replay), recursion
+(deep TOML and JSON) and converter (values that raised tracebacks). Full-disk,
+killed-mid-write, device-node and signal cases need a tmpfs, ``mknod`` or signals; they
+live in ``test_reliability.py`` and ``test_reliability_edges.py``.
 """
 
 from __future__ import annotations
@@ -563,6 +567,11 @@ def round3_cases() -> list[Case]:
                      "stats": ["-o", d / "st", "--no-progress"],
                      "evaluate": ["-o", d / "ev", "--no-progress"]}[cmd]  # fmt: skip
             return _run([cmd, d / "p.mcap", *extra])
+
+    @add("hang-fifo-batch-input", "hang")
+    def _(d):
+        os.mkfifo(d / "p.mcap")
+        return _run(["batch", d / "p.mcap", "-o", d / "out", "--no-progress"])
 
     @add("hang-many-path-candidates", "hang")
     def _(d):
