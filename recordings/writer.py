@@ -36,7 +36,14 @@ from outputs.transaction import run_with_stall_timeout
 from recordings import columns as C
 from recordings import layout as L
 from recordings.errors import RecordingError
-from recordings.frames import FrameRows, PackedFrames, SceneRows, WriteOptions
+from recordings.frames import (
+    MAX_RECORDED_AGENTS,
+    FrameRows,
+    PackedFrames,
+    SceneRows,
+    WriteOptions,
+    too_many_agents,
+)
 from recordings.summary import recording_name, summary_markdown
 from risk.cascade import SURVIVAL_MODEL
 from risk.registry import MODELS
@@ -71,12 +78,7 @@ def _write(
     scene = _concatenate(frames, info)
     n_agents = _agent_grid(scene)[0].size
     if n_agents > MAX_RECORDED_AGENTS:
-        raise RecordingError(
-            f"could not write {output}: the scene has {n_agents} agents, more than the"
-            f" {MAX_RECORDED_AGENTS} a recording draws (each is its own entity in the"
-            " viewer, and encoding them takes minutes); write a table instead (--no-rrd"
-            " --table FILE)"
-        )
+        raise too_many_agents(output, n_agents)
     models = tuple(info.model_names)
     log10_ranges = {
         m: _log10_range(scene.rows[f"risk:{m}"])
@@ -740,11 +742,6 @@ def _compute_agent_grid(scene: SceneRows) -> tuple[np.ndarray, np.ndarray, np.nd
     np.maximum.at(last, col, scene.frame_of[others])
     return agent_ids, column, first, last
 
-
-#: Agents (other than the ego) a recording draws at most: rerun encodes each as its own
-#: entity, about 1 ms each (20,000 agents in one frame: 23 s measured, and minutes before
-#: the timelines were bounded too).
-MAX_RECORDED_AGENTS = 5000
 
 #: Agents with their own risk timelines in one recording (the most important first; see
 #: :func:`focus_agents`). The scene view still draws every agent.

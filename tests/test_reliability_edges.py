@@ -231,7 +231,7 @@ def test_a_huge_truth_horizon_costs_no_more_than_the_scene(tmp_path):
 
 
 def test_a_recording_of_too_many_agents_is_refused_with_the_limit(tmp_path):
-    from recordings.writer import MAX_RECORDED_AGENTS
+    from recordings.frames import MAX_RECORDED_AGENTS
 
     s = _crowd(tmp_path / "crowd.mcap", MAX_RECORDED_AGENTS + 2, frames=1)
     start = time.monotonic()
@@ -239,6 +239,7 @@ def test_a_recording_of_too_many_agents_is_refused_with_the_limit(tmp_path):
                                        "--no-progress"])  # fmt: skip
     line = _clean_error(result, "c.rrd")
     assert f"more than the {MAX_RECORDED_AGENTS}" in line and "--table" in line
+    assert "Cascade" not in result.output  # refused before the replay, not after it
     assert time.monotonic() - start < 60
     assert _leftovers(tmp_path, {"crowd.mcap"}) == []
 
