@@ -218,6 +218,7 @@ class OutputGuard:
         self._locks: list[_Lock] = []
         self._created: list[pathlib.Path] = []  # folders that did not exist at the start
         self._pending: dict[pathlib.Path, pathlib.Path] = {}  # target -> temporary file
+        self._device_writes: list[tuple[pathlib.Path, pathlib.Path]] = []  # (device, tmp)
         self._backups: list[tuple[pathlib.Path, pathlib.Path | None]] = []  # committed early
         self._previous_hook: Callable[[pathlib.Path, pathlib.Path], None] | None = None
         self._pid = os.getpid()
@@ -340,6 +341,9 @@ class OutputGuard:
             os.replace(tmp, target)
             return
         self._check_target(target)
+        if atomic.target_kind(target) == "device":  # (-o /dev/null --table /dev/null: fine)
+            self._device_writes.append((target, tmp))
+            return
         old = self._pending.pop(target, None)
         if old is not None and old != tmp:
             old.unlink(missing_ok=True)
@@ -351,18 +355,20 @@ class OutputGuard:
         self._pending[target] = tmp
 
     def pending(self) -> dict[pathlib.Path, pathlib.Path]:
-        """Targets waiting for the commit -> their temporary files."""
-        return dict(self._pending)
+        """Targets waiting for the commit -> their temporary files (devices included)."""
+        return {**dict(self._device_writes), **self._pending}
 
     def commit_now(self, target: str | os.PathLike[str]) -> pathlib.Path:
         """Move one pending target into place now (to read it back); on a later failure
         it is removed, or its previous version restored."""
         target = pathlib.Path(target)
+        if atomic.target_kind(target) == "device":  # written through: nothing to restore
+            for entry in [e for e in self._device_writes if e[0] == target]:
+                self._device_writes.remove(entry)
+                atomic.place(entry[1], target)
+            return target
         tmp = self._pending.pop(target)
         backup = None
-        if atomic.target_kind(target) == "device":
-            atomic.place(tmp, target)
-            return target
         if target.exists():
             backup = target.with_name(f".{target.name}.{uuid.uuid4().hex[:12]}.tmp")
             os.link(target, backup)
@@ -375,8 +381,10 @@ class OutputGuard:
             self._check_target(target)
         # devices first: a device that refuses the bytes (/dev/full) fails the command
         # before any file has been renamed into place
-        order = sorted(self._pending.items(), key=lambda kv: atomic.target_kind(kv[0]) != "device")
-        for target, tmp in order:
+        while self._device_writes:
+            target, tmp = self._device_writes.pop(0)
+            atomic.place(tmp, target)
+        for target, tmp in list(self._pending.items()):
             atomic.place(tmp, target)
             del self._pending[target]
         for _, backup in self._backups:
@@ -385,6 +393,10 @@ class OutputGuard:
         self._backups.clear()
 
     def _rollback(self) -> None:
+        for _, tmp in self._device_writes:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+        self._device_writes.clear()
         for tmp in self._pending.values():
             with contextlib.suppress(OSError):
                 tmp.unlink(missing_ok=True)

@@ -467,3 +467,13 @@ def test_evaluate_exits_non_zero_when_nothing_comes_close(tmp_path):
     line = _clean_error(result)
     assert "no agent came close in hindsight" in line
     assert not out.exists()
+
+
+def test_two_outputs_onto_one_null_device_are_both_discarded(tmp_path):
+    s = scene(tmp_path)
+    null = _device(tmp_path, "null", 3)
+    result = CliRunner().invoke(main, ["run", str(s), "-o", str(null), "--table", str(null),
+                                       "--no-progress"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert _is_device(null)
+    assert _leftovers(tmp_path, {"s.mcap", "null"}) == []
