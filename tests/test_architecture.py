@@ -285,3 +285,17 @@ def test_commands_do_not_import_each_other():
     assert {"replay.cli.commands.run", "replay.cli.commands.demo"} <= commands
     graph = _file_graph()
     assert {c: graph[c] & commands for c in commands if graph[c] & commands} == {}
+
+
+def test_the_scene_package_imports_no_converter():
+    """converters.scene sits below every converter (the import contract lists today's
+    modules; this also covers ones added later): of the converters package it imports
+    only itself and the shared error type."""
+    graph = _file_graph()
+    scene = {m for m in graph if m == "converters.scene" or m.startswith("converters.scene.")}
+    assert {"converters.scene.reader", "converters.scene.writer"} <= scene
+    allowed = scene | {"converters", "converters.errors"}
+    outside = {
+        (m, t) for m in scene for t in graph[m] if t.startswith("converters") and t not in allowed
+    }
+    assert outside == set()
