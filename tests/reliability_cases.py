@@ -603,6 +603,11 @@ def round3_cases() -> list[Case]:
             s = tampered(d, "b.mcap", tamper=tamper)
             return _run(["run", s, "--no-rrd", "--table", d / "t.parquet", "--no-progress"], s)
 
+        @add(f"exit0-frame-times-{name}-inspect", "exit-0")
+        def _(d, tamper=tamper):
+            s = tampered(d, "b.mcap", tamper=tamper)
+            return _run(["inspect", s], s)
+
     # recursion
     @add("recursion-cascade-toml", "recursion")
     def _(d):

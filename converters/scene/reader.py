@@ -281,12 +281,7 @@ class SceneReader:
                 paths = pending[sf.TOPIC_PATHS].pop(index)
                 entry, columns = self._decode(agents, paths, any_ego=any_ego)
                 t_s = float(agents.t_s)
-                if previous is not None and (index <= previous[0] or not t_s > previous[1]):
-                    raise SceneFormatError(
-                        f"{self.path}: frame {index} (t={t_s:g} s) follows frame"
-                        f" {previous[0]} (t={previous[1]:g} s); frame indices and times must"
-                        " increase through the file: convert the source again"
-                    )
+                self._check_order(previous, index, t_s)
                 previous = (index, t_s)
                 states.append((order[index], (t_s, columns)))
                 yield entry
@@ -322,8 +317,11 @@ class SceneReader:
     def frame_stats(self) -> FrameStats:
         """Agent counts, times and ego presence of every frame, from ``/agents`` only."""
         rows = []
+        previous: tuple[int, float] | None = None
         for _, data in self._messages([sf.TOPIC_AGENTS]):
             m = self._parse(sf.Agents, data, sf.TOPIC_AGENTS)
+            self._check_order(previous, int(m.frame_index), float(m.t_s))
+            previous = (int(m.frame_index), float(m.t_s))
             ids = np.array(m.ids, dtype=np.int64)
             valid = np.array(m.valid, dtype=bool)
             if valid.shape != ids.shape:
@@ -546,6 +544,16 @@ class SceneReader:
             raise SceneFormatError(
                 f"{self.path}: frame {index}: {what} holds a value beyond the format's"
                 " 2**53 mm limit; the file is damaged, convert the source again"
+            )
+
+    def _check_order(self, previous: tuple[int, float] | None, index: int, t_s: float) -> None:
+        """Frames must come in increasing index and time (both ``run`` and ``inspect``:
+        times that ran backwards or repeated replayed with exit 0)."""
+        if previous is not None and (index <= previous[0] or not t_s > previous[1]):
+            raise SceneFormatError(
+                f"{self.path}: frame {index} (t={t_s:g} s) follows frame {previous[0]}"
+                f" (t={previous[1]:g} s); frame indices and times must increase through the"
+                " file: convert the source again"
             )
 
     def _check_map_exact(self, what: str, values: np.ndarray) -> None:
