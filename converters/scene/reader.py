@@ -549,7 +549,9 @@ class SceneReader:
     def _check_order(self, previous: tuple[int, float] | None, index: int, t_s: float) -> None:
         """Frames must come in increasing index and time (both ``run`` and ``inspect``:
         times that ran backwards or repeated replayed with exit 0)."""
-        if previous is not None and (index <= previous[0] or not t_s > previous[1]):
+        if previous is None or not (math.isfinite(t_s) and math.isfinite(previous[1])):
+            return  # (a time that is not finite is reported as such, by the frame's check)
+        if index <= previous[0] or not t_s > previous[1]:
             raise SceneFormatError(
                 f"{self.path}: frame {index} (t={t_s:g} s) follows frame {previous[0]}"
                 f" (t={previous[1]:g} s); frame indices and times must increase through the"
