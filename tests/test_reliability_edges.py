@@ -477,3 +477,28 @@ def test_two_outputs_onto_one_null_device_are_both_discarded(tmp_path):
     assert result.exit_code == 0, result.output
     assert _is_device(null)
     assert _leftovers(tmp_path, {"s.mcap", "null"}) == []
+
+
+def test_risk_timelines_are_bounded_to_the_agents_that_matter(tmp_path, monkeypatch):
+    """Issue 31: 20,000 agents' timelines kept rerun encoding for minutes. At most
+    MAX_TIMELINE_AGENTS agents get their own timelines (here lowered to 3)."""
+    from test_recordings import read_rrd
+
+    from recordings import layout as L
+    from recordings import writer
+
+    monkeypatch.setenv("RISKREPLAY_OUTPUT_PROCESS", "off")  # (the limit patched here)
+    monkeypatch.setattr(writer, "MAX_TIMELINE_AGENTS", 3)
+    s = scene(tmp_path)
+    rrd = tmp_path / "s.rrd"
+    result = CliRunner().invoke(main, ["run", str(s), "-o", str(rrd), "--no-progress"])
+    assert result.exit_code == 0, result.output
+    ents = read_rrd(rrd)
+    with_timeline = {
+        p.removeprefix(L.AGENTS + "/").split("/")[0]
+        for p, e in ents.items()
+        if p.startswith(L.AGENTS + "/") and "/risk" in p and e.rows
+    }
+    bodies = {p for p in ents if p.startswith(L.AGENTS + "/") and p.endswith("/body")}
+    assert len(bodies) > 3  # every agent is still drawn
+    assert 0 < len(with_timeline) <= 3, with_timeline
