@@ -546,6 +546,10 @@ def _pet_pairs(tracks: Tracks, e_col: np.ndarray, a_col: np.ndarray, h: int) -> 
     return pet
 
 
+#: (frame, ego, agent) entries of one :func:`hindsight_truth` call in
+#: :func:`truth_for_rows` (about 60 bytes each with the temporaries: 0.5 GB).
+TRUTH_BLOCK_ELEMENTS = 8_000_000
+
 #: Truths up to this many (frame, ego, agent) entries (about 26 bytes each) are kept
 #: with their tracks for the next :func:`truth_for_rows` call on the same egos.
 SHARED_TRUTH_MAX = 2_000_000
@@ -578,7 +582,9 @@ def truth_for_rows(
     table and the recording need it: ``(gap_m, pet_s, label)``, ``(R,)`` each; NaN gap or
     PET and ``LABEL_UNKNOWN`` for rows outside the tracks (an unknown time, ego or agent).
 
-    The egos of the rows are computed together (one :func:`hindsight_truth` call).
+    The egos of the rows are computed together (one :func:`hindsight_truth` call), in
+    blocks of egos whose ``(T, E, N)`` arrays stay within :data:`TRUTH_BLOCK_ELEMENTS`
+    (``--ego all`` on a long recording asked for gigabytes at once).
     """
     t_s = np.asarray(t_s, dtype=np.float64)
     n = t_s.size
@@ -588,10 +594,21 @@ def truth_for_rows(
         return gap, pet, label
     egos, ego_row = np.unique(np.asarray(ego_id, dtype=np.int64), return_inverse=True)
     ego_col = tracks.index_of(egos)
-    truth = _shared_truth(tracks, np.maximum(ego_col, 0), settings or HindsightSettings())
+    settings = settings or HindsightSettings()
     k = tracks.frame_of(t_s)
     a = tracks.index_of(np.asarray(agent_id, dtype=np.int64))
     ok = (k >= 0) & (k < tracks.n_frames) & (a >= 0) & (ego_col[ego_row] >= 0)
-    idx = (k[ok], ego_row[ok], a[ok])
-    gap[ok], pet[ok], label[ok] = truth.gap_m[idx], truth.pet_s[idx], truth.label[idx]
+    per_ego = max(1, tracks.n_frames * tracks.n_agents)
+    if egos.size * per_ego <= TRUTH_BLOCK_ELEMENTS:
+        truth = _shared_truth(tracks, np.maximum(ego_col, 0), settings)
+        idx = (k[ok], ego_row[ok], a[ok])
+        gap[ok], pet[ok], label[ok] = truth.gap_m[idx], truth.pet_s[idx], truth.label[idx]
+        return gap, pet, label
+    step = max(1, TRUTH_BLOCK_ELEMENTS // per_ego)
+    for start in range(0, egos.size, step):  # blocks of egos, each vectorised
+        cols = np.maximum(ego_col[start : start + step], 0)
+        truth = hindsight_truth(tracks, cols, settings=settings)
+        sel = ok & (ego_row >= start) & (ego_row < start + step)
+        idx = (k[sel], ego_row[sel] - start, a[sel])
+        gap[sel], pet[sel], label[sel] = truth.gap_m[idx], truth.pet_s[idx], truth.label[idx]
     return gap, pet, label
