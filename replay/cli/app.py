@@ -4,7 +4,12 @@ Subcommands live in ``replay/cli/commands/<name>.py`` and are imported only when
 ``replay --help`` stays fast. Errors meant for the user (every package's derive from
 :class:`risk.errors.RiskReplayError`) become one line ``Error: ...`` and exit code 1,
 without a traceback; so do system errors (``OSError``: a missing file, a full disk),
-whose message names the file.
+whose message names the file (or standard output: ``replay models > /dev/full``).
+
+Stopping: Ctrl-C, SIGTERM and SIGHUP (installed here, once, around every command: see
+:mod:`replay.core.process_exit`) unwind the command like an error, so that its output
+guard removes temporary and partial files and its workers are stopped; the command then
+prints one line saying what was kept and exits 130, 143 or 129.
 """
 
 from __future__ import annotations
