@@ -408,13 +408,13 @@ def test_ctrl_c_while_batch_workers_start_prints_no_traceback(tmp_path, long_sce
 
 
 def test_sigterm_during_convert_situations_leaves_nothing(tmp_path):
-    args = ["convert", "synthetic", "--situations", "400", "-o", "sit", "--no-progress"]
+    # (many situations: the signal must land while it writes, also on a fast machine)
+    args = ["convert", "synthetic", "--situations", "20000", "-o", "sit", "--no-progress"]
     proc = subprocess.Popen([*REPLAY, *args], cwd=tmp_path, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)  # fmt: skip
     deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and not (tmp_path / "sit").exists():
-        time.sleep(0.05)
-    time.sleep(0.5)
+    while time.monotonic() < deadline and not any((tmp_path / "sit").glob(".*.tmp")):
+        time.sleep(0.02)  # until the first situations are being written
     os.killpg(proc.pid, signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 143, err
