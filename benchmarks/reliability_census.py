@@ -15,6 +15,7 @@ import concurrent.futures as cf
 import pathlib
 import sys
 import tempfile
+import time
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 
@@ -28,6 +29,7 @@ def main() -> None:
     parser.add_argument("--verbose", action="store_true")
     ns = parser.parse_args()
     all_cases = cases()
+    start = time.monotonic()
     with (
         tempfile.TemporaryDirectory(prefix="reliability-") as root,
         cf.ThreadPoolExecutor(ns.jobs) as pool,
@@ -35,6 +37,7 @@ def main() -> None:
         outcomes: list[Outcome] = list(
             pool.map(lambda c: run_case(c, pathlib.Path(root, c.name), ns.time_limit), all_cases)
         )
+    wall = time.monotonic() - start
     rows = {
         "cases tried": len(outcomes),
         "clean errors": sum(o.clean_error for o in outcomes),
@@ -50,6 +53,9 @@ def main() -> None:
     print("cases by kind: " + ", ".join(f"{k} {sum(o.kind == k for o in outcomes)}" for k in kinds))
     for name, value in rows.items():
         print(f"{name:<22}{value:>5}")
+    slowest = max(outcomes, key=lambda o: o.seconds)
+    print(f"wall time {wall:.1f} s with {ns.jobs} jobs; slowest case {slowest.case}"
+          f" {slowest.seconds:.1f} s")  # fmt: skip
     bad = [o for o in outcomes if not o.clean_error]
     for o in bad if ns.verbose or bad else []:
         last = (o.error_lines or o.stderr.strip().splitlines() or ["(no output)"])[-1]

@@ -117,7 +117,38 @@ def read_table(parquet: pathlib.Path) -> pl.DataFrame:
         raise ConversionError(f"{parquet}: missing column(s) {', '.join(missing)}")
     if df.height == 0:
         raise ConversionError(f"{parquet}: no rows")
+    _check_types(df, parquet)
     return df
+
+
+#: Columns that must hold numbers (integers for the first group): a position of 'abc',
+#: a text timestamp or a timestep stored as text are a damaged or foreign file.
+_INTEGER_COLUMNS = ("timestep", "num_timestamps")
+_NUMBER_COLUMNS = (
+    "position_x", "position_y", "heading", "velocity_x", "velocity_y", "start_timestamp",
+    "end_timestamp",
+)  # fmt: skip
+
+
+def _check_types(df: pl.DataFrame, parquet: pathlib.Path) -> None:
+    def wrong(column: str, what: str) -> ConversionError:
+        return ConversionError(
+            f"{parquet}: column {column} holds {df.schema[column]} values, not {what}; not an"
+            " Argoverse 2 scenario file (or a damaged one)"
+        )
+
+    for column in _INTEGER_COLUMNS:
+        if column in df.columns and not df.schema[column].is_integer():
+            raise wrong(column, "integers")
+    for column in _NUMBER_COLUMNS:
+        if column in df.columns and not df.schema[column].is_numeric():
+            raise wrong(column, "numbers")
+    nulls = df.select(pl.col("track_id", "timestep").null_count()).row(0)
+    for column, count in zip(("track_id", "timestep"), nulls, strict=True):
+        if count:
+            raise ConversionError(
+                f"{parquet}: column {column} is empty (null) in {count} row(s); every row needs one"
+            )
 
 
 def scenario_tracks(df: pl.DataFrame, where: str) -> tuple[TrackTable, list[str], dict]:
@@ -202,6 +233,11 @@ def read_lane_map(path: pathlib.Path | None) -> LaneMap:
                 )
             )
         lines = av2_lines(data)
+    except RecursionError:  # (json and the walk below recurse once per level)
+        raise ConversionError(
+            f"{path}: not an Argoverse 2 map (nested deeper than Python can parse; a map"
+            " nests a few levels)"
+        ) from None
     except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise ConversionError(
             f"{path}: not an Argoverse 2 map ({type(exc).__name__}: {exc})"

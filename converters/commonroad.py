@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from converters.errors import ConversionError
-from converters.input_checks import MAX_STEPS, check_grid
+from converters.input_checks import MAX_STEPS, check_grid, check_points, integer_id
 from converters.lanegraph import PathSettings, dedupe, lanelet_centerline
 from converters.map_lines import commonroad_lines
 from converters.tracks import Skipped, TrackTable, build_scene, moving_ego
@@ -48,6 +48,8 @@ from risk.frame import Kind, Lane, LaneMap, Scene
 
 CONVERTER = "converters.commonroad"
 CONVERTER_VERSION = "2"
+#: The longest time step accepted (an hour; 1e300 overflowed the time grid).
+MAX_TIME_STEP_S = 3600.0
 
 OBSTACLE_KINDS: dict[str, Kind] = {
     "car": Kind.VEHICLE,
@@ -150,7 +152,10 @@ def _shape_size(shape: ET.Element | None) -> tuple[float, float]:
 def parse_obstacle(elem: ET.Element, dt_s: float) -> Obstacle:
     """One ``dynamicObstacle`` or ``staticObstacle`` (its one ``initialState``; the
     caller spreads it over the scene); raises ValueError naming what is wrong."""
-    oid = int(elem.get("id", ""))
+    try:
+        oid = int(elem.get("id", "").strip())
+    except ValueError:
+        raise ValueError(f"the id must be an integer, got {elem.get('id')!r}") from None
     kind = OBSTACLE_KINDS.get((elem.findtext("type") or "").strip(), Kind.OTHER)
     length, width = _shape_size(elem.find("shape"))
     states = [s for s in [elem.find("initialState")] if s is not None]
@@ -208,12 +213,14 @@ def _fill_motion(
 def read_lane_map(root: ET.Element, where: str) -> LaneMap:
     lanes = []
     for elem in root.findall("lanelet"):
+        lid = integer_id(elem.get("id"), f"{where}: lanelet {elem.get('id')!r}")
         try:
-            lid = int(elem.get("id", ""))
             left = np.array([_point(p) for p in elem.findall("leftBound/point")])
             right = np.array([_point(p) for p in elem.findall("rightBound/point")])
         except ValueError as exc:
             raise ConversionError(f"{where}: lanelet {elem.get('id')!r}: {exc}") from None
+        for bound, pts in (("leftBound", left), ("rightBound", right)):
+            check_points(pts, f"{where}: lanelet {lid} {bound}")
         if len(left) < 2 or len(right) < 2:
             continue
         line = dedupe(lanelet_centerline(dedupe(left), dedupe(right)))
@@ -221,7 +228,10 @@ def read_lane_map(root: ET.Element, where: str) -> LaneMap:
             continue
         types = {(t.text or "").strip() for t in elem.findall("laneletType")}
         kind = next((k for name, k in LANELET_KINDS if name in types), "vehicle")
-        successors = tuple(int(s.get("ref", "")) for s in elem.findall("successor"))
+        successors = tuple(
+            integer_id(s.get("ref"), f"{where}: lanelet {lid}: successor", "ref")
+            for s in elem.findall("successor")
+        )
         lanes.append(Lane(id=lid, centerline=line, successors=successors, kind=kind))
     try:
         lines = commonroad_lines(root)
@@ -321,8 +331,10 @@ def read_scene(
         dt_s = float(root.get("timeStepSize", ""))
     except ValueError:
         raise ConversionError(f"{path}: <commonRoad> has no numeric timeStepSize") from None
-    if not (np.isfinite(dt_s) and dt_s > 0):
-        raise ConversionError(f"{path}: timeStepSize must be > 0, got {dt_s}")
+    if not (np.isfinite(dt_s) and 0 < dt_s <= MAX_TIME_STEP_S):
+        raise ConversionError(
+            f"{path}: timeStepSize must be > 0 and at most {MAX_TIME_STEP_S:g} s, got {dt_s:g}"
+        )
     obstacles = read_obstacles(root, dt_s, where, skip_bad=skip_bad, skipped=skipped)
     if not obstacles:
         raise ConversionError(f"{path}: no dynamic obstacle to replay")

@@ -19,18 +19,19 @@ memory (e.g. an AV2 ``timestep`` of 1e12), before anything is allocated.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from converters.errors import ConversionError
+from outputs.memory import available_bytes
 
 MAX_ABS_POSITION_M = 2.0**53 / 1000.0  # the scene format stores millimetres exactly up to 2**53
 MAX_STEPS = 10_000_000  # time steps of one scenario (at 10 Hz: 11.6 days)
 BYTES_PER_STATE = 64  # xy, heading, speed, length, width, valid and the frames built from them
 SHOWN = 5  # bad records named in a --skip-bad note
+MAX_GAP_STEPS = 10_000  # a gap inside one recording (at 10 Hz: 17 minutes)
 
 
 @dataclass
@@ -116,18 +117,25 @@ REASONS = (
 
 
 def available_memory_bytes() -> int | None:
-    """Memory the system can still give (``MemAvailable``), or None if unknown."""
-    try:
-        with open("/proc/meminfo", encoding="ascii") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (OSError, ValueError, AttributeError):
-        return None
+    """Memory the system can still give (:func:`outputs.memory.available_bytes`)."""
+    return available_bytes()
+
+
+def check_gaps(steps: np.ndarray, *, source: str, what: str = "frame_id") -> None:
+    """Refuse time steps with a gap far larger than the recording itself (one
+    ``frame_id`` of 9,000,000 among frames 1-5): the dense grid would span the gap, so
+    one corrupt value sized it (a 9-million-frame grid) and the file still converted."""
+    distinct = np.unique(np.asarray(steps))
+    if distinct.size < 2:
+        return
+    gaps = np.diff(distinct)
+    worst = int(gaps.argmax())
+    if gaps[worst] > max(MAX_GAP_STEPS, 10 * distinct.size):
+        raise ConversionError(
+            f"{source}: {what} jumps from {distinct[worst]:g} to {distinct[worst + 1]:g}, a"
+            f" gap of {gaps[worst]:g} steps in a recording of {distinct.size} steps; a value"
+            " is corrupt"
+        )
 
 
 def check_grid(n_steps: float, n_tracks: int, *, source: str, what: str = "time steps") -> None:
@@ -146,3 +154,28 @@ def check_grid(n_steps: float, n_tracks: int, *, source: str, what: str = "time 
             f" {what} x {n_tracks} tracks) but {free / 2**30:.1f} GiB is available; a time"
             " value is probably corrupt"
         )
+
+
+def check_points(points: np.ndarray, where: str) -> None:
+    """Refuse map points (lane bounds, centerlines, nodes) that are not finite or lie
+    beyond the scene format's range, naming ``where`` (file and element): a NaN bound
+    otherwise vanished into a converted lane, and 2**62 mm failed only when writing."""
+    pts = np.asarray(points, dtype=np.float64)
+    if not pts.size:
+        return
+    if not np.isfinite(pts).all():
+        raise ConversionError(f"{where}: a point is not finite (NaN or infinite); fix the map")
+    if np.abs(pts).max() > MAX_ABS_POSITION_M:
+        raise ConversionError(
+            f"{where}: a point lies {np.abs(pts).max():.3g} m from the origin, beyond the"
+            f" scene format's {MAX_ABS_POSITION_M:.3g} m; fix the map"
+        )
+
+
+def integer_id(text: object, where: str, what: str = "id") -> int:
+    """``text`` as an integer id, or a ConversionError saying which element has which
+    value (rather than ``invalid literal for int() with base 10``)."""
+    try:
+        return int(str(text).strip())
+    except (ValueError, TypeError):
+        raise ConversionError(f"{where}: {what} must be an integer, got {text!r}") from None

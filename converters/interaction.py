@@ -28,6 +28,7 @@ parser it replaced in docs/recorded-data.md). Mapping (docs/recorded-data.md has
 from __future__ import annotations
 
 import json
+import math
 import os
 import pathlib
 import re
@@ -40,7 +41,7 @@ import polars as pl
 from lanelet2.projection import UtmProjector
 
 from converters.errors import ConversionError
-from converters.input_checks import MAX_STEPS, check_grid
+from converters.input_checks import MAX_STEPS, check_gaps, check_grid
 from converters.lanegraph import PathSettings, lanelet_centerline
 from converters.tracks import Skipped, TrackTable, build_scene, integer_ids, moving_ego
 from risk.frame import Kind, Lane, LaneMap, Scene
@@ -104,6 +105,7 @@ def read_lane_map(path: str | os.PathLike, origin: tuple[float, float] = (0.0, 0
     root = found.group(1) if found else "?"
     if root != "osm":
         raise ConversionError(f"{path}: not an OSM map (root element <{root}>, expected <osm>)")
+    _check_node_coordinates(path)
     projector = UtmProjector(lanelet2.io.Origin(*origin))
     try:
         lmap, errors = lanelet2.io.loadRobust(str(path), projector)
@@ -125,6 +127,30 @@ def read_lane_map(path: str | os.PathLike, origin: tuple[float, float] = (0.0, 0
         if attrs.get("one_way") == "no":
             directed.append((-ll.id, ll.invert(), kind))
     return LaneMap(tuple(_lanes(directed, local)))
+
+
+_NODE = re.compile(rb"<node\b[^>]*>")
+_COORDINATE = re.compile(rb'\b(lat|lon)\s*=\s*["\']([^"\']*)["\']')
+_RANGES = {b"lat": 90.0, b"lon": 180.0}
+
+
+def _check_node_coordinates(path: pathlib.Path) -> None:
+    """Every node's ``lat``/``lon`` is a number in range (Lanelet2 reads ``lat='north'``
+    as 0 and projects 1e300 to infinity, and the map then converted without a word)."""
+    with open(path, "rb") as fh:
+        data = fh.read()
+    for node in _NODE.finditer(data):
+        for name, text in _COORDINATE.findall(node.group(0)):
+            try:
+                value = float(text)
+            except ValueError:
+                value = math.nan
+            if not (math.isfinite(value) and abs(value) <= _RANGES[name]):
+                shown = node.group(0)[:80].decode("utf-8", "replace")
+                raise ConversionError(
+                    f"{path}: {shown}: {name.decode()}={text.decode('utf-8', 'replace')!r} is"
+                    f" not a {'latitude' if name == b'lat' else 'longitude'} in degrees"
+                )
 
 
 def _local_positions(lmap: Any) -> dict[int, tuple[float, float]] | None:
@@ -205,6 +231,14 @@ def read_rows(
         parsed = parsed.filter(~pl.col("line").is_in(lines))
     if parsed.height == 0:
         raise ConversionError(f"{path}: no usable rows")
+    broken = parsed.filter(
+        pl.any_horizontal([pl.col(c).str.contains(r"[\r\n]") for c in ("track_id", "agent_type")])
+    )
+    if broken.height:  # a quoted field across lines: the file is damaged or foreign
+        raise ConversionError(
+            f"{path}: line {broken['line'][0]}: a quoted field holds a line break; track"
+            " files have one record per line (the file is damaged)"
+        )
     return parsed
 
 
@@ -214,6 +248,14 @@ def rows_to_table(df: pl.DataFrame, where: str) -> tuple[TrackTable, list[str], 
     raw = df["frame_id"].to_numpy()
     if not (np.abs(raw) <= MAX_STEPS).all():
         raise ConversionError(f"{where}: a frame_id is beyond {MAX_STEPS}; the file is corrupt")
+    whole = raw == np.floor(raw)
+    if not whole.all():
+        at = int(np.argmin(whole))
+        line = f"line {df['line'][at]}: " if "line" in df.columns else ""
+        raise ConversionError(
+            f"{where}: {line}frame_id {raw[at]:g} is not a whole number; frame ids count frames"
+        )
+    check_gaps(raw, source=where)
     frame = raw.astype(np.int64)
     first = int(frame.min())
     step = frame - first

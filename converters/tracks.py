@@ -112,15 +112,38 @@ def moving_ego(table: TrackTable) -> tuple[int, str]:
     usable = table.usable()
     dist = track_extents(np.where(usable[:, :, None], table.xy, 0.0), usable)
     vehicle = table.kinds == Kind.VEHICLE
-    for pool, what in ((vehicle, "vehicle"), (np.ones_like(vehicle), "agent")):
+    counts = usable.sum(axis=0)
+    n_frames = int(usable.any(axis=1).sum())
+    # Present for at least half of the frames first: an ego seen in 27 of 76 frames made
+    # every other frame's negatives censored (issue 31).
+    long = counts >= EGO_MIN_COVERAGE * n_frames
+    anyone = np.ones_like(vehicle)
+    pools = ((vehicle & long, "vehicle", True), (vehicle, "vehicle", False),
+             (anyone & long, "agent", True), (anyone, "agent", False))  # fmt: skip
+    for pool, what, present in pools:
         candidates = np.flatnonzero(pool & (dist >= MOVING_EGO_MIN_M))
         if candidates.size:
             best = candidates[np.lexsort((table.ids[candidates], -dist[candidates]))[0]]
-            return int(best), f"the {what} that travels farthest ({dist[best]:.1f} m)"
-    counts = usable.sum(axis=0)
+            among = " of those present in at least half of the frames" if present else ""
+            why = f"the {what} that travels farthest ({dist[best]:.1f} m){among}"
+            return int(best), why + _coverage_warning(int(counts[best]), n_frames)
     best = int(np.lexsort((table.ids, -counts))[0])
     return best, (
         f"no agent travels {MOVING_EGO_MIN_M:g} m: the one with the most states ({counts[best]})"
+    ) + _coverage_warning(int(counts[best]), n_frames)
+
+
+#: An ego present in fewer than this share of the frames is chosen only when no agent is
+#: present longer, and with a warning.
+EGO_MIN_COVERAGE = 0.5
+
+
+def _coverage_warning(present: int, n_frames: int) -> str:
+    if n_frames == 0 or present >= EGO_MIN_COVERAGE * n_frames:
+        return ""
+    return (
+        f"; warning: it is present in only {present} of {n_frames} frames, so the rest of"
+        " the scene has no ego view and its negatives are censored: choose another with --ego"
     )
 
 
@@ -318,7 +341,7 @@ def _frames(
     bounds = np.searchsorted(rows.frame, np.arange(steps.size + 1))
     frames: list[Frame] = []
     for f, step in enumerate(
-        tqdm(steps, desc="frames", unit="frame", disable=not progress, leave=False)
+        tqdm(steps, desc="frames", unit="frame", disable=None if progress else True, leave=False)
     ):
         lo, hi = bounds[f], bounds[f + 1]
         count = rows.count[lo:hi]

@@ -307,5 +307,10 @@ def _serve(conn: multiprocessing.connection.Connection, preload: tuple[str, ...]
             reply = (False, exc, "" if _quiet(exc) else traceback.format_exc())
         try:
             conn.send(reply)
+        except OSError:  # the parent is gone (stopped by a signal): no one to tell
+            return
         except Exception:  # a result or exception that does not pickle: send its text
-            conn.send((False, RuntimeError(repr(reply[1])), reply[2]))
+            try:
+                conn.send((False, RuntimeError(repr(reply[1])), reply[2]))
+            except OSError:
+                return

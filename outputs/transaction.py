@@ -12,6 +12,10 @@ Entering the guard, before any work starts:
    resolved path otherwise, so symlinks and hard links count as the same file.
 2. **Paths.** An output file must not be a folder and its folder must exist (or be
    creatable, for commands that create folders); an output folder must not be a file.
+   An output that is a character device (``/dev/null``) is written through, never
+   replaced (see :mod:`outputs.atomic`); a named pipe, socket or block device is refused,
+   as is an input that is not a file or folder (a named pipe with no writer would block
+   the command for ever).
 3. **Lock.** Each output takes a lock file beside it (``.NAME.lock``, ``flock``): a second
    command writing the same outputs is refused with a clear message instead of mixing
    its files with the first one's. Creating the lock file also proves the folder is
@@ -60,6 +64,11 @@ TEMP_NAME = re.compile(r"^\.(?P<target>.+)\.[0-9a-f]{12}\.tmp$")
 
 LOCK_SUFFIX = ".lock"
 
+_KIND_NAMES = {
+    "device": "a device", "pipe": "a named pipe", "socket": "a socket",
+    "block device": "a block device",
+}  # fmt: skip
+
 
 class OutputError(RiskReplayError, RuntimeError):
     """An output path cannot be used: it is an input, used twice, locked or unwritable,
@@ -87,7 +96,8 @@ def free_bytes(folder: str | os.PathLike[str]) -> int | None:
 
 
 def target_of_temp(path: str | os.PathLike[str]) -> str | os.PathLike[str]:
-    """The target a temporary file of :mod:`outputs.atomic` stands for (else ``path``)."""
+    """The target a temporary file of :mod:`outputs.atomic` stands for (else ``path``; a
+    target whose name was too long to keep whole in the temporary name is not known)."""
     m = TEMP_NAME.match(os.path.basename(os.fspath(path)))
     if m is None:
         return path
@@ -96,7 +106,7 @@ def target_of_temp(path: str | os.PathLike[str]) -> str | os.PathLike[str]:
 
 def lock_path(target: pathlib.Path) -> pathlib.Path:
     """The lock file of an output file or folder: ``.NAME.lock`` beside it."""
-    return target.with_name(f".{target.name}{LOCK_SUFFIX}")
+    return target.with_name(f".{atomic.hidden_stem(target.name, len(LOCK_SUFFIX))}{LOCK_SUFFIX}")
 
 
 def stale_temps(target: pathlib.Path, *, folder: bool = False) -> list[pathlib.Path]:
@@ -110,11 +120,12 @@ def stale_temps(target: pathlib.Path, *, folder: bool = False) -> list[pathlib.P
         return sorted(found)
     parent = target.parent
     if parent.is_dir():
-        prefix = f".{target.name}."
+        stem = atomic.hidden_stem(target.name)
+        prefix = f".{stem}."
         with os.scandir(parent) as entries:
             for e in entries:
                 m = TEMP_NAME.match(e.name)
-                if m and e.name.startswith(prefix) and m.group("target") == target.name:
+                if m and e.name.startswith(prefix) and m.group("target") == stem:
                     found.append(pathlib.Path(e.path))
     return sorted(found)
 
@@ -207,6 +218,7 @@ class OutputGuard:
         self._locks: list[_Lock] = []
         self._created: list[pathlib.Path] = []  # folders that did not exist at the start
         self._pending: dict[pathlib.Path, pathlib.Path] = {}  # target -> temporary file
+        self._device_writes: list[tuple[pathlib.Path, pathlib.Path]] = []  # (device, tmp)
         self._backups: list[tuple[pathlib.Path, pathlib.Path | None]] = []  # committed early
         self._previous_hook: Callable[[pathlib.Path, pathlib.Path], None] | None = None
         self._pid = os.getpid()
@@ -214,8 +226,18 @@ class OutputGuard:
     # ------------------------------------------------------------------ checks
     def check(self) -> None:
         """The path checks alone (1 and 2 of the module docstring)."""
-        outputs = [*self.files, *self.folders]
+        for inp in self.inputs:
+            kind = atomic.target_kind(inp)
+            if kind not in ("file", "folder", "missing"):
+                raise OutputError(
+                    f"{inp}: is {_KIND_NAMES[kind]}, not a file; give the file itself"
+                    " (a pipe or device would be read for ever or not at all)"
+                )
+        devices = [p for p in self.files if self._device(p)]
+        outputs = [p for p in [*self.files, *self.folders] if p not in devices]
         for path in self.files:
+            if path in devices:
+                continue  # written through (outputs.atomic.place)
             if path.is_dir():
                 raise OutputError(f"{path}: is a folder; give a file name for this output")
             parent = path.parent
@@ -244,6 +266,13 @@ class OutputGuard:
                         " give each output its own path"
                     )
 
+    @staticmethod
+    def _device(path: pathlib.Path) -> bool:
+        try:
+            return atomic.check_target(path) == "device"
+        except OSError as exc:
+            raise OutputError(f"{path}: {exc.strerror}") from None
+
     def _check_target(self, target: pathlib.Path) -> None:
         for inp in self.inputs:
             if same_file(target, inp):
@@ -259,11 +288,12 @@ class OutputGuard:
             for folder in self._folders_to_create():
                 folder.mkdir()
                 self._created.append(folder)
-            for target in sorted({*self.files, *self.folders}, key=str):
+            devices = {p for p in self.files if self._device(p)}
+            for target in sorted({*self.files, *self.folders} - devices, key=str):
                 lock = _Lock(lock_path(target), target)
                 lock.acquire()
                 self._locks.append(lock)
-            for target in self.files:
+            for target in set(self.files) - devices:
                 self._remove_stale(stale_temps(target))
             for target in self.folders:
                 self._remove_stale(stale_temps(target, folder=True))
@@ -311,19 +341,32 @@ class OutputGuard:
             os.replace(tmp, target)
             return
         self._check_target(target)
+        if atomic.target_kind(target) == "device":  # (-o /dev/null --table /dev/null: fine)
+            self._device_writes.append((target, tmp))
+            return
         old = self._pending.pop(target, None)
         if old is not None and old != tmp:
             old.unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)
+            raise OutputError(
+                f"{target}: two outputs of this command would be written to this one file;"
+                " give each output its own path"
+            )
         self._pending[target] = tmp
 
     def pending(self) -> dict[pathlib.Path, pathlib.Path]:
-        """Targets waiting for the commit -> their temporary files."""
-        return dict(self._pending)
+        """Targets waiting for the commit -> their temporary files (devices included)."""
+        return {**dict(self._device_writes), **self._pending}
 
     def commit_now(self, target: str | os.PathLike[str]) -> pathlib.Path:
         """Move one pending target into place now (to read it back); on a later failure
         it is removed, or its previous version restored."""
         target = pathlib.Path(target)
+        if atomic.target_kind(target) == "device":  # written through: nothing to restore
+            for entry in [e for e in self._device_writes if e[0] == target]:
+                self._device_writes.remove(entry)
+                atomic.place(entry[1], target)
+            return target
         tmp = self._pending.pop(target)
         backup = None
         if target.exists():
@@ -336,8 +379,13 @@ class OutputGuard:
     def _commit_all(self) -> None:
         for target in self._pending:
             self._check_target(target)
+        # devices first: a device that refuses the bytes (/dev/full) fails the command
+        # before any file has been renamed into place
+        while self._device_writes:
+            target, tmp = self._device_writes.pop(0)
+            atomic.place(tmp, target)
         for target, tmp in list(self._pending.items()):
-            os.replace(tmp, target)
+            atomic.place(tmp, target)
             del self._pending[target]
         for _, backup in self._backups:
             if backup is not None:
@@ -345,6 +393,10 @@ class OutputGuard:
         self._backups.clear()
 
     def _rollback(self) -> None:
+        for _, tmp in self._device_writes:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+        self._device_writes.clear()
         for tmp in self._pending.values():
             with contextlib.suppress(OSError):
                 tmp.unlink(missing_ok=True)
@@ -400,6 +452,8 @@ class OutputGuard:
 # ---------------------------------------------------------------------- stalled I/O
 STALL_ENV = "RISKREPLAY_STALL_TIMEOUT_S"
 DEFAULT_STALL_S = 60.0
+#: Free space above which a stalled save is not blamed on a full disk.
+ROOMY_BYTES = 1 << 30
 
 
 def stall_timeout_s() -> float:
@@ -449,6 +503,15 @@ def run_with_stall_timeout(
             last_size, last_change = size, now
         elif now - last_change > limit:
             free = free_bytes(target.parent)
+            if free is not None and free > ROOMY_BYTES:
+                # Not the disk: the writer itself is stuck, or still encoding before it
+                # writes (a false "disk full" sent users to free space for nothing).
+                raise OutputError(
+                    f"could not write {target}: the writer made no progress for {limit:g} s"
+                    f" although {free / 2**30:.1f} GiB are free in {target.parent}; the"
+                    f" output may be too large to write in time (set {STALL_ENV} to wait"
+                    " longer) or the writer is stuck"
+                )
             space = "" if free is None else f", {free} bytes free in {target.parent}"
             raise OutputError(
                 f"could not write {target}: the save made no progress for {limit:g} s"

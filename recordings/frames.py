@@ -6,11 +6,20 @@ other's module for its types.
 
 from __future__ import annotations
 
+import pathlib
 from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from recordings.errors import RecordingError
+
 APPLICATION_ID = "riskreplay"
+
+#: Agents (other than the ego) a recording draws at most: rerun encodes each as its own
+#: entity, about 1 ms each (20,000 agents in one frame: 23 s measured, and minutes before
+#: the risk timelines were bounded too). Checked before the replay when the scene's
+#: tracks are known, else when writing.
+MAX_RECORDED_AGENTS = 5000
 
 
 @dataclass(frozen=True)
@@ -140,3 +149,13 @@ class SceneRows:
     rows: dict[str, np.ndarray] = field(default_factory=dict)  # name -> (K, ...) or (S, K)
     #: _agent_grid's result, computed once: agent ids, column of each row, first and last frame
     grid: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+
+
+def too_many_agents(output: pathlib.Path, n_agents: int) -> RecordingError:
+    """The error for a scene of more than :data:`MAX_RECORDED_AGENTS` other agents."""
+    return RecordingError(
+        f"could not write {output}: the scene has {n_agents} agents besides the ego, more"
+        f" than the {MAX_RECORDED_AGENTS} a recording draws (each is its own entity in"
+        " the viewer, and encoding them takes minutes); write a table instead (--no-rrd"
+        " --table FILE)"
+    )

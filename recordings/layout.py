@@ -421,7 +421,10 @@ def _risk_view(
         name=title,
         origin="/",
         contents=contents or ["- /**"],
-        plot_legend=rrb.PlotLegend(visible=False),  # the agent id shows on hover
+        # A legend of the agents the tab opens on (at most FOCUS_AGENTS_MAX, named
+        # "agent <id>") and the stage threshold: without one, a user could not tell
+        # which line is which agent (issue 31).
+        plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True),
         # Series without their own style (agents the cascade never kept) are quiet grey.
         defaults=[rr.SeriesLines(colors=QUIET_SERIES, widths=1.0)],
         axis_y=None if log10_range is None else rrb.ScalarAxis(range=log10_range),

@@ -31,7 +31,14 @@ from outputs import process as output_process
 from outputs.atomic import commit, temp_path_beside
 from outputs.sinks import FrameResult, SceneInfo
 from recordings.errors import RecordingError
-from recordings.frames import APPLICATION_ID, FrameRows, PackedFrames, WriteOptions
+from recordings.frames import (
+    APPLICATION_ID,
+    MAX_RECORDED_AGENTS,
+    FrameRows,
+    PackedFrames,
+    WriteOptions,
+    too_many_agents,
+)
 from risk.hindsight import LABEL_POSITIVE, LABEL_UNKNOWN, truth_for_rows
 
 LabelMode = Literal["kept", "all", "none"]
@@ -55,6 +62,8 @@ class SceneRecorder:
     output process, which imports rerun while the replay runs (see the module's text);
     ignored where that cannot help (one CPU) or cannot work (no ``fork``).
     """
+
+    timing_name = "writing the recording"  # (named for the timing line, not the class)
 
     def __init__(
         self,
@@ -93,6 +102,10 @@ class SceneRecorder:
             raise RecordingError(f"cannot write {self.output}: folder {folder} does not exist")
         if not os.access(folder, os.W_OK):
             raise RecordingError(f"cannot write {self.output}: folder {folder} is not writable")
+        if info.tracks is not None:  # refused before the replay, not after it
+            n_others = info.tracks().n_agents - 1
+            if n_others > MAX_RECORDED_AGENTS:
+                raise too_many_agents(self.output, n_others)
         self._info = info
         self._state = "open"
         if self.background:  # the command's output process, or a new one

@@ -132,6 +132,18 @@ def _cascade_section(info: SceneInfo, scene: SceneRows) -> list[str]:
     return out
 
 
+def _synthetic_note(info: SceneInfo) -> list[str]:
+    """Synthetic traffic follows its paths blindly: its near misses and collisions are
+    not what drivers would do, and the rings should say so (issue 31)."""
+    if not info.metadata.get("converter", "").startswith("synthetic"):
+        return []
+    return [
+        "  This scene is synthetic: its agents follow their paths and do not react to each"
+        " other, so some of the agents that really came close ran into the ego or another"
+        " agent where real drivers would have braked. Recorded scenes do not have this.",
+    ]
+
+
 def _legend_section(info: SceneInfo) -> list[str]:
     casc = info.cascade
     tiers = ", ".join(f"{L.tier_color_name(k)} = {t.name}" for k, t in enumerate(casc.tiers))
@@ -152,6 +164,7 @@ def _legend_section(info: SceneInfo) -> list[str]:
         "important. Every miss is a row of the **Misses** tab (time, agent, stage, "
         "reference): click a row to select the agent and jump to the time.",
         "- **Orange ring**: a kept agent that really came close (hindsight positive).",
+        *_synthetic_note(info),
         "- Muted lines: lane boundaries (dark grey), road edges (brown), crosswalks "
         "(blue-grey) where the source has them. Dark nose: heading.",
         "- Labels: the ego, the tier agents and the misses; a label gives way to a more "

@@ -36,7 +36,14 @@ from outputs.transaction import run_with_stall_timeout
 from recordings import columns as C
 from recordings import layout as L
 from recordings.errors import RecordingError
-from recordings.frames import FrameRows, PackedFrames, SceneRows, WriteOptions
+from recordings.frames import (
+    MAX_RECORDED_AGENTS,
+    FrameRows,
+    PackedFrames,
+    SceneRows,
+    WriteOptions,
+    too_many_agents,
+)
 from recordings.summary import recording_name, summary_markdown
 from risk.cascade import SURVIVAL_MODEL
 from risk.registry import MODELS
@@ -69,6 +76,9 @@ def _write(
     options: WriteOptions,
 ) -> None:
     scene = _concatenate(frames, info)
+    n_agents = _agent_grid(scene)[0].size
+    if n_agents > MAX_RECORDED_AGENTS:
+        raise too_many_agents(output, n_agents)
     models = tuple(info.model_names)
     log10_ranges = {
         m: _log10_range(scene.rows[f"risk:{m}"])
@@ -527,8 +537,12 @@ def _label_texts(info: SceneInfo, scene: SceneRows, mode: str) -> np.ndarray:
         shown = np.ones(n, dtype=bool)
     else:
         survivor_tier = np.where(r["dropped_at"] < 0, r["tier"], -1)
-        wanted = r["is_ego"] | r["miss"] | (survivor_tier >= 0)
+        lead = _lead_rows(scene)
+        wanted = r["is_ego"] | r["miss"] | (survivor_tier >= 0) | lead
         priority = np.where(r["is_ego"], 1000, np.where(r["miss"], 100, survivor_tier + 1))
+        # The agent directly ahead of the ego keeps its label over any other but the
+        # ego's: de-cluttering hid it behind a tier agent beside it (issue 31).
+        priority = np.where(lead & ~r["is_ego"], 500, priority)
         shown = _declutter(scene, wanted, priority, L.LABEL_SPACING_M)
     # Texts only for the labelled rows (string operations are slow in numpy).
     rows = np.flatnonzero(shown)
@@ -541,13 +555,44 @@ def _label_texts(info: SceneInfo, scene: SceneRows, mode: str) -> np.ndarray:
             r["miss"][rows], np.char.add(np.char.add(ids, " MISS ✗"), stage),
             np.where(
                 r["dropped_at"][rows] >= 0, np.char.add(np.char.add(ids, " ✗"), stage),
-                np.char.rstrip(np.char.add(np.char.add(ids, " "), tags[r["tier"][rows]])),
+                np.where(
+                    r["tier"][rows] >= 0,
+                    np.char.rstrip(np.char.add(np.char.add(ids, " "), tags[r["tier"][rows]])),
+                    ids,  # (kept below the first tier: labelled as the agent ahead)
+                ),
             ),
         ),
     )  # fmt: skip
     out = np.full(n, "", dtype=text.dtype if text.size else "<U1")
     out[rows] = text
     return out
+
+
+#: Half the width of the corridor in which an agent counts as directly ahead of the ego.
+LEAD_HALF_WIDTH_M = 2.0
+
+
+def _lead_rows(scene: SceneRows) -> np.ndarray:
+    """Per frame, the row of the nearest agent ahead of the ego: in front of it along
+    its heading and within :data:`LEAD_HALF_WIDTH_M` of its centre line (vectorised
+    over all rows)."""
+    r = scene.rows
+    n_frames = scene.times_s.size
+    ego_row = np.full(n_frames, -1)
+    ego_rows = np.flatnonzero(r["is_ego"])
+    ego_row[scene.frame_of[ego_rows]] = ego_rows
+    e = ego_row[scene.frame_of]
+    has_ego = (e >= 0) & ~r["is_ego"]
+    e = np.maximum(e, 0)
+    d = r["xy"] - r["xy"][e]
+    c, s_ = np.cos(r["heading"][e]), np.sin(r["heading"][e])
+    lon = d[:, 0] * c + d[:, 1] * s_
+    lat = -d[:, 0] * s_ + d[:, 1] * c
+    ahead = has_ego & (lon > 0) & (np.abs(lat) < LEAD_HALF_WIDTH_M)
+    key = np.where(ahead, lon, np.inf)
+    best = np.full(n_frames, np.inf)
+    np.minimum.at(best, scene.frame_of, key)
+    return ahead & (key == best[scene.frame_of])
 
 
 def _declutter(
@@ -698,6 +743,11 @@ def _compute_agent_grid(scene: SceneRows) -> tuple[np.ndarray, np.ndarray, np.nd
     return agent_ids, column, first, last
 
 
+#: Agents with their own risk timelines in one recording (the most important first; see
+#: :func:`focus_agents`). The scene view still draws every agent.
+MAX_TIMELINE_AGENTS = 1000
+
+
 def _log_timelines(
     rec, info: SceneInfo, scene: SceneRows, log10_models: set[str], focus: Sequence[int]
 ) -> None:
@@ -712,6 +762,17 @@ def _log_timelines(
     """
     r = scene.rows
     agent_ids, column, first, last = _agent_grid(scene)
+    if agent_ids.size > MAX_TIMELINE_AGENTS:
+        # Every timeline is a column of one record batch, and rerun's encoding of a
+        # batch grows faster than its columns: 20,000 agents took minutes (seen as a
+        # stalled save). The views keep the agents that matter most, as they open on.
+        keep = np.isin(
+            agent_ids,
+            focus_agents(scene, MAX_TIMELINE_AGENTS, only_important=False),
+        )
+        remap = np.where(keep, np.cumsum(keep) - 1, -1)
+        column = np.where(column >= 0, remap[np.maximum(column, 0)], -1)
+        agent_ids, first, last = agent_ids[keep], first[keep], last[keep]
     n_frames, others = scene.times_s.size, column >= 0
     frame_pos = np.arange(n_frames)
     outside = (frame_pos[None, :] < first[:, None]) | (frame_pos[None, :] > last[:, None])
@@ -720,6 +781,7 @@ def _log_timelines(
     # agent added in the viewer takes the view's quiet grey. The series name is the
     # entity path, which holds the agent id.
     coloured = np.isin(agent_ids, np.asarray(focus, dtype=np.int64))
+    names = C.one_per_row([f"agent {int(a)}" for a in agent_ids], pa.utf8())
     static, batch = C.Batch(), _timed_batch(scene)  # every model in one record batch
     thresholds = {s.model: s.threshold for s in info.cascade.stages}
     for model in info.model_names:
@@ -737,6 +799,8 @@ def _log_timelines(
                 batch.add(path, C.SCALARS, cells.slice(a * n_frames, n_frames))
                 if coloured[a]:
                     static.add(path, C.SERIES_COLORS, colors.slice(a, 1))
+                    # the tab's legend names the agent (else: its entity path)
+                    static.add(path, C.SERIES_NAMES, names.slice(a, 1))
             if model in thresholds:
                 _log_threshold(rec, scene, model, thresholds[model], is_log)
     batch.send(rec)
@@ -833,8 +897,11 @@ def _ego_points(scene: SceneRows, info: SceneInfo) -> np.ndarray:
     return np.concatenate(lanes) if lanes else np.zeros((1, 2))
 
 
-def focus_agents(scene: SceneRows, limit: int = L.FOCUS_AGENTS_MAX) -> list[int]:
-    """The agents the risk views open on: misses, hindsight positives and tier agents.
+def focus_agents(
+    scene: SceneRows, limit: int = L.FOCUS_AGENTS_MAX, *, only_important: bool = True
+) -> list[int]:
+    """The agents the risk views open on: misses, hindsight positives and tier agents
+    (``only_important=False``: any agent, in the same order).
 
     Ordered by importance (missed at least once, then came close, then the deepest tier
     reached, then the highest survival risk), at most ``limit``; the others are one
@@ -859,4 +926,6 @@ def focus_agents(scene: SceneRows, limit: int = L.FOCUS_AGENTS_MAX) -> list[int]
         risk = per_agent(np.nan_to_num(np.log10(r["survival"]), nan=-np.inf), -np.inf)
     matter = (missed > 0) | (close > 0) | (tier >= 0)
     order = np.lexsort((-risk, -tier, -close, -missed))
+    if not only_important:
+        return [int(a) for a in agent_ids[order[:limit]]]
     return [int(agent_ids[a]) for a in order if matter[a]][:limit]

@@ -162,6 +162,11 @@ class CascadeConfig:
             raise CascadeConfigError("toml", f"not valid TOML ({exc})", source=str(path)) from None
         except UnicodeDecodeError:
             raise CascadeConfigError("toml", "not a UTF-8 text file", source=str(path)) from None
+        except RecursionError:  # tomllib recurses once per nested array or table
+            raise CascadeConfigError(
+                "toml", "nested deeper than can be parsed (a cascade file nests two levels)",
+                source=str(path),
+            ) from None  # fmt: skip
         return _parse_config(data, str(path))
 
     @classmethod

@@ -57,6 +57,11 @@ class Kind(enum.IntEnum):
 KIND_NAMES: tuple[str, ...] = tuple(k.name.lower() for k in Kind)
 _MAX_KIND = int(max(Kind))
 
+#: Path candidates per agent at most. The models compare every candidate of the ego with
+#: every candidate of each agent, so a frame costs about candidates squared: 2,000 per
+#: agent ran for hours. Converters keep 3 by default (``--max-candidates``).
+MAX_CANDIDATES = 64
+
 
 def _readonly(a: np.ndarray) -> np.ndarray:
     a.setflags(write=False)
@@ -227,6 +232,14 @@ class Frame:
         # Path ownership: sorted, in range, every agent has at least one candidate.
         if m < n or agent_a[0] < 0 or agent_a[-1] >= n or (np.diff(agent_a) < 0).any():
             raise FrameError("path_agent", "must be non-decreasing agent indices in [0, N)")
+        per_agent = np.bincount(agent_a, minlength=n)
+        if per_agent.max(initial=0) > MAX_CANDIDATES:
+            i = int(per_agent.argmax())
+            raise FrameError(
+                "paths", f"{int(per_agent[i])} path candidates, more than the"
+                f" {MAX_CANDIDATES} supported per agent (convert with fewer, e.g."
+                " --max-candidates)", index=i, agent_id=int(ids_a[i]),
+            )  # fmt: skip
         has_path = np.zeros(n, dtype=bool)
         has_path[agent_a] = True
         if not has_path.all():

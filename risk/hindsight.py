@@ -241,11 +241,26 @@ def tracks_from_states(
     return Tracks(ids, kinds, out_xy, out_h, out_l, out_w, valid, float(t0_s), float(dt_s))
 
 
+def check_period(frame_t: np.ndarray, frame_period_s: float) -> None:
+    """Refuse a frame period far below the frames' own spacing: the tracks' grid spans
+    the scene's time in steps of the period, so a wrong period (``1e-12`` s in a
+    file's metadata) would size it from one bad number (78 TiB for a 20 s scene)
+    rather than from the frames. Some two frames must be about one period apart."""
+    steps = np.diff(np.unique(np.asarray(frame_t, dtype=np.float64)))
+    if steps.size and steps.min() > 1.5 * frame_period_s:
+        raise RiskError(
+            f"the frame period is {frame_period_s:g} s, but no two frames are that close"
+            f" (the closest are {steps.min():g} s apart); the scene's frame_period_s is"
+            " wrong: convert the source again"
+        )
+
+
 def tracks_from_frames(frames: Sequence[Frame], *, frame_period_s: float) -> Tracks:
     """Tracks of a scene's frames (every valid agent of every frame; frame ``k`` of the
     grid is the one nearest ``t0 + k dt``, ``t0`` the first frame's time)."""
     if not frames:
         raise RiskError("tracks: no frames")
+    check_period(np.array([f.t for f in frames]), frame_period_s)
     t0 = float(frames[0].t)
     rows = [(f, np.flatnonzero(f.valid)) for f in frames]
     fi = np.concatenate(
@@ -374,6 +389,9 @@ def forward_window_min(a: np.ndarray, length: int) -> np.ndarray:
         raise RiskError(f"window length must be >= 1, got {length}")
     a = np.asarray(a, dtype=np.float64)
     t = a.shape[0]
+    # A window longer than the array ends at its end either way: the same minimum, and
+    # no padding sized by a huge horizon (--truth-horizon 1e9 asked for 7 TiB).
+    length = min(length, max(t, 1))
     pad = np.full((length, *a.shape[1:]), np.inf)
     m = np.concatenate([a, pad])  # m[f] = min(a[f : f + w]) for the current w
     w = 1
@@ -652,10 +670,9 @@ def _pet_pairs(tracks: Tracks, e_col: np.ndarray, a_col: np.ndarray, h: int) -> 
     oth = {k: v[:, a_col] for k, v in cols.items()}
     n_p = e_col.size
     pet = np.full((n_t, n_p), np.nan)
-    for lag in sorted(range(-h, h + 1), key=abs):
+    reach_lag = min(h, n_t - 1)  # lags of n_t frames or more pair no frames at all
+    for lag in sorted(range(-reach_lag, reach_lag + 1), key=abs):
         k = abs(lag)
-        if k >= n_t:
-            continue
         m = n_t - k  # pairs (i, j) indexed by min(i, j) = 0 .. m - 1
         ei = slice(0, m) if lag >= 0 else slice(k, n_t)  # ego frames
         aj = slice(k, n_t) if lag >= 0 else slice(0, m)  # agent frames
@@ -685,6 +702,10 @@ def _pet_pairs(tracks: Tracks, e_col: np.ndarray, a_col: np.ndarray, h: int) -> 
         pet[:, up] = np.where(covered & np.isnan(sub), k * tracks.dt_s, sub)
     return pet
 
+
+#: (frame, ego, agent) entries of one :func:`hindsight_truth` call in
+#: :func:`truth_for_rows` (about 60 bytes each with the temporaries: 0.5 GB).
+TRUTH_BLOCK_ELEMENTS = 8_000_000
 
 #: Truths up to this many (frame, ego, agent) entries (about 26 bytes each) are kept
 #: with their tracks for the next :func:`truth_for_rows` call on the same egos.
@@ -769,7 +790,9 @@ def truth_for_rows(
     table and the recording need it: ``(gap_m, pet_s, label)``, ``(R,)`` each; NaN gap or
     PET and ``LABEL_UNKNOWN`` for rows outside the tracks (an unknown time, ego or agent).
 
-    The egos of the rows are computed together (one :func:`hindsight_truth` call).
+    The egos of the rows are computed together (one :func:`hindsight_truth` call), in
+    blocks of egos whose ``(T, E, N)`` arrays stay within :data:`TRUTH_BLOCK_ELEMENTS`
+    (``--ego all`` on a long recording asked for gigabytes at once).
     """
     t_s = np.asarray(t_s, dtype=np.float64)
     n = t_s.size
@@ -779,10 +802,21 @@ def truth_for_rows(
         return gap, pet, label
     egos, ego_row = np.unique(np.asarray(ego_id, dtype=np.int64), return_inverse=True)
     ego_col = tracks.index_of(egos)
-    truth = _shared_truth(tracks, np.maximum(ego_col, 0), settings or HindsightSettings())
+    settings = settings or HindsightSettings()
     k = tracks.frame_of(t_s)
     a = tracks.index_of(np.asarray(agent_id, dtype=np.int64))
     ok = (k >= 0) & (k < tracks.n_frames) & (a >= 0) & (ego_col[ego_row] >= 0)
-    idx = (k[ok], ego_row[ok], a[ok])
-    gap[ok], pet[ok], label[ok] = truth.gap_m[idx], truth.pet_s[idx], truth.label[idx]
+    per_ego = max(1, tracks.n_frames * tracks.n_agents)
+    if egos.size * per_ego <= TRUTH_BLOCK_ELEMENTS:
+        truth = _shared_truth(tracks, np.maximum(ego_col, 0), settings)
+        idx = (k[ok], ego_row[ok], a[ok])
+        gap[ok], pet[ok], label[ok] = truth.gap_m[idx], truth.pet_s[idx], truth.label[idx]
+        return gap, pet, label
+    step = max(1, TRUTH_BLOCK_ELEMENTS // per_ego)
+    for start in range(0, egos.size, step):  # blocks of egos, each vectorised
+        cols = np.maximum(ego_col[start : start + step], 0)
+        truth = hindsight_truth(tracks, cols, settings=settings)
+        sel = ok & (ego_row >= start) & (ego_row < start + step)
+        idx = (k[sel], ego_row[sel] - start, a[sel])
+        gap[sel], pet[sel], label[sel] = truth.gap_m[idx], truth.pet_s[idx], truth.label[idx]
     return gap, pet, label

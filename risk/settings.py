@@ -16,6 +16,7 @@ Unset keys keep the paper's values. Pure: no I/O.
 
 from __future__ import annotations
 
+import difflib
 import math
 import types
 import typing
@@ -85,8 +86,20 @@ def valid_keys() -> list[str]:
     return list(KEY_TYPES)
 
 
-def _keys_hint() -> str:
-    return "valid keys: " + ", ".join(KEY_TYPES)
+def _keys_hint(wrong: str | None = None) -> str:
+    """The closest one or two keys to ``wrong`` (a typo), else where the keys are listed:
+    all 55 dumped on one line hid the one the user meant."""
+    if wrong is not None:
+        close = difflib.get_close_matches(wrong, KEY_TYPES, n=2, cutoff=0.6)
+        if close:
+            return "did you mean " + " or ".join(close) + "?"
+        prefix = wrong.rpartition(".")[0]
+        same = [k for k in KEY_TYPES if prefix and k.rpartition(".")[0] == prefix]
+        if same:  # e.g. survival.wobble: the keys of that model
+            shown = ", ".join(same[:6]) + (", ..." if len(same) > 6 else "")
+            return f"the keys of {prefix} are: {shown}"
+    groups = sorted({k.split(".")[0] for k in KEY_TYPES})
+    return f"keys start with one of: {', '.join(groups)} (e.g. survival.escape_time_s)"
 
 
 def _convert(key: str, value: Any, ftype: Any) -> Any:
@@ -183,7 +196,7 @@ def parse_settings(
     threshold = base.baseline_threshold
     for key, raw in pairs:
         if key not in KEY_TYPES:
-            raise SettingsError(f"unknown setting {key!r}; {_keys_hint()}")
+            raise SettingsError(f"unknown setting {key!r}; {_keys_hint(key)}")
         value = _convert(key, raw, KEY_TYPES[key])
         overrides[key] = value
         head, _, rest = key.partition(".")

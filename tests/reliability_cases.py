@@ -7,9 +7,13 @@ own session, with a time limit) and returns an :class:`Outcome`: exit status, wh
 traceback was printed, whether it hung, the ``Error:`` lines, whether the inputs changed
 (SHA-256) and which files were left behind in the case's folder.
 
-Kinds: corrupted, truncated, foreign, non-finite, out-of-range, same-path, unwritable.
-Full-disk and killed-mid-write cases need a tmpfs or signals; they live in the test
-module.
+Kinds: corrupted, truncated, foreign, non-finite, out-of-range, same-path, unwritable;
+and from issue 31 (:func:`round3_cases`): device (outputs that are named pipes), hang
+(named pipes as inputs, path candidates beyond the cap), memory (a metadata period that
+would size a 78 TiB grid), exit-0 (bad values that used to convert or replay), recursion
+(deep TOML and JSON) and converter (values that raised tracebacks). Full-disk,
+killed-mid-write, device-node and signal cases need a tmpfs, ``mknod`` or signals; they
+live in ``test_reliability.py`` and ``test_reliability_edges.py``.
 """
 
 from __future__ import annotations
@@ -417,6 +421,354 @@ def cases() -> list[Case]:
         csv.write_text("\n".join(lines) + "\n")
         osm.write_text(osm_text())
         return _run(["convert", "interaction", csv, "--map", osm, "-o", d / "o.mcap"], csv)
+
+    out += round3_cases()
+    return out
+
+
+# ---------------------------------------------------------------------- round 3 (issue 31)
+def tampered(folder: pathlib.Path, name: str, *, period: float | None = None,
+             tamper: Callable | None = None) -> pathlib.Path:  # fmt: skip
+    """The small scene rewritten frame by frame: another metadata period, or
+    ``tamper(agents, paths, k)`` applied to each frame's messages."""
+    from converters.scene import schema as sf
+    from converters.scene.reader import read_scene
+    from converters.scene.writer import SceneWriter, encode_frame
+
+    src = scene(folder, ".good.mcap")
+    good = read_scene(src)
+    src.unlink()
+    path = folder / name
+    w = SceneWriter(path, good.map, frame_period_s=period or good.frame_period_s,
+                    metadata={"converter": "test"})  # fmt: skip
+    for k, frame in enumerate(good.frames):
+        agents, paths = encode_frame(frame, k)
+        if tamper is not None:
+            tamper(agents, paths, k)
+        t = int(1e9 * frame.t)
+        w._write(sf.TOPIC_AGENTS, agents, t)
+        w._write(sf.TOPIC_PATHS, paths, t)
+        w._n_frames += 1
+    w.close()
+    return path
+
+
+def many_candidates(agents, paths, k, count: int = 100) -> None:
+    """Every agent's first path candidate repeated ``count`` times."""
+    cands, pts = list(paths.candidates), list(paths.points)
+    xs, ys = list(paths.x_mm), list(paths.y_mm)
+    new_c, new_p, new_x, new_y = [], [], [], []
+    pi = xi = 0
+    for c in cands:
+        n = pts[pi]
+        new_c.append(count)
+        new_p += [n] * count
+        new_x += xs[xi : xi + n] * count
+        new_y += ys[xi : xi + n] * count
+        xi += sum(pts[pi : pi + c])
+        pi += c
+    for field_, values in (("candidates", new_c), ("points", new_p), ("x_mm", new_x),
+                           ("y_mm", new_y)):  # fmt: skip
+        del getattr(paths, field_)[:]
+        getattr(paths, field_).extend(values)
+
+
+def _stats(table_path: pathlib.Path, d: pathlib.Path, *extra: str):
+    return _run(["stats", table_path, "-o", d / "st", "--no-plots", "--no-progress", *extra],
+                table_path)  # fmt: skip
+
+
+def _retyped(d: pathlib.Path, column: str, value: object, suffix: str = ".parquet"):
+    t = table(d, ".t.parquet")
+    df = pl.read_parquet(t).with_columns(pl.lit(value).alias(column))
+    t.unlink()
+    path = d / f"tab{suffix}"
+    if suffix == ".csv":
+        df.select(pl.all().cast(pl.String)).write_csv(path)
+    else:
+        df.write_parquet(path)
+    return path
+
+
+def without_statistics(
+    src: pathlib.Path, path: pathlib.Path, *, statistics: bool = False, edit_map=None
+) -> pathlib.Path:
+    """A copy of the scene ``src`` written without MCAP's optional Statistics record
+    (``statistics=True``: with it), its ``/map`` message passed through ``edit_map``."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(src, "rb") as f_in, open(path, "wb") as f_out:
+        reader = make_reader(f_in)
+        summary = reader.get_summary()
+        w = Writer(f_out, use_statistics=statistics)
+        w.start(profile="", library="test")
+        schema_ids = {
+            sid: w.register_schema(s.name, s.encoding, s.data) for sid, s in summary.schemas.items()
+        }
+        channel_ids = {
+            cid: w.register_channel(c.topic, c.message_encoding, schema_ids[c.schema_id])
+            for cid, c in summary.channels.items()
+        }
+        for _, channel, message in reader.iter_messages(log_time_order=False):
+            data = message.data
+            if channel.topic == "/map" and edit_map is not None:
+                from converters.scene import schema as sf
+
+                m = sf.Map()
+                m.ParseFromString(data)
+                edit_map(m)
+                data = m.SerializeToString()
+            w.add_message(channel_ids[channel.id], message.log_time, data,
+                          message.publish_time)  # fmt: skip
+        for record in reader.iter_metadata():
+            w.add_metadata(record.name, record.metadata)
+        w.finish()
+    return path
+
+
+def round3_cases() -> list[Case]:
+    out: list[Case] = []
+
+    def add(name: str, kind: str, names_file: bool = True):
+        def deco(make):
+            out.append(Case(name, kind, make, names_file))
+            return make
+
+        return deco
+
+    # data destroyed: outputs that are pipes, reports that are inputs or outputs
+    @add("device-run-output-is-a-fifo", "device")
+    def _(d):
+        s = scene(d)
+        os.mkfifo(d / "pipe.rrd")
+        return _run(["run", s, "-o", d / "pipe.rrd", "--no-progress"], s)
+
+    @add("device-table-is-a-fifo", "device")
+    def _(d):
+        s = scene(d)
+        os.mkfifo(d / "pipe.parquet")
+        return _run(["run", s, "--no-rrd", "--table", d / "pipe.parquet", "--no-progress"], s)
+
+    @add("same-path-evaluate-report-is-an-input-in-a-folder", "same-path")
+    def _(d):
+        (d / "in").mkdir()
+        s = scene(d / "in")
+        return _run(["evaluate", d / "in", "-o", d / "ev", "--report", s, "--no-progress",
+                     "--bootstrap", "0"], s)  # fmt: skip
+
+    # hangs: a named pipe with no writer as an input
+    for cmd in ("run", "inspect", "stats", "evaluate"):
+
+        @add(f"hang-fifo-scene-{cmd}", "hang")
+        def _(d, cmd=cmd):
+            os.mkfifo(d / "p.mcap")
+            extra = {"run": ["--no-progress"], "inspect": [],
+                     "stats": ["-o", d / "st", "--no-progress"],
+                     "evaluate": ["-o", d / "ev", "--no-progress"]}[cmd]  # fmt: skip
+            return _run([cmd, d / "p.mcap", *extra])
+
+    @add("hang-fifo-batch-input", "hang")
+    def _(d):
+        os.mkfifo(d / "p.mcap")
+        return _run(["batch", d / "p.mcap", "-o", d / "out", "--no-progress"])
+
+    @add("hang-many-path-candidates", "hang")
+    def _(d):
+        s = tampered(d, "c.mcap", tamper=many_candidates)
+        return _run(["run", s, "--no-rrd", "--table", d / "t.parquet", "--no-progress"], s)
+
+    # memory from one number
+    for args in (["run", "--no-rrd", "--table", "t.parquet"], ["run", "--ego", "all",
+                 "--table", "t.parquet"], ["evaluate", "-o", "ev", "--bootstrap", "0"]):  # fmt: skip
+
+        @add(f"memory-period-1e-12-{'-'.join(a.lstrip('-') for a in args[1:3])}", "memory")
+        def _(d, args=args):
+            s = tampered(d, "p.mcap", period=1e-12)
+            return _run([args[0], s, *args[1:], "--no-progress"], s)
+
+    # bad frame order
+    def backwards(agents, paths, k):
+        if k == 5:
+            agents.t_s = 0.05
+
+    def repeated(agents, paths, k):
+        if k == 5:
+            agents.t_s -= 0.1
+
+    for name, tamper in (("backwards", backwards), ("repeated", repeated)):
+
+        @add(f"exit0-frame-times-{name}", "exit-0")
+        def _(d, tamper=tamper):
+            s = tampered(d, "b.mcap", tamper=tamper)
+            return _run(["run", s, "--no-rrd", "--table", d / "t.parquet", "--no-progress"], s)
+
+        @add(f"exit0-frame-times-{name}-inspect", "exit-0")
+        def _(d, tamper=tamper):
+            s = tampered(d, "b.mcap", tamper=tamper)
+            return _run(["inspect", s], s)
+
+    # recursion
+    @add("recursion-cascade-toml", "recursion")
+    def _(d):
+        s = scene(d)
+        toml = d / "deep.toml"
+        toml.write_text("a = " + "[" * 50_000 + "]" * 50_000 + "\n")
+        return _run(["run", s, "--cascade", toml, "--no-rrd", "--table", d / "t.parquet",
+                     "--no-progress"], s, toml)  # fmt: skip
+
+    @add("recursion-av2-map-json", "recursion")
+    def _(d):
+        p = av2_write_scenario(d / "sc")
+        m = next((d / "sc").glob("*.json"))
+        m.write_text('{"lane_segments": ' + "[" * 200_000 + "]" * 200_000 + "}")
+        return _run(["convert", "av2", d / "sc", "-o", d / "o.mcap"], p, m)
+
+    # stats on tables of the wrong types
+    for column, value, suffix in (
+        ("frame", "x", ".parquet"), ("ego_id", "x", ".parquet"), ("agent_id", "x", ".parquet"),
+        ("t_s", "x", ".parquet"), ("baseline", "maybe", ".csv"),
+    ):  # fmt: skip
+
+        @add(f"exit0-stats-{column}-{value}{suffix.replace('.', '-')}", "exit-0")
+        def _(d, column=column, value=value, suffix=suffix):
+            return _stats(_retyped(d, column, value, suffix), d)
+
+    @add("exit0-stats-models-empty", "exit-0", False)
+    def _(d):
+        return _stats(table(d), d, "--models", "")
+
+    for value in ("nan", "-1"):
+
+        @add(f"exit0-evaluate-baseline-threshold-{value}", "exit-0", False)
+        def _(d, value=value):
+            s = scene(d)
+            return _run(["evaluate", s, "-o", d / "ev", "--baseline-threshold", value,
+                         "--no-progress", "--bootstrap", "0"], s)  # fmt: skip
+
+    # converters: tracebacks and exit 0 on bad values
+    def commonroad(d, xml: str):
+        x = d / "c.xml"
+        x.write_text(xml)
+        return _run(["convert", "commonroad", x, "-o", d / "o.mcap"], x)
+
+    for name, old, new in (
+        ("commonroad-lanelet-point-inf", "<x>50</x><y>2</y>", "<x>inf</x><y>2</y>"),
+        ("commonroad-lanelet-point-nan", "<x>50</x><y>2</y>", "<x>nan</x><y>2</y>"),
+        ("commonroad-successor-abc", '<successor ref="2"/>', '<successor ref="abc"/>'),
+        ("commonroad-time-step-1e300", 'timeStepSize="0.1"', 'timeStepSize="1e300"'),
+        ("commonroad-obstacle-id-abc", '<dynamicObstacle id="7">', '<dynamicObstacle id="x7">'),
+        ("commonroad-lane-point-2^62", "<x>150</x><y>2</y>", f"<x>{2**62}</x><y>2</y>"),
+    ):  # fmt: skip
+
+        @add(f"converter-{name}", "converter")
+        def _(d, old=old, new=new):
+            xml = scenario_xml()
+            assert old in xml, old
+            return commonroad(d, xml.replace(old, new, 1))
+
+    def av2(d, change):
+        p = av2_write_scenario(d / "sc")
+        df = change(av2_rows().with_columns(pl.lit("tiny-0001").alias("scenario_id")))
+        df.write_parquet(p)
+        return _run(["convert", "av2", d / "sc", "-o", d / "o.mcap"], p)
+
+    for name, change in (
+        ("position-abc", lambda df: df.with_columns(
+            pl.col("position_x").cast(pl.String).set(0, "abc") if False else
+            pl.when(pl.col("timestep") == 3).then(pl.lit("abc"))
+            .otherwise(pl.col("position_x").cast(pl.String)).alias("position_x"))),
+        ("track-id-null", lambda df: df.with_columns(pl.lit(None, pl.String).alias("track_id"))),
+        ("start-timestamp-text", lambda df: df.with_columns(pl.lit("soon").alias("start_timestamp"))),
+        ("timestep-strings", lambda df: df.with_columns(pl.col("timestep").cast(pl.String))),
+    ):  # fmt: skip
+
+        @add(f"converter-av2-{name}", "converter")
+        def _(d, change=change):
+            return av2(d, change)
+
+    def interaction(d, edit_csv=None, edit_osm=None):
+        csv, osm = d / "t.csv", d / "m.osm"
+        text = vehicle_csv()
+        csv.write_text(edit_csv(text) if edit_csv else text)
+        o = osm_text()
+        osm.write_text(edit_osm(o) if edit_osm else o)
+        return _run(["convert", "interaction", csv, "--map", osm, "-o", d / "o.mcap"], csv, osm)
+
+    def frame_id(value: str, ms: str, line: int = 3):
+        """Car 1's row on ``line`` moved to frame ``value`` at ``ms`` (consistent)."""
+
+        def edit(text):
+            lines = text.splitlines()
+            cells = lines[line].split(",")
+            cells[1], cells[2] = value, ms
+            lines[line] = ",".join(cells)
+            return "\n".join(lines) + "\n"
+
+        return edit
+
+    def lat(value):
+        def edit(text):
+            import re
+
+            return re.sub(r'lat="[^"]*"', f'lat="{value}"', text, count=1)
+
+        return edit
+
+    def quoted_newline(text):
+        lines = text.splitlines()
+        cells = lines[3].split(",")
+        cells[3] = '"ca\nr"'
+        lines[3] = ",".join(cells)
+        return "\n".join(lines) + "\n"
+
+    for name, kwargs in (
+        ("frame-id-fractional", {"edit_csv": frame_id("2.5", "250")}),
+        ("frame-id-9e6", {"edit_csv": frame_id("9000000", "900000000", line=5)}),
+        ("quoted-newline", {"edit_csv": quoted_newline}),
+        ("osm-lat-north", {"edit_osm": lat("north")}),
+        ("osm-lat-1e300", {"edit_osm": lat("1e300")}),
+    ):  # fmt: skip
+
+        @add(f"converter-interaction-{name}", "converter")
+        def _(d, kwargs=kwargs):
+            return interaction(d, **kwargs)
+
+    @add("converter-inspect-format-version-5000-digits", "converter")
+    def _(d):
+        from converters.scene.reader import read_scene
+        from converters.scene.writer import SceneWriter
+
+        s = scene(d)
+        meta = {"converter": "test"}
+        good = read_scene(s)
+        w = SceneWriter(d / "v.mcap", good.map, frame_period_s=good.frame_period_s,
+                        metadata=meta)  # fmt: skip
+        for f in good.frames:
+            w.add_frame(f)
+        w._final_metadata = lambda: {  # type: ignore[method-assign]
+            "format_version": "9" * 5000, "frame_period_s": str(good.frame_period_s),
+            "converter": "test",
+        }  # fmt: skip
+        w.close()
+        s.unlink()
+        return _run(["inspect", d / "v.mcap"], d / "v.mcap")
+
+    @add("exit0-scene-lane-point-2^62-mm", "exit-0")
+    def _(d):
+        def far(m):
+            m.lanes[0].x_mm[0] = 2**62
+
+        s = without_statistics(scene(d, ".ok.mcap"), d / "far.mcap", statistics=True,
+                               edit_map=far)  # fmt: skip
+        (d / ".ok.mcap").unlink()
+        return _run(["run", s, "--no-rrd", "--table", d / "t.parquet", "--no-progress"], s)
+
+    @add("message-cut-parquet", "foreign")
+    def _(d):
+        t = table(d)
+        t.write_bytes(t.read_bytes()[: t.stat().st_size // 2])
+        return _stats(t, d)
 
     return out
 

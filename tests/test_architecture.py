@@ -246,7 +246,10 @@ def test_mcap_and_click_stay_in_their_layers():
 
 
 #: Exception classes of ours that are not meant for the user (each with its reason).
-INTERNAL_EXCEPTIONS: set[str] = set()
+INTERNAL_EXCEPTIONS: set[str] = {
+    # SIGTERM / SIGHUP as a KeyboardInterrupt (a stop, like Ctrl-C; not an error)
+    "replay.core.process_exit.Stopped",
+}
 
 
 def test_every_error_derives_from_the_one_base():

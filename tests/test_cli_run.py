@@ -148,7 +148,10 @@ def test_frames_without_the_ego_are_skipped_with_a_warning(tmp_path):
         for k, frame in enumerate(sc.frames):
             # Frames 4-6 name an ego (id 999) that is not in them.
             writer.add_frame(frame, ego_id=999 if 4 <= k <= 6 else None)
-    result = CliRunner().invoke(main, ["run", str(path), "--no-rrd", "--no-progress"])
+    result = CliRunner().invoke(
+        main, ["run", str(path), "--no-rrd", "--table", str(tmp_path / "t.parquet"),
+               "--no-progress"],
+    )  # fmt: skip
     assert result.exit_code == 0, result.output
     assert "Warning: 3 frame(s) skipped because the ego (id 0) is missing" in result.output
     assert "17 frames, 3 skipped (ego missing)" in result.output
@@ -199,7 +202,8 @@ def test_calibrate_then_run_drops_no_baseline_agent(tmp_path):
     assert "Seeds: 11-12" in config.provenance and "Note: two seeds" in config.provenance
     assert "path_distance" in result.output and f"Wrote {toml}" in result.output
     for path in scenes:
-        out = invoke("run", path, "--cascade", toml, "--no-rrd", "--no-progress").output
+        out = invoke("run", path, "--cascade", toml, "--no-rrd", "--table",
+                     tmp_path / "t.parquet", "--no-progress").output  # fmt: skip
         fn_lines = [line for line in out.splitlines() if "FN " in line]
         assert len(fn_lines) == 3 and all("FN 0 " in line for line in fn_lines), out
 

@@ -384,3 +384,30 @@ def test_tracks_refuse_repeated_agent_ids():
             heading=np.zeros(shape), length=np.ones(shape), width=np.ones(shape),
             valid=np.ones(shape, bool), t0_s=0.0, dt_s=0.1,
         )  # fmt: skip
+
+
+def test_truth_for_rows_in_blocks_of_egos_equals_one_block(monkeypatch):
+    """Issue 31: rows of many egos are labelled in blocks of egos (bounded memory); the
+    labels, gaps and PETs are those of one call over all egos."""
+    from risk import hindsight as H
+
+    rng = np.random.default_rng(5)
+    t, n = 30, 9
+    xy = np.cumsum(rng.normal(0, 0.8, (t, n, 2)), axis=0) + rng.uniform(0, 12, (1, n, 2))
+    valid = rng.random((t, n)) > 0.1
+    tracks = H.Tracks(
+        ids=np.arange(n) * 10, kinds=np.zeros(n, np.int8), xy=xy,
+        heading=rng.uniform(-3, 3, (t, n)), length=np.full((t, n), 4.0),
+        width=np.full((t, n), 1.8), valid=valid, t0_s=0.0, dt_s=0.1,
+    )  # fmt: skip
+    rows = 400
+    t_s = rng.integers(0, t, rows) * 0.1
+    ego = rng.integers(0, n, rows) * 10
+    agent = rng.integers(0, n, rows) * 10
+    settings = H.HindsightSettings(horizon_s=1.0, gap_m=1.0, pet_s=1.0)
+    whole = H.truth_for_rows(tracks, t_s, ego, agent, settings=settings)
+    monkeypatch.setattr(H, "TRUTH_BLOCK_ELEMENTS", 2 * t * n)  # two egos per block
+    blocks = H.truth_for_rows(tracks, t_s, ego, agent, settings=settings)
+    for w, b in zip(whole, blocks, strict=True):
+        np.testing.assert_array_equal(w, b)
+    assert (whole[2] == H.LABEL_POSITIVE).any() and (whole[2] == H.LABEL_NEGATIVE).any()

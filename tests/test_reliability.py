@@ -128,15 +128,35 @@ def test_guard_refuses_a_second_writer_and_names_the_holder(tmp_path):
         pass
 
 
-def test_stalled_save_times_out_with_a_clear_error(tmp_path):
+def test_stalled_save_times_out_with_a_clear_error(tmp_path, monkeypatch):
+    from outputs import transaction as guard
+
     watch = tmp_path / ".o.rrd.0123456789ab.tmp"
     watch.write_bytes(b"")
+    monkeypatch.setattr(guard, "free_bytes", lambda folder: 4096)  # a full disk
     start = time.monotonic()
     with pytest.raises(OutputError, match=r"could not write .*o\.rrd: the save made no progress"):
         run_with_stall_timeout(
             lambda: time.sleep(30), watch=watch, target=tmp_path / "o.rrd", stall_s=0.5
         )
     assert time.monotonic() - start < 5
+
+
+def test_a_stall_with_room_on_the_disk_is_not_called_a_full_disk(tmp_path, monkeypatch):
+    """Issue 31: 20,000 agents kept rerun encoding for minutes before it wrote a byte,
+    and the save was reported as "disk full or stalled" with 74 GiB free."""
+    from outputs import transaction as guard
+
+    watch = tmp_path / ".o.rrd.0123456789ab.tmp"
+    watch.write_bytes(b"")
+    monkeypatch.setattr(guard, "free_bytes", lambda folder: 80 * 2**30)
+    with pytest.raises(OutputError) as err:
+        run_with_stall_timeout(
+            lambda: time.sleep(30), watch=watch, target=tmp_path / "o.rrd", stall_s=0.5
+        )
+    text = str(err.value)
+    assert "the writer made no progress for 0.5 s although 80.0 GiB are free" in text
+    assert "disk full" not in text and "RISKREPLAY_STALL_TIMEOUT_S" in text
 
 
 def test_stall_watch_passes_errors_of_the_work_through(tmp_path):
@@ -233,7 +253,9 @@ def _unpaired(agents, paths, k):
 def test_inspect_rejects_what_run_rejects(tamper, tmp_path):
     bad = _tamper_scene(tmp_path / "bad.mcap", tamper)
     runner = CliRunner()
-    ran = runner.invoke(main, ["run", str(bad), "--no-rrd", "--no-progress"])
+    ran = runner.invoke(
+        main, ["run", str(bad), "--no-rrd", "--table", str(tmp_path / "t.parquet"), "--no-progress"]
+    )
     inspected = runner.invoke(main, ["inspect", str(bad)])
     assert ran.exit_code == 1, ran.output
     assert inspected.exit_code == 1, inspected.output

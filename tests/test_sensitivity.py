@@ -253,7 +253,7 @@ def test_evaluate_set_changes_the_models(corpus, tmp_path):
 @pytest.mark.parametrize(
     ("item", "message"),
     [
-        ("survival.tau=1", "Error: unknown setting 'survival.tau'; valid keys: "),
+        ("survival.tau=1", "Error: unknown setting 'survival.tau'; the keys of survival are: "),
         ("circles.radius_rule=huge", "Error: circles: radius_rule must be 'spec' or 'width'"),
         ("nokey", "Error: 'nokey' is not KEY=VALUE"),
     ],

@@ -47,9 +47,11 @@ from mcap.records import Channel, Schema
 
 from converters.scene import schema as sf
 from converters.scene.errors import SceneFormatError
-from risk.errors import FrameError
-from risk.frame import Frame, Lane, LaneMap, MapLine, Scene
-from risk.hindsight import Tracks, tracks_from_states
+from outputs.atomic import target_kind
+from outputs.memory import check_fits
+from risk.errors import FrameError, RiskError
+from risk.frame import MAX_CANDIDATES, Frame, Lane, LaneMap, MapLine, Scene
+from risk.hindsight import Tracks, check_period, tracks_from_states
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _MAX_EXACT_MM = 2**53  # coordinates are exact integers of mm up to here
@@ -105,6 +107,12 @@ class SceneReader:
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = pathlib.Path(path)
+        kind = target_kind(self.path)
+        if kind not in ("file", "missing"):  # (missing: open() says so)
+            raise SceneFormatError(
+                f"{self.path}: is {'a folder' if kind == 'folder' else 'a ' + kind}, not a"
+                " scene file; give an .mcap file (a pipe would be read for ever)"
+            )
         with open(self.path, "rb") as f:
             _check_magic(self.path, f)
             reader = SeekingReader(f, validate_crcs=True)
@@ -114,7 +122,13 @@ class SceneReader:
             self.channels: tuple[ChannelInfo, ...] = _channel_infos(summary)
             self._channel_ids = {c.topic: c.id for c in summary.channels.values()}
             _check_channels(self.path, summary)
-            counts = summary.statistics.channel_message_counts if summary.statistics else {}
+            counts = (
+                summary.statistics.channel_message_counts
+                if summary.statistics
+                else self._count_messages(reader)  # (Statistics are optional in MCAP)
+            )
+            if not summary.statistics:
+                self.channels = _channel_infos(summary, counts)
             self.n_frames: int = int(counts.get(self._channel_ids[sf.TOPIC_AGENTS], 0))
             n_paths = int(counts.get(self._channel_ids[sf.TOPIC_PATHS], 0))
             if self.n_frames == 0:
@@ -133,6 +147,17 @@ class SceneReader:
             self.labels: dict[str, tuple[int, ...]] = self._read_labels(reader)
         #: Every frame's /agents columns (file order), kept by a complete entries() pass.
         self._agent_states: list[tuple[float, dict[str, np.ndarray]]] | None = None
+
+    def _count_messages(self, reader: SeekingReader) -> dict[int, int]:
+        """Messages per channel id, counted by reading them: for files without the
+        optional Statistics record (other MCAP writers may leave it out)."""
+        counts: dict[int, int] = {}
+        try:
+            for _, channel, _ in reader.iter_messages(log_time_order=False):
+                counts[channel.id] = counts.get(channel.id, 0) + 1
+        except _DAMAGE as exc:
+            raise self._damaged(exc) from None
+        return counts
 
     # ------------------------------------------------------------------ static parts
     def _single(self, reader: SeekingReader, topic: str) -> bytes | None:
@@ -159,12 +184,11 @@ class SceneReader:
                 raise SceneFormatError(
                     f"{self.path}: /map lane {lane.id}: x_mm and y_mm differ in length"
                 )
-            line = (
-                np.column_stack(
-                    (np.array(lane.x_mm, dtype=np.int64), np.array(lane.y_mm, dtype=np.int64))
-                )
-                / sf.MM_PER_M
+            mm = np.column_stack(
+                (np.array(lane.x_mm, dtype=np.int64), np.array(lane.y_mm, dtype=np.int64))
             )
+            self._check_map_exact(f"lane {lane.id}", mm)
+            line = mm / sf.MM_PER_M
             lanes.append(
                 Lane(
                     id=int(lane.id),
@@ -186,6 +210,7 @@ class SceneReader:
             points = np.column_stack(
                 (np.array(line.x_mm, dtype=np.int64), np.array(line.y_mm, dtype=np.int64))
             )
+            self._check_map_exact(f"line {line.id}", points)
             kind = line.kind if line.kind in sf.MAP_LINE_KINDS else "other"
             lines.append(
                 MapLine(
@@ -241,6 +266,7 @@ class SceneReader:
         # (place among the /agents messages, (t_s, the agents' columns)), for tracks()
         states: list[tuple[int, tuple[float, dict[str, np.ndarray]]]] = []
         order: dict[int, int] = {}  # frame index -> its place among the /agents messages
+        previous: tuple[int, float] | None = None  # the last frame yielded: index, time
         for topic, data in self._messages([sf.TOPIC_AGENTS, sf.TOPIC_PATHS]):
             message = self._parse(classes[topic], data, topic)
             index = int(message.frame_index)
@@ -254,8 +280,13 @@ class SceneReader:
                 agents = pending[sf.TOPIC_AGENTS].pop(index)
                 paths = pending[sf.TOPIC_PATHS].pop(index)
                 entry, columns = self._decode(agents, paths, any_ego=any_ego)
-                states.append((order[index], (float(agents.t_s), columns)))
+                t_s = float(agents.t_s)
+                self._check_order(previous, index, t_s)
+                previous = (index, t_s)
+                states.append((order[index], (t_s, columns)))
                 yield entry
+        if len(states) > 1:  # (tracks are built after this pass: check before them)
+            self._grid_index(np.array([t for _, (t, _) in states]), np.empty(0), 0.0)
         for topic, left in pending.items():
             if left:
                 index = min(left)
@@ -286,8 +317,11 @@ class SceneReader:
     def frame_stats(self) -> FrameStats:
         """Agent counts, times and ego presence of every frame, from ``/agents`` only."""
         rows = []
+        previous: tuple[int, float] | None = None
         for _, data in self._messages([sf.TOPIC_AGENTS]):
             m = self._parse(sf.Agents, data, sf.TOPIC_AGENTS)
+            self._check_order(previous, int(m.frame_index), float(m.t_s))
+            previous = (int(m.frame_index), float(m.t_s))
             ids = np.array(m.ids, dtype=np.int64)
             valid = np.array(m.valid, dtype=bool)
             if valid.shape != ids.shape:
@@ -333,8 +367,16 @@ class SceneReader:
             cols["t"].append(np.full(int(valid.sum()), t_s))
         flat = {k: np.concatenate(v) if v else np.empty(0) for k, v in cols.items()}
         t0 = float(min((c[0] for c in cols["t"] if c.size), default=0.0))
+        grid = self._grid_index(np.array([t for t, _ in states]), flat["t"], t0)
+        n_ids = np.unique(flat["ids"]).size
+        check_fits(
+            (int(grid.max(initial=-1)) + 1) * n_ids * _TRACK_BYTES,
+            f"{self.path}: the hindsight grid ({int(grid.max(initial=-1)) + 1} frames of"
+            f" {self.frame_period_s:g} s x {n_ids} agents)",
+            "replay a shorter part of the scene, or convert it with fewer agents",
+        )
         return tracks_from_states(
-            np.rint((flat["t"] - t0) / self.frame_period_s).astype(np.int64),
+            grid,
             flat["ids"],
             flat["kinds"],
             np.column_stack((flat["x_mm"], flat["y_mm"])) / sf.MM_PER_M,
@@ -344,6 +386,17 @@ class SceneReader:
             t0_s=t0,
             dt_s=self.frame_period_s,
         )
+
+    def _grid_index(self, frame_t: np.ndarray, t: np.ndarray, t0: float) -> np.ndarray:
+        """Grid frame of each time ``t``, after checking the metadata's frame period
+        against the frames themselves: the grid is as long as the scene's time span
+        over the period, so a period far below the frames' spacing (``1e-12``) would
+        size it from one bad number (78 TiB), and is refused."""
+        try:
+            check_period(frame_t, self.frame_period_s)
+        except RiskError as exc:
+            raise SceneFormatError(f"{self.path}: metadata: {exc}") from None
+        return np.rint((t - t0) / self.frame_period_s).astype(np.int64)
 
     def read(self, *, skip_missing_ego: bool = False) -> Scene:
         """The whole scene in memory.
@@ -441,6 +494,13 @@ class SceneReader:
             raise self._bad_length(index, "/paths candidates", candidates.size, n)
         if n and candidates.min() < 1:
             raise SceneFormatError(f"{self.path}: frame {index}: an agent has no path candidate")
+        if n and candidates.max() > MAX_CANDIDATES:
+            raise SceneFormatError(
+                f"{self.path}: frame {index}: an agent has {int(candidates.max())} path"
+                f" candidates, more than the {MAX_CANDIDATES} supported (every pair of"
+                " candidates is compared); convert the source again with fewer"
+                " (--max-candidates)"
+            )
         points = np.array(paths.points, dtype=np.int64)
         if points.size != candidates.sum():
             raise self._bad_length(index, "/paths points", points.size, int(candidates.sum()))
@@ -456,6 +516,13 @@ class SceneReader:
         # Gather every candidate into (M, P) slots; slots past a candidate's end repeat its
         # last point, which is the padding risk.Frame expects.
         width = int(points.max()) if points.size else 1
+        check_fits(
+            points.size * width * _PADDED_BYTES,
+            f"{self.path}: frame {index}: {points.size} path candidates padded to the"
+            f" longest ({width} points)",
+            "the paths of one frame are padded to their longest; convert the source"
+            " again with shorter paths (--horizon-s, --map-path-m)",
+        )
         starts = np.cumsum(points) - points
         gather = starts[:, None] + np.minimum(np.arange(width)[None, :], points[:, None] - 1)
         padded = np.stack((x[gather], y[gather]), axis=-1) / sf.MM_PER_M
@@ -479,6 +546,26 @@ class SceneReader:
                 " 2**53 mm limit; the file is damaged, convert the source again"
             )
 
+    def _check_order(self, previous: tuple[int, float] | None, index: int, t_s: float) -> None:
+        """Frames must come in increasing index and time (both ``run`` and ``inspect``:
+        times that ran backwards or repeated replayed with exit 0)."""
+        if previous is None or not (math.isfinite(t_s) and math.isfinite(previous[1])):
+            return  # (a time that is not finite is reported as such, by the frame's check)
+        if index <= previous[0] or not t_s > previous[1]:
+            raise SceneFormatError(
+                f"{self.path}: frame {index} (t={t_s:g} s) follows frame {previous[0]}"
+                f" (t={previous[1]:g} s); frame indices and times must increase through the"
+                " file: convert the source again"
+            )
+
+    def _check_map_exact(self, what: str, values: np.ndarray) -> None:
+        """A map point beyond 2**53 mm (2**62 mm converted and replayed without a word)."""
+        if values.size and np.abs(values).max() > _MAX_EXACT_MM:
+            raise SceneFormatError(
+                f"{self.path}: /map {what} holds a point beyond the format's 2**53 mm limit;"
+                " the file is damaged, convert the source again"
+            )
+
     def _bad_length(self, index: int, what: str, got: int, expected: int) -> SceneFormatError:
         return SceneFormatError(
             f"{self.path}: frame {index}: {what} has {got} values, expected {expected};"
@@ -493,6 +580,12 @@ class SceneReader:
 
 
 _TRACK_FIELDS = ("ids", "kinds", "x_mm", "y_mm", "heading_urad", "length_mm", "width_mm")
+#: Bytes per (frame, agent) of :class:`risk.hindsight.Tracks` (xy, heading, length,
+#: width float64, valid) and of the truth computed from it (about the same again).
+_TRACK_BYTES = 2 * (8 * 5 + 1)
+#: Bytes per padded path point while decoding (gather index, x and y, the float copy)
+#: and in the models' working arrays (about the same again).
+_PADDED_BYTES = 2 * (8 + 16 + 16)
 
 _STRUCTURAL_KEYS = ("frame_period_s", "format_version", "ego_id")
 """Metadata keys that describe the file rather than the source (not in Scene.metadata)."""
@@ -602,8 +695,9 @@ def _header_library(reader: SeekingReader) -> str:
         return ""
 
 
-def _channel_infos(summary: Any) -> tuple[ChannelInfo, ...]:
-    counts = summary.statistics.channel_message_counts if summary.statistics else {}
+def _channel_infos(summary: Any, counts: dict[int, int] | None = None) -> tuple[ChannelInfo, ...]:
+    if counts is None:
+        counts = summary.statistics.channel_message_counts if summary.statistics else {}
     infos = []
     for channel in sorted(summary.channels.values(), key=lambda c: c.id):
         schema: Schema | None = summary.schemas.get(channel.schema_id)
@@ -655,9 +749,10 @@ def _read_metadata(path: pathlib.Path, reader: SeekingReader) -> dict[str, str]:
     version = metadata.get("format_version", "")
     if not version.isdigit():
         raise SceneFormatError(f"{path}: metadata has no valid format_version ({version!r})")
-    if int(version) > sf.FORMAT_VERSION:
+    if len(version) > 9 or int(version) > sf.FORMAT_VERSION:  # (int() refuses 4,300+ digits)
         raise SceneFormatError(
-            f"{path}: written in scene format version {version}, this riskreplay reads up to"
+            f"{path}: written in scene format version {version[:12]}"
+            f"{'...' if len(version) > 12 else ''}, this riskreplay reads up to"
             f" version {sf.FORMAT_VERSION}; upgrade riskreplay"
         )
     return metadata

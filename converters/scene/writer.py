@@ -355,7 +355,10 @@ def write_scene(
         raise ConversionError(f"{path}: a scene needs at least one frame; got none")
     frames: Iterable[Frame] = scene.frames
     if progress:
-        frames = tqdm(frames, total=len(scene.frames), desc="writing", unit="frame", leave=False)
+        frames = tqdm(
+            frames, total=len(scene.frames), desc="writing", unit="frame", leave=False,
+            disable=None,  # (only on a terminal: bars in a pipe or log leave \r fragments)
+        )  # fmt: skip
     with SceneWriter(
         path,
         scene.map,

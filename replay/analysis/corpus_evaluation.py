@@ -300,6 +300,8 @@ def evaluate_table(
     short = _short_scenes(df, hindsight or HindsightSettings())
     return {
         "inputs": list(inputs),
+        # how every "auc" is computed (replay stats averages per situation; issue 31)
+        "auc_method": "one ROC curve pooled over every agent-frame",
         "settings": {
             **{k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(settings).items()},
             "models": models,
@@ -609,6 +611,14 @@ def miss_table(summary: Mapping[str, Any]) -> pl.DataFrame:
     return pl.DataFrame(rows, infer_schema_length=None)
 
 
+#: Tables that ``replay evaluate`` writes into its output folder (with the sweep's):
+#: never read back as inputs from there.
+EVALUATION_TABLES = (
+    "roc", "miss_rates", "positives", "sensitivity", "sensitivity_ranking",
+    "sensitivity_findings",
+)  # fmt: skip
+
+
 def write_evaluation(
     summary: Mapping[str, Any],
     agents: pl.DataFrame,
@@ -668,6 +678,13 @@ def _jsonable(value: Any) -> Any:
 
 
 # ---------------------------------------------------------------------- text
+#: How these AUCs are computed, and why ``replay stats``' differ (issue 31).
+EVALUATION_AUC_NOTE = (
+    "AUC: one ROC curve pooled over every agent-frame of every scene; 'replay stats'"
+    " averages per-situation curves (the paper's measure), so its AUCs differ"
+)
+
+
 def format_evaluation(summary: Mapping[str, Any]) -> str:
     """The end-of-run text: counts per reference, each model's AUC against every
     reference with intervals, its miss rate against hindsight at the headline threshold,
@@ -708,6 +725,7 @@ def format_evaluation(summary: Mapping[str, Any]) -> str:
             f"window: {shown}"
         )
     pct = f"{100 * level:g} %"
+    lines.append(EVALUATION_AUC_NOTE)
     lines.append(f"AUC per reference [{pct} scene-bootstrap interval]:")
     lines.append(f"  {'model':<22}" + "".join(f"{n:>30}" for n in names))
     for model, per_ref in summary["models"].items():
@@ -793,13 +811,18 @@ def collect_agents(
     every: int | Stride = 1,
     models: Sequence[str] | None = None,
     planner: str | None = None,
+    output_dir: str | os.PathLike[str] | None = None,
 ) -> tuple[pl.DataFrame, dict[str, str], HindsightSettings]:
     """The agents table of scenes, tables or folders (as ``replay stats`` reads them),
     the dataset of each scene (the name of the folder its file is in) and the hindsight
     settings of its truth columns. ``models``: the risk columns to compute (default: all).
     ``planner``: replay the scenes with that planner's truth beside the engine (tables are
-    used as they are)."""
-    found = resolve_inputs([pathlib.Path(p) for p in paths])
+    used as they are). ``output_dir``: the command's output folder, never read back."""
+    found = resolve_inputs(
+        [pathlib.Path(p) for p in paths],
+        output_dir=None if output_dir is None else pathlib.Path(output_dir),
+        output_stems=EVALUATION_TABLES,
+    )
     if found.tables and hindsight is not None and hindsight != HindsightSettings():
         raise EvaluationError(
             "tables carry the hindsight truth they were written with; to evaluate other "

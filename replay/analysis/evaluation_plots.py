@@ -171,8 +171,12 @@ def plot_sensitivity(rows: pl.DataFrame, path: pathlib.Path) -> pathlib.Path:
             hi = np.array([by[v]["ci_hi"] if v in by else np.nan for v in variants], dtype=float)
             color = MODEL_COLORS.get(m, f"C{i}")
             off = (i - len(models) / 2) * 0.04
-            ax.errorbar(x + off, y, yerr=[np.nan_to_num(y - lo), np.nan_to_num(hi - y)], fmt="o",
-                        ms=3, lw=0.8, color=color, label=m)  # fmt: skip
+            # A bootstrap interval need not contain its point estimate (few scenes, a
+            # skewed statistic): matplotlib refuses negative error bars, so clip at 0.
+            below = np.clip(np.nan_to_num(y - lo), 0.0, None)
+            above = np.clip(np.nan_to_num(hi - y), 0.0, None)
+            ax.errorbar(x + off, y, yerr=[below, above], fmt="o", ms=3, lw=0.8, color=color,
+                        label=m)  # fmt: skip
             ax.axhline(y[0], color=color, lw=0.5, ls=":")
         ax.set_xticks(x, [f"{g}\n{v}" for g, v in variants], rotation=60, ha="right", fontsize=7)
         ax.set_ylabel(f"AUC against {ref}")

@@ -533,18 +533,24 @@ def write_report(
     command: str = "",
     datasets: Mapping[str, str] | None = None,
     note: str = "",
+    plots: Mapping[pathlib.Path, pathlib.Path] | None = None,
 ) -> dict[str, pathlib.Path]:
     """The report at ``path`` and its plots (copied from ``out_dir``) in the folder of
-    the same name without ``.md``; each file atomically. Returns name -> path."""
+    the same name without ``.md``; each file atomically. ``plots``: the plots to copy,
+    as their path in ``out_dir`` -> the file to read (a temporary file while the
+    command's outputs wait to be committed together); default: the PNGs in ``out_dir``.
+    Returns name -> path."""
     path = pathlib.Path(path)
     plot_dir = path.with_suffix("")
     plot_dir.mkdir(parents=True, exist_ok=True)
     written: dict[str, pathlib.Path] = {}
-    pngs = sorted(pathlib.Path(out_dir).glob("*.png"))
+    if plots is None:
+        plots = {p: p for p in pathlib.Path(out_dir).glob("*.png")}
+    pngs = sorted(plots)
     for png in pngs:
         target = plot_dir / png.name
         with atomic_output(target) as tmp:
-            shutil.copyfile(png, tmp)
+            shutil.copyfile(plots[png], tmp)
         written[f"report/{png.name}"] = target
     rel = plot_dir.name
     miss_plots = "\n\n".join(

@@ -17,6 +17,7 @@ from typing import Any
 
 from outputs.transaction import OutputGuard
 from replay.analysis.corpus_evaluation import (
+    EVALUATION_TABLES,
     EvaluationError,
     EvaluationSettings,
     collect_agents,
@@ -85,12 +86,19 @@ def run_evaluation(
     sweep's text as soon as each is computed. ``extra_inputs`` (a cascade file) are
     refused as outputs like ``inputs``. ``planner``: replay the scenes with that planner's
     truth beside the engine."""
-    guard = OutputGuard(inputs=[*inputs, *extra_inputs], folders=(out_dir,), files=(report_path,))
+    found = resolve_inputs(list(inputs), output_dir=out_dir, output_stems=EVALUATION_TABLES)
+    report_dir = None if report_path is None else report_path.with_suffix("")
+    # One guard for every input (the files inside folders too) and every output, the
+    # report included: a report given a scene's path replaced that scene (issue 31).
+    guard = OutputGuard(
+        inputs=[*inputs, *found.scenes, *found.tables, *extra_inputs],
+        folders=(out_dir, report_dir), files=(report_path,),
+    )  # fmt: skip
     with guard:  # checked and locked at once; every file appears together
         start = time.perf_counter()
         agents, datasets, hs = collect_agents(
             inputs, cascade=cascade, hindsight=hindsight, workers=workers,
-            progress=progress, ego=ego, every=every, planner=planner,
+            progress=progress, ego=ego, every=every, planner=planner, output_dir=out_dir,
         )  # fmt: skip
         read_s = time.perf_counter() - start
         start = time.perf_counter()
@@ -104,7 +112,6 @@ def run_evaluation(
         run = EvaluationRun(summary)
         if sensitivity is not None:
             start = time.perf_counter()
-            found = resolve_inputs(list(inputs))
             if found.tables:
                 raise EvaluationError(
                     "--sensitivity replays the scenes with other settings; give .mcap scenes, "
@@ -126,12 +133,13 @@ def run_evaluation(
             run.files.update(write_sweep(run.sweep, out_dir, plots=plots))
             show(format_sweep(run.sweep))
         run.files.update(write_evaluation(summary, agents, out_dir, datasets=datasets, plots=plots))
-    if report_path is not None:  # after the guard: it copies the plots written above
-        with OutputGuard(files=(report_path,)):
+        if report_path is not None:  # same guard: it may not replace an input or output
+            pending = guard.pending()  # the plots above, not yet renamed into place
+            pngs = {p: pending.get(p, p) for p in run.files.values() if p.suffix == ".png"}
             run.files.update(
                 write_report(
                     report_path, summary, agents, out_dir=out_dir, sweep=run.sweep,
-                    command=command, datasets=datasets, note=report_note,
+                    command=command, datasets=datasets, note=report_note, plots=pngs,
                 )
             )  # fmt: skip
     return run

@@ -40,16 +40,44 @@ class Inputs:
     tables: tuple[pathlib.Path, ...]
 
 
-def resolve_inputs(paths: Sequence[pathlib.Path]) -> Inputs:
-    """Scenes (``.mcap``) and tables (``.parquet``, ``.csv``) among ``paths``; a directory
-    contributes the files of those kinds directly inside it (not in subfolders)."""
+def resolve_inputs(
+    paths: Sequence[pathlib.Path],
+    *,
+    output_dir: pathlib.Path | None = None,
+    output_stems: Sequence[str] = (),
+) -> Inputs:
+    """Scenes (``.mcap``) and tables (``.parquet``, ``.csv``) among ``paths``. A folder
+    contributes its scenes, in sub-folders too (as ``replay batch`` finds them; hidden
+    files and folders are left out), and the tables directly inside it (a folder's
+    sub-folders hold other tables: ``replay batch`` writes frames tables beside its
+    agents tables). Nothing inside ``output_dir`` (the command's own output folder) is
+    taken from a folder, except, when the output folder is an input folder itself,
+    files that are not outputs (``output_stems``: the names the command writes), so
+    that a second ``replay stats DIR -o DIR`` does not read its own ``errors.csv``."""
     scenes: list[pathlib.Path] = []
     tables: list[pathlib.Path] = []
+    out = None if output_dir is None else output_dir.absolute()
+    stems = set(output_stems)
+
+    def ours(f: pathlib.Path) -> bool:
+        if out is None:
+            return False
+        where = f.absolute()
+        if where.parent == out:
+            return where.stem in stems or where.name == "summary.json"
+        return where.is_relative_to(out)
+
     for p in paths:
         if p.is_dir():
-            found = sorted(f for f in p.iterdir() if f.is_file() and _kind(f))
+            found = [f for f in sorted(p.rglob("*")) if _kind(f) == "scene" and _visible(f, p)]
+            found = [f for f in found if f.is_file()]
+            found += [f for f in sorted(p.iterdir()) if f.is_file() and _kind(f) == "table"]
+            found = [f for f in found if not ours(f) and not f.name.startswith(".")]
             if not found:
-                raise ReplayError(f"{p}: no .mcap scene or .parquet/.csv table in this folder")
+                raise ReplayError(
+                    f"{p}: no .mcap scene (in it or its sub-folders) or .parquet/.csv table"
+                    " in this folder"
+                )
         else:
             if not _kind(p):
                 raise ReplayError(
@@ -60,6 +88,10 @@ def resolve_inputs(paths: Sequence[pathlib.Path]) -> Inputs:
         for f in found:
             (scenes if _kind(f) == "scene" else tables).append(f)
     return Inputs(tuple(dict.fromkeys(scenes)), tuple(dict.fromkeys(tables)))
+
+
+def _visible(f: pathlib.Path, root: pathlib.Path) -> bool:
+    return not any(part.startswith(".") for part in f.relative_to(root).parts)
 
 
 def _kind(path: pathlib.Path) -> str:
@@ -133,7 +165,7 @@ def collect(
             tasks,
             workers=min(workers, len(tasks)),
             progress=progress,
-            desc="stats: scenes",
+            desc="replaying scenes",
             unit="scene",
         ):
             agents.append(a)

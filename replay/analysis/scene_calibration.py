@@ -70,7 +70,7 @@ def collect(
     sources: set[str] = set()
     seeds: set[int] = set()
     total = sum(r.n_frames for r in readers)
-    with tqdm(total=total, disable=not progress, file=sys.stderr, unit="frame",
+    with tqdm(total=total, disable=None if progress else True, file=sys.stderr, unit="frame",
               desc="calibrate", leave=False) as bar:  # fmt: skip
         for reader in readers:
             meta = dict(reader.metadata)

@@ -455,7 +455,7 @@ def _execute(
     )
     bar = tqdm(
         total=len(run.replay_todo), unit="scene", desc=f"batch ({eng.name}, {eng.workers} workers)",
-        file=sys.stderr, disable=not progress, dynamic_ncols=True, smoothing=0.05,
+        file=sys.stderr, disable=None if progress else True, dynamic_ncols=True, smoothing=0.05,
     )  # fmt: skip
     try:
         with bar:

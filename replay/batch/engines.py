@@ -5,6 +5,7 @@ process pool) and Ray (:class:`RayEngine`)."""
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import logging
 import socket
 from collections.abc import Callable
@@ -130,6 +131,14 @@ def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
             f"cannot reach the Ray cluster at {address} ({exc.strerror or exc}); is it "
             "running ('ray start --head' on the head node) and is the port open?"
         ) from None
+
+
+def check_engine(name: str) -> None:
+    """Refuse an engine that cannot start here (Ray not installed) before anything is
+    written: found only when the batch opened its engine, it left ``.done/`` and
+    ``tables/`` behind."""
+    if name == "ray" and importlib.util.find_spec("ray") is None:
+        raise ReplayError(RAY_MISSING)
 
 
 def _import_ray() -> Any:

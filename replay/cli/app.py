@@ -4,11 +4,17 @@ Subcommands live in ``replay/cli/commands/<name>.py`` and are imported only when
 ``replay --help`` stays fast. Errors meant for the user (every package's derive from
 :class:`risk.errors.RiskReplayError`) become one line ``Error: ...`` and exit code 1,
 without a traceback; so do system errors (``OSError``: a missing file, a full disk),
-whose message names the file.
+whose message names the file (or standard output: ``replay models > /dev/full``).
+
+Stopping: Ctrl-C, SIGTERM and SIGHUP (installed here, once, around every command: see
+:mod:`replay.core.process_exit`) unwind the command like an error, so that its output
+guard removes temporary and partial files and its workers are stopped; the command then
+prints one line saying what was kept and exits 130, 143 or 129.
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import importlib
 import importlib.util
@@ -18,6 +24,7 @@ import sys
 import click
 
 from outputs.transaction import target_of_temp
+from replay.core.process_exit import exit_status, signal_name, stop_on_signals
 from risk.errors import RiskReplayError
 
 __all__ = ["main"]
@@ -60,18 +67,61 @@ class LazyGroup(click.Group):
         return getattr(importlib.import_module(module_name), attr)
 
     def invoke(self, ctx: click.Context):
+        if sys.stdout is None:  # started with stdout closed (``>&-``): fail on first use
+            sys.stdout = _ClosedStream()
         try:
-            return super().invoke(ctx)
+            with stop_on_signals():  # the one place SIGTERM / SIGHUP are handled
+                return super().invoke(ctx)
+        except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP: clean-up has run
+            _stopped(ctx, exc)
         except OSError as exc:
             if exc.errno != errno.EPIPE and not isinstance(exc, BrokenPipeError):
+                _end_line(sys.stderr)
                 raise click.ClickException(_os_message(exc)) from None
             quiet_broken_pipe()
         except RiskReplayError as exc:  # the one base of every error meant for the user
+            _end_line(sys.stderr)  # (a progress bar may have left the cursor mid-line)
             raise click.ClickException(str(exc)) from None
 
 
+class _ClosedStream:
+    """Stands in for a closed stdout: writing to it fails (exit 1) instead of vanishing."""
+
+    def write(self, text: str) -> int:
+        raise OSError(errno.EBADF, "standard output is closed")
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return False
+
+
+def _stopped(ctx: click.Context, exc: BaseException) -> None:
+    """One line on stderr saying what was kept, then exit ``128 + signal``."""
+    _end_line(sys.stderr)
+    kept = getattr(exc, "kept", None) or (
+        "nothing was written (a command's outputs appear only when it finishes);"
+        " run it again to start over"
+    )
+    with contextlib.suppress(OSError, ValueError):
+        click.echo(f"Stopped by {signal_name(getattr(exc, 'signum', 2))}: {kept}", err=True)
+    ctx.exit(exit_status(exc))
+
+
+def _end_line(stream: object) -> None:
+    """Start a fresh line on ``stream`` if a progress bar left the cursor inside one."""
+    with contextlib.suppress(Exception):
+        if stream.isatty():  # type: ignore[attr-defined]
+            stream.write("\r\033[K")  # type: ignore[attr-defined]
+
+
 def _os_message(exc: OSError) -> str:
-    """The error's message, naming the target file rather than its temporary file."""
+    """The error's message, naming the target file rather than its temporary file (or
+    standard output, when that is what failed: ``replay models > /dev/full``)."""
+    if not exc.filename and exc.strerror and _from_stdout(exc):
+        _stdout_to_devnull()  # (so that the exit's own flush does not fail again)
+        return f"cannot write to standard output: {exc.strerror}"
     if exc.strerror and exc.filename:
         name = target_of_temp(exc.filename)
         if name != exc.filename:
@@ -81,6 +131,27 @@ def _os_message(exc: OSError) -> str:
     if exc.filename and str(exc.filename) not in message:
         message = f"{message}: {target_of_temp(exc.filename)}"
     return message
+
+
+def _from_stdout(exc: OSError) -> bool:
+    """True when ``exc`` came from ``click.echo`` writing to stdout (not stderr): an
+    error without a file name (``replay models > /dev/full``) then names stdout."""
+    tb = exc.__traceback__
+    while tb is not None:
+        frame = tb.tb_frame
+        if frame.f_code.co_name == "echo" and frame.f_globals.get("__name__") == "click.utils":
+            return not frame.f_locals.get("err", False)
+        tb = tb.tb_next
+    return False
+
+
+def _stdout_to_devnull() -> None:
+    with contextlib.suppress(OSError, ValueError, AttributeError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, sys.stdout.fileno())
+        finally:
+            os.close(devnull)
 
 
 def quiet_broken_pipe() -> None:

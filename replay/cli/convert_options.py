@@ -14,6 +14,7 @@ from converters.errors import ConversionError
 from converters.lanegraph import PathSettings
 from converters.tracks import PATH_MODES, Skipped
 from outputs.atomic import safe_name as safe_name  # re-exported for the convert_* commands
+from risk.frame import MAX_CANDIDATES
 
 MCAP_SUFFIX = ".mcap"
 
@@ -58,7 +59,7 @@ def path_options(default: str = "map") -> Callable:
             ),
             click.option(
                 "--max-candidates",
-                type=click.IntRange(min=1),
+                type=click.IntRange(1, MAX_CANDIDATES),  # (the replay's cap: risk.frame)
                 default=PathSettings.max_candidates,
                 show_default=True,
                 help="Path candidates kept per agent where lanes fork (map paths).",

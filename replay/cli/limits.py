@@ -7,7 +7,9 @@ Each bound is a click parameter type, so a request beyond it is a one-line usage
 
 from __future__ import annotations
 
+import math
 import os
+from typing import Any
 
 import click
 
@@ -39,3 +41,33 @@ def check_frames(duration_s: float, period_s: float) -> None:
             f" at most {MAX_FRAMES} are supported",
             param_hint="--duration/--period",
         )
+
+
+class FiniteRange(click.FloatRange):
+    """A ``FloatRange`` that also refuses NaN and infinities (click's lets NaN through:
+    every comparison with it is false)."""
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        rv = super().convert(value, param, ctx)
+        if not math.isfinite(rv):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return rv
+
+
+#: A threshold on the survival risk, a probability.
+RISK_THRESHOLDS = FiniteRange(0.0, 1.0)
+
+
+def model_names(text: str | None) -> list[str] | None:
+    """The names of a ``--models a,b`` option (None: the option was not given). An
+    option given with no name at all (``--models ''``) is a usage error, not "all"."""
+    if text is None:
+        return None
+    names = [x.strip() for x in text.split(",") if x.strip()]
+    if not names:
+        raise click.BadParameter(
+            "no model name given; name one or more (see 'replay models'), or leave the"
+            " option out for all",
+            param_hint="--models",
+        )
+    return names

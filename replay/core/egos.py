@@ -93,7 +93,8 @@ class _KeepOpen:
 
     def __init__(self, sink: Sink) -> None:
         self.sink = sink
-        self.timing_name = type(sink).__name__  # what replay.core.engine reports its time as
+        # what replay.core.engine reports its time as
+        self.timing_name = getattr(sink, "timing_name", type(sink).__name__)
 
     def begin(self, info: SceneInfo) -> None:
         self.sink.begin(info)
@@ -177,7 +178,7 @@ def run_every_ego(
     wrapped = [_KeepOpen(s) for s in sinks]
     runs: list[RunSummary] = []
     bar = tqdm(
-        egos.tolist(), disable=not progress, file=sys.stderr, unit="ego",
+        egos.tolist(), disable=None if progress else True, file=sys.stderr, unit="ego",
         desc=f"egos of {scene.path.name if scene.path else 'scene'}", leave=False,
     )  # fmt: skip
     try:

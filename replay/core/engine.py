@@ -297,7 +297,7 @@ def _run(
         # process there, and it imports rerun while the kernels load.
         warm_up()
         bar = tqdm(
-            total=info.n_frames, disable=not progress, file=sys.stderr, unit="frame",
+            total=info.n_frames, disable=None if progress else True, file=sys.stderr, unit="frame",
             desc=f"replay {path.name if path else 'scene'}", leave=False,
         )  # fmt: skip
         with bar:

@@ -14,18 +14,21 @@ run :func:`init_worker`, which has to set ``POLARS_MAX_THREADS`` before polars l
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import math
 import multiprocessing
 import os
 import signal
 import sys
+import threading
 from collections import deque
 from collections.abc import Callable, Sequence
+from multiprocessing import resource_tracker
 from typing import Any
 
 from tqdm import tqdm
 
-from replay.core.process_exit import exit_with_parent
+from replay.core.process_exit import exit_with_parent, interrupts_held
 from replay.errors import ReplayError
 from risk import kernel
 
@@ -53,6 +56,12 @@ def _quiet_worker(driver: int) -> None:
     lets running tasks finish (their outputs are atomic), exit when the driver (pid
     ``driver``) dies, so that no worker outlives it, and set thread counts."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # SIGTERM / SIGHUP to the whole process group (a closed terminal, ``kill -- -PGID``)
+    # are the driver's to handle too: it stops the workers itself, after which the
+    # pool's queues are released (workers dying on their own left the pool's
+    # semaphores leaked, seen as resource_tracker warnings).
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
     exit_with_parent(driver)
     init_worker()
 
@@ -84,6 +93,7 @@ class LocalEngine:
         kernel.warm_up(
             build_ahead_of_time=True
         )  # compile once here; the workers load the cached kernels
+        _start_resource_tracker()
         return cf.ProcessPoolExecutor(
             max_workers=self.workers,
             mp_context=multiprocessing.get_context("spawn"),
@@ -106,11 +116,12 @@ class LocalEngine:
             self._start(fn, task)
 
     def _start(self, fn: Callable[[Any], Any], task: Any) -> None:
-        try:
-            future = self._pool.submit(fn, task)
-        except cf.process.BrokenProcessPool:
-            self._replace_pool()
-            future = self._pool.submit(fn, task)
+        with interrupts_held():  # (submit starts the workers: no Ctrl-C while they import)
+            try:
+                future = self._pool.submit(fn, task)
+            except cf.process.BrokenProcessPool:
+                self._replace_pool()
+                future = self._pool.submit(fn, task)
         self._running[future] = (fn, task, self._pool)
 
     def results(self) -> list[tuple[Any, Any]]:
@@ -160,11 +171,46 @@ class LocalEngine:
         self._running.clear()
         self._alone = False
 
-    def close(self, *, cancel: bool = False) -> None:
-        if cancel:
+    def close(self, *, cancel: bool = False, stop: bool = False) -> None:
+        """Shut the pool down; ``cancel``: drop queued calls; ``stop`` (Ctrl-C, SIGTERM):
+        also end the running ones at once (their outputs are atomic: nothing partial)."""
+        if cancel or stop:
             self._held.clear()
             self._suspects.clear()
-        self._pool.shutdown(wait=True, cancel_futures=cancel)
+        if stop:
+            self._kill_workers()
+        self._pool.shutdown(wait=True, cancel_futures=cancel or stop)
+
+    def _kill_workers(self) -> None:
+        # ProcessPoolExecutor has no public way to end running calls. A worker killed
+        # while sending its result leaves half a message in the result pipe, and the
+        # pool's manager thread would wait for the rest for ever (seen: a hang after
+        # Ctrl-C); closing our copy of the pipe's write end, once the workers are gone,
+        # turns that into end-of-file, which the manager handles as a broken pool.
+        processes = list((getattr(self._pool, "_processes", None) or {}).values())
+        for process in processes:
+            with contextlib.suppress(OSError, ValueError, AttributeError):
+                process.kill()
+        for process in processes:
+            with contextlib.suppress(OSError, ValueError, AttributeError, AssertionError):
+                process.join(5.0)
+        queue = getattr(self._pool, "_result_queue", None)
+        with contextlib.suppress(OSError, AttributeError):
+            queue._writer.close()  # type: ignore[union-attr]
+
+
+def _start_resource_tracker() -> None:
+    """Start multiprocessing's resource tracker with SIGHUP ignored (it ignores SIGINT
+    and SIGTERM itself): a hang-up of the terminal, sent to the whole process group,
+    killed it, and the pool's semaphores were then reported leaked."""
+    if threading.current_thread() is not threading.main_thread():
+        resource_tracker.ensure_running()
+        return
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        signal.signal(signal.SIGHUP, previous)
 
 
 def _lost(future: cf.Future) -> bool:
@@ -178,6 +224,10 @@ def init_worker() -> None:
     before polars is imported in a spawned worker, which reads it at import."""
     for var in ("POLARS_MAX_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
+    # tqdm's default lock is a multiprocessing RLock, a named semaphore even for a
+    # disabled bar: a worker stopped mid-task left it leaked (resource_tracker warned).
+    # A worker's bars never share a terminal with another process's.
+    tqdm.set_lock(threading.RLock())
 
 
 def parallel_map(
@@ -202,7 +252,7 @@ def parallel_map(
     weights = list(weights) if weights is not None else [1] * len(tasks)
     bar = tqdm(
         total=sum(weights),
-        disable=not progress,
+        disable=None if progress else True,
         file=sys.stderr,
         desc=desc,
         unit=unit,
@@ -217,7 +267,6 @@ def parallel_map(
             return results
         own = engine is None
         pool = engine if engine is not None else LocalEngine(workers)
-        failed = True
         try:
             for k, task in enumerate(tasks):
                 pool.submit(_call, (fn, k, task))
@@ -227,12 +276,20 @@ def parallel_map(
                         raise outcome
                     results[k] = outcome
                     bar.update(weights[k])
-            failed = False
-        finally:
+        except KeyboardInterrupt:  # Ctrl-C, SIGTERM, SIGHUP: stop the workers now
             if own:
-                pool.close(cancel=failed)
-            elif failed:
+                pool.close(stop=True)
+            else:
                 pool.cancel_pending()
+            raise
+        except BaseException:
+            if own:
+                pool.close(cancel=True)
+            else:
+                pool.cancel_pending()
+            raise
+        if own:
+            pool.close()
     return results
 
 

@@ -4,16 +4,24 @@ A worker of ``replay batch`` (or of any process pool of the project) calls
 :func:`exit_with_parent` once when it starts: a daemon thread checks twice a second
 whether the process that started it is still its parent, and ends the worker at once
 when it is not (the driver was killed with SIGKILL, crashed, or ended without shutting
-its pool down). :func:`sigterm_as_interrupt` makes SIGTERM to a driver behave like
-Ctrl-C, so that its usual clean-up runs. Standard library only.
+its pool down).
+
+Stopping. :func:`stop_on_signals` (installed once, by ``replay.cli`` around every
+command) turns SIGTERM and SIGHUP (a closed terminal) into :class:`Stopped`, a
+``KeyboardInterrupt`` like Ctrl-C's, so that the same clean-up runs for all three: the
+output guard removes temporary and partial files, the process pool shuts its workers
+down (no leaked semaphores), and the CLI exits with ``128 + signal`` (130, 143, 129).
+Standard library only.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import threading
 import time
+from collections.abc import Iterator
 
 CHECK_EVERY_S = 0.5
 
@@ -39,11 +47,63 @@ def exit_with_parent(
     return thread
 
 
+#: The signals that stop a command, besides SIGINT (Ctrl-C, Python's own).
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+
+
+class Stopped(KeyboardInterrupt):
+    """A command stopped by a signal; ``signum`` says which (SIGINT for Ctrl-C)."""
+
+    def __init__(self, signum: int = signal.SIGINT) -> None:
+        super().__init__(f"stopped by {signal_name(signum)}")
+        self.signum = signum
+
+
+def signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
+
+
+def exit_status(exc: BaseException) -> int:
+    """The shell's status for a command stopped by ``exc``: 128 + the signal number."""
+    return 128 + int(getattr(exc, "signum", signal.SIGINT))
+
+
 def _interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt(f"signal {signum}")
+    # Raised once: a second signal while the clean-up runs must not cut it short.
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+    raise Stopped(signum)
 
 
-def sigterm_as_interrupt() -> None:
-    """In the main thread: SIGTERM raises KeyboardInterrupt, like SIGINT."""
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _interrupt)
+@contextlib.contextmanager
+def stop_on_signals() -> Iterator[None]:
+    """While active (in the main thread; elsewhere it does nothing): SIGTERM and SIGHUP
+    raise :class:`Stopped`; the previous handlers come back afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+    for sig, handler in previous.items():
+        if handler is not signal.SIG_IGN:  # (nohup: a hang-up is to be ignored)
+            signal.signal(sig, _interrupt)
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+
+
+@contextlib.contextmanager
+def interrupts_held() -> Iterator[None]:
+    """Block SIGINT in this thread while starting processes: a new process inherits the
+    mask, so a Ctrl-C while it imports cannot interrupt it with a traceback (the pool's
+    workers ignore SIGINT anyway; SIGTERM stays deliverable, the pool ends workers with
+    it); the driver gets the signal as soon as the block ends."""
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)

@@ -48,13 +48,14 @@ def replay_to_files(
     notify: Notify = _quiet,
     keep_lists: pathlib.Path | None = None,
     annotators: Sequence[Annotator] = (),
+    extra_sinks: Sequence[Sink] = (),
 ) -> RunSummary:
     """Replay ``scene`` into a Rerun recording, a table and/or keep-lists (each
     optional), all or nothing: the outputs are checked before the replay and appear
     together (:class:`outputs.transaction.OutputGuard`; ``inputs`` are refused as
-    outputs)."""
+    outputs). ``extra_sinks`` see the frames too (e.g. a hindsight tally)."""
     with OutputGuard(inputs=(scene, *inputs), files=(rrd, table, keep_lists)):
-        sinks = make_sinks(rrd, table, keep_lists)
+        sinks = [*make_sinks(rrd, table, keep_lists), *extra_sinks]
         reader = open_scene(scene)
         if ego is None:  # the scene's own ego: say which agent it is and why
             notify(ego_note(reader.metadata))

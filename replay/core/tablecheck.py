@@ -32,6 +32,7 @@ def check_agents_table(df: pl.DataFrame, path: str | os.PathLike[str]) -> None:
     is not numeric, or a risk value is outside its model's range."""
     if df.height == 0:
         raise TableError(f"{path}: the table has no rows; replay the scene again")
+    check_column_types(df, path)
     for column in (c for c in df.columns if c.startswith(RISK_PREFIX)):
         dtype = df.schema[column]
         if not (dtype.is_numeric() or dtype == pl.Null):
@@ -53,4 +54,45 @@ def check_agents_table(df: pl.DataFrame, path: str | os.PathLike[str]) -> None:
                 f"{path}: {bad} value(s) of {column} lie outside the model's range"
                 f" [{lo:g}, {hi:g}] (e.g. {first:g}); the table is damaged, replay the scene"
                 " again"
+            )
+
+
+#: Columns of an agents table that hold integers (ids, frame numbers) or numbers.
+INTEGER_COLUMNS = ("frame", "agent_id", "ego_id")
+NUMBER_COLUMNS = ("t_s",)
+FLAG_PREFIXES = ("baseline", "kept_", "truth_label")
+
+
+def check_column_types(df: pl.DataFrame, path: str | os.PathLike[str]) -> None:
+    """Raise :class:`TableError` when an id or frame column is not integers, ``t_s`` not
+    numbers, or a flag column (``baseline``, ``kept_*``) anything but booleans or the
+    words true/false (a CSV stores them so): a table of the wrong types would otherwise
+    fail deep inside the statistics, or count a ``maybe`` as false."""
+
+    def wrong(column: str, what: str, dtype: object) -> TableError:
+        return TableError(
+            f"{path}: column {column} holds {dtype} values, not {what}; the table is damaged"
+            " or not from 'replay run --table'"
+        )
+
+    for column in INTEGER_COLUMNS:
+        if column in df.columns and not (df.schema[column].is_integer()):
+            raise wrong(column, "integers", df.schema[column])
+    for column in NUMBER_COLUMNS:
+        if column in df.columns and not df.schema[column].is_numeric():
+            raise wrong(column, "numbers", df.schema[column])
+    for column in df.columns:
+        if not column.startswith(FLAG_PREFIXES):
+            continue
+        dtype = df.schema[column]
+        if dtype == pl.Boolean:
+            continue
+        if dtype != pl.String:
+            raise wrong(column, "true/false", dtype)
+        words = df[column].drop_nulls().str.to_lowercase()
+        bad = words.filter(~words.is_in(["true", "false"]))
+        if bad.len():
+            raise TableError(
+                f"{path}: column {column} holds {bad[0]!r}, not true/false; the table is"
+                " damaged or not from 'replay run --table'"
             )

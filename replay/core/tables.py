@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from outputs import process as background_process
-from outputs.atomic import commit, temp_path_beside
+from outputs.atomic import commit, target_kind, temp_path_beside
 from outputs.sinks import FrameResult, SceneInfo
 from replay.core.table_columns import LABEL_PREFIX, PLANNER_COLUMNS, TableColumns
 from replay.errors import ReplayError
@@ -64,6 +64,8 @@ class TableSink:
     that cannot help (one CPU) or cannot work (no ``fork``).
     """
 
+    timing_name = "writing the table"  # (the run's timing line names stages, not classes)
+
     def __init__(
         self,
         path: str | os.PathLike[str] | None,
@@ -79,7 +81,7 @@ class TableSink:
         self.path = None if path is None else pathlib.Path(path)
         if self.path is None:
             return
-        if self.path.suffix.lower() not in SUFFIXES:
+        if self.path.suffix.lower() not in SUFFIXES and target_kind(self.path) != "device":
             raise ReplayError(
                 f"{self.path}: table files must end in .parquet or .csv, got "
                 f"{self.path.suffix or 'no suffix'!r}"

@@ -527,6 +527,8 @@ def compute_stats(
     per_frame = _per_frame(frames, sits, per_model)
     summary = {
         "inputs": list(inputs),
+        # how "auc" is computed (replay evaluate pools instead; issue 31)
+        "auc_method": "mean of the per-situation ROC curves (the paper's)",
         "situations": _situation_counts(frames, sits),
         "baseline": {
             "model": BASELINE_MODEL,

@@ -79,7 +79,13 @@ def read_agents_table(path: str | os.PathLike[str], scene: str | None = None) ->
     except (pl.exceptions.PolarsError, OSError) as exc:
         if isinstance(exc, FileNotFoundError):
             raise
-        raise StatsError(f"{path}: not a readable table ({type(exc).__name__}: {exc})") from None
+        # polars' own words ("parquet: File out of specification") do not help here
+        detail = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
+        what = "a Parquet file" if suffix == ".parquet" else f"CSV ({detail})"
+        raise StatsError(
+            f"{path}: not a readable table (damaged, cut short or not {what}); write it"
+            " again with 'replay run --table'"
+        ) from None
     required = {"frame", "t_s", "agent_id", "baseline"}
     missing = sorted(required - set(df.columns))
     if missing or not model_names_of(df):
@@ -110,6 +116,10 @@ def concat_agents(tables: Sequence[pl.DataFrame]) -> pl.DataFrame:
         raise StatsError(f"the tables do not fit together: {exc}") from None
 
 
+#: The tables :func:`write_stats` writes (as NAME.parquet and NAME.csv): never inputs.
+OUTPUT_TABLES = ("roc", "errors", "funnel", "per_frame", "per_scene")
+
+
 def write_stats(stats: DatasetStats, out_dir: str | os.PathLike[str]) -> dict[str, pathlib.Path]:
     """Write every table as Parquet and CSV and the summary as JSON into ``out_dir``
     (created if needed); each file atomically. Returns name -> path."""
@@ -123,6 +133,7 @@ def write_stats(stats: DatasetStats, out_dir: str | os.PathLike[str]) -> dict[st
         "per_frame": stats.per_frame,
         "per_scene": stats.per_scene,
     }
+    assert tuple(tables) == OUTPUT_TABLES
     for name, df in tables.items():
         for suffix in (".parquet", ".csv"):
             path = out / f"{name}{suffix}"

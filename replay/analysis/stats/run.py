@@ -14,7 +14,7 @@ import polars as pl
 from outputs.transaction import OutputGuard
 from replay.analysis.inputs import collect, resolve_inputs
 from replay.analysis.stats.compute import DatasetStats, compute_stats
-from replay.analysis.stats.files import write_stats
+from replay.analysis.stats.files import OUTPUT_TABLES, write_stats
 from replay.analysis.stats.plots import plot_all
 from replay.core.engine import Stride
 from risk.cascade import CascadeConfig
@@ -82,7 +82,9 @@ def stats_of_inputs(
     then compute, write and plot their statistics into ``out_dir``, all or nothing
     (:class:`outputs.transaction.OutputGuard`; ``extra_inputs``, a cascade file, are
     refused as outputs too). Returns the run and each step's wall time."""
-    found = resolve_inputs(list(inputs))
+    found = resolve_inputs(
+        list(inputs), output_dir=pathlib.Path(out_dir), output_stems=OUTPUT_TABLES
+    )
     guard = OutputGuard(inputs=(*found.scenes, *found.tables, *extra_inputs), folders=(out_dir,))
     with guard:  # checked and locked before the replays; all files appear together
         engine_models = None
@@ -103,6 +105,15 @@ def stats_of_inputs(
     return result, times
 
 
+#: How this AUC is computed, and why ``replay evaluate``'s differs (0.615 against 0.771
+#: on the same scenes surprised a user; issue 31).
+STATS_AUC_NOTE = (
+    "AUC: area under the mean of the per-situation ROC curves against the survival"
+    " baseline (each situation's TPR and FPR averaged at every threshold, as the paper"
+    " does); 'replay evaluate' pools all agent-frames into one curve, so its AUCs differ"
+)
+
+
 def format_stats(stats: DatasetStats, times: dict[str, float] | None = None) -> str:
     """The end-of-run summary: situations, each model's AUC and operating points, the
     cascade."""
@@ -113,6 +124,7 @@ def format_stats(stats: DatasetStats, times: dict[str, float] | None = None) -> 
         f"{sit['empty_baseline']} (TPR undefined), full in {sit['full_baseline']} (FPR "
         f"undefined), no agents in {sit['without_agents']}; "
         f"{s['baseline']['mean_important_per_situation']:.1f} important agents per situation",
+        STATS_AUC_NOTE,
         f"  {'model':<22}{'AUC':>7}{'σTPR@.95':>10}{'FPR@.95':>9}{'kept@.95':>10}{'kept@1':>8}",
     ]
     for name, m in s["models"].items():

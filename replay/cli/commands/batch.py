@@ -3,18 +3,17 @@
 from __future__ import annotations
 
 import pathlib
-import sys
 
 import click
 
 from outputs.transaction import OutputGuard
 from replay.batch import CONVERT_KINDS, ENGINES, BatchReport, BatchSettings, run_batch
+from replay.batch.engines import check_engine
 from replay.cli.ego_options import ego_option, every_option
 from replay.cli.limits import WORKERS
 from replay.cli.settings_option import load_cascade, set_option
 from replay.core.egos import ALL_EGOS
 from replay.core.engine import Stride
-from replay.core.process_exit import sigterm_as_interrupt
 from replay.errors import ReplayError
 
 _FAILURES_SHOWN = 5
@@ -130,6 +129,7 @@ def batch(
             "--rrd writes one recording per scene, which shows one ego's view; it cannot go "
             "with --ego all"
         )
+    check_engine(engine)
     cascade = load_cascade(cascade_file, sets)
     settings = BatchSettings(
         cascade=cascade,
@@ -140,7 +140,6 @@ def batch(
         ego=ego,
         every=every,
     )
-    sigterm_as_interrupt()  # SIGTERM stops like Ctrl-C; killed workers' outputs are atomic
     # Locked and checked at once; scenes are committed one by one (resumable), so no
     # deferred transaction here. Stale temporary files of a killed run are removed.
     guard = OutputGuard(inputs=[*inputs, cascade_file, map_osm], folders=(out_dir,),
@@ -151,11 +150,13 @@ def batch(
                 inputs, out_dir, settings, engine=engine, workers=workers,
                 ray_address=ray_address, progress=progress,
             )  # fmt: skip
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP (replay.core.process_exit)
         # Running scenes finished and are complete; the same command resumes.
-        click.echo("Interrupted. Run the same command again to resume: complete scenes "
-                   "are skipped.", err=True)  # fmt: skip
-        sys.exit(130)
+        exc.kept = (  # type: ignore[attr-defined]
+            f"complete scenes are kept in {out_dir}; run the same command again to resume"
+            " (they are skipped)"
+        )
+        raise
     click.echo(format_report(report, settings))
     if report.all_failed:
         raise ReplayError(

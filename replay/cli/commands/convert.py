@@ -173,7 +173,11 @@ def _situations(
     digits = max(4, len(str(count - 1)))
     total_agents = 0
     for k in tqdm(
-        range(count), desc="situations", unit="file", disable=not progress, file=sys.stderr
+        range(count),
+        desc="situations",
+        unit="file",
+        disable=None if progress else True,
+        file=sys.stderr,
     ):
         scene = generate_situation(settings, seed + k)
         write_scene(folder / f"situation_{k:0{digits}d}.mcap", scene)

@@ -75,6 +75,7 @@ def source_command(spec: SourceSpec) -> click.Command:
         ego: int | None = None,
         map_osm: pathlib.Path | None = None,
         origin: tuple[float, float] = (0.0, 0.0),
+        progress: bool = True,
     ) -> None:
         options = ReadOptions(
             paths=path_mode,
@@ -82,7 +83,7 @@ def source_command(spec: SourceSpec) -> click.Command:
             ego=ego,
             origin=origin,
             skip_bad=skip_bad,
-            progress=True,
+            progress=progress,
         )
         source = SourceInput(source=spec.name, path=inputs[0], extra=inputs[1:], map=map_osm)
         # Every file the conversion reads is an input the outputs must not overwrite.
@@ -107,6 +108,12 @@ def source_command(spec: SourceSpec) -> click.Command:
         output_option,
         path_options(),
         skip_bad_option(spec.records),
+        click.option(
+            "--progress/--no-progress",
+            default=True,
+            show_default=True,
+            help="Progress bars on stderr (shown only on a terminal).",
+        ),
     ]
     if spec.ego_option:
         params.append(

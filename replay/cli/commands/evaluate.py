@@ -21,6 +21,7 @@ from replay.analysis.corpus_evaluation import (
 )
 from replay.analysis.evaluation_run import SensitivityRequest, run_evaluation
 from replay.cli.ego_options import StrideParam, ego_option, every_option
+from replay.cli.limits import RISK_THRESHOLDS, model_names
 from replay.cli.settings_option import load_cascade, set_option
 from replay.core.engine import Stride
 from risk.hindsight import HindsightSettings
@@ -45,7 +46,7 @@ def _names(text: str | None) -> list[str]:
     help="Cascade TOML for the scenes. Default: the calibrated cascade shipped with riskreplay.",
 )  # fmt: skip
 @click.option(
-    "--baseline-threshold", type=float, default=None,
+    "--baseline-threshold", type=RISK_THRESHOLDS, default=None,
     help="Survival risk at or above which an agent is important. Default: 1e-25 (the paper's).",
 )  # fmt: skip
 @click.option("--truth-horizon", type=float, default=None, help="Hindsight horizon, s. Default: 5.")
@@ -184,7 +185,8 @@ def evaluate(
     from replay.core.pool import default_workers
     from risk.registry import resolve_models
 
-    chosen = tuple(resolve_models(_names(models))) if models else None
+    names = model_names(models)
+    chosen = tuple(resolve_models(names)) if names is not None else None
     by = check_groupings(_names(groupings))
     cascade = load_cascade(cascade_file, sets)
     given = {

@@ -17,6 +17,7 @@ from replay.core.scene_run import (
     replay_every_ego_to_table,
     replay_to_files,
 )
+from replay.core.tally import HindsightTally, format_counts
 from replay.planning.annotator import PlannerAnnotator
 from replay.planning.registry import PLANNERS, make_planner
 
@@ -91,6 +92,11 @@ def run(
         annotators.append(PlannerAnnotator(make_planner(planner), truth=table is not None))
     if no_rrd and output is not None:
         raise click.UsageError("--output names the recording; it cannot go with --no-rrd")
+    if no_rrd and table is None and keep_lists is None and ego != ALL_EGOS:
+        raise click.UsageError(
+            "--no-rrd without --table would write nothing; add --table FILE (or --table"
+            " /dev/null to print the summary only)"
+        )
     if ego == ALL_EGOS:
         if output is not None:
             raise click.UsageError(
@@ -111,12 +117,15 @@ def run(
         for annotator in annotators:
             click.echo(annotator.summary())
         return
+    tally = HindsightTally()
     summary = replay_to_files(
         scene, rrd=None if no_rrd else (output or scene.with_suffix(".rrd")), table=table,
         cascade=cascade, ego=cast(int | None, ego), every=every, progress=progress,
         inputs=(cascade_file,), keep_lists=keep_lists, annotators=annotators,
-        notify=lambda message: click.echo(message, err=True),
+        notify=lambda message: click.echo(message, err=True), extra_sinks=(tally,),
     )  # fmt: skip
     for annotator in annotators:
         click.echo(annotator.summary())
     click.echo(format_summary(summary))
+    if tally.counts is not None:
+        click.echo(format_counts(tally.counts))

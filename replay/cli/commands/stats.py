@@ -10,7 +10,7 @@ import click
 from replay.analysis.stats import DEFAULT_ERRORS_MODEL
 from replay.analysis.stats.run import format_stats, stats_of_inputs
 from replay.cli.ego_options import ego_option, every_option
-from replay.cli.limits import WORKERS
+from replay.cli.limits import WORKERS, model_names
 from replay.cli.settings_option import load_cascade, set_option
 from replay.core.engine import Stride
 from replay.core.pool import default_workers
@@ -90,7 +90,8 @@ def stats(
       summary.json            AUC, std of TPR at TPR 0.95 and 1, kept agents, counts
       roc.png, errors.png, cascade_funnel.png
     """
-    chosen = resolve_models([m.strip() for m in models.split(",") if m.strip()]) if models else None
+    names = model_names(models)
+    chosen = resolve_models(names) if names is not None else None
     resolve_models([errors_model])
     cascade = load_cascade(cascade_file, sets)
     result, times = stats_of_inputs(
