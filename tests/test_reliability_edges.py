@@ -458,15 +458,21 @@ def test_the_agent_directly_ahead_of_the_ego_is_found_per_frame():
     assert np.flatnonzero(_lead_rows(scene_rows)).tolist() == [1, 6]
 
 
-def test_evaluate_exits_non_zero_when_nothing_comes_close(tmp_path):
+def test_evaluate_exits_non_zero_when_no_reference_has_a_positive(tmp_path):
+    """Nothing came close and nothing is survival-important: every rate is undefined, so
+    the command fails with one line and writes nothing. With survival positives left,
+    the hindsight reference is reported as having none (issue 28), and the run succeeds."""
     s = _crowd(tmp_path / "apart.mcap", 3, frames=30)  # 8 m apart, all driving east
     out = tmp_path / "ev"
-    result = CliRunner().invoke(main, ["evaluate", str(s), "-o", str(out), "--truth-gap", "0",
-                                       "--truth-pet", "0", "--bootstrap", "0", "--no-plots",
-                                       "--no-progress"])  # fmt: skip
+    args = ["evaluate", str(s), "-o", str(out), "--truth-gap", "0", "--truth-pet", "0",
+            "--bootstrap", "0", "--no-plots", "--no-progress"]  # fmt: skip
+    result = CliRunner().invoke(main, [*args, "--baseline-threshold", "1.0"])  # R_S < 1 here
     line = _clean_error(result)
     assert "no agent came close in hindsight" in line
     assert not out.exists()
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert "Reference hindsight: no positive" in result.output
 
 
 def test_two_outputs_onto_one_null_device_are_both_discarded(tmp_path):
