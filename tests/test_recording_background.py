@@ -228,7 +228,9 @@ def test_only_the_outputs_start_the_output_process(tmp_path, monkeypatch):
                                 "--duration", "1"])  # fmt: skip
     assert made.exit_code == 0, made.output
     assert started == []
-    ran = runner.invoke(main, ["run", str(scene), "--no-rrd", "--no-progress"])
+    keep = tmp_path / "keep.jsonl"  # an output written in this process
+    ran = runner.invoke(main, ["run", str(scene), "--no-rrd", "--keep-lists", str(keep),
+                               "--no-progress"])  # fmt: skip
     assert ran.exit_code == 0, ran.output
     assert started == []
     ran = runner.invoke(main, ["run", str(scene), "-o", str(tmp_path / "s.rrd"), "--no-progress"])

@@ -274,10 +274,12 @@ def test_waymo_recording_review(shared_data, tmp_path):
 
 @pytest.mark.realdata
 def test_recorded_scene_marks_the_tables_hindsight_positives(shared_data, tmp_path):
-    """A SinD scene end to end: the recording computes the hindsight truth from the same
+    """A highD scene end to end: the recording computes the hindsight truth from the same
     recorded tracks (one rows function) as the table, so every kept agent whose
-    ``truth_label`` is true carries the orange ring in its frame, and no other does."""
-    src = sorted((shared_data / "recorded" / "sind").glob("*.xml"))[0]
+    ``truth_label`` is true carries the orange ring in its frame, and no other does.
+    (highD: its 7.5 s scenes have complete 5 s windows with positives; SinD's, whose
+    positions move faster than their recorded speeds, are mostly track-flagged.)"""
+    src = sorted((shared_data / "recorded" / "highd").glob("*.xml"))[0]
     scene, rrd, table = tmp_path / "s.mcap", tmp_path / "s.rrd", tmp_path / "s.parquet"
     runner = CliRunner()
     assert runner.invoke(main, ["convert", "commonroad", str(src), "-o", str(scene)]).exit_code == 0
