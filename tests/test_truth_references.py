@@ -339,3 +339,22 @@ def test_idm_sole_constraints_on_the_road_label_the_standing_car_with_one_plan()
     assert truth.plans == 1
     assert truth.label[list(truth.ids).index(STOPPED)] == 1.0
     assert truth.label.sum() == 1.0
+
+
+def test_dataset_labels_are_references_and_path_source_lists_are_not(yield_table):
+    from replay.analysis.corpus_evaluation import reference_arrays
+
+    n = yield_table.height
+    table = yield_table.with_columns(
+        pl.Series("label_objects_of_interest", [True] + [False] * (n - 1)),
+        pl.Series("label_paths_lane_graph", [True] * n),
+    )
+    refs, missing = reference_arrays(table, baseline_threshold=1e-25, windows="complete")
+    assert "dataset_objects_of_interest" in refs
+    assert "dataset_paths_lane_graph" not in refs
+    assert "dataset labels" not in missing
+    refs, missing = reference_arrays(
+        yield_table.with_columns(pl.Series("label_paths_straight", [True] * n)),
+        baseline_threshold=1e-25, windows="complete",
+    )  # fmt: skip
+    assert not any(r.startswith("dataset_") for r in refs) and "dataset labels" in missing

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
+from converters.tracks import PATH_SOURCE_LABELS
 from outputs.atomic import atomic_output
 from replay.analysis.evaluation_plots import plot_budgets, plot_evaluation
 from replay.analysis.inputs import collect, resolve_inputs, scene_names
@@ -156,10 +157,16 @@ def reference_arrays(
             "no planner_label column: give the scenes with --planner NAME, or tables written "
             "by 'replay run --table T --planner NAME'"
         )
-    for c in df.columns:
-        if c.startswith("label_"):
-            refs[DATASET_PREFIX + c.removeprefix("label_")] = _codes(df[c])
-    if not any(c.startswith("label_") for c in df.columns):
+    # The converters' path-source lists (which agents got lane-graph, recorded-future or
+    # straight paths) travel on /labels too, but say nothing of importance.
+    labels = [
+        c
+        for c in df.columns
+        if c.startswith("label_") and c.removeprefix("label_") not in PATH_SOURCE_LABELS
+    ]
+    for c in labels:
+        refs[DATASET_PREFIX + c.removeprefix("label_")] = _codes(df[c])
+    if not labels:
         missing["dataset labels"] = (
             "no scene carries label lists (/labels: Waymo objects_of_interest / "
             "tracks_to_predict, AV2 focal / scored)"
