@@ -305,7 +305,7 @@ def _run(
                 bar.update()
                 if index % every:
                     continue
-                seen = None if frame is None else _seen_from(frame, ego_id)
+                seen = None if frame is None else seen_from(frame, ego_id)
                 if seen is None:
                     totals.skipped.append(index)
                     if frame is not None:
@@ -427,7 +427,7 @@ def _scene_ego_id(reader: SceneSource, first_ego_id: int) -> int:
         return first_ego_id
 
 
-def _seen_from(frame: Frame, ego_id: int) -> Frame | None:
+def seen_from(frame: Frame, ego_id: int) -> Frame | None:
     """The frame with ``ego_id`` as its ego; None when that agent is absent or invalid."""
     if frame.ego_id == ego_id:
         return frame

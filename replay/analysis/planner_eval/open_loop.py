@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from replay.core.egos import load_scene
-from replay.core.engine import Stride
+from replay.core.engine import Stride, seen_from
 from replay.errors import ReplayError
 from replay.planning.compare import compare_plans
 from replay.planning.errors import NoReferencePath
@@ -143,15 +143,6 @@ def _egos(scene: Any, ego: int | str | None) -> tuple[int, ...]:
     return (int(value),)
 
 
-def _seen_from(frame: Frame, ego_id: int) -> Frame | None:
-    if frame.ego_id == ego_id:
-        return frame
-    hits = np.flatnonzero(frame.ids == ego_id)
-    if hits.size == 0 or not frame.valid[hits[0]]:
-        return None
-    return frame.with_ego(int(hits[0]))
-
-
 def ego_frames(scene: Any, egos: Sequence[int], every: Stride) -> Iterator[tuple[int, int, Frame]]:
     """(ego id, frame index, frame seen from that ego) at the stride, where it is valid."""
     step = every.frames_at(float(scene.frame_period_s))
@@ -159,7 +150,7 @@ def ego_frames(scene: Any, egos: Sequence[int], every: Stride) -> Iterator[tuple
         for index, frame in scene.indexed:
             if index % step:
                 continue
-            seen = _seen_from(frame, ego_id)
+            seen = seen_from(frame, ego_id)
             if seen is not None:
                 yield ego_id, index, seen
 

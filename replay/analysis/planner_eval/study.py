@@ -141,8 +141,8 @@ def matched_cuts(
     progress: bool = True,
 ) -> dict[str, Any]:
     """The nearest-K and radius cuts that keep as many agents per ego-frame, on average,
-    as the cascade: K the rounded mean, R found by bisection on the ego-frames' distances
-    (the mean count within R is a step function of R; R is the smallest radius reaching
+    as the cascade: K the rounded mean, R from the ego-frames' sorted distances (the mean
+    count within R is a step function of R; R is the smallest radius reaching
     the cascade's mean)."""
     tasks = [(str(p), settings, ego, every) for p in scenes]
     parts = parallel_map(
