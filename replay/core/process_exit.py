@@ -98,12 +98,33 @@ def stop_on_signals() -> Iterator[None]:
 
 @contextlib.contextmanager
 def interrupts_held() -> Iterator[None]:
-    """Block SIGINT in this thread while starting processes: a new process inherits the
-    mask, so a Ctrl-C while it imports cannot interrupt it with a traceback (the pool's
-    workers ignore SIGINT anyway; SIGTERM stays deliverable, the pool ends workers with
-    it); the driver gets the signal as soon as the block ends."""
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    """Hold back Ctrl-C, SIGTERM and SIGHUP while starting processes, then act on them.
+
+    Two layers, because the kernel hands a process-directed signal to any thread that
+    does not block it (a pool's threads, tqdm's) and Python then runs the handler in the
+    main thread at its next instruction, in the middle of writing a new worker's start-up
+    data (the worker then died printing EOFError: seen under CI). So: SIGINT is blocked
+    in this thread (a new process inherits the mask, so a Ctrl-C while it imports cannot
+    interrupt it), and in the main thread the three signals' Python handlers are swapped
+    for ones that only remember the signal; when the block ends, the first one
+    remembered runs its own handler (a KeyboardInterrupt, a stop)."""
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    held: list[tuple[int, object]] = []
+    previous: dict[int, object] = {}
+    if threading.current_thread() is threading.main_thread():
+        previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, *STOP_SIGNALS)}
+        for sig, handler in previous.items():
+            if callable(handler):  # (an ignored or default signal stays as it is)
+                signal.signal(sig, lambda signum, frame: held.append((signum, frame)))
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        for sig, handler in previous.items():
+            if callable(handler):
+                signal.signal(sig, handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
+        if held:
+            signum, frame = held[0]
+            handler = previous[signum]
+            if callable(handler):
+                handler(signum, frame)
