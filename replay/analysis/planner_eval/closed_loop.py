@@ -37,6 +37,7 @@ from replay.errors import ReplayError
 from replay.planning.errors import NoReferencePath
 from replay.planning.inputs import plan_request
 from replay.planning.registry import make_planner
+from replay.planning.truth import target_speed
 from replay.planning.types import Plan, Planner
 from risk.filtering import Filter, KeepAll
 from risk.frame import Frame
@@ -153,7 +154,8 @@ def drive(
     duration = (schedule[-1][0] - first_index) * period
     tracks = scene.tracks()
     column = int(np.flatnonzero(tracks.ids == ego_id)[0])
-    top_speed = float(max(start.speed[e], _recorded_top_speed(tracks, column)))
+    whole_s = tracks.valid.shape[0] * tracks.dt_s
+    top_speed = target_speed(tracks, 0, column, whole_s, float(start.speed[e]))
     # The reference: the ego's first path candidate, extended straight beyond any
     # distance the run can cover.
     rows = np.flatnonzero(start.path_agent == e)
@@ -240,15 +242,6 @@ def drive(
         "plan_failures": failures,
         "mean_agents": float(np.mean(kept)) if kept else math.nan,
     }
-
-
-def _recorded_top_speed(tracks: Any, column: int) -> float:
-    xy = tracks.xy[:, column]
-    ok = tracks.valid[:, column]
-    both = ok[1:] & ok[:-1]
-    if not both.any():
-        return 0.0
-    return float((np.hypot(*(xy[1:] - xy[:-1]).T)[both] / tracks.dt_s).max())
 
 
 def _safety(

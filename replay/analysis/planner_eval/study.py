@@ -65,6 +65,16 @@ def _dataset_of(path: pathlib.Path) -> str:
     return path.parent.name or "."
 
 
+def _datasets(scenes: Sequence[pathlib.Path]) -> dict[str, str]:
+    """Scene name -> dataset: the scene's folder, as in replay evaluate (a scene's own
+    word, e.g. "commonroad", names a format rather than a recording site)."""
+    return {scene_key(p): _dataset_of(p) for p in scenes}
+
+
+def _with_datasets(df: pl.DataFrame, datasets: dict[str, str]) -> pl.DataFrame:
+    return df.with_columns(df["scene"].replace_strict(datasets, default="").alias("dataset"))
+
+
 def run_open_loop(
     scenes: Sequence[pathlib.Path],
     settings: PlanSettings,
@@ -81,7 +91,7 @@ def run_open_loop(
         _task, tasks, workers=min(workers, len(tasks)), progress=progress,
         desc=f"plan ({settings.planner})", unit="scene",
     )  # fmt: skip
-    datasets = {scene_key(p): _dataset_of(p) for p in scenes}
+    datasets = _datasets(scenes)
     plans = _frame([r.plans for r in results], datasets)
     truth = _frame([r.truth for r in results if r.truth is not None], datasets)
     return PlanTables(
@@ -105,10 +115,7 @@ def _frame(parts: list[dict[str, list[Any]]], datasets: dict[str, str]) -> pl.Da
     ]
     if not frames:
         return pl.DataFrame()
-    df = pl.concat(frames, how="diagonal_relaxed")
-    # The dataset is the scene's folder, as in replay evaluate (the scene's own word,
-    # e.g. "commonroad", names a format rather than a recording site).
-    return df.with_columns(df["scene"].replace_strict(datasets, default="").alias("dataset"))
+    return _with_datasets(pl.concat(frames, how="diagonal_relaxed"), datasets)
 
 
 # ---------------------------------------------------------------------- matched cuts
@@ -417,8 +424,7 @@ def run_closed_loop(
     if not rows:
         return pl.DataFrame()
     df = pl.DataFrame(rows, infer_schema_length=None)
-    datasets = {scene_key(p): _dataset_of(p) for p in scenes}
-    return df.with_columns(df["scene"].replace_strict(datasets, default="").alias("dataset"))
+    return _with_datasets(df, _datasets(scenes))
 
 
 def summarize_closed_loop(df: pl.DataFrame) -> dict[str, Any]:
