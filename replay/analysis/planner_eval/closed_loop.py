@@ -515,8 +515,8 @@ def _scores(ego: metrics.EgoHistory, seen: metrics.OthersHistory, run: _Run) -> 
     min_ttc = float(ttc.min(initial=math.inf))
     comfort = metrics.comfort(ego)
     gaps = box_gap(
-        ego.xy[:, None, 0], ego.xy[:, None, 1], ego.heading_rad[:, None], ego.length_m,
-        ego.width_m, seen.xy[..., 0], seen.xy[..., 1], seen.heading_rad, seen.length_m,
+        ego.xy[:, None, 0], ego.xy[:, None, 1], ego.heading_rad[:, None], *ego.size(),
+        seen.xy[..., 0], seen.xy[..., 1], seen.heading_rad, seen.length_m,
         seen.width_m,
     )  # fmt: skip
     min_gap = float(np.where(seen.valid, gaps, np.inf).min(initial=math.inf))

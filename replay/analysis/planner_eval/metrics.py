@@ -105,8 +105,13 @@ class EgoHistory:
 
     def corners(self) -> np.ndarray:
         """The box corners (T, 4, 2): front-left, rear-left, rear-right, front-right."""
-        return box_corners(
-            self.xy[:, 0], self.xy[:, 1], self.heading_rad, self.length_m, self.width_m
+        length, width = self.size()
+        return box_corners(self.xy[:, 0], self.xy[:, 1], self.heading_rad, length, width)
+
+    def size(self) -> tuple[np.ndarray, np.ndarray]:
+        """Length and width as arrays (the box functions broadcast them)."""
+        return np.asarray(self.length_m, dtype=np.float64), np.asarray(
+            self.width_m, dtype=np.float64
         )
 
 
@@ -160,9 +165,9 @@ def angle_from_heading(origin: np.ndarray, heading: np.ndarray, points: np.ndarr
 
 def box_overlaps(ego: EgoHistory, others: OthersHistory) -> np.ndarray:
     """(T, K): the ego's box touches the other's, where the other is present."""
+    length, width = ego.size()
     hit = boxes_overlap(
-        ego.xy[:, None, 0], ego.xy[:, None, 1], ego.heading_rad[:, None],
-        ego.length_m, ego.width_m,
+        ego.xy[:, None, 0], ego.xy[:, None, 1], ego.heading_rad[:, None], length, width,
         others.xy[..., 0], others.xy[..., 1], others.heading_rad, others.length_m,
         others.width_m,
     )  # fmt: skip
@@ -195,7 +200,7 @@ def classify_collisions(
     h = ego.heading_rad[t]
     front_centre = ego.xy[t] + 0.5 * ego.length_m * _heading_unit(h)
     front = boxes_overlap(
-        front_centre[:, 0], front_centre[:, 1], h, 0.0, ego.width_m,
+        front_centre[:, 0], front_centre[:, 1], h, np.zeros(1), ego.size()[1],
         others.xy[t, cols, 0], others.xy[t, cols, 1], others.heading_rad[t, cols],
         others.length_m[t, cols], others.width_m[t, cols],
     )  # fmt: skip
@@ -235,7 +240,7 @@ def in_lane(ego: EgoHistory, reference: np.ndarray, lane_width_m: float) -> np.n
     dist, _ = geometry.project_points(
         corners, reference, geometry.cumulative_lengths(reference[None])[0]
     )
-    return (dist.reshape(-1, 4) <= 0.5 * lane_width_m).all(axis=1)
+    return np.asarray((dist.reshape(-1, 4) <= 0.5 * lane_width_m).all(axis=1), dtype=bool)
 
 
 def _segments(
@@ -284,7 +289,7 @@ def drivable_area_ok(
         return False, np.zeros(ego.xy.shape[0], dtype=bool)
     dist, _ = _nearest_segment(corners, a, ab)
     outside = dist - 0.5 * lane_width_m
-    ok = (outside < DRIVABLE_TOLERANCE_M).reshape(-1, 4).all(axis=1)
+    ok = np.asarray((outside < DRIVABLE_TOLERANCE_M).reshape(-1, 4).all(axis=1), dtype=bool)
     return bool(ok.all()), ok
 
 
@@ -361,7 +366,7 @@ def time_to_collision(
         ego_xy = ego.xy[ti, None, :] + ego_v * steps[None, :, None]  # (C, S, 2)
         other_xy = others.xy[ti, ki, None, :] + other_v * steps[None, :, None]
         hit = boxes_overlap(
-            ego_xy[..., 0], ego_xy[..., 1], ego.heading_rad[ti, None], ego.length_m, ego.width_m,
+            ego_xy[..., 0], ego_xy[..., 1], ego.heading_rad[ti, None], *ego.size(),
             other_xy[..., 0], other_xy[..., 1], others.heading_rad[ti, ki, None],
             others.length_m[ti, ki, None], others.width_m[ti, ki, None],
         )  # (C, S)  # fmt: skip
