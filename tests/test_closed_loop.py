@@ -195,6 +195,12 @@ def test_drivable_area_and_driving_direction_on_the_road():
     )  # 2.25 m past the edge
     assert metrics.drivable_area_ok(off_road, lanes, 3.5)[0] is False
     assert metrics.drivable_area_ok(on_road, [], 3.5)[0] is None
+    # 1.6 m off the lane centre: the outer corners 0.75 m outside the 3.5 m corridor;
+    # allowed when the recorded driver went as far out (a lane wider than 3.5 m)
+    wide = dataclasses.replace(on_road, xy=on_road.xy + np.array([0.0, -1.6]))
+    assert metrics.corridor_excursion_m(wide, lanes, 3.5) == pytest.approx(np.full(31, 0.75))
+    assert metrics.drivable_area_ok(wide, lanes, 3.5)[0] is False
+    assert metrics.drivable_area_ok(wide, lanes, 3.5, allowance_m=0.75)[0] is True
     # backwards in the ego's lane at 10 m/s: 10 m per second against the lane
     wrong = dataclasses.replace(on_road, xy=on_road.xy[::-1].copy())
     score, worst = metrics.driving_direction(wrong, lanes, 3.5)

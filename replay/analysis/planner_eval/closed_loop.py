@@ -313,6 +313,7 @@ class _Run:
     route: np.ndarray  # the logged ego's path, extended: progress is measured along it
     expert_progress_m: float
     lanes: list[np.ndarray]
+    expert_excursion_m: float  # the logged ego's worst corner outside the drivable corridor
 
 
 def _prepare(scene: Any, ego_id: int, settings: PlanSettings) -> _Run:
@@ -345,6 +346,12 @@ def _prepare(scene: Any, ego_id: int, settings: PlanSettings) -> _Run:
     first_row = round((first.t - tracks.t0_s) / tracks.dt_s)
     logged = tracks.valid[first_row : last_row + 1, column]
     logged_xy = tracks.xy[first_row : last_row + 1, column][logged]
+    expert = metrics.EgoHistory(
+        times_s=np.zeros(logged_xy.shape[0]), xy=logged_xy,
+        heading_rad=tracks.heading[first_row : last_row + 1, column][logged],
+        speed_mps=np.zeros(logged_xy.shape[0]), length_m=float(start.length[e]),
+        width_m=float(start.width[e]),
+    )  # fmt: skip
     logged_xy = _distinct(logged_xy) if logged_xy.shape[0] else start.xy[e : e + 1]
     route_ext, route_points = extend_paths(
         logged_xy[None], np.array([logged_xy.shape[0]]), start.heading[e : e + 1],
@@ -358,6 +365,7 @@ def _prepare(scene: Any, ego_id: int, settings: PlanSettings) -> _Run:
         for lane in scene.map.lanes
         if lane.kind in DRIVABLE_LANE_KINDS and len(lane.centerline) >= 2
     ]
+    excursion = metrics.corridor_excursion_m(expert, lanes, LANE_WIDTH_M) if lanes else np.zeros(1)
     return _Run(
         scene=scene,
         tracks=tracks,
@@ -381,6 +389,7 @@ def _prepare(scene: Any, ego_id: int, settings: PlanSettings) -> _Run:
         route=route,
         expert_progress_m=float(expert_arc[1] - expert_arc[0]),
         lanes=lanes,
+        expert_excursion_m=float(np.max(excursion, initial=0.0)),
     )
 
 
@@ -505,7 +514,9 @@ def _scores(ego: metrics.EgoHistory, seen: metrics.OthersHistory, run: _Run) -> 
     """The run's metrics (:mod:`replay.analysis.planner_eval.metrics`) as row values."""
     in_lane = metrics.in_lane(ego, run.reference, LANE_WIDTH_M)
     hits = metrics.classify_collisions(ego, seen, in_lane)
-    drivable, _ = metrics.drivable_area_ok(ego, run.lanes, LANE_WIDTH_M)
+    drivable, _ = metrics.drivable_area_ok(
+        ego, run.lanes, LANE_WIDTH_M, allowance_m=run.expert_excursion_m
+    )
     direction, _ = metrics.driving_direction(ego, run.lanes, LANE_WIDTH_M)
     route_cum = cumulative_lengths(run.route[None])[0]
     _, arc = project_points(ego.xy[[0, -1]], run.route, route_cum)
@@ -606,19 +617,3 @@ def vehicle_egos(scene: Any, ego: int | str | None) -> tuple[int, ...]:
     frames = tracks.valid.sum(axis=0)
     chosen = [(int(e), int(frames[c])) for e, c, good in zip(egos, cols, ok, strict=True) if good]
     return tuple(e for e, _ in sorted(chosen, key=lambda item: (-item[1], item[0])))
-
-
-def closed_loop_scene(
-    source: str | os.PathLike[str],
-    settings: ClosedLoopSettings,
-    *,
-    ego: int | str | None = None,
-    egos_per_scene: int | None = None,
-) -> list[dict[str, Any]]:
-    """Closed-loop runs of one scene's vehicle egos (see :func:`vehicle_egos`), at most
-    ``egos_per_scene`` of them (those present longest)."""
-    scene = _scene(str(pathlib.Path(source)))
-    egos = vehicle_egos(scene, ego)
-    if egos_per_scene is not None:
-        egos = egos[:egos_per_scene]
-    return [row for ego_id in egos for row in run_ego(source, ego_id, settings)]

@@ -272,24 +272,40 @@ def _nearest_segment(
     return np.sqrt(d2[np.arange(points.shape[0]), best]), best
 
 
-def drivable_area_ok(
-    ego: EgoHistory, lanes: list[np.ndarray], lane_width_m: float
-) -> tuple[bool | None, np.ndarray]:
-    """Whether no corner ever lay DRIVABLE_TOLERANCE_M or more outside the drivable
-    corridor, and the per-step flags (T,). None (and all True) without lanes.
+#: Lane segments farther than this (m) from every corner are not looked at.
+CORRIDOR_SEARCH_M = 20.0
 
-    Approximation: the corridor is every drivable lane centre line (``lanes``, (P, 2)
-    each) widened to ``lane_width_m``; nuPlan uses the map's lane polygons and drivable
-    layer, which our scenes do not carry."""
+
+def corridor_excursion_m(
+    ego: EgoHistory, lanes: list[np.ndarray], lane_width_m: float
+) -> np.ndarray:
+    """How far (m) the ego's farthest corner lies outside the drivable corridor at each
+    step (T,) (<= 0: inside; inf: no lane within CORRIDOR_SEARCH_M). The corridor is
+    every drivable lane centre line (``lanes``, (P, 2) each) widened to ``lane_width_m``;
+    nuPlan uses the map's lane polygons and drivable layer, which our scenes lack."""
     corners = ego.corners().reshape(-1, 2)
-    a, ab = _segments(lanes, corners, lane_width_m + DRIVABLE_TOLERANCE_M + 1.0)
+    a, ab = _segments(lanes, corners, CORRIDOR_SEARCH_M)
+    if a.shape[0] == 0:
+        return np.full(ego.xy.shape[0], np.inf)
+    dist, _ = _nearest_segment(corners, a, ab)
+    return np.asarray((dist - 0.5 * lane_width_m).reshape(-1, 4).max(axis=1), dtype=np.float64)
+
+
+def drivable_area_ok(
+    ego: EgoHistory, lanes: list[np.ndarray], lane_width_m: float, *, allowance_m: float = 0.0
+) -> tuple[bool | None, np.ndarray]:
+    """Whether no corner ever lay DRIVABLE_TOLERANCE_M (plus ``allowance_m``) or more
+    outside the drivable corridor (:func:`corridor_excursion_m`), and the per-step flags
+    (T,). None (and all True) without lanes.
+
+    ``allowance_m``: where the corridor is too narrow for the road (a lane wider than
+    ``lane_width_m``, a gore without a centre line) the recorded driver leaves it too; the
+    closed loop passes the logged ego's own worst excursion here, so that the expert
+    always complies, as nuPlan's expert does on its map."""
     if not lanes:
         return None, np.ones(ego.xy.shape[0], dtype=bool)
-    if a.shape[0] == 0:
-        return False, np.zeros(ego.xy.shape[0], dtype=bool)
-    dist, _ = _nearest_segment(corners, a, ab)
-    outside = dist - 0.5 * lane_width_m
-    ok = np.asarray((outside < DRIVABLE_TOLERANCE_M).reshape(-1, 4).all(axis=1), dtype=bool)
+    excursion = corridor_excursion_m(ego, lanes, lane_width_m)
+    ok = np.asarray(excursion < DRIVABLE_TOLERANCE_M + max(allowance_m, 0.0), dtype=bool)
     return bool(ok.all()), ok
 
 

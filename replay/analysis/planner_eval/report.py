@@ -133,14 +133,15 @@ def _open_loop(name: str, entry: dict[str, Any], plots: dict[str, str]) -> list[
     return lines
 
 
-def _mean_ci(d: dict[str, Any] | None, digits: int = 3) -> str:
+def _mean_ci(d: dict[str, Any] | None, *, signed: bool = True, digits: int = 3) -> str:
     """``mean [lo, hi]`` of a mean with its interval (signed: a difference)."""
     if not d or d.get("mean") is None:
         return "n/a"
+    form = f"{'+' if signed else ''}.{digits}f"
     ci = d.get("ci95") or [None, None]
-    text = f"{d['mean']:+.{digits}f}"
+    text = f"{d['mean']:{form}}"
     if ci[0] is not None and ci[1] is not None and math.isfinite(ci[0]):
-        text += f" [{ci[0]:+.{digits}f}, {ci[1]:+.{digits}f}]"
+        text += f" [{ci[0]:{form}}, {ci[1]:{form}}]"
     return text
 
 
@@ -179,7 +180,7 @@ def _closed_loop(name: str, closed: dict[str, Any]) -> list[str]:
         )
         fault = f.get("runs_at_fault", {})
         score = f.get("score", {})
-        score_text = _mean_ci(score).lstrip("+")
+        score_text = _mean_ci(score, signed=False)
         lines.append(
             f"| {filt} | {f['mean_agents']:.1f} | {classes} | {f.get('at_fault_collisions', 0)} "
             f"| {_pct(fault.get('share'))}{_ci(fault.get('ci95'))} | {score_text} | "

@@ -589,14 +589,15 @@ def summarize_closed_loop(df: pl.DataFrame, *, n_boot: int = 1000, seed: int = 0
     return out
 
 
-def _interval(d: dict[str, Any], scale: float = 1.0, digits: int = 3) -> str:
-    """``mean [lo, hi]`` of a :func:`_mean_with_interval` result."""
+def _interval(d: dict[str, Any], *, signed: bool = True, digits: int = 3) -> str:
+    """``mean [lo, hi]`` of a :func:`_mean_with_interval` result (signed: a difference)."""
     if d.get("mean") is None:
         return "n/a"
+    form = f"{'+' if signed else ''}.{digits}f"
     ci = d.get("ci95") or [None, None]
     if ci[0] is None or not math.isfinite(ci[0]):
-        return f"{scale * d['mean']:+.{digits}f}"
-    return f"{scale * d['mean']:+.{digits}f} [{scale * ci[0]:+.{digits}f}, {scale * ci[1]:+.{digits}f}]"
+        return f"{d['mean']:{form}}"
+    return f"{d['mean']:{form}} [{ci[0]:{form}}, {ci[1]:{form}}]"
 
 
 def format_closed_loop(summary: dict[str, Any]) -> str:
@@ -618,7 +619,7 @@ def format_closed_loop(summary: dict[str, Any]) -> str:
         lines.append(
             f"  {name}: {f['collisions']} collisions ({f['rear_end_collisions']} from behind), "
             f"{f['at_fault_collisions']} at fault; runs with an at-fault collision {share}"
-            f"{interval}; score {_interval(f['score'], digits=3).lstrip('+')}; progress "
+            f"{interval}; score {_interval(f['score'], signed=False)}; progress "
             f"ratio {_ratio(f['progress_ratio']['median'])} median; plan "
             f"{_ms(f['plan_ms_median'])} median"
         )
