@@ -249,7 +249,7 @@ def _planner_frame(
     paths[:-1, own.shape[1] :] = own[:, -1:]
     paths[-1, : path.shape[0]] = path
     paths[-1, path.shape[0] :] = path[-1]
-    valid = log.valid[idx] & world["valid"][cols]
+    valid = log.valid[idx] & (cols >= 0) & world["valid"][cols]
     n = idx.size
     return Frame.from_padded(
         ids=np.append(log.ids[idx], ego_id),

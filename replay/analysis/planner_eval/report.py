@@ -156,10 +156,18 @@ def _closed_loop(name: str, closed: dict[str, Any]) -> list[str]:
         else "the others replay their log (non-reactive)"
     )
     datasets = ", ".join(f"{d} {n}" for d, n in closed.get("datasets", {}).items())
+    egos = closed.get("egos", {})
+    skipped = egos.get("skipped_not_vehicles", 0)
+    sampled_from = (
+        f" (sampled from {egos['vehicle_egos']} vehicle egos; {skipped} pedestrian, "
+        "cyclist or object egos are no car-planner egos and were skipped)"
+        if egos
+        else ""
+    )
     lines = [
         f"### {name}: closed loop",
         "",
-        f"{closed['runs']} vehicle egos in {closed['scenes']} scenes ({datasets}), each "
+        f"{closed['runs']} vehicle egos in {closed['scenes']} scenes ({datasets}){sampled_from}, each "
         "driven by the planner from its first recorded frame to the scene's end, once with "
         f"all agents and once per filter, following its plans with the "
         f"{closed.get('tracker', 'perfect')} tracker; {others}. Collisions are classified "

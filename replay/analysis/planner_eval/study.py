@@ -390,9 +390,23 @@ def _ms(value: float | None) -> str:
 
 
 # ---------------------------------------------------------------------- closed loop
-def _vehicle_egos_task(item: tuple[str, Any]) -> tuple[int, ...]:
+def _vehicle_egos_task(item: tuple[str, Any]) -> tuple[tuple[int, ...], int]:
+    """A scene's vehicle egos of ``--ego`` and how many egos ``--ego`` names in all."""
     path, ego = item
-    return vehicle_egos(load_scene(path), ego)
+    scene = load_scene(path)
+    return vehicle_egos(scene, ego), len(_egos(scene, ego))
+
+
+@dataclasses.dataclass(frozen=True)
+class ClosedLoopRuns:
+    """The closed-loop rows and the egos they came from: ``vehicle_egos`` found in the
+    scenes, ``skipped_egos`` that were pedestrians, cyclists or objects (no car-planner
+    egos), ``sampled`` egos driven."""
+
+    runs: pl.DataFrame
+    vehicle_egos: int
+    skipped_egos: int
+    sampled: int
 
 
 def _closed_task(item: tuple[str, int, ClosedLoopSettings]) -> list[dict[str, Any]]:
@@ -459,7 +473,7 @@ def run_closed_loop(
     sample: int | None = None,
     agents: str = DEFAULT_AGENTS,
     tracker: str = DEFAULT_TRACKER,
-) -> pl.DataFrame:
+) -> ClosedLoopRuns:
     """Closed-loop runs (:func:`run_ego`): one row per (scene, ego, filter), vehicle
     egos only. ``sample``: that many egos in all (:func:`closed_loop_sample`);
     ``egos_per_scene``: at most that many per scene, those present longest."""
@@ -471,18 +485,20 @@ def run_closed_loop(
     )  # fmt: skip
     candidates = [
         (p, egos if egos_per_scene is None else egos[:egos_per_scene])
-        for p, egos in zip(scenes, found, strict=True)
+        for p, (egos, _) in zip(scenes, found, strict=True)
     ]
+    vehicles = sum(len(egos) for egos, _ in found)
+    skipped = sum(total - len(egos) for egos, total in found)
     tasks = [(str(p), e, closed) for p, e in closed_loop_sample(candidates, sample)]
     results = parallel_map(
         _closed_task, tasks, workers=min(workers, len(tasks)), progress=progress,
         desc=f"closed loop ({settings.planner}, {agents} agents)", unit="ego",
     )  # fmt: skip
     rows = [row for ego_rows in results for row in ego_rows]
-    if not rows:
-        return pl.DataFrame()
-    df = pl.DataFrame(rows, infer_schema_length=None)
-    return _with_datasets(df, _datasets(scenes))
+    df = pl.DataFrame()
+    if rows:
+        df = _with_datasets(pl.DataFrame(rows, infer_schema_length=None), _datasets(scenes))
+    return ClosedLoopRuns(runs=df, vehicle_egos=vehicles, skipped_egos=skipped, sampled=len(tasks))
 
 
 def _mean_with_interval(
@@ -602,12 +618,15 @@ def _interval(d: dict[str, Any], *, signed: bool = True, digits: int = 3) -> str
 
 def format_closed_loop(summary: dict[str, Any]) -> str:
     """The closed-loop part of ``replay plan``'s end-of-run text."""
+    egos = summary.get("egos", {})
+    skipped = egos.get("skipped_not_vehicles", 0)
+    note = f"; {skipped} pedestrian, cyclist or object egos skipped" if skipped else ""
     if not summary.get("runs"):
-        return "Closed loop: no run"
+        return "Closed loop: no run" + note
     lines = [
         f"Closed loop: {summary['runs']} vehicle egos in {summary['scenes']} scenes, once "
         f"with all agents and once per filter ({summary.get('agents', 'log')} agents, "
-        f"{summary.get('tracker', 'perfect')} tracker)"
+        f"{summary.get('tracker', 'perfect')} tracker){note}"
     ]
     for name, f in summary["filters"].items():
         fault = f["runs_at_fault"]
@@ -705,9 +724,14 @@ def run_study(
                 egos_per_scene=closed_loop_egos, sample=closed_loop_sample, agents=agents,
                 tracker=tracker,
             )  # fmt: skip
-            entry["closed_loop"] = summarize_closed_loop(runs)
+            entry["closed_loop"] = summarize_closed_loop(runs.runs)
+            entry["closed_loop"]["egos"] = {
+                "vehicle_egos": runs.vehicle_egos,
+                "skipped_not_vehicles": runs.skipped_egos,
+                "sampled": runs.sampled,
+            }
             summary["time_s"][f"closed_loop:{name}"] = time.perf_counter() - start
-            closed.append(runs)
+            closed.append(runs.runs)
         summary["planners"][name] = entry
     if closed_loop:
         summary["closed_loop_selection"] = (
