@@ -63,6 +63,11 @@ AGENT_MODES: tuple[str, ...] = ("reactive", "log")
 DEFAULT_AGENTS = "reactive"
 #: The tracker the ego follows its plans with (one of replay.planning.tracking.TRACKERS).
 DEFAULT_TRACKER = "perfect"
+#: Drivable area is judged up to this far (m) beyond the recorded ego's last position
+#: along its route: a drone recording's map covers the recorded area only, and the ego
+#: that drives on (the reference runs straight on past the map) is off the map, not off
+#: the road.
+MAPPED_MARGIN_M = 5.0
 #: Map lane kinds that are drivable for the ego.
 DRIVABLE_LANE_KINDS = ("vehicle", "bus")
 #: Points of the path piece that leads a reactive agent from where it is to its logged
@@ -514,13 +519,15 @@ def _scores(ego: metrics.EgoHistory, seen: metrics.OthersHistory, run: _Run) -> 
     """The run's metrics (:mod:`replay.analysis.planner_eval.metrics`) as row values."""
     in_lane = metrics.in_lane(ego, run.reference, LANE_WIDTH_M)
     hits = metrics.classify_collisions(ego, seen, in_lane)
+    route_cum = cumulative_lengths(run.route[None])[0]
+    _, arc = project_points(ego.xy, run.route, route_cum)
+    progress_m = float(arc[-1] - arc[0])
+    # Judged where the recording's map reaches: up to where the recorded ego went.
+    mapped = arc - arc[0] <= run.expert_progress_m + MAPPED_MARGIN_M
     drivable, _ = metrics.drivable_area_ok(
-        ego, run.lanes, LANE_WIDTH_M, allowance_m=run.expert_excursion_m
+        ego.rows(mapped), run.lanes, LANE_WIDTH_M, allowance_m=run.expert_excursion_m
     )
     direction, _ = metrics.driving_direction(ego, run.lanes, LANE_WIDTH_M)
-    route_cum = cumulative_lengths(run.route[None])[0]
-    _, arc = project_points(ego.xy[[0, -1]], run.route, route_cum)
-    progress_m = float(arc[1] - arc[0])
     ratio = metrics.progress_ratio(progress_m, run.expert_progress_m)
     ttc = metrics.time_to_collision(ego, seen, hits, in_lane)
     min_ttc = float(ttc.min(initial=math.inf))

@@ -108,6 +108,13 @@ class EgoHistory:
         length, width = self.size()
         return box_corners(self.xy[:, 0], self.xy[:, 1], self.heading_rad, length, width)
 
+    def rows(self, which: np.ndarray) -> EgoHistory:
+        """The steps selected by a mask or index array (T,)."""
+        return EgoHistory(
+            times_s=self.times_s[which], xy=self.xy[which], heading_rad=self.heading_rad[which],
+            speed_mps=self.speed_mps[which], length_m=self.length_m, width_m=self.width_m,
+        )  # fmt: skip
+
     def size(self) -> tuple[np.ndarray, np.ndarray]:
         """Length and width as arrays (the box functions broadcast them)."""
         return np.asarray(self.length_m, dtype=np.float64), np.asarray(
