@@ -87,6 +87,10 @@ class Rails:
     def n(self) -> int:
         return int(self.xy.shape[0])
 
+    def rows(self, which: np.ndarray) -> Rails:
+        """The rails of the agents ``which`` (an index array)."""
+        return Rails(self.xy[which], self.heading_rad[which], self.arc_m[which])
+
     def poses(self, arc_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Points ``(K, L, 2)`` and headings ``(K, L)`` at arc lengths ``arc_m`` (K, L)."""
         x, y, _ = geometry.interpolate_components(
@@ -166,10 +170,13 @@ def find_leaders(
     ki, ji = np.nonzero(candidate)  # (C,)
     if ki.size == 0:
         return gap, lead_speed, leader
-    probe_xy, probe_heading = rails.poses(arc_m[:, None] + offsets)  # (K, L, 2), (K, L)
+    # Probe poses only for the agents with a candidate (rows of ``probing``).
+    probing, ki = np.unique(ki, return_inverse=True)
+    probe_xy, probe_heading = rails.rows(probing).poses(arc_m[probing, None] + offsets[probing])
+    agent = probing[ki]  # (C,) the agent of each pair
     hit = boxes_overlap(
         probe_xy[ki, :, 0], probe_xy[ki, :, 1], probe_heading[ki],
-        length_m[ki, None], width_m[ki, None],
+        length_m[agent, None], width_m[agent, None],
         obstacles.xy[ji, 0, None], obstacles.xy[ji, 1, None], obstacles.heading_rad[ji, None],
         obstacles.length_m[ji, None], obstacles.width_m[ji, None],
     )  # (C, L)  # fmt: skip
@@ -177,9 +184,9 @@ def find_leaders(
     first = np.where(any_hit, np.argmax(hit, axis=1), probes)  # (C,)
     # The agent's first touching probe over all its obstacles; only obstacles touched there.
     first_of_agent = np.full(k, probes)
-    np.minimum.at(first_of_agent, ki, first)
-    at_first = any_hit & (first == first_of_agent[ki])
-    ki, ji, first = ki[at_first], ji[at_first], first[at_first]
+    np.minimum.at(first_of_agent, agent, first)
+    at_first = any_hit & (first == first_of_agent[agent])
+    ki, agent, ji, first = ki[at_first], agent[at_first], ji[at_first], first[at_first]
     if ki.size == 0:
         return gap, lead_speed, leader
     # Refine within the probe step: the obstacle's nearest corner along the heading of
@@ -194,20 +201,22 @@ def find_leaders(
     along = (corners[..., 0] - base_xy[:, None, 0]) * np.cos(base_heading)[:, None] + (
         corners[..., 1] - base_xy[:, None, 1]
     ) * np.sin(base_heading)[:, None]
-    low = offsets[ki, before]
-    high = offsets[ki, first]
+    low = offsets[agent, before]
+    high = offsets[agent, first]
     pair_gap = np.where(
-        first == 0, 0.0, np.clip(low + along.min(axis=1) - 0.5 * length_m[ki], low, high)
+        first == 0, 0.0, np.clip(low + along.min(axis=1) - 0.5 * length_m[agent], low, high)
     )
     # The nearest obstacle per agent (ties: the lower row).
-    order = np.lexsort((ji, pair_gap, ki))
-    ki, ji, pair_gap = ki[order], ji[order], pair_gap[order]
-    keep = np.r_[True, ki[1:] != ki[:-1]]
-    ki, ji, pair_gap = ki[keep], ji[keep], pair_gap[keep]
-    gap[ki] = pair_gap
-    leader[ki] = ji
-    follower_heading = probe_heading[ki, first_of_agent[ki]]
-    lead_speed[ki] = obstacles.speed_mps[ji] * np.cos(obstacles.heading_rad[ji] - follower_heading)
+    order = np.lexsort((ji, pair_gap, agent))
+    ki, agent, ji, pair_gap = ki[order], agent[order], ji[order], pair_gap[order]
+    keep = np.r_[True, agent[1:] != agent[:-1]]
+    ki, agent, ji, pair_gap = ki[keep], agent[keep], ji[keep], pair_gap[keep]
+    gap[agent] = pair_gap
+    leader[agent] = ji
+    follower_heading = probe_heading[ki, first_of_agent[agent]]
+    lead_speed[agent] = obstacles.speed_mps[ji] * np.cos(
+        obstacles.heading_rad[ji] - follower_heading
+    )
     return gap, lead_speed, leader
 
 
