@@ -361,9 +361,15 @@ def _plan(*args: object):
 @pytest.mark.parametrize("agents", ["log", "reactive"])
 def test_cli_agents_and_tracker_options(follower_scene, tmp_path, agents):
     out = tmp_path / "out"
+    report = tmp_path / "report.md"
     result = _plan(follower_scene, "-o", out, "--closed-loop", "--agents", agents,
-                   "--tracker", "perfect", "--filter", "radius:10", "--no-plots")  # fmt: skip
+                   "--tracker", "perfect", "--filter", "radius:10", "--no-plots",
+                   "--report", report)  # fmt: skip
     assert result.exit_code == 0, result.output
+    text = report.read_text()
+    assert "### idm: closed loop" in text and "Paired with the all-agents run" in text
+    # radius:10 adds one at-fault collision per run against all agents: +1.000
+    assert "| radius:10 | 1 | +1.000" in text
     runs = pl.read_parquet(out / "closed_loop.parquet")
     for column in ("collisions", "rear_end_collisions", "at_fault_collisions",
                    "drivable_area_ok", "progress_ratio", "min_ttc_s", "comfortable", "score",
