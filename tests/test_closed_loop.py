@@ -121,13 +121,30 @@ CASES = [
 ]
 
 
+def _twice(ego: metrics.EgoHistory, track: metrics.OthersHistory):
+    """Two steps: the track absent, then present (a first overlap after the start)."""
+    e = metrics.EgoHistory(
+        times_s=np.array([0.0, 0.1]), xy=np.repeat(ego.xy, 2, 0),
+        heading_rad=np.repeat(ego.heading_rad, 2), speed_mps=np.repeat(ego.speed_mps, 2),
+        length_m=ego.length_m, width_m=ego.width_m,
+    )  # fmt: skip
+    rep = {f.name: np.repeat(getattr(track, f.name), 2, 0) for f in dataclasses.fields(track)}
+    rep["ids"], rep["kinds"] = track.ids, track.kinds
+    rep["valid"] = np.array([[False], [True]])
+    return e, metrics.OthersHistory(**rep)
+
+
 @pytest.mark.parametrize(("case", "kind", "fault"), CASES)
 def test_collision_classes_by_hand(case, kind, fault):
     ego_speed, x, y, speed, lane = case
-    out = metrics.classify_collisions(_ego(ego_speed), _one(x, y, speed), np.array([lane]))
-    assert out.first_step.tolist() == [0]
+    ego, track = _twice(_ego(ego_speed), _one(x, y, speed))
+    out = metrics.classify_collisions(ego, track, np.array([lane, lane]))
+    assert out.first_step.tolist() == [1]
     assert out.kind.tolist() == [int(kind)]
     assert out.at_fault.tolist() == [fault]
+    # the same overlap at the very start (in the recording itself) is never at fault
+    start = metrics.classify_collisions(_ego(ego_speed), _one(x, y, speed), np.array([lane]))
+    assert start.kind.tolist() == [int(kind)] and start.at_fault.tolist() == [False]
 
 
 def test_a_track_counts_once_at_its_first_overlap():

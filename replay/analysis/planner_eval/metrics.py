@@ -189,7 +189,9 @@ def classify_collisions(
     ego's heading from its rear axle, i.e. behind (not at fault); the ego's front edge
     touches the track (at fault); else lateral, at fault only when the ego was not in its
     lane (``ego_in_lane`` (T,); nuPlan: the ego's corners not on common or connected
-    lanes, a lane change)."""
+    lanes, a lane change). A track that already overlaps the ego at the first step (the
+    logged start: overlapping boxes in the recording itself) is counted but never at
+    fault: the planner had no say in it."""
     overlap = box_overlaps(ego, others)
     k = overlap.shape[1]
     any_hit = overlap.any(axis=0)
@@ -222,7 +224,7 @@ def classify_collisions(
         (kind == CollisionType.STOPPED_TRACK)
         | (kind == CollisionType.ACTIVE_FRONT)
         | ((kind == CollisionType.ACTIVE_LATERAL) & ~np.asarray(ego_in_lane, bool)[t])
-    ) & any_hit
+    ) & (first > 0)
     return Collisions(overlap=overlap, first_step=first, kind=kind, at_fault=at_fault)
 
 
