@@ -61,12 +61,26 @@ def test_changed_share_interval_resamples_whole_scenes():
     assert _share_with_interval(np.zeros(0, bool), np.zeros(0), n_boot=10, seed=0)["share"] is None
 
 
-def test_closed_loop_sample_spreads_over_the_list():
-    scenes = [pathlib.Path(f"s{i:02d}.mcap") for i in range(10)]
-    assert closed_loop_sample(scenes, 3) == [scenes[0], scenes[4], scenes[9]]
-    assert len(closed_loop_sample(scenes, 7)) == 7
-    assert closed_loop_sample(scenes, None) == scenes
-    assert closed_loop_sample(scenes, 20) == scenes
+def test_closed_loop_sample_spreads_over_datasets_then_scenes():
+    # (The old sample took one ego per scene, so a dataset with many scenes crowded out
+    # the others and no scene gave a second ego: issue 35 item 7.)
+    a = [(pathlib.Path(f"a/s{i:02d}.mcap"), (1, 2)) for i in range(10)]
+    b = [(pathlib.Path(f"b/s{i}.mcap"), (1, 2, 3)) for i in range(2)]
+    empty = [(pathlib.Path("b/none.mcap"), ())]  # no vehicle ego: never picked
+    candidates = a + empty + b
+    # 4 egos: two per dataset; dataset a's two on its first and last scene
+    assert closed_loop_sample(candidates, 4) == [
+        (a[0][0], 1), (a[9][0], 1), (b[0][0], 1), (b[1][0], 1),
+    ]  # fmt: skip
+    # 10 egos: five each; a's spread over its ten scenes, b's in turn over its two
+    picks = closed_loop_sample(candidates, 10)
+    assert [p for p, _ in picks if p.parent.name == "a"] == [a[i][0] for i in (0, 2, 4, 7, 9)]
+    assert sorted(picks[5:]) == sorted(
+        [(b[0][0], 1), (b[0][0], 2), (b[0][0], 3), (b[1][0], 1), (b[1][0], 2)]
+    )
+    # more than there are: every ego once; None: all
+    assert len(closed_loop_sample(candidates, 100)) == 26
+    assert closed_loop_sample(candidates, None) == [(p, e) for p, egos in a + b for e in egos]
 
 
 def test_matched_specs_are_replaced_by_the_cuts():

@@ -133,47 +133,93 @@ def _open_loop(name: str, entry: dict[str, Any], plots: dict[str, str]) -> list[
     return lines
 
 
+def _mean_ci(d: dict[str, Any] | None, *, signed: bool = True, digits: int = 3) -> str:
+    """``mean [lo, hi]`` of a mean with its interval (signed: a difference)."""
+    if not d or d.get("mean") is None:
+        return "n/a"
+    form = f"{'+' if signed else ''}.{digits}f"
+    ci = d.get("ci95") or [None, None]
+    text = f"{d['mean']:{form}}"
+    if ci[0] is not None and ci[1] is not None and math.isfinite(ci[0]):
+        text += f" [{ci[0]:{form}}, {ci[1]:{form}}]"
+    return text
+
+
 def _closed_loop(name: str, closed: dict[str, Any]) -> list[str]:
     if not closed.get("runs"):
         return []
+    agents = closed.get("agents", "log")
+    others = (
+        "vehicles follow their logged path with IDM speed control and react to the ego "
+        "and each other; pedestrians, cyclists and objects replay their log"
+        if agents == "reactive"
+        else "the others replay their log (non-reactive)"
+    )
+    datasets = ", ".join(f"{d} {n}" for d, n in closed.get("datasets", {}).items())
+    egos = closed.get("egos", {})
+    skipped = egos.get("skipped_not_vehicles", 0)
+    sampled_from = (
+        f" (sampled from {egos['vehicle_egos']} vehicle egos; {skipped} pedestrian, "
+        "cyclist or object egos are no car-planner egos and were skipped)"
+        if egos
+        else ""
+    )
     lines = [
         f"### {name}: closed loop",
         "",
-        f"{closed['runs']} egos in {closed['scenes']} scenes, each driven by the planner "
-        "from its first recorded frame to the scene's end, once with all agents and once "
-        "per filter; the others replay their log (non-reactive).",
+        f"{closed['runs']} vehicle egos in {closed['scenes']} scenes ({datasets}){sampled_from}, each "
+        "driven by the planner from its first recorded frame to the scene's end, once with "
+        f"all agents and once per filter, following its plans with the "
+        f"{closed.get('tracker', 'perfect')} tracker; {others}. Collisions are classified "
+        "and counted at fault by nuPlan's rules; the score is nuPlan's closed-loop score "
+        'shape (docs/planners.md, "Closed-loop metrics and score").',
         "",
-        "| filter | agents given | collisions (from behind) | runs with a collision | "
-        "least gap, median (m) | time < 1 s headway (s) | progress, median (m) | plan, "
-        "median of medians / p95 (ms) | plan failures |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| filter | agents given | collisions: stopped ego / stopped track / front / rear "
+        "/ lateral | at fault | runs with an at-fault collision [95 % CI] | score [95 % CI] "
+        "| progress ratio, median | TTC < 0.95 s | uncomfortable | plan, median of medians "
+        "/ p95 (ms) | plan failures |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for filt, f in closed["filters"].items():
+        by = f.get("collisions_by_class", {})
+        classes = " / ".join(
+            str(by.get(c, 0))
+            for c in ("stopped_ego", "stopped_track", "front", "rear_end", "lateral")
+        )
+        fault = f.get("runs_at_fault", {})
+        score = f.get("score", {})
+        score_text = _mean_ci(score, signed=False)
         lines.append(
-            f"| {filt} | {f['mean_agents']:.1f} | {f['collisions']} "
-            f"({f['rear_end_collisions']}) | {f['runs_with_collision']} | "
-            f"{_m(f['min_gap_m']['median'])} | {f['time_headway_below_1s_s']:.1f} | "
-            f"{_m(f['progress_m']['median'])} | {_ms(f['plan_ms_median'])} / "
-            f"{_ms(f['plan_ms_p95'])} | {f['plan_failures']} |"
+            f"| {filt} | {f['mean_agents']:.1f} | {classes} | {f.get('at_fault_collisions', 0)} "
+            f"| {_pct(fault.get('share'))}{_ci(fault.get('ci95'))} | {score_text} | "
+            f"{_ratio(f.get('progress_ratio', {}).get('median'))} | "
+            f"{f.get('ttc_below_bound', 0)} | {f.get('uncomfortable', 0)} | "
+            f"{_ms(f['plan_ms_median'])} / {_ms(f['plan_ms_p95'])} | {f['plan_failures']} |"
         )
     paired = [(filt, f["paired"]) for filt, f in closed["filters"].items() if "paired" in f]
     if paired:
         lines += [
             "",
-            "Paired with the all-agents run of the same ego:",
+            "Paired with the all-agents run of the same ego (filter minus all agents; mean "
+            "difference per run with its 95 % scene-bootstrap interval):",
             "",
-            "| filter | runs | more collisions | fewer collisions | progress change, median "
-            "/ p95 (m) | least-gap change, median (m) |",
+            "| filter | pairs | at-fault collisions | score | progress ratio | runs with "
+            "more / fewer at-fault collisions |",
             "|---|---:|---:|---:|---:|---:|",
         ]
         for filt, p in paired:
             lines.append(
-                f"| {filt} | {p['runs']} | {p['more_collisions']} | {p['fewer_collisions']} | "
-                f"{_m(p['progress_change_m']['median'])} / {_m(p['progress_change_m']['p95'])} "
-                f"| {_m(p['min_gap_change_m']['median'])} |"
+                f"| {filt} | {p['runs']} | {_mean_ci(p.get('at_fault_difference'))} | "
+                f"{_mean_ci(p.get('score_difference'))} | "
+                f"{_mean_ci(p.get('progress_ratio_difference'))} | "
+                f"{p.get('more_at_fault', 0)} / {p.get('fewer_at_fault', 0)} |"
             )
     lines.append("")
     return lines
+
+
+def _ratio(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.2f}"
 
 
 def verdict(summary: dict[str, Any], *, keeps_plan_share: float = KEEPS_PLAN_SHARE) -> list[str]:
@@ -189,7 +235,9 @@ def verdict(summary: dict[str, Any], *, keeps_plan_share: float = KEEPS_PLAN_SHA
             faster = ratio is not None and ratio < 1.0
             same = hi is not None and hi < keeps_plan_share
             closed = entry.get("closed_loop", {}).get("filters", {}).get(filt, {})
-            more = closed.get("paired", {}).get("more_collisions")
+            more = closed.get("paired", {}).get(
+                "more_at_fault", closed.get("paired", {}).get("more_collisions")
+            )
             parts = [
                 f"**{name}, {filt}**: "
                 + ("fewer agents" if fewer else "no fewer agents")
@@ -208,7 +256,7 @@ def verdict(summary: dict[str, Any], *, keeps_plan_share: float = KEEPS_PLAN_SHA
             if more is not None:
                 parts.append(
                     f"; closed loop: {more} of {closed['paired']['runs']} runs with more "
-                    "collisions than with all agents"
+                    "at-fault collisions than with all agents"
                 )
             claim = fewer and faster and same and (more in (None, 0))
             lines.append("- " + "".join(parts) + (". **Holds.**" if claim else ". Does not hold."))
@@ -277,7 +325,8 @@ def write_report(
         lines.append(
             "- Closed loop: the planner drives the ego from its first recorded frame, "
             "re-planning at 10 Hz (the log's rate where slower) and following each plan "
-            "perfectly; the others replay their log. Egos: "
+            f"with the {summary.get('closed_loop_tracker', 'perfect')} tracker; the others: "
+            f"{summary.get('closed_loop_agents', 'log')}. Egos: "
             f"{summary['closed_loop_selection']}."
         )
     lines += ["", "## Does the claim hold?", "", *verdict(summary), ""]
@@ -299,8 +348,10 @@ def write_report(
         "- The planners plan against the toolkit's constant-speed predictions, not the "
         "recorded future: a changed plan says the filter dropped an agent this planner "
         "would have reacted to, not that the recorded driver reacted to it.",
-        "- The closed loop is non-reactive: the others replay their log, so a planner that "
-        "brakes where the recorded driver did not can be hit from behind (counted apart).",
+        "- In the closed loop the others replay their log or follow it with IDM: a "
+        "planner that brakes where the recorded driver did not can still be hit from "
+        "behind by a replayed follower (counted, not at fault), and reactive agents never "
+        "run ahead of their log.",
         "- Drone and camera recordings have no real ego; every moving agent stands in for "
         "one, so egos of one scene share their traffic (the intervals resample scenes).",
         "",

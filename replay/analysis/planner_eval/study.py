@@ -23,7 +23,14 @@ import numpy as np
 import polars as pl
 
 from outputs.atomic import atomic_write, write_text
-from replay.analysis.planner_eval.closed_loop import closed_loop_scene
+from replay.analysis.planner_eval import metrics
+from replay.analysis.planner_eval.closed_loop import (
+    DEFAULT_AGENTS,
+    DEFAULT_TRACKER,
+    ClosedLoopSettings,
+    run_ego,
+    vehicle_egos,
+)
 from replay.analysis.planner_eval.open_loop import (
     ALL_AGENTS,
     SCHEMA,
@@ -383,20 +390,76 @@ def _ms(value: float | None) -> str:
 
 
 # ---------------------------------------------------------------------- closed loop
-def _closed_task(item: tuple[str, PlanSettings, Any, int | None]) -> list[dict[str, Any]]:
-    path, settings, ego, egos_per_scene = item
-    return closed_loop_scene(path, settings, ego=ego, egos_per_scene=egos_per_scene)
+def _vehicle_egos_task(item: tuple[str, Any]) -> tuple[tuple[int, ...], int]:
+    """A scene's vehicle egos of ``--ego`` and how many egos ``--ego`` names in all."""
+    path, ego = item
+    scene = load_scene(path)
+    return vehicle_egos(scene, ego), len(_egos(scene, ego))
 
 
-def closed_loop_sample(scenes: Sequence[pathlib.Path], sample: int | None) -> list[pathlib.Path]:
-    """The scenes of a closed-loop sample of ``sample`` egos (one per scene, the one
-    present longest): ``sample`` scenes spread evenly over the list (first and last
-    included), so that the sample covers every dataset; all scenes when ``sample`` is
-    None or not smaller than the list."""
-    if sample is None or sample >= len(scenes):
-        return list(scenes)
-    picks = np.unique(np.round(np.linspace(0, len(scenes) - 1, sample)).astype(int))
-    return [scenes[i] for i in picks]
+@dataclasses.dataclass(frozen=True)
+class ClosedLoopRuns:
+    """The closed-loop rows and the egos they came from: ``vehicle_egos`` found in the
+    scenes, ``skipped_egos`` that were pedestrians, cyclists or objects (no car-planner
+    egos), ``sampled`` egos driven."""
+
+    runs: pl.DataFrame
+    vehicle_egos: int
+    skipped_egos: int
+    sampled: int
+
+
+def _closed_task(item: tuple[str, int, ClosedLoopSettings]) -> list[dict[str, Any]]:
+    path, ego_id, settings = item
+    return run_ego(path, ego_id, settings)
+
+
+def _spread(n: int, k: int) -> list[int]:
+    """``k <= n`` indices spread evenly over ``range(n)``, first and last included."""
+    if k <= 0:
+        return []
+    return [int(i) for i in np.round(np.linspace(0, n - 1, k)).astype(int)] if k > 1 else [0]
+
+
+def closed_loop_sample(
+    candidates: Sequence[tuple[pathlib.Path, tuple[int, ...]]], sample: int | None
+) -> list[tuple[pathlib.Path, int]]:
+    """``sample`` (scene, ego) pairs spread evenly over the datasets (a scene's folder),
+    then over each dataset's scenes: datasets take one ego in turn until ``sample`` are
+    taken or their egos run out; a dataset's share goes to scenes spread evenly over its
+    list (first and last included) when it has more scenes than egos to take, else to
+    every scene in turn. ``candidates``: each scene with its vehicle egos in the order
+    to take them. All of them when ``sample`` is None."""
+    usable = [(p, egos) for p, egos in candidates if egos]
+    if sample is None:
+        return [(p, e) for p, egos in usable for e in egos]
+    by_dataset: dict[str, list[tuple[pathlib.Path, tuple[int, ...]]]] = {}
+    for p, egos in usable:
+        by_dataset.setdefault(_dataset_of(p), []).append((p, egos))
+    capacity = {d: sum(len(e) for _, e in rows) for d, rows in by_dataset.items()}
+    quota = dict.fromkeys(by_dataset, 0)
+    left = sample
+    while left > 0 and any(quota[d] < capacity[d] for d in quota):
+        for d in sorted(by_dataset):
+            if left > 0 and quota[d] < capacity[d]:
+                quota[d] += 1
+                left -= 1
+    picks: list[tuple[pathlib.Path, int]] = []
+    for d in sorted(by_dataset):
+        rows = by_dataset[d]
+        take = [0] * len(rows)
+        if quota[d] < len(rows):
+            for i in _spread(len(rows), quota[d]):
+                take[i] = 1
+        else:
+            need = quota[d]
+            while need > 0:
+                for i, (_, egos) in enumerate(rows):
+                    if need > 0 and take[i] < len(egos):
+                        take[i] += 1
+                        need -= 1
+        picks += [(p, e) for (p, egos), n in zip(rows, take, strict=True) for e in egos[:n]]
+    return picks
 
 
 def run_closed_loop(
@@ -408,28 +471,57 @@ def run_closed_loop(
     progress: bool = True,
     egos_per_scene: int | None = None,
     sample: int | None = None,
-) -> pl.DataFrame:
-    """Closed-loop runs (:func:`closed_loop_scene`): one row per (scene, ego, filter).
-    ``sample``: at most this many egos in all, one per scene (see
-    :func:`closed_loop_sample`)."""
-    if sample is not None:
-        egos_per_scene = 1
+    agents: str = DEFAULT_AGENTS,
+    tracker: str = DEFAULT_TRACKER,
+) -> ClosedLoopRuns:
+    """Closed-loop runs (:func:`run_ego`): one row per (scene, ego, filter), vehicle
+    egos only. ``sample``: that many egos in all (:func:`closed_loop_sample`);
+    ``egos_per_scene``: at most that many per scene, those present longest."""
     settings.make_filters()
-    tasks = [(str(p), settings, ego, egos_per_scene) for p in closed_loop_sample(scenes, sample)]
+    closed = ClosedLoopSettings(plan=settings, agents=agents, tracker=tracker)
+    found = parallel_map(
+        _vehicle_egos_task, [(str(p), ego) for p in scenes], workers=min(workers, len(scenes)),
+        progress=progress, desc="closed loop (vehicle egos)", unit="scene",
+    )  # fmt: skip
+    candidates = [
+        (p, egos if egos_per_scene is None else egos[:egos_per_scene])
+        for p, (egos, _) in zip(scenes, found, strict=True)
+    ]
+    vehicles = sum(len(egos) for egos, _ in found)
+    skipped = sum(total - len(egos) for egos, total in found)
+    tasks = [(str(p), e, closed) for p, e in closed_loop_sample(candidates, sample)]
     results = parallel_map(
         _closed_task, tasks, workers=min(workers, len(tasks)), progress=progress,
-        desc=f"closed loop ({settings.planner})", unit="scene",
+        desc=f"closed loop ({settings.planner}, {agents} agents)", unit="ego",
     )  # fmt: skip
-    rows = [row for scene_rows in results for row in scene_rows]
-    if not rows:
-        return pl.DataFrame()
-    df = pl.DataFrame(rows, infer_schema_length=None)
-    return _with_datasets(df, _datasets(scenes))
+    rows = [row for ego_rows in results for row in ego_rows]
+    df = pl.DataFrame()
+    if rows:
+        df = _with_datasets(pl.DataFrame(rows, infer_schema_length=None), _datasets(scenes))
+    return ClosedLoopRuns(runs=df, vehicle_egos=vehicles, skipped_egos=skipped, sampled=len(tasks))
 
 
-def summarize_closed_loop(df: pl.DataFrame) -> dict[str, Any]:
-    """Per filter: collisions, least gap, time below 1 s headway, progress and planning
-    time, and the paired differences against the all-agents run of the same ego."""
+def _mean_with_interval(
+    values: np.ndarray, scenes: np.ndarray, *, n_boot: int, seed: int
+) -> dict[str, Any]:
+    """Mean of ``values`` with a 95 % scene-bootstrap interval (scenes resampled whole)."""
+    n = int(values.size)
+    if n == 0:
+        return {"mean": None, "ci95": None, "n": 0}
+    codes, counts = bootstrap_weights(scenes, n_boot=n_boot, seed=seed)
+    per_scene = np.bincount(codes, weights=values.astype(np.float64), minlength=counts.shape[1])
+    per_scene_n = np.bincount(codes, minlength=counts.shape[1]).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        reps = (counts @ per_scene) / (counts @ per_scene_n)
+    lo, hi = percentile_interval(reps)
+    return {"mean": float(values.mean()), "ci95": [lo, hi], "n": n}
+
+
+def summarize_closed_loop(df: pl.DataFrame, *, n_boot: int = 1000, seed: int = 0) -> dict[str, Any]:
+    """Per filter: collisions by class, at-fault collisions (runs with one, with a 95 %
+    scene-bootstrap interval), score, progress, TTC, comfort, planning time; and the
+    paired differences against the all-agents run of the same ego (at-fault collisions,
+    score, progress ratio) with 95 % scene-bootstrap intervals."""
     if df.is_empty():
         return {"runs": 0, "filters": {}}
     key = ["scene", "ego_id"]
@@ -438,15 +530,36 @@ def summarize_closed_loop(df: pl.DataFrame) -> dict[str, Any]:
         "runs": reference.height,
         "distinct_egos": reference.select(key).unique().height,
         "scenes": reference["scene"].n_unique(),
+        "datasets": {
+            str(d): int(n) for d, n in reference["dataset"].value_counts(sort=True).iter_rows()
+        },
+        "agents": str(df["agents"][0]) if "agents" in df.columns else "log",
+        "tracker": str(df["tracker"][0]) if "tracker" in df.columns else "perfect",
         "filters": {},
     }
     for name in df["filter"].unique(maintain_order=True).to_list():
         rows = df.filter(pl.col("filter") == name)
+        scenes = rows["scene"].to_numpy()
         entry: dict[str, Any] = {
             "runs": rows.height,
             "collisions": int(rows["collisions"].sum()),
             "rear_end_collisions": int(rows["rear_end_collisions"].sum()),
+            "collisions_by_class": {
+                c: int(rows[f"{c}_collisions"].sum())
+                for c in ("stopped_ego", "stopped_track", "front", "rear_end", "lateral")
+            },
+            "at_fault_collisions": int(rows["at_fault_collisions"].sum()),
             "runs_with_collision": int((rows["collisions"] > 0).sum()),
+            "runs_at_fault": _share_with_interval(
+                (rows["at_fault_collisions"] > 0).to_numpy(), scenes, n_boot=n_boot, seed=seed
+            ),
+            "score": _mean_with_interval(
+                rows["score"].to_numpy(), scenes, n_boot=n_boot, seed=seed
+            ),
+            "progress_ratio": _quantiles(rows["progress_ratio"].to_numpy()),
+            "drivable_area_fails": int((rows["drivable_area_ok"] == False).sum()),  # noqa: E712
+            "ttc_below_bound": int((rows["min_ttc_s"] < metrics.LEAST_TTC_S).sum()),
+            "uncomfortable": int((~rows["comfortable"]).sum()),
             "min_gap_m": _quantiles(rows["min_gap_m"].to_numpy()),
             "time_headway_below_1s_s": float(rows["time_headway_below_1s_s"].sum()),
             "progress_m": _quantiles(rows["progress_m"].to_numpy()),
@@ -457,10 +570,30 @@ def summarize_closed_loop(df: pl.DataFrame) -> dict[str, Any]:
         }
         if name != ALL_AGENTS:
             paired = rows.join(reference, on=key, suffix="_all")
+            pair_scenes = paired["scene"].to_numpy()
+            differences = {
+                column: _mean_with_interval(
+                    (paired[column] - paired[f"{column}_all"]).cast(pl.Float64).to_numpy(),
+                    pair_scenes,
+                    n_boot=n_boot,
+                    seed=seed,
+                )
+                for column in ("at_fault_collisions", "score", "progress_ratio")
+            }
+
             entry["paired"] = {
                 "runs": paired.height,
                 "more_collisions": int((paired["collisions"] > paired["collisions_all"]).sum()),
                 "fewer_collisions": int((paired["collisions"] < paired["collisions_all"]).sum()),
+                "more_at_fault": int(
+                    (paired["at_fault_collisions"] > paired["at_fault_collisions_all"]).sum()
+                ),
+                "fewer_at_fault": int(
+                    (paired["at_fault_collisions"] < paired["at_fault_collisions_all"]).sum()
+                ),
+                "at_fault_difference": differences["at_fault_collisions"],
+                "score_difference": differences["score"],
+                "progress_ratio_difference": differences["progress_ratio"],
                 "progress_change_m": _quantiles(
                     (paired["progress_m"] - paired["progress_m_all"]).to_numpy()
                 ),
@@ -472,30 +605,56 @@ def summarize_closed_loop(df: pl.DataFrame) -> dict[str, Any]:
     return out
 
 
+def _interval(d: dict[str, Any], *, signed: bool = True, digits: int = 3) -> str:
+    """``mean [lo, hi]`` of a :func:`_mean_with_interval` result (signed: a difference)."""
+    if d.get("mean") is None:
+        return "n/a"
+    form = f"{'+' if signed else ''}.{digits}f"
+    ci = d.get("ci95") or [None, None]
+    if ci[0] is None or not math.isfinite(ci[0]):
+        return f"{d['mean']:{form}}"
+    return f"{d['mean']:{form}} [{ci[0]:{form}}, {ci[1]:{form}}]"
+
+
 def format_closed_loop(summary: dict[str, Any]) -> str:
     """The closed-loop part of ``replay plan``'s end-of-run text."""
+    egos = summary.get("egos", {})
+    skipped = egos.get("skipped_not_vehicles", 0)
+    note = f"; {skipped} pedestrian, cyclist or object egos skipped" if skipped else ""
     if not summary.get("runs"):
-        return "Closed loop: no run"
+        return "Closed loop: no run" + note
     lines = [
-        f"Closed loop: {summary['runs']} egos in {summary['scenes']} scenes, once with all "
-        "agents and once per filter (the others replay their log)"
+        f"Closed loop: {summary['runs']} vehicle egos in {summary['scenes']} scenes, once "
+        f"with all agents and once per filter ({summary.get('agents', 'log')} agents, "
+        f"{summary.get('tracker', 'perfect')} tracker){note}"
     ]
     for name, f in summary["filters"].items():
-        gap = f["min_gap_m"]["median"]
-        progress = f["progress_m"]["median"]
+        fault = f["runs_at_fault"]
+        ci = fault.get("ci95") or [None, None]
+        interval = "" if ci[0] is None or not math.isfinite(ci[0]) else (
+            f" [{100 * ci[0]:.1f}, {100 * ci[1]:.1f}]"
+        )  # fmt: skip
+        share = "n/a" if fault["share"] is None else f"{100 * fault['share']:.1f} %"
         lines.append(
-            f"  {name}: {f['collisions']} collisions ({f['rear_end_collisions']} from behind) "
-            f"in {f['runs_with_collision']} runs; least gap {_m(gap)} median; progress "
-            f"{_m(progress)} median; plan {_ms(f['plan_ms_median'])} median"
+            f"  {name}: {f['collisions']} collisions ({f['rear_end_collisions']} from behind), "
+            f"{f['at_fault_collisions']} at fault; runs with an at-fault collision {share}"
+            f"{interval}; score {_interval(f['score'], signed=False)}; progress "
+            f"ratio {_ratio(f['progress_ratio']['median'])} median; plan "
+            f"{_ms(f['plan_ms_median'])} median"
         )
         if "paired" in f:
             p = f["paired"]
             lines.append(
-                f"    vs all agents: {p['more_collisions']} runs with more collisions, "
-                f"{p['fewer_collisions']} with fewer; progress change "
-                f"{_m(p['progress_change_m']['median'])} median"
+                f"    vs all agents ({p['runs']} pairs): at-fault collisions "
+                f"{_interval(p['at_fault_difference'])}, score {_interval(p['score_difference'])}, "
+                f"progress ratio {_interval(p['progress_ratio_difference'])} (mean difference "
+                "[95 % scene bootstrap])"
             )
     return "\n".join(lines)
+
+
+def _ratio(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.2f}"
 
 
 def _m(value: float | None) -> str:
@@ -526,6 +685,8 @@ def run_study(
     closed_loop: bool = False,
     closed_loop_egos: int | None = None,
     closed_loop_sample: int | None = None,
+    agents: str = DEFAULT_AGENTS,
+    tracker: str = DEFAULT_TRACKER,
     notify: Any = None,
 ) -> StudyResult:
     """``replay plan``: the matched cuts (when asked for), then per planner the open loop
@@ -560,21 +721,29 @@ def run_study(
             start = time.perf_counter()
             runs = run_closed_loop(
                 scenes, own, ego=ego, workers=workers, progress=progress,
-                egos_per_scene=closed_loop_egos, sample=closed_loop_sample,
+                egos_per_scene=closed_loop_egos, sample=closed_loop_sample, agents=agents,
+                tracker=tracker,
             )  # fmt: skip
-            entry["closed_loop"] = summarize_closed_loop(runs)
+            entry["closed_loop"] = summarize_closed_loop(runs.runs)
+            entry["closed_loop"]["egos"] = {
+                "vehicle_egos": runs.vehicle_egos,
+                "skipped_not_vehicles": runs.skipped_egos,
+                "sampled": runs.sampled,
+            }
             summary["time_s"][f"closed_loop:{name}"] = time.perf_counter() - start
-            closed.append(runs)
+            closed.append(runs.runs)
         summary["planners"][name] = entry
     if closed_loop:
         summary["closed_loop_selection"] = (
-            f"{closed_loop_sample} egos in all, one per scene (the one present longest) of "
-            f"{closed_loop_sample} scenes spread evenly over the list of scenes"
+            f"{closed_loop_sample} vehicle egos in all, spread evenly over the datasets, "
+            "then over each dataset's scenes (those present longest first)"
             if closed_loop_sample is not None
-            else f"at most {closed_loop_egos} egos per scene, those present longest"
+            else f"at most {closed_loop_egos} vehicle egos per scene, those present longest"
             if closed_loop_egos is not None
-            else "every ego"
+            else "every vehicle ego"
         )
+        summary["closed_loop_agents"] = agents
+        summary["closed_loop_tracker"] = tracker
     summary["filters"] = list(settings.filters)
     summary["tolerance_m"] = settings.tolerance_m
     summary["horizon_s"] = settings.horizon_s

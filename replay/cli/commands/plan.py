@@ -9,6 +9,12 @@ import sys
 import click
 
 from outputs.transaction import OutputGuard
+from replay.analysis.planner_eval.closed_loop import (
+    AGENT_MODES,
+    DEFAULT_AGENTS,
+    DEFAULT_TRACKER,
+    load_tracker,
+)
 from replay.analysis.planner_eval.open_loop import PlanSettings
 from replay.analysis.planner_eval.report import write_report
 from replay.analysis.planner_eval.study import (
@@ -24,6 +30,7 @@ from replay.core.engine import Stride
 from replay.core.pool import default_workers
 from replay.errors import ReplayError
 from replay.planning.registry import PLANNERS, make_planner
+from replay.planning.tracking import TRACKERS
 from risk.filtering import FILTER_FORMS
 
 
@@ -67,9 +74,22 @@ from risk.filtering import FILTER_FORMS
 )  # fmt: skip
 @click.option(
     "--closed-loop", is_flag=True,
-    help="Also drive the ego with the planner while the others replay their log "
-    "(non-reactive, as nuPlan's CLS-NR): re-plan at 10 Hz, the ego follows each plan "
-    "perfectly; once with all agents and once per filter. Writes closed_loop.parquet.",
+    help="Also drive each vehicle ego with the planner (re-plan at 10 Hz, the ego follows "
+    "each plan through --tracker) while the others move as --agents says; once with all "
+    "agents and once per filter. Writes closed_loop.parquet.",
+)  # fmt: skip
+@click.option(
+    "--agents", type=click.Choice(list(AGENT_MODES)), default=DEFAULT_AGENTS,
+    show_default=True,
+    help="With --closed-loop: reactive: vehicles follow their logged path with IDM speed "
+    "control, reacting to the ego and each other (never ahead of their log); "
+    "pedestrians, cyclists and objects replay their log. log: everyone replays the log.",
+)  # fmt: skip
+@click.option(
+    "--tracker", type=click.Choice(list(TRACKERS)), default=DEFAULT_TRACKER,
+    show_default=True,
+    help="With --closed-loop: how the ego follows each plan. perfect: on the plan's own "
+    "state; lqr: a kinematic bicycle with an LQR controller.",
 )  # fmt: skip
 @click.option(
     "--closed-loop-egos", type=click.IntRange(min=1), default=None, metavar="K",
@@ -78,8 +98,8 @@ from risk.filtering import FILTER_FORMS
 )  # fmt: skip
 @click.option(
     "--closed-loop-sample", type=click.IntRange(min=1), default=None, metavar="N",
-    help="With --closed-loop: N egos in all, one per scene (the one present longest) of N "
-    "scenes spread evenly over the scenes given, so that the sample covers the datasets.",
+    help="With --closed-loop: N vehicle egos in all, spread evenly over the datasets (the "
+    "scenes' folders), then over each dataset's scenes (those present longest first).",
 )  # fmt: skip
 @click.option(
     "--tolerance", "tolerance_m", type=click.FloatRange(min=0.0), default=0.5,
@@ -112,6 +132,8 @@ def plan(
     cascade_file: pathlib.Path | None,
     truth: bool,
     closed_loop: bool,
+    agents: str,
+    tracker: str,
     closed_loop_egos: int | None,
     closed_loop_sample: int | None,
     tolerance_m: float,
@@ -134,8 +156,8 @@ def plan(
       plans.parquet    one row per (scene, ego, frame, filter): n_agents, filter_ms,
                        plan_ms, plan_ok, changed, max_shift_m, blocking_dropped, ...
       closed_loop.parquet  with --closed-loop: one row per (scene, ego, filter):
-                       collisions, min_gap_m, time_headway_below_1s_s, progress_m,
-                       plan_ms_median, plan_ms_p95
+                       collisions by class, at_fault_collisions, drivable_area_ok,
+                       progress_ratio, min_ttc_s, comfortable, score, plan_ms_median
       agents.parquet   with --truth: one row per (scene, ego, frame, agent):
                        planner_label, planner_shift_m
       summary.json     per planner and filter: kept agents, changed share (95 % scene
@@ -149,7 +171,7 @@ def plan(
     \b
       replay plan corpus/scenes/ --ego all --every 1s --planner idm
           --planner fiss_plus --filter cascade --filter nearest:match
-          --filter radius:match --closed-loop --closed-loop-sample 40
+          --filter radius:match --closed-loop --closed-loop-sample 400
           -o plan-out/ --report docs/planner-evaluation.md
     """
     cascade = load_cascade(cascade_file, sets)
@@ -161,6 +183,8 @@ def plan(
     resolve_matched(settings, {"nearest_k": 1, "radius_m": 1.0}).make_filters()  # bad specs
     for name in planners:
         make_planner(name)  # a missing optional extra fails before anything is read
+    if closed_loop:
+        load_tracker(tracker)  # so does a tracker that is not installed
     found = scene_files(scenes)
     if not found:
         raise ReplayError(f"{', '.join(map(str, scenes))}: no .mcap scene found")
@@ -172,7 +196,7 @@ def plan(
             found, settings, planners=planners, ego=ego, every=every,
             workers=workers or default_workers(), progress=progress,
             closed_loop=closed_loop, closed_loop_egos=closed_loop_egos,
-            closed_loop_sample=closed_loop_sample,
+            closed_loop_sample=closed_loop_sample, agents=agents, tracker=tracker,
             notify=lambda message: click.echo(message, err=True),
         )  # fmt: skip
         files = write_study(result, out_dir, plots=plots or report_path is not None)
