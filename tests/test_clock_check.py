@@ -354,7 +354,7 @@ def test_cli_convert_corrects_warns_and_obeys_time_step(clock_files, tmp_path):
 
 
 def test_cli_inspect_check_exit_codes_and_json(clock_files, tmp_path):
-    five, one = clock_files
+    five, _one = clock_files
     runner = CliRunner()
     good, kept = tmp_path / "set" / "good.mcap", tmp_path / "set" / "kept.mcap"
     assert _convert(runner, five, good).exit_code == 0
@@ -408,3 +408,34 @@ def test_real_sind_and_highd_files_are_corrected(shared_data, dataset, factor):
     kept = commonroad.read_scene(src, paths="hindsight", time_step="file")
     assert kept.frames[3].speed.tolist() == scene.frames[3].speed.tolist()
     assert json.loads(kept.metadata["clock_check"])["fails"]
+
+
+# ---------------------------------------------------------------------- batch
+def test_batch_converts_with_auto_by_default_and_obeys_time_step(clock_files, tmp_path, capfd):
+    from replay.batch import BatchSettings, ConvertTask, convert_one
+    from risk.cascade import CascadeConfig
+
+    five, _ = clock_files
+    periods = {}
+    for choice in ("auto", "file", 0.2):
+        out = tmp_path / f"out-{choice}"
+        task = ConvertTask(
+            input=str(five), name="five", kind="commonroad", paths="map", map_osm=None,
+            scenes_dir=str(out), marker=str(out / "marker.json"), digest="d",
+            time_step=choice,
+        )  # fmt: skip
+        outcome = convert_one(task)
+        assert not outcome.failures, outcome.failures
+        [(_, path)] = outcome.scenes
+        periods[choice] = read_mcap(path).frame_period_s
+    assert periods == {"auto": 0.5, "file": 0.1, 0.2: 0.2}
+    assert "time step 0.1 s -> 0.5 s" in capfd.readouterr().err  # the worker's warning
+    # The choice is part of a conversion's identity: another choice converts again.
+    cascade = CascadeConfig.default()
+    assert BatchSettings(cascade).time_step == "auto"
+    assert (
+        BatchSettings(cascade).convert_digest()
+        != BatchSettings(cascade, time_step="file").convert_digest()
+    )
+    res = CliRunner().invoke(main, ["batch", "--help"])
+    assert "--time-step" in res.output

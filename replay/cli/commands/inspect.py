@@ -175,9 +175,9 @@ def _range(values: Sequence[float | None]) -> dict[str, float] | None:
 
 def render_check(results: Sequence[dict[str, Any]], datasets: Sequence[dict[str, Any]]) -> str:
     """The tables of ``inspect --check``: one row per scene, one per dataset."""
-    head = ("scene", "step s", "from s", "ratio file", "ratio", "agents", "heading",
+    head: tuple[str, ...] = ("scene", "step s", "from s", "ratio file", "ratio", "agents", "heading",
             "speed>", "accel>", "teleports", "bad rows", "check")  # fmt: skip
-    rows = [head]
+    rows: list[tuple[str, ...]] = [head]
     for r in results:
         rows.append(
             (
