@@ -272,10 +272,44 @@ def _agreeing(agent_ratios: np.ndarray, factor: float) -> float:
     return float((np.abs(agent_ratios / factor - 1.0) <= AGENT_TOLERANCE).mean())
 
 
+BLOCK_CELLS = 1 << 20
+"""Agents are measured in blocks of about this many (step, agent) cells, so that a long
+scenario's check needs a bounded amount of memory on top of its track table."""
+
+
 def _measure(motion: Motion, scale: float, k: int) -> _Figures:
     """Figures of ``motion`` with its times multiplied by ``scale``; speeds derived from
     positions (not measured) scale by ``1 / scale`` with them. A moving window whose own
-    ratio is off 1 (the clock of these times) marks its first row bad."""
+    ratio is off 1 (the clock of these times) marks its first row bad. Agents are
+    independent, so blocks of them are measured apart and the counts added."""
+    n_steps, n_agents = motion.valid.shape
+    width = max(1, BLOCK_CELLS // max(n_steps, 1))
+    parts = [
+        _measure_block(motion, slice(lo, lo + width), scale, k)
+        for lo in range(0, max(n_agents, 1), width)
+    ]
+    ratios = np.concatenate([p.agent_ratios for p in parts])
+    counts = {name: sum(getattr(p, name) for p in parts) for name in _COUNTS}
+    return _Figures(
+        ratio=float(np.median(ratios)) if ratios.size else None, agent_ratios=ratios, **counts
+    )
+
+
+_COUNTS = ("moving_windows", "heading_windows", "heading_mismatches", "speed_violations",
+           "accel_violations", "teleports", "rows", "bad_rows")  # fmt: skip
+
+
+def _bound_table(field: str) -> np.ndarray:
+    """A bound per kind code (0..3); codes beyond it read as ``other``."""
+    return np.array([getattr(BOUNDS[int(kind)], field) for kind in Kind], dtype=np.float64)
+
+
+def _measure_block(motion: Motion, cols: slice, scale: float, k: int) -> _Figures:
+    """:func:`_measure` of the agents ``cols``."""
+    motion = Motion(
+        motion.t_s, motion.xy[:, cols], motion.heading[:, cols], motion.speed[:, cols],
+        motion.valid[:, cols], np.asarray(motion.kinds)[cols], motion.speed_measured[:, cols],
+    )  # fmt: skip
     valid = motion.valid
     n_steps, n_agents = valid.shape
     t = motion.t_s * scale
@@ -284,8 +318,9 @@ def _measure(motion: Motion, scale: float, k: int) -> _Figures:
     xy = np.where(valid[:, :, None], motion.xy, 0.0)
     heading = np.where(valid, motion.heading, 0.0)
     kinds = np.asarray(motion.kinds, dtype=np.int64)
-    top_speed = np.array([BOUNDS.get(int(c), BOUNDS[int(Kind.OTHER)]).speed_ms for c in kinds])
-    top_accel = np.array([BOUNDS.get(int(c), BOUNDS[int(Kind.OTHER)]).accel_ms2 for c in kinds])
+    code = np.where((kinds >= 0) & (kinds < len(Kind)), kinds, int(Kind.OTHER))
+    top_speed = _bound_table("speed_ms")[code]
+    top_accel = _bound_table("accel_ms2")[code]
     bad = np.zeros((n_steps, n_agents), dtype=bool)
     # Teleports: consecutive steps, both valid.
     pair = valid[1:] & valid[:-1]

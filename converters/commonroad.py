@@ -8,7 +8,8 @@ Mapping (docs/recorded-data.md has the tables):
 
 - every ``dynamicObstacle`` is an agent (id: its ``id``); its ``initialState`` and
   ``trajectory`` states give its pose at their ``time`` steps, and it is invalid at every
-  other step; frame period: the root's ``timeStepSize`` (s);
+  other step; frame period: the root's ``timeStepSize`` (s), unless the clock check of
+  :mod:`converters.clock` corrects it (SinD and highD files label 0.5 s and 0.2 s as 0.1 s);
 - pose ``position/point`` (m), ``orientation`` (rad), speed ``|(velocity, velocityY)|``
   (m/s; a state without ``velocity`` gets the finite-difference speed of its track, one
   without ``orientation`` the direction of motion); size from the ``shape``

@@ -439,3 +439,14 @@ def test_batch_converts_with_auto_by_default_and_obeys_time_step(clock_files, tm
     )
     res = CliRunner().invoke(main, ["batch", "--help"])
     assert "--time-step" in res.output
+
+
+def test_blocks_of_agents_measure_the_same_as_one(monkeypatch):
+    import converters.clock as clock
+
+    table = tracks([1.0, 2.5, 6.0, 12.0, 20.0, 9.0, 4.0], factor=2.0, noise_m=0.2, n_steps=50,
+                   kinds=[V, P, C, V, V, P, V])  # fmt: skip
+    table.xy[30:, 3] += 40.0  # a teleport
+    whole = check_motion(motion(table), 0.1)
+    monkeypatch.setattr(clock, "BLOCK_CELLS", 100)  # two agents per block
+    assert check_motion(motion(table), 0.1) == whole
