@@ -8,12 +8,14 @@ converter runs the check of this module on its track table before the scene is b
 
 The figures (all vectorised over time x agents; no loop over agents):
 
-- **clock ratio**: over windows of at least :data:`WINDOW_S` (at the file's time step) in
-  which a track is valid throughout and its recorded speed averages above
-  :data:`MOVING_SPEED_MS`, the distance between the window's end positions over the
-  distance the recorded speeds cover in it (their trapezoid integral). The ratio does not
-  depend on the time step's value for the moving test (a mean speed), and is the factor by
-  which the true step exceeds the labelled one. Per agent: the median over its windows;
+- **clock ratio**: over windows in which a track is valid throughout and its recorded
+  speed averages above :data:`MOVING_SPEED_MS`, the distance between the window's end
+  positions over the distance the recorded speeds cover in it (their trapezoid integral).
+  A window is as many steps as moving agents need to cover :data:`WINDOW_M` (from the
+  median step of the scene's moving agents): long enough that centimetre position noise
+  does not inflate the distance, short enough that a turn barely shortens the chord, and
+  the same whatever the time step says. The ratio is then the factor by which the true
+  step exceeds the labelled one. Per agent: the median over its windows;
   per scene: the median over agents with at least :data:`MIN_WINDOWS` windows. Needs
   recorded speeds: where a source derives speeds from positions (Argoverse 2 Sensor, a
   CommonRoad state without ``velocity``) the ratio is 1 by construction and is not
@@ -60,10 +62,11 @@ TIME_STEP_MODES: tuple[str, ...] = ("auto", "file")
 
 MOVING_SPEED_MS = 2.0
 """Windows whose recorded speed averages above this (m/s) measure the clock ratio."""
-WINDOW_S = 0.4
-"""Shortest window (s, at the file's time step): long enough that centimetre position
-noise does not inflate the distance of a slow agent, short enough that a turn barely
-shortens the chord."""
+WINDOW_M = 2.0
+"""Windows of the clock ratio and the heading check span about this much travel (m)."""
+ACCEL_WINDOW_S = 0.4
+"""Accelerations are speed changes over at least this long (s, at the step used): the
+recorded speeds' noise over one 0.04 s step would read as metres per second squared."""
 MIN_WINDOWS = 3
 """An agent with fewer moving windows gives no ratio of its own."""
 MIN_AGENTS = 2
@@ -182,9 +185,32 @@ def parse_time_step(value: str | float) -> TimeStep:
     return seconds
 
 
-def window_steps(step_s: float) -> int:
-    """Steps per window at a time step of ``step_s``."""
-    return max(1, math.ceil(WINDOW_S / step_s - 1e-9))
+def window_steps(motion: Motion) -> int:
+    """Steps per window of the clock ratio: enough for the median step of the moving
+    agents (recorded speed above :data:`MOVING_SPEED_MS` at both ends, or any moving pair
+    where no speed is recorded) to add up to :data:`WINDOW_M`; at most a quarter of the
+    scene. Independent of the time step's value."""
+    valid = motion.valid
+    n_steps = valid.shape[0]
+    if n_steps < 2:
+        return 1
+    pair = valid[1:] & valid[:-1]
+    step = np.linalg.norm(motion.xy[1:] - motion.xy[:-1], axis=2)
+    fast = motion.speed > MOVING_SPEED_MS
+    recorded = motion.speed_measured[1:] & motion.speed_measured[:-1]
+    moving = pair & (step > 0) & np.where(recorded, fast[1:] & fast[:-1], True)
+    if not moving.any():
+        return 1
+    typical = float(np.median(step[moving]))
+    return int(np.clip(math.ceil(WINDOW_M / typical - 1e-9), 1, max(1, n_steps // 4)))
+
+
+def accel_steps(t_s: np.ndarray) -> int:
+    """Steps over which accelerations are measured at the times ``t_s``."""
+    if t_s.size < 2:
+        return 1
+    step = float(np.median(np.diff(t_s)))
+    return max(1, math.ceil(ACCEL_WINDOW_S / step - 1e-9)) if step > 0 else 1
 
 
 def clean_factor(ratio: float) -> float | None:
@@ -204,8 +230,8 @@ def check_motion(
 ) -> ClockCheck:
     """Measure ``motion`` at the file's step, choose the step (``time_step``) and measure
     again at it. ``motion.t_s`` is on the file's time base; ``window`` (steps) defaults to
-    :func:`window_steps` of the file's step."""
-    window = window or window_steps(file_step_s)
+    :func:`window_steps`."""
+    window = window or window_steps(motion)
     at_file = _measure(motion, 1.0, window)
     factor: float | None = None
     if time_step == "auto":
@@ -330,15 +356,22 @@ def _measure_block(motion: Motion, cols: slice, scale: float, k: int) -> _Figure
     bad[1:] |= teleport
     # Speed bound on the recorded (or derived) speed of every row.
     over_speed = valid & (speed > top_speed[None, :])
-    figures = dict(teleports=int(teleport.sum()))
+    # Runs of valid pairs: window [i, i + k] is whole when its k pairs are all valid.
+    runs = np.concatenate([np.zeros((1, n_agents), np.int64), np.cumsum(pair, axis=0)])
+    # Acceleration: the speed change over ACCEL_WINDOW_S at these times.
+    ka = accel_steps(t)
+    n_accel = 0
+    if n_steps > ka:
+        accel = np.abs(speed[ka:] - speed[:-ka]) / (t[ka:] - t[:-ka])[:, None]
+        over_accel = ((runs[ka:] - runs[:-ka]) == ka) & (accel > top_accel[None, :])
+        bad[:-ka] |= over_accel
+        n_accel = int(over_accel.sum())
     if n_steps <= k:
         bad |= over_speed
         return _Figures(
-            None, np.empty(0), 0, 0, 0, int(over_speed.sum()), 0, figures["teleports"],
+            None, np.empty(0), 0, 0, 0, int(over_speed.sum()), n_accel, int(teleport.sum()),
             int(valid.sum()), int((bad & valid).sum()),
         )  # fmt: skip
-    # Windows [i, i + k] in which the track is valid throughout.
-    runs = np.concatenate([np.zeros((1, n_agents), np.int64), np.cumsum(pair, axis=0)])
     whole = (runs[k:] - runs[:-k]) == k  # (W, N)
     span = (t[k:] - t[:-k])[:, None]  # (W, 1)
     trapezoid = np.where(pair, 0.5 * (speed[1:] + speed[:-1]) * dt1, 0.0)
@@ -366,12 +399,8 @@ def _measure_block(motion: Motion, cols: slice, scale: float, k: int) -> _Figure
     off = np.abs(np.angle(np.exp(1j * (direction - mean_heading))))
     mismatch = in_motion & (off > HEADING_TOLERANCE_RAD)
     bad[:-k] |= mismatch
-    # Acceleration over a window; a derived speed over a window where none is recorded.
-    accel = np.abs(speed[k:] - speed[:-k]) / span
-    over_accel = whole & (accel > top_accel[None, :])
-    fast_move = whole & ~all_measured & (distance / span > top_speed[None, :])
-    over_speed[:-k] |= fast_move
-    bad[:-k] |= over_accel
+    # Where no speed is recorded, the speed the positions give over a window.
+    over_speed[:-k] |= whole & ~all_measured & (distance / span > top_speed[None, :])
     bad |= over_speed
     return _Figures(
         ratio=ratio,
@@ -380,8 +409,8 @@ def _measure_block(motion: Motion, cols: slice, scale: float, k: int) -> _Figure
         heading_windows=int(in_motion.sum()),
         heading_mismatches=int(mismatch.sum()),
         speed_violations=int(over_speed.sum()),
-        accel_violations=int(over_accel.sum()),
-        teleports=figures["teleports"],
+        accel_violations=n_accel,
+        teleports=int(teleport.sum()),
         rows=int(valid.sum()),
         bad_rows=int((bad & valid).sum()),
     )

@@ -25,6 +25,7 @@ from converters.clock import (
     CLEAN_FACTORS,
     Motion,
     check_motion,
+    accel_steps,
     clean_factor,
     motion_from_frames,
     parse_time_step,
@@ -193,10 +194,10 @@ def test_heading_teleport_and_bounds_by_hand():
     table.xy[10:, 1] += 50.0 * np.array([math.cos(h), math.sin(h)])
     table.speed[:, 2] = 20.0  # a pedestrian "walking" 20 m/s (over 12)
     c = check_motion(motion(table), 0.1, "file")
-    k = window_steps(0.1)
-    assert k == 4
-    # Vehicles moving by position: car 0 all 16 windows, car 1 all of them too (the
-    # jump only lengthens one window); the pedestrian is not checked.
+    k = window_steps(motion(table))
+    assert k == 2  # the cars' median step is 1 m: 2 steps cover WINDOW_M = 2 m
+    # Vehicles moving by position: car 0 all 18 windows, car 1 all of them too (the
+    # jump along its heading only lengthens two windows); the pedestrian is not checked.
     assert c.heading_windows == 2 * (20 - k)
     assert c.heading_mismatch_share == pytest.approx(0.5)
     assert c.teleports == 1
@@ -209,13 +210,15 @@ def test_acceleration_bound():
     table = tracks([10.0, 10.0], n_steps=20)
     table.speed[10:, 0] = 30.0  # +20 m/s in 0.1 s: 20 / 0.4 = 50 m/s^2 over each window
     c = check_motion(motion(table), 0.1, "file")
-    assert c.accel_violations == window_steps(0.1)  # the windows across the jump
+    assert accel_steps(table.t_s) == 4  # 0.4 s
+    assert c.accel_violations == 4  # the 4 windows across the jump
 
 
 def test_clean_factor_and_parse_time_step():
     assert clean_factor(5.02) == 5.0 and clean_factor(0.51) == 0.5 and clean_factor(2.45) == 2.5
     assert clean_factor(1.37) is None and clean_factor(7.0) is None
     assert clean_factor(0.0) is None and clean_factor(float("nan")) is None
+    assert clean_factor(1 / 3.6) is None  # km/h read as m/s: flagged, not corrected
     assert parse_time_step("auto") == "auto" and parse_time_step("FILE") == "file"
     assert parse_time_step("0.2") == 0.2
     for bad in ("abc", "0", "-1", "nan", "inf"):
@@ -247,7 +250,7 @@ def test_the_vectorised_ratio_matches_the_slow_oracle():
     table = tracks([1.0, 2.5, 6.0, 12.0, 20.0], factor=1.3, noise_m=0.3, n_steps=40)
     table.speed[:] *= rng.uniform(0.7, 1.3, table.speed.shape)
     table.valid[rng.random(table.valid.shape) < 0.1] = False
-    oracle = _slow_agent_ratios(table, window_steps(0.1))
+    oracle = _slow_agent_ratios(table, window_steps(motion(table)))
     c = check_motion(motion(table), 0.1, "file")
     assert c.agents_measured == len(oracle)
     assert c.ratio_file == pytest.approx(float(np.median(oracle)), rel=1e-12)
@@ -265,9 +268,8 @@ def test_property_a_time_base_scaled_by_a_clean_factor_is_found_as_that_factor(
     k, true_step, speeds, turn, seed
 ):
     # A consistent scene (true step), labelled with a step k times too short.
-    n_steps = max(30, math.ceil(3 * window_steps(true_step / k)) + 10)
     table = tracks(speeds, factor=k, step_s=true_step / k, turn_rad_s=turn, seed=seed,
-                   n_steps=n_steps)  # fmt: skip
+                   n_steps=80)  # fmt: skip
     c = check_motion(motion(table), true_step / k)
     assert c.ratio_file == pytest.approx(k, rel=0.02)
     assert c.factor == k and c.corrected
