@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
+from converters.clock import TimeStep
 from converters.errors import ConversionError
 from converters.input_checks import check_grid
 from converters.lanegraph import PathSettings, lanelet_centerline
@@ -264,6 +265,7 @@ def parquet_to_scene(
     paths: str = "map",
     settings: PathSettings | None = None,
     progress: bool = False,
+    time_step: TimeStep = "auto",
     skip_bad: bool = False,
     skipped: Skipped | None = None,
 ) -> Scene:
@@ -318,6 +320,7 @@ def parquet_to_scene(
         labels=labels,
         source=where,
         progress=progress,
+        time_step=time_step,
         skip_bad=skip_bad,
         skipped=skipped,
     )

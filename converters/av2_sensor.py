@@ -39,6 +39,7 @@ import numpy as np
 import polars as pl
 
 from converters.av2 import read_lane_map
+from converters.clock import TimeStep
 from converters.errors import ConversionError
 from converters.lanegraph import PathSettings
 from converters.tracks import Skipped, TrackTable, build_scene, integer_ids
@@ -241,6 +242,7 @@ def log_tracks(log: pathlib.Path) -> tuple[TrackTable, list[str], dict[str, int]
         length=length,
         width=width,
         valid=valid,
+        speed_measured=np.zeros_like(valid),  # derived: the clock check has no ratio here
     )
     return table, [*names, EGO_TRACK], renamed, n_static, period
 
@@ -274,6 +276,7 @@ def read_scene(
     skip_bad: bool = False,
     skipped: Skipped | None = None,
     progress: bool = False,
+    time_step: TimeStep = "auto",
 ) -> Scene:
     """One Argoverse 2 Sensor log folder as a scene, the autonomous vehicle as the ego.
 
@@ -306,4 +309,5 @@ def read_scene(
         metadata=metadata,
         source=str(log),
         progress=progress,
+        time_step=time_step,
     )

@@ -8,7 +8,8 @@ Mapping (docs/recorded-data.md has the tables):
 
 - every ``dynamicObstacle`` is an agent (id: its ``id``); its ``initialState`` and
   ``trajectory`` states give its pose at their ``time`` steps, and it is invalid at every
-  other step; frame period: the root's ``timeStepSize`` (s);
+  other step; frame period: the root's ``timeStepSize`` (s), unless the clock check of
+  :mod:`converters.clock` corrects it (SinD and highD files label 0.5 s and 0.2 s as 0.1 s);
 - pose ``position/point`` (m), ``orientation`` (rad), speed ``|(velocity, velocityY)|``
   (m/s; a state without ``velocity`` gets the finite-difference speed of its track, one
   without ``orientation`` the direction of motion); size from the ``shape``
@@ -39,6 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from converters.clock import TimeStep
 from converters.errors import ConversionError
 from converters.input_checks import MAX_STEPS, check_grid, check_points, integer_id
 from converters.lanegraph import PathSettings, dedupe, lanelet_centerline
@@ -87,6 +89,7 @@ class Obstacle:
     xy: np.ndarray  # (K, 2) m
     heading: np.ndarray  # (K,) rad
     speed: np.ndarray  # (K,) m/s
+    speed_measured: np.ndarray | None = None  # (K,) bool: <velocity> given (else derived)
 
 
 def parse(path: str | os.PathLike) -> ET.Element:
@@ -168,8 +171,9 @@ def parse_obstacle(elem: ET.Element, dt_s: float) -> Obstacle:
     if np.any(np.diff(steps) == 0):
         raise ValueError("two states at the same time step")
     xy = table[:, 1:3]
+    measured = ~np.isnan(table[:, 4])
     heading, speed = _fill_motion(steps, xy, table[:, 3], table[:, 4], dt_s)
-    return Obstacle(oid, kind, length, width, steps, xy, heading, speed)
+    return Obstacle(oid, kind, length, width, steps, xy, heading, speed, measured)
 
 
 def _state_row(state: ET.Element) -> tuple[float, float, float, float, float]:
@@ -291,12 +295,15 @@ def obstacles_table(
     heading = np.zeros(shape)
     speed = np.zeros(shape)
     valid = np.zeros(shape, dtype=bool)
+    measured = np.ones(shape, dtype=bool)  # a static obstacle's speed 0 is exact
     for i, o in enumerate(obstacles):  # once per obstacle: scatter its states
         rows = o.steps - first
         xy[rows, i] = o.xy
         heading[rows, i] = o.heading
         speed[rows, i] = o.speed
         valid[rows, i] = True
+        if o.speed_measured is not None:
+            measured[rows, i] = o.speed_measured
     sizes = np.array([(o.length, o.width) for o in obstacles])
     return TrackTable(
         ids=np.array([o.id for o in obstacles], dtype=np.int64),
@@ -308,6 +315,7 @@ def obstacles_table(
         length=np.broadcast_to(sizes[:, 0], shape),
         width=np.broadcast_to(sizes[:, 1], shape),
         valid=valid,
+        speed_measured=measured,
     )
 
 
@@ -320,6 +328,7 @@ def read_scene(
     skip_bad: bool = False,
     skipped: Skipped | None = None,
     progress: bool = False,
+    time_step: TimeStep = "auto",
 ) -> Scene:
     """A CommonRoad XML file as a scene; ``ego`` is a dynamic obstacle id (default: the
     moving-ego rule, :func:`converters.tracks.moving_ego`)."""
@@ -374,6 +383,7 @@ def read_scene(
         metadata=metadata,
         source=where,
         progress=progress,
+        time_step=time_step,
         skip_bad=skip_bad,
         skipped=skipped,
     )

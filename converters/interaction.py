@@ -40,6 +40,7 @@ import numpy as np
 import polars as pl
 from lanelet2.projection import UtmProjector
 
+from converters.clock import TimeStep
 from converters.errors import ConversionError
 from converters.input_checks import MAX_STEPS, check_gaps, check_grid
 from converters.lanegraph import PathSettings, lanelet_centerline
@@ -381,6 +382,7 @@ def read_scene(
     skip_bad: bool = False,
     skipped: Skipped | None = None,
     progress: bool = False,
+    time_step: TimeStep = "auto",
 ) -> Scene:
     """One recording's track CSV(s) and its Lanelet2 map as a scene; ``ego`` is a track id
     (default: :func:`converters.tracks.moving_ego`)."""
@@ -428,6 +430,7 @@ def read_scene(
         metadata=metadata,
         source=where,
         progress=progress,
+        time_step=time_step,
         skip_bad=skip_bad,
         skipped=skipped,
     )

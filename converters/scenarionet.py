@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 
 from converters import safe_pickle
+from converters.clock import TimeStep
 from converters.errors import ConversionError
 from converters.input_checks import check_grid
 from converters.lane_chain import MAX_GAP_M, MAX_HEADING_RAD, chain_successors
@@ -442,6 +443,7 @@ def scenario_to_scene(
     paths: str = "map",
     settings: PathSettings | None = None,
     progress: bool = False,
+    time_step: TimeStep = "auto",
     skip_bad: bool = False,
     skipped: Skipped | None = None,
 ) -> Scene:
@@ -496,6 +498,7 @@ def scenario_to_scene(
         labels=scenario_labels(md, id_of, where),
         source=where,
         progress=progress,
+        time_step=time_step,
         skip_bad=skip_bad,
         skipped=skipped,
         off_lane="hindsight",
@@ -527,6 +530,7 @@ def read_scene(
     paths: str = "map",
     settings: PathSettings | None = None,
     progress: bool = False,
+    time_step: TimeStep = "auto",
     skip_bad: bool = False,
     skipped: Skipped | None = None,
 ) -> Scene:
@@ -537,6 +541,7 @@ def read_scene(
         paths=paths,
         settings=settings,
         progress=progress,
+        time_step=time_step,
         skip_bad=skip_bad,
         skipped=skipped,
     )

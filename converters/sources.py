@@ -24,6 +24,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 from converters import av2, av2_sensor, commonroad, interaction, scenarionet, waymo
+from converters.clock import TimeStep
 from converters.errors import ConversionError
 from converters.lanegraph import PathSettings
 from converters.tfrecord import RecordError, masked_crc32c, read_records
@@ -59,6 +60,7 @@ class ReadOptions:
     origin: tuple[float, float] = (0.0, 0.0)  # sources with ``map_option`` only
     skip_bad: bool = False
     progress: bool = False
+    time_step: TimeStep = "auto"  # the clock check's choice (converters.clock)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -191,6 +193,7 @@ def _waymo_scenes(inp: SourceInput, opt: ReadOptions, skipped: Skipped) -> Itera
                 paths=opt.paths,
                 settings=opt.settings,
                 progress=opt.progress,
+                time_step=opt.time_step,
             )
 
         yield f"record-{item.index}", build
@@ -202,7 +205,7 @@ def _av2_scenes(inp: SourceInput, opt: ReadOptions, skipped: Skipped) -> Iterato
         def build(parquet: pathlib.Path = parquet) -> Scene:
             return av2.parquet_to_scene(
                 parquet, paths=opt.paths, settings=opt.settings, progress=opt.progress,
-                skip_bad=opt.skip_bad, skipped=skipped,
+                skip_bad=opt.skip_bad, skipped=skipped, time_step=opt.time_step,
             )  # fmt: skip
 
         yield parquet.stem, build
@@ -221,7 +224,7 @@ def _av2_sensor_scenes(
         def build(log: pathlib.Path = log) -> Scene:
             return av2_sensor.read_scene(
                 log, paths=opt.paths, settings=opt.settings, progress=opt.progress,
-                skip_bad=opt.skip_bad, skipped=skipped,
+                skip_bad=opt.skip_bad, skipped=skipped, time_step=opt.time_step,
             )  # fmt: skip
 
         yield log.name, build
@@ -243,6 +246,7 @@ def _commonroad_scenes(
             skip_bad=opt.skip_bad,
             skipped=skipped,
             progress=opt.progress,
+            time_step=opt.time_step,
         )
 
     yield inp.path.stem, build
@@ -273,6 +277,7 @@ def _interaction_scenes(
             skip_bad=opt.skip_bad,
             skipped=skipped,
             progress=opt.progress,
+            time_step=opt.time_step,
         )
 
     yield inp.path.stem, build
@@ -311,7 +316,7 @@ def _scenarionet_scenes(
         def build(f: pathlib.Path = f) -> Scene:
             return scenarionet.read_scene(
                 f, paths=opt.paths, settings=opt.settings, progress=opt.progress,
-                skip_bad=opt.skip_bad, skipped=skipped,
+                skip_bad=opt.skip_bad, skipped=skipped, time_step=opt.time_step,
             )  # fmt: skip
 
         yield f.stem, build

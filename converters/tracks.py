@@ -18,11 +18,12 @@ from __future__ import annotations
 import json
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from tqdm import tqdm
 
+from converters.clock import Motion, TimeStep, check_motion, warning_line
 from converters.errors import ConversionError
 from converters.hindsight_paths import Hindsight
 from converters.input_checks import REASONS, Skipped, apply_bad_rule, bad_states
@@ -78,6 +79,9 @@ class TrackTable:
     length: np.ndarray  # (T, N) float64, >= 0
     width: np.ndarray  # (T, N) float64, >= 0
     valid: np.ndarray  # (T, N) bool
+    #: (T, N) bool: the speed is the source's own (a recorded velocity), not derived from
+    #: the positions; None: every speed is recorded. The clock check needs recorded ones.
+    speed_measured: np.ndarray | None = None
 
     @property
     def n_steps(self) -> int:
@@ -163,6 +167,7 @@ def build_scene(
     skipped: Skipped | None = None,
     off_lane: str = "straight",
     path_source_labels: bool = False,
+    time_step: TimeStep = "auto",
 ) -> Scene:
     """Frames with paths for every step at which any track is valid; the scene's ego is
     track index ``ego``.
@@ -182,6 +187,13 @@ def build_scene(
     never valid or a track id repeats. Valid states with non-finite or out-of-range
     values follow the rule of :mod:`converters.input_checks`: an error, or with ``skip_bad``
     dropped, noted in ``skipped`` and counted in the metadata (``bad_states_dropped``).
+
+    The scene's clock is checked against its motion (:mod:`converters.clock`) with
+    ``frame_period_s`` as the file's time step; ``time_step`` (``auto``, ``file`` or
+    seconds) chooses the step used. A changed step scales the times (and the speeds
+    derived from positions, ``table.speed_measured`` False) and is recorded in the
+    metadata as ``time_step_corrected_from``; the figures go to ``clock_check`` (JSON) and
+    a warning line, when there is one, to ``clock_warning``.
     """
     if paths not in PATH_MODES:
         raise ConversionError(f"unknown path mode {paths!r}; expected one of {PATH_MODES}")
@@ -201,6 +213,9 @@ def build_scene(
     )
     valid = table.usable() & ~bad
     dropped = int((table.valid & ~valid).sum())
+    table, clock_facts, frame_period_s = _checked_clock(
+        table, valid, frame_period_s, time_step, source
+    )
     if not valid[:, ego].any():
         raise ConversionError(
             f"{source}: the ego (track {int(table.ids[ego])}) is valid at no time step"
@@ -222,6 +237,7 @@ def build_scene(
         "steps_without_agents": str(table.n_steps - steps.size),
         "invalid_states_dropped": str(dropped),
         "bad_states_dropped": str(n_bad),
+        **clock_facts,
     }
     labels = dict(labels or {})
     if path_source_labels:
@@ -244,6 +260,26 @@ def build_scene(
         labels=labels,
         ego_id=int(table.ids[ego]),
     )
+
+
+def _checked_clock(
+    table: TrackTable, valid: np.ndarray, file_step_s: float, time_step: TimeStep, source: str
+) -> tuple[TrackTable, dict[str, str], float]:
+    """The table on the time step chosen by the clock check, its metadata facts, and the
+    frame period."""
+    measured = np.ones_like(valid) if table.speed_measured is None else table.speed_measured
+    motion = Motion(table.t_s, table.xy, table.heading, table.speed, valid, table.kinds, measured)
+    check = check_motion(motion, file_step_s, time_step)
+    facts = {"clock_check": check.to_json()}
+    warning = warning_line(source, check)
+    if warning:
+        facts["clock_warning"] = warning
+    if not check.corrected:
+        return table, facts, file_step_s
+    scale = check.step_s / file_step_s
+    facts["time_step_corrected_from"] = f"{file_step_s:g}"
+    speed = np.where(measured, table.speed, table.speed / scale)
+    return replace(table, t_s=table.t_s * scale, speed=speed), facts, check.step_s
 
 
 def _describe_state(table: TrackTable, reason: np.ndarray, step: int, track: int) -> str:

@@ -32,6 +32,7 @@ import numpy as np
 from google.protobuf import descriptor_pool, message_factory
 from google.protobuf.message import DecodeError
 
+from converters.clock import TimeStep
 from converters.errors import ConversionError
 from converters.lanegraph import PathSettings
 from converters.map_lines import waymo_lines
@@ -212,6 +213,7 @@ def scenario_to_scene(
     paths: str = "map",
     settings: PathSettings | None = None,
     progress: bool = False,
+    time_step: TimeStep = "auto",
     skip_bad: bool = False,
     skipped: Skipped | None = None,
 ) -> Scene:
@@ -250,6 +252,7 @@ def scenario_to_scene(
         labels=scenario_labels(msg, where),
         source=where,
         progress=progress,
+        time_step=time_step,
         skip_bad=skip_bad,
         skipped=skipped,
     )

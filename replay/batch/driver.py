@@ -22,6 +22,7 @@ import polars as pl
 from tqdm import tqdm
 
 from converters import sources
+from converters.clock import TimeStep
 from outputs.atomic import safe_name, write_text
 from replay import __version__
 from replay.analysis.stats import DEFAULT_ERRORS_MODEL, concat_agents
@@ -59,6 +60,7 @@ class BatchSettings:
     map_osm: pathlib.Path | None = None  # the Lanelet2 map of INTERACTION inputs
     ego: int | str | None = None  # None: each scene's recorded ego; "all": every mover
     every: Stride = EVERY_FRAME  # frame stride of the replays
+    time_step: TimeStep = "auto"  # converters' time step: auto, file or seconds
 
     def replay_digest(self) -> str:
         """Hash of everything that decides a per-scene table: the cascade, the models, the
@@ -75,7 +77,8 @@ class BatchSettings:
         )
 
     def convert_digest(self) -> str:
-        """Hash of everything that decides a conversion: kind, path mode, the map file."""
+        """Hash of everything that decides a conversion: kind, path mode, the map file, the
+        time-step choice."""
         map_fp = None if self.map_osm is None else fingerprint(self.map_osm)
         return _digest(
             {
@@ -83,6 +86,7 @@ class BatchSettings:
                 "version": _package_version(),
                 "convert": self.convert,
                 "paths": self.paths,
+                "time_step": self.time_step,
                 "map": None if map_fp is None else [str(self.map_osm), *map_fp],
             }
         )
@@ -377,6 +381,7 @@ class _Run:
             name=f.name,
             kind=str(f.source),
             paths=s.paths,
+            time_step=s.time_step,
             map_osm=None if map_osm is None else str(map_osm),
             scenes_dir=str(self.layout.scenes),
             marker=str(marker),

@@ -81,6 +81,7 @@ class ConvertTask:
     marker: str
     digest: str
     extra: tuple[str, ...] = ()  # more track files of the same scene (INTERACTION)
+    time_step: str | float = "auto"  # converters.clock: auto, file or seconds
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import pathlib
+import sys
 import time
 import traceback
 from collections.abc import Callable, Iterator
@@ -101,6 +102,8 @@ def convert_one(task: ConvertTask) -> ConvertOutcome:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 write_scene(path, scene)
                 scenes.append((name, str(path)))
+                if warning := scene.metadata.get("clock_warning"):
+                    print(warning, file=sys.stderr, flush=True)  # one line per scene
             except Exception as exc:
                 transient |= isinstance(exc, _TRANSIENT)
                 failures.append(failure_from(task.input, label, "convert", exc))
@@ -142,7 +145,7 @@ def _scene_builders(
     be read fail alone (``skip_bad``); a one-scene input fails whole.
     """
     spec, source = _source(task)
-    options = ReadOptions(paths=task.paths, skip_bad=spec.multi_scene)
+    options = ReadOptions(paths=task.paths, skip_bad=spec.multi_scene, time_step=task.time_step)
     for label, build in spec.scenes(source, options, skipped):
         yield (f"{task.name}/{label}" if spec.multi_scene else task.name), build
 

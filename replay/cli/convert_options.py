@@ -10,6 +10,7 @@ from collections.abc import Callable, Iterator, Sequence
 
 import click
 
+from converters.clock import TimeStep, parse_time_step
 from converters.errors import ConversionError
 from converters.lanegraph import PathSettings
 from converters.tracks import PATH_MODES, Skipped
@@ -81,6 +82,36 @@ def output_option(f: Callable) -> Callable:
         help="A folder (one NAME.mcap per scenario, created if needed) or, for a single "
         "scenario, a file path ending in .mcap.",
     )(f)
+
+
+def _time_step(ctx: click.Context, param: click.Parameter, value: str) -> TimeStep:
+    try:
+        return parse_time_step(value)
+    except ConversionError as exc:
+        raise click.BadParameter(str(exc)) from None
+
+
+def time_step_option(f: Callable) -> Callable:
+    """``--time-step auto|file|SECONDS``: the clock check's choice (converters.clock)."""
+    return click.option(
+        "--time-step",
+        default="auto",
+        show_default=True,
+        metavar="auto|file|SECONDS",
+        callback=_time_step,
+        help="The time step between recorded states. 'auto': the file's, unless the "
+        "positions move a clean factor (2, 2.5, 3, 4, 5, 10 or its inverse) farther than "
+        "the recorded speeds say, consistently across agents: then the file's times that "
+        "factor, with a warning and the metadata time_step_corrected_from. 'file': the "
+        "file's (still warns). SECONDS: this value. See docs/recorded-data.md.",
+    )(f)
+
+
+def clock_warning(scene: object) -> None:
+    """Print the scene's clock-check warning (metadata ``clock_warning``) on stderr."""
+    warning = getattr(scene, "metadata", {}).get("clock_warning")
+    if warning:
+        click.echo(warning, err=True)
 
 
 def files_under(path: pathlib.Path | None) -> Iterator[pathlib.Path]:

@@ -9,6 +9,7 @@ import click
 from outputs.transaction import OutputGuard
 from replay.batch import CONVERT_KINDS, ENGINES, BatchReport, BatchSettings, run_batch
 from replay.batch.engines import check_engine
+from replay.cli.convert_options import time_step_option
 from replay.cli.ego_options import ego_option, every_option
 from replay.cli.limits import WORKERS
 from replay.cli.settings_option import load_cascade, set_option
@@ -63,6 +64,7 @@ _FAILURES_SHOWN = 5
     help="The Lanelet2 OSM map of INTERACTION track files. "
     "[default: the only *.osm file beside each CSV]",
 )  # fmt: skip
+@time_step_option
 @click.option(
     "--rrd", is_flag=True, help="Also write a Rerun recording per scene (OUT/recordings/)."
 )
@@ -92,6 +94,7 @@ def batch(
     convert: str | None,
     path_mode: str,
     map_osm: pathlib.Path | None,
+    time_step: str | float,
     rrd: bool,
     cascade_file: pathlib.Path | None,
     ego: int | str | None,
@@ -139,6 +142,7 @@ def batch(
         map_osm=None if map_osm is None else map_osm.absolute(),
         ego=ego,
         every=every,
+        time_step=time_step,
     )
     # Locked and checked at once; scenes are committed one by one (resumable), so no
     # deferred transaction here. Stale temporary files of a killed run are removed.

@@ -24,6 +24,7 @@ from outputs.transaction import OutputGuard
 from replay.cli.convert_options import (
     MCAP_SUFFIX,
     Outputs,
+    clock_warning,
     files_under,
     finish,
     output_option,
@@ -31,6 +32,7 @@ from replay.cli.convert_options import (
     safe_name,
     settings_from,
     skip_bad_option,
+    time_step_option,
 )
 
 
@@ -72,6 +74,7 @@ def source_command(spec: SourceSpec) -> click.Command:
         map_path_m: float,
         max_candidates: int,
         skip_bad: bool,
+        time_step: str | float = "auto",
         ego: int | None = None,
         map_osm: pathlib.Path | None = None,
         origin: tuple[float, float] = (0.0, 0.0),
@@ -84,6 +87,7 @@ def source_command(spec: SourceSpec) -> click.Command:
             origin=origin,
             skip_bad=skip_bad,
             progress=progress,
+            time_step=time_step,
         )
         source = SourceInput(source=spec.name, path=inputs[0], extra=inputs[1:], map=map_osm)
         # Every file the conversion reads is an input the outputs must not overwrite.
@@ -108,6 +112,7 @@ def source_command(spec: SourceSpec) -> click.Command:
         output_option,
         path_options(),
         skip_bad_option(spec.records),
+        time_step_option,
         click.option(
             "--progress/--no-progress",
             default=True,
@@ -180,6 +185,7 @@ def convert_input(
         path = write_scene(outputs.path_for(name), scene, progress=options.progress)
         outputs.written.append(path)
         click.echo(ego_line(name, scene), err=True)
+        clock_warning(scene)
     finish(outputs.written, skipped)
     return outputs.written
 
