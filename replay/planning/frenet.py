@@ -7,10 +7,17 @@ candidates, costs and checks.
 
 The adapter:
 
-- reference line: ``request.reference``; corridor: ``lanes_right`` + the ego's lane +
-  ``lanes_left`` parallel lanes of ``lane_width_m`` (``fp.Corridor.parallel_lanes``);
-- ego: projected onto the reference (arc ``s``, offset ``d``; speed split along and
-  across the path by the heading's angle to it);
+- reference line: ``request.reference`` (the ego's lane centre line, no kink at the
+  ego); corridor: ``lanes_right`` + the ego's lane + ``lanes_left`` parallel lanes of
+  ``lane_width_m`` (``fp.Corridor.parallel_lanes``);
+- ego: projected onto the reference (arc ``s``, offset ``d``: the ego at its lateral
+  offset from its lane centre; speed split along and across the path by the heading's
+  angle to it, so the heading error is in the initial state);
+- limits from the scene: the vehicle's top speed is the larger of the target speed (the
+  fastest the recorded driver drove over the horizon) and the ego's speed, times
+  TOP_SPEED_FACTOR plus TOP_SPEED_MARGIN_MPS, rounded up to TOP_SPEED_STEP_MPS
+  (fiss-planner's default 30 m/s rejected every candidate of an ego at motorway speed);
+- a failure names its cause from fiss-planner's rejection counts (:func:`failure_reason`);
 - obstacles: each agent's forecast, time-stamped, with its box (static when it never
   moves); the binding takes one ``fp.Obstacle`` per agent, so this conversion is the one
   loop over agents (about 2 us each, measured in benchmarks/bench_planner.py);
@@ -45,6 +52,55 @@ INSTALL_HINT = "pip install 'riskreplay[planner]'"
 #: quintic lateral profiles and the spline fit of the reference line.
 MAY_MATTER_SLACK_M = 2.0
 
+#: The top speed from the scene: the fastest of target, ego and agents, times this, plus
+#: the margin, rounded up to the step (so that few planner instances are made: one per
+#: top speed).
+TOP_SPEED_FACTOR = 1.1
+TOP_SPEED_MARGIN_MPS = 2.0
+TOP_SPEED_STEP_MPS = 5.0
+
+#: fiss-planner's rejection classes: limits of the vehicle and the road, and obstacles.
+KINEMATIC_REJECTIONS = ("invalid", "speed", "accel", "curvature", "lat_accel", "off_road")
+OBSTACLE_REJECTIONS = ("collision", "safety_distance")
+
+
+def top_speed_mps(request: PlanRequest) -> float:
+    """The vehicle's top speed for this request (see the module docstring). The agents'
+    speeds do not count: a filter's or the planner truth's subset of the agents must not
+    change the vehicle (and the ego need not outrun anyone to follow them)."""
+    fastest = max(request.target_speed_mps, request.ego.speed_mps, 0.0)
+    top = fastest * TOP_SPEED_FACTOR + TOP_SPEED_MARGIN_MPS
+    return float(math.ceil(top / TOP_SPEED_STEP_MPS) * TOP_SPEED_STEP_MPS)
+
+
+def failure_reason(rejections: dict[str, int], n_agents: int) -> str:
+    """Why fiss-planner found no plan, from its rejection counts per class:
+
+    - "no candidate generated";
+    - "no feasible path (no agents)" / "no feasible path (vehicle or road limits)": every
+      candidate broke a limit of the vehicle or the road, none met an obstacle;
+    - "all candidates collide": every rejection was a collision or a safety distance;
+    - "no feasible trajectory": both kinds;
+
+    followed by the counts, largest first (e.g. ``": collision 80, lat_accel 45"``).
+    """
+    counts = {k: int(n) for k, n in rejections.items() if int(n) > 0}
+    total = sum(counts.values())
+    if total == 0:
+        return "no candidate generated"
+    kinematic = sum(counts.get(k, 0) for k in KINEMATIC_REJECTIONS)
+    obstacles = sum(counts.get(k, 0) for k in OBSTACLE_REJECTIONS)
+    if obstacles == 0:
+        what = "no feasible path " + (
+            "(no agents)" if n_agents == 0 else "(vehicle or road limits)"
+        )
+    elif kinematic == 0:
+        what = "all candidates collide"
+    else:
+        what = "no feasible trajectory"
+    detail = ", ".join(f"{k} {n}" for k, n in sorted(counts.items(), key=lambda kv: -kv[1]))
+    return f"{what}: {detail}"
+
 
 def load_fiss_planner() -> ModuleType:
     """The ``fiss_planner`` module, or PlannerUnavailable naming the extra to install."""
@@ -73,7 +129,7 @@ class FrenetPlanner:
         self.variant = variant
         self.name = variant
         self.overrides = dict(overrides or {})
-        self._planners: dict[tuple[float, float, float, float], Any] = {}
+        self._planners: dict[tuple[float, float, float, float, float], Any] = {}
 
     # ------------------------------------------------------------------ the planner
     def _config(self) -> Any:
@@ -87,19 +143,29 @@ class FrenetPlanner:
             setattr(target, last, value)
         return config
 
+    def _vehicle(self, request: PlanRequest) -> Any:
+        """fiss-planner's vehicle: the ego's size, the top speed from the scene."""
+        vehicle = self.fp.VehicleParams()
+        if request.ego.length_m > 0 and request.ego.width_m > 0:
+            vehicle.length = request.ego.length_m
+            vehicle.width = request.ego.width_m
+        vehicle.max_speed = top_speed_mps(request)
+        return vehicle
+
     def _planner(self, request: PlanRequest) -> Any:
-        """One fiss-planner instance per (dt, horizon, ego size), reset for each call."""
-        key = (request.dt_s, request.horizon_s, request.ego.length_m, request.ego.width_m)
+        """One fiss-planner instance per (dt, horizon, ego size, top speed), reset for
+        each call."""
+        vehicle = self._vehicle(request)
+        key = (
+            request.dt_s, request.horizon_s, float(vehicle.length), float(vehicle.width),
+            float(vehicle.max_speed),
+        )  # fmt: skip
         planner = self._planners.get(key)
         if planner is None:
             config = self._config()
             config.sampling.dt = request.dt_s
             config.sampling.max_t = request.horizon_s
             config.sampling.min_t = min(config.sampling.min_t, request.horizon_s)
-            vehicle = self.fp.VehicleParams()
-            if request.ego.length_m > 0 and request.ego.width_m > 0:
-                vehicle.length = request.ego.length_m
-                vehicle.width = request.ego.width_m
             planner = self.fp.make_planner(config, vehicle)
             self._planners[key] = planner
         planner.reset()
@@ -151,7 +217,7 @@ class FrenetPlanner:
         blocking = int(stats.blocking_id)
         if not result.success:
             return Plan.failed(
-                "no feasible trajectory",
+                failure_reason(dict(stats.rejections), request.agents.n),
                 plan_ms=(time.perf_counter() - start) * 1e3,
                 blocking_id=blocking,
             )
@@ -217,7 +283,7 @@ class FrenetPlanner:
         if a.n == 0:
             return np.zeros(0, dtype=bool)
         config = self._config()
-        vehicle = self.fp.VehicleParams()
+        vehicle = self._vehicle(request)
         cost, safety, coll = config.cost, config.safety, config.collision
         horizon = request.horizon_s
         ego = request.ego
