@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from converters.lanegraph import simplify
 from replay.planning.path_coords import CoordsCache, PathCoords, project
 from replay.planning.types import STOP_SPEED_MPS, Plan, PlanRequest
 from risk import geometry
@@ -62,7 +63,11 @@ class IdmSettings:
     far below the free-road acceleration an agent must push the ego to be reported as
     blocking; ``corridor_margin_m``: added to the ego's half width for the corridor;
     ``lane_return_s`` / ``lane_return_min_m``: how far (time at the ego's speed, least
-    distance) the ego's path takes to return from its offset to the lane centre.
+    distance) the ego's path takes to return from its offset to the lane centre;
+    ``reference_tolerance_m``: the planner works on the reference thinned by
+    Ramer-Douglas-Peucker to this tolerance (every agent at every step is projected onto
+    it: a straight motorway reference of 140 points becomes 2, and a longer reference
+    costs nothing where it is straight).
     """
 
     a0_mps2: float = 1.0
@@ -76,6 +81,7 @@ class IdmSettings:
     corridor_margin_m: float = 0.2
     lane_return_s: float = 3.0
     lane_return_min_m: float = 15.0
+    reference_tolerance_m: float = 0.02
 
 
 class IdmPlanner:
@@ -87,6 +93,17 @@ class IdmPlanner:
     def __init__(self, settings: IdmSettings | None = None) -> None:
         self.settings = IdmSettings() if settings is None else settings
         self._coords = CoordsCache()
+        self._thinned: tuple[np.ndarray, np.ndarray] | None = None
+
+    def _reference(self, request: PlanRequest) -> np.ndarray:
+        """The request's reference thinned (see IdmSettings), the same object for the
+        same reference (so that the coordinates cache serves a filter's and the
+        counterfactual plans of one request)."""
+        ref = request.reference
+        if self._thinned is None or self._thinned[0] is not ref:
+            thin = np.ascontiguousarray(ref[simplify(ref, self.settings.reference_tolerance_m)])
+            self._thinned = (ref, thin)
+        return self._thinned[1]
 
     # ------------------------------------------------------------------ may_matter
     def may_matter(self, request: PlanRequest) -> np.ndarray:
@@ -111,8 +128,9 @@ class IdmPlanner:
         a = request.agents.on_times(request.times_s)
         if a.n == 0:
             return np.zeros(0, dtype=bool)
-        c = self._coords.get(request.reference, a)
-        lane = _EgoLane.of(request, self.settings)
+        ref = self._reference(request)
+        c = self._coords.get(ref, a)
+        lane = _EgoLane.of(request, ref, self.settings)
         inside = _corridor(c, lane, request.ego.width_m, self.settings)
         s0 = lane.s0
         v = max(request.ego.speed_mps, 0.0)
@@ -130,12 +148,12 @@ class IdmPlanner:
         times = request.times_s
         dt = request.dt_s
         n_steps = times.size
-        ref = request.reference
+        ref = self._reference(request)
         ego = request.ego
         half_ego = ego.length_m / 2.0
         v0 = max(request.target_speed_mps, 0.1)
         sqrt_ab = 2.0 * math.sqrt(p.a0_mps2 * p.b_mps2)
-        lane = _EgoLane.of(request, p)
+        lane = _EgoLane.of(request, ref, p)
 
         agents = request.agents.on_times(times)  # the plan's steps
         ids = agents.ids
@@ -265,13 +283,13 @@ class _EgoLane:
     return_m: float
 
     @classmethod
-    def of(cls, request: PlanRequest, p: IdmSettings) -> _EgoLane:
+    def of(cls, request: PlanRequest, reference: np.ndarray, p: IdmSettings) -> _EgoLane:
         ego = request.ego
-        dist, arc = project(request.reference, ego.xy[None])
-        d = np.diff(request.reference, axis=0)
-        cum = geometry.cumulative_lengths(request.reference[None])[0]
+        dist, arc = project(reference, ego.xy[None])
+        d = np.diff(reference, axis=0)
+        cum = geometry.cumulative_lengths(reference[None])[0]
         seg = int(np.clip(np.searchsorted(cum, arc[0], side="right") - 1, 0, len(d) - 1))
-        foot = np.array([np.interp(arc[0], cum, request.reference[:, c]) for c in (0, 1)])
+        foot = np.array([np.interp(arc[0], cum, reference[:, c]) for c in (0, 1)])
         rel = ego.xy - foot
         side = 1.0 if d[seg, 0] * rel[1] - d[seg, 1] * rel[0] >= 0.0 else -1.0
         speed = max(ego.speed_mps, request.target_speed_mps, 0.0)
