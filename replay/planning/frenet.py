@@ -59,6 +59,10 @@ TOP_SPEED_FACTOR = 1.1
 TOP_SPEED_MARGIN_MPS = 2.0
 TOP_SPEED_STEP_MPS = 5.0
 
+#: The ego's lane is widened to hold the ego's footprint now, plus fiss-planner's lane
+#: margin and this slack (m), tapering back to the lane over the horizon's driving.
+EGO_LANE_SLACK_M = 0.05
+
 #: fiss-planner's rejection classes: limits of the vehicle and the road, and obstacles.
 KINEMATIC_REJECTIONS = ("invalid", "speed", "accel", "curvature", "lat_accel", "off_road")
 OBSTACLE_REJECTIONS = ("collision", "safety_distance")
@@ -71,6 +75,67 @@ def top_speed_mps(request: PlanRequest) -> float:
     fastest = max(request.target_speed_mps, request.ego.speed_mps, 0.0)
     top = fastest * TOP_SPEED_FACTOR + TOP_SPEED_MARGIN_MPS
     return float(math.ceil(top / TOP_SPEED_STEP_MPS) * TOP_SPEED_STEP_MPS)
+
+
+#: Scales tried for the box of an agent that overlaps the ego now (see box_scales).
+BOX_SCALES = (0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.2, 0.1)
+
+
+def box_scales(request: PlanRequest, margin_lon_m: float, margin_lat_m: float) -> np.ndarray:
+    """``(K,)``: the factor for each agent's length and width given to fiss-planner: 1,
+    or for an agent whose recorded box overlaps the ego's now (inflated by fiss-planner's
+    collision margins) the largest of BOX_SCALES that clears it, 0 when none does (the
+    agent is then left out).
+
+    Every candidate starts in collision with such an agent, so fiss-planner rejected them
+    all (in MONA, where recorded boxes of queued cars overlap, a third of the failures of
+    a sample), although no plan can undo a collision already in progress (nuPlan counts a
+    collision with an agent once, when it starts). The smaller box still blocks the way.
+    ``Plan.extras["shrunk_agents"]`` counts them.
+    """
+    k = request.agents.n
+    scale = np.ones(k)
+    hit = overlapping_now(request, margin_lon_m, margin_lat_m, scale)
+    for factor in BOX_SCALES:
+        if not hit.any():
+            break
+        scale = np.where(hit, factor, scale)
+        hit &= overlapping_now(request, margin_lon_m, margin_lat_m, scale)
+    return np.where(hit, 0.0, scale)
+
+
+def overlapping_now(
+    request: PlanRequest, margin_lon_m: float, margin_lat_m: float, scale: np.ndarray
+) -> np.ndarray:
+    """``(K,)`` bool: the agent's box at t = 0, its length and width times ``scale``,
+    overlaps the ego's box inflated by the margins (separating-axis test, vectorised)."""
+    a = request.agents
+    if a.n == 0:
+        return np.zeros(0, dtype=bool)
+    e = request.ego
+
+    def corners(xy: np.ndarray, heading: np.ndarray, half_l: np.ndarray, half_w: np.ndarray):
+        c, s = np.cos(heading)[:, None], np.sin(heading)[:, None]
+        u = np.array([1.0, -1.0, -1.0, 1.0])[None] * half_l[:, None]
+        v = np.array([1.0, 1.0, -1.0, -1.0])[None] * half_w[:, None]
+        return np.stack([xy[:, None, 0] + c * u - s * v, xy[:, None, 1] + s * u + c * v], -1)
+
+    ego = corners(
+        e.xy[None], np.array([e.heading_rad]),
+        np.array([e.length_m / 2 + margin_lon_m]), np.array([e.width_m / 2 + margin_lat_m]),
+    )  # fmt: skip
+    other = corners(a.xy[:, 0], a.heading_rad[:, 0], scale * a.length_m / 2, scale * a.width_m / 2)
+    axes_ego = np.array([[math.cos(e.heading_rad), math.sin(e.heading_rad)]])
+    axes_ego = np.concatenate([axes_ego, axes_ego[:, ::-1] * [-1.0, 1.0]])  # (2, 2)
+    h = a.heading_rad[:, 0]
+    axes_other = np.stack(
+        [np.stack([np.cos(h), np.sin(h)], -1), np.stack([-np.sin(h), np.cos(h)], -1)], 1
+    )  # (K, 2, 2)
+    axes = np.concatenate([np.broadcast_to(axes_ego, (a.n, 2, 2)), axes_other], 1)  # (K, 4, 2)
+    pe = np.einsum("kad,pd->kap", axes, ego[0])  # (K, 4 axes, 4 corners)
+    po = np.einsum("kad,kpd->kap", axes, other)
+    apart = (pe.max(-1) < po.min(-1)) | (po.max(-1) < pe.min(-1))
+    return np.asarray(~apart.any(axis=1))
 
 
 def failure_reason(rejections: dict[str, int], n_agents: int) -> str:
@@ -132,9 +197,47 @@ class FrenetPlanner:
         self._planners: dict[tuple[float, float, float, float, float], Any] = {}
 
     # ------------------------------------------------------------------ the planner
+    def _corridor(
+        self, request: PlanRequest, length_m: float, s0: float, d0: float, rel: float
+    ) -> Any:
+        """``lanes_right`` + the ego's lane + ``lanes_left`` parallel lanes of
+        ``lane_width_m``, the ego's lane widened where the ego's footprint now sticks out
+        of it (its offset ``d0`` and heading ``rel`` to the reference), back to the lane
+        over the horizon at the ego's speed, and never narrower than the ego plus the
+        slack: otherwise an ego astride a lane line, turned in its lane, or wider than a
+        3.5 m lane less fiss-planner's margins (a 2.8 m truck, a 3.4 m bus) is off the
+        road in every candidate."""
+        fp = self.fp
+        w = request.lane_width_m
+        ego = request.ego
+        stations = np.arange(0.0, length_m + 1.0, 1.0)
+        across = 0.5 * ego.length_m * abs(math.sin(rel)) + 0.5 * ego.width_m * abs(math.cos(rel))
+        slack = self._config().sampling.lane_margin + EGO_LANE_SLACK_M
+        taper = max(request.horizon_s * max(ego.speed_mps, request.target_speed_mps), 10.0)
+        half = max(0.5 * w, 0.5 * ego.width_m + slack)  # the ego's lane holds the ego
+        fade = np.clip(1.0 - (stations - s0) / taper, 0.0, 1.0)  # 1 up to the ego, then 0
+        corridor = fp.Corridor(stations.tolist())
+        for k in range(-request.lanes_right, request.lanes_left + 1):
+            centre = np.full(stations.size, k * w)
+            left, right = centre + 0.5 * w, centre - 0.5 * w
+            if k == 0:
+                centre = fade * d0  # where the ego is, then its lane's centre
+                left = np.maximum(centre + half, fade * (d0 + across + slack))
+                right = np.minimum(centre - half, fade * (d0 - across - slack))
+            band = fp.LaneBand()
+            band.lane_id, band.offset = k, k
+            band.left, band.right = left.tolist(), right.tolist()
+            band.center = centre.tolist()
+            corridor.add_lane(band)
+        return corridor
+
     def _config(self) -> Any:
-        """The variant's configuration with the overrides applied."""
+        """The variant's configuration with the overrides applied. Collisions with an
+        agent behind the ego in its lane are ignored (``collision.ignore_rear_in_lane``):
+        a follower that hits the ego is at fault (nuPlan's rule), and a queued follower
+        within fiss-planner's safety gap otherwise rejects every candidate."""
         config = self.fp.make_config(self.variant)
+        config.collision.ignore_rear_in_lane = True
         for path, value in self.overrides.items():
             *parents, last = path.split(".")
             target = config
@@ -171,8 +274,12 @@ class FrenetPlanner:
         planner.reset()
         return planner
 
-    def _obstacles(self, request: PlanRequest) -> list[Any]:
-        a = request.agents
+    def _obstacles(self, request: PlanRequest, scale: np.ndarray) -> list[Any]:
+        """fiss-planner's obstacles: every agent's forecast, its box times ``scale``
+        (``box_scales``; agents with scale 0 left out)."""
+        keep = scale > 0.0
+        a = request.agents.subset(keep) if not keep.all() else request.agents
+        scale = scale[keep]
         times = a.times_s.tolist()
         moves = np.asarray((np.abs(np.diff(a.xy, axis=1)) > 1e-9).any(axis=(1, 2)), dtype=bool)
         static = (~moves).tolist()
@@ -181,8 +288,8 @@ class FrenetPlanner:
             make(int(i), float(ln), float(w), times, x, y, h, bool(still))
             for i, ln, w, x, y, h, still in zip(
                 a.ids.tolist(),
-                a.length_m.tolist(),
-                a.width_m.tolist(),
+                (scale * a.length_m).tolist(),
+                (scale * a.width_m).tolist(),
                 a.xy[..., 0].tolist(),
                 a.xy[..., 1].tolist(),
                 a.heading_rad.tolist(),
@@ -195,12 +302,10 @@ class FrenetPlanner:
         fp = self.fp
         start = time.perf_counter()
         ref = fp.ReferenceLine(request.reference[:, 0], request.reference[:, 1])
-        corridor = fp.Corridor.parallel_lanes(
-            0.0, ref.length, request.lane_width_m, request.lanes_left, request.lanes_right
-        )
         ego = request.ego
         proj = ref.project(float(ego.xy[0]), float(ego.xy[1]))
         rel = ego.heading_rad - ref.at(proj.s).yaw
+        corridor = self._corridor(request, float(ref.length), float(proj.s), float(proj.d), rel)
         state = fp.FrenetState(
             s=proj.s,
             s_d=ego.speed_mps * math.cos(rel),
@@ -208,7 +313,9 @@ class FrenetPlanner:
             d=proj.d,
             d_d=ego.speed_mps * math.sin(rel),
         )
-        obstacles = self._obstacles(request)
+        config = self._config()
+        scale = box_scales(request, config.collision.margin_lon, config.collision.margin_lat)
+        obstacles = self._obstacles(request, scale)
         planner = self._planner(request)
         result = planner.plan(
             state, ref, corridor, obstacles, target_speed=float(request.target_speed_mps)
@@ -233,7 +340,11 @@ class FrenetPlanner:
             lane=int(result.trajectory.lane),
             stops=bool((speed < STOP_SPEED_MPS).any()),
             blocking_id=blocking,
-            extras={"core_ms": float(stats.time_ms), "candidates": float(stats.num_generated)},
+            extras={
+                "core_ms": float(stats.time_ms),
+                "candidates": float(stats.num_generated),
+                "shrunk_agents": float((scale < 1.0).sum()),
+            },
         )
 
     @staticmethod

@@ -49,6 +49,13 @@ JOIN_MAX_M = 3.0
 REFERENCE_SPACING_M = 1.0
 REFERENCE_SMOOTH_M = 4.0
 
+#: At speed the smoothing window grows to +-(this many seconds x the ego's speed): at
+#: 40 m/s a lateral acceleration of 4 m/s^2 (fiss-planner's limit) is a curvature of
+#: 0.0025 /m, which the joints of a lane's centre line pieces exceed over +-4 m. A
+#: moving average over +-h moves a curve of radius R inwards by about h^2 / (6 R): 0.13 m
+#: for +-20 m on a 500 m motorway curve.
+REFERENCE_SMOOTH_S = 0.5
+
 #: The smoothed reference keeps a point every this many metres (and its last point): the
 #: planners' projections cost in proportion to its segments (every agent at every time is
 #: projected onto it), and a 3 m chord of a 15 m radius curve is within 0.08 m of the arc.
@@ -109,7 +116,9 @@ def plan_request(
     # along the path fell to 0, and IDM braked for a phantom standing car there.
     fastest = float(frame.speed[others].max(initial=0.0))
     reference = reference_path(
-        frame, min_length_m=reach_m + REFERENCE_MARGIN_M + fastest * horizon_s
+        frame,
+        min_length_m=reach_m + REFERENCE_MARGIN_M + fastest * horizon_s,
+        smooth_m=max(REFERENCE_SMOOTH_M, REFERENCE_SMOOTH_S * reach_m / horizon_s),
     )
     left, right = side_lanes(
         reference, lane_map, lane_width_m=lane_width_m, stretch_m=max(reach_m, MIN_LANE_STRETCH_M)
@@ -133,12 +142,15 @@ def plan_request(
     )
 
 
-def reference_path(frame: Frame, *, min_length_m: float) -> np.ndarray:
+def reference_path(
+    frame: Frame, *, min_length_m: float, smooth_m: float = REFERENCE_SMOOTH_M
+) -> np.ndarray:
     """The ego's lane centre line: its first path candidate without the join from the
     ego to the centre line (see JOIN_MAX_M), extended REFERENCE_BEHIND_M backwards and
-    straight forwards or cut to ``min_length_m`` beyond the ego, smoothed, a point every
-    REFERENCE_POINT_SPACING_M: ``(P, 2)`` in m. The ego sits at its lateral offset from
-    it; the planners take that offset and the heading error into their initial state."""
+    straight forwards or cut to ``min_length_m`` beyond the ego, smoothed over
+    ``+-smooth_m``, a point every REFERENCE_POINT_SPACING_M: ``(P, 2)`` in m. The ego
+    sits at its lateral offset from it; the planners take that offset and the heading
+    error into their initial state."""
     e = frame.ego
     row = int(np.searchsorted(frame.path_agent, e))
     n_points = int(frame.path_points[row])
@@ -171,9 +183,7 @@ def reference_path(frame: Frame, *, min_length_m: float) -> np.ndarray:
     cut, n_cut = geometry.cut_paths(ext, cum, np.array([want]))
     pts = cut[0, : int(n_cut[0])]
     keep = np.r_[True, np.any(np.diff(pts, axis=0) != 0.0, axis=1)]
-    smooth = smooth_polyline(
-        pts[keep], spacing_m=REFERENCE_SPACING_M, half_window_m=REFERENCE_SMOOTH_M
-    )
+    smooth = smooth_polyline(pts[keep], spacing_m=REFERENCE_SPACING_M, half_window_m=smooth_m)
     step = max(round(REFERENCE_POINT_SPACING_M / REFERENCE_SPACING_M), 1)
     rows = np.r_[np.arange(0, smooth.shape[0] - 1, step), smooth.shape[0] - 1]
     return np.ascontiguousarray(smooth[rows])
