@@ -15,7 +15,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import planner_scenes as ps
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -60,7 +59,8 @@ def _idm_oracle(s0, v_start, v0, leader_x0, leader_v, half_lengths, times, p: Id
     for k in range(times.size - 1):
         gap = leader_x0 + leader_v * times[k] - sum(half_lengths) - s[k]
         s_star = p.s0_m + max(
-            0.0, v[k] * p.headway_s + v[k] * (v[k] - leader_v) / (2 * math.sqrt(p.a0_mps2 * p.b_mps2))
+            0.0,
+            v[k] * p.headway_s + v[k] * (v[k] - leader_v) / (2 * math.sqrt(p.a0_mps2 * p.b_mps2)),
         )
         a = p.a0_mps2 * (1 - (v[k] / v0) ** p.delta - (s_star / gap) ** 2)
         a = min(max(a, -p.max_decel_mps2), p.a0_mps2)
@@ -316,3 +316,44 @@ def test_a_frenet_failure_names_the_rejections():
     assert not plan.ok
     assert plan.reason.split(":")[0] in {"all candidates collide", "no feasible trajectory"}
     assert any(word in plan.reason for word in ("collision", "safety_distance"))
+
+
+@needs_fiss
+def test_a_standing_ego_turned_in_its_lane_finds_a_plan():
+    """0.6 m off its lane centre, turned 0.2 rad, standing: every candidate was off the
+    road (the lane band did not hold the ego); a 3.4 m wide bus did not fit a 3.5 m lane
+    less fiss-planner's margins at all."""
+    from replay.planning.frenet import FrenetPlanner
+
+    planner = FrenetPlanner("fiss_plus")
+    frame = _frame([(0, -0.6, 0.2, 0.03, 3.8, 1.8)], [[(0, -0.6), (2, 0), (300, 0)]])
+    req = plan_request(frame, LaneMap(), target_speed_mps=0.07)
+    assert planner.plan(req).ok, planner.plan(req).reason
+    bus = _frame([(0, 0.17, 0.0, 0.2, 19.7, 3.4)], [[(0, 0.17), (2, 0), (300, 0)]])
+    req = plan_request(bus, LaneMap(), target_speed_mps=4.2)
+    assert planner.plan(req).ok, planner.plan(req).reason
+
+
+@needs_fiss
+def test_a_box_overlapping_the_ego_now_is_shrunk_until_clear():
+    """A car beside the ego in the next lane whose recorded box comes within
+    fiss-planner's lateral collision margin (0.3 m) of the ego's: every candidate started
+    in collision and none was found. Its box is shrunk until it clears the ego's, by the
+    largest of the scales tried; a car that does not overlap keeps its box."""
+    from replay.planning.frenet import FrenetPlanner, box_scales
+
+    frame = _frame(
+        [(0, 0, 0, 8.0, 4.5, 1.8), (1.0, 2.0, 0, 8.0, 4.5, 1.8), (40.0, 3.5, 0, 8.0, 4.5, 1.8)],
+        [[(0, 0), (300, 0)], [(1.0, 2.0), (3.0, 3.5), (300, 3.5)], [(40.0, 3.5), (300, 3.5)]],
+    )
+    req = plan_request(frame, _two_lane_map(), target_speed_mps=8.0)
+    scale = box_scales(req, 0.5, 0.3)  # agents 1 and 2, in that order
+    assert scale[1] == 1.0
+    # across: the shrunk half width clears 2.0 - (0.9 + 0.3) = 0.8 m
+    assert scale[0] * 0.9 <= 0.8 < (scale[0] + 0.1) * 0.9
+    planner = FrenetPlanner("fiss_plus")
+    plan = planner.plan(req)
+    assert plan.ok, plan.reason
+    assert plan.extras["shrunk_agents"] == 1.0
+    unshrunk = planner.plan(req.with_agents(req.agents.subset(np.array([True, False]))))
+    assert unshrunk.ok  # the one overlapping agent alone is shrunk as well
