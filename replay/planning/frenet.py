@@ -195,6 +195,7 @@ class FrenetPlanner:
         self.name = variant
         self.overrides = dict(overrides or {})
         self._planners: dict[tuple[float, float, float, float, float], Any] = {}
+        self._config_made: Any = None
 
     # ------------------------------------------------------------------ the planner
     def _corridor(
@@ -210,10 +211,14 @@ class FrenetPlanner:
         fp = self.fp
         w = request.lane_width_m
         ego = request.ego
-        stations = np.arange(0.0, length_m + 1.0, 1.0)
+        taper = max(request.horizon_s * max(ego.speed_mps, request.target_speed_mps), 10.0)
+        # The bands are linear between stations (and held beyond them): the fade needs
+        # its two ends; a few between follow the max() of the widened and the lane edge.
+        stations = np.unique(
+            np.clip(np.r_[0.0, s0 + taper * np.linspace(0.0, 1.0, 9), length_m], 0.0, length_m)
+        )
         across = 0.5 * ego.length_m * abs(math.sin(rel)) + 0.5 * ego.width_m * abs(math.cos(rel))
         slack = self._config().sampling.lane_margin + EGO_LANE_SLACK_M
-        taper = max(request.horizon_s * max(ego.speed_mps, request.target_speed_mps), 10.0)
         half = max(0.5 * w, 0.5 * ego.width_m + slack)  # the ego's lane holds the ego
         fade = np.clip(1.0 - (stations - s0) / taper, 0.0, 1.0)  # 1 up to the ego, then 0
         corridor = fp.Corridor(stations.tolist())
@@ -232,6 +237,12 @@ class FrenetPlanner:
         return corridor
 
     def _config(self) -> Any:
+        """The configuration (:meth:`_make_config`), made once; read, never changed."""
+        if self._config_made is None:
+            self._config_made = self._make_config()
+        return self._config_made
+
+    def _make_config(self) -> Any:
         """The variant's configuration with the overrides applied. Collisions with an
         agent behind the ego in its lane are ignored (``collision.ignore_rear_in_lane``):
         a follower that hits the ego is at fault (nuPlan's rule), and a queued follower
@@ -265,7 +276,7 @@ class FrenetPlanner:
         )  # fmt: skip
         planner = self._planners.get(key)
         if planner is None:
-            config = self._config()
+            config = self._make_config()  # its own: the sampling is set per instance
             config.sampling.dt = request.dt_s
             config.sampling.max_t = request.horizon_s
             config.sampling.min_t = min(config.sampling.min_t, request.horizon_s)
