@@ -204,8 +204,12 @@ def test_a_stopped_ego_yields_to_a_crossing_pedestrian():
     off at IDM's free-road acceleration and reached the crossing with the pedestrian on
     it. Timed on the free-road profile it waits."""
     req = _pedestrian_request(0.0)
-    plan = IdmPlanner().plan(req)
+    p = IdmSettings()
+    plan = IdmPlanner(p).plan(req)
     assert plan.blocking_id == 1
+    # it yields from the first step: timed at speed 0 the pedestrian was ignored then,
+    # and the ego moved off at the free-road acceleration a0
+    assert plan.speed_mps[1] < p.a0_mps2 * 0.1 - 1e-3
     ped = req.agents.xy[0]
     # the pedestrian's box (0.5 m) in the ego's corridor (half width 0.9 m): |y| < 1.15
     in_lane = np.abs(ped[:, 1]) < 0.9 + 0.25
@@ -320,8 +324,9 @@ def test_a_frenet_failure_names_the_rejections():
 
 @needs_fiss
 def test_a_standing_ego_turned_in_its_lane_finds_a_plan():
-    """0.6 m off its lane centre, turned 0.2 rad, standing: every candidate was off the
-    road (the lane band did not hold the ego); a 3.4 m wide bus did not fit a 3.5 m lane
+    """0.6 m off its lane centre, turned 0.2 rad, standing: with the lane-centre
+    reference every candidate was off the road until the ego's lane held the ego (the old
+    reference started at the ego, offset 0); a 3.4 m wide bus did not fit a 3.5 m lane
     less fiss-planner's margins at all."""
     from replay.planning.frenet import FrenetPlanner
 
