@@ -362,3 +362,62 @@ def test_a_box_overlapping_the_ego_now_is_shrunk_until_clear():
     assert plan.extras["shrunk_agents"] == 1.0
     unshrunk = planner.plan(req.with_agents(req.agents.subset(np.array([True, False]))))
     assert unshrunk.ok  # the one overlapping agent alone is shrunk as well
+
+
+def _boxes_overlap_by_sampling(a_corners: np.ndarray, b_corners: np.ndarray) -> bool:
+    """The obvious oracle: some point of one box lies in the other (a fine grid of each
+    box's points tested against the other's half-planes)."""
+
+    def inside(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
+        edges = np.roll(corners, -1, axis=0) - corners
+        rel = points[:, None, :] - corners[None]
+        cross = edges[None, :, 0] * rel[..., 1] - edges[None, :, 1] * rel[..., 0]
+        return (cross >= 0).all(axis=1) | (cross <= 0).all(axis=1)
+
+    def grid(corners: np.ndarray) -> np.ndarray:
+        u, v = np.meshgrid(np.linspace(0, 1, 41), np.linspace(0, 1, 41))
+        o, e1, e2 = corners[0], corners[1] - corners[0], corners[3] - corners[0]
+        return o + u.reshape(-1, 1) * e1 + v.reshape(-1, 1) * e2
+
+    return bool(
+        inside(grid(a_corners), b_corners).any() or inside(grid(b_corners), a_corners).any()
+    )
+
+
+@needs_fiss
+@pytest.mark.parametrize("seed", range(4))
+def test_overlapping_now_matches_a_sampling_oracle(seed):
+    from replay.planning.frenet import overlapping_now
+
+    rng = np.random.default_rng(seed)
+    n = 60
+    rows = [(0.0, 0.0, rng.uniform(-math.pi, math.pi), 5.0, 4.5, 1.8)]
+    rows += [
+        (rng.uniform(-7, 7), rng.uniform(-5, 5), rng.uniform(-math.pi, math.pi), 0.0,
+         rng.uniform(0.5, 12.0), rng.uniform(0.5, 3.0))
+        for _ in range(n)
+    ]  # fmt: skip
+    frame = _frame(rows, [[(0, 0), (1, 0)]] + [[(r[0], r[1])] for r in rows[1:]])
+    req = plan_request(frame, LaneMap(), target_speed_mps=5.0)
+    got = overlapping_now(req, 0.5, 0.3, np.ones(n))
+
+    def corners(x, y, h, half_l, half_w):
+        c, s = math.cos(h), math.sin(h)
+        return np.array(
+            [[x + c * u * half_l - s * v * half_w, y + s * u * half_l + c * v * half_w]
+             for u, v in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
+        )  # fmt: skip
+
+    ego = corners(0.0, 0.0, rows[0][2], 2.25 + 0.5, 0.9 + 0.3)
+    a = req.agents
+    want = [
+        _boxes_overlap_by_sampling(
+            ego, corners(*a.xy[k, 0], a.heading_rad[k, 0], a.length_m[k] / 2, a.width_m[k] / 2)
+        )
+        for k in range(n)
+    ]
+    assert 5 < sum(want) < n - 5  # both kinds, plenty of each
+    # the grid can miss a sliver of overlap thinner than its spacing: allow those only
+    disagree = np.flatnonzero(got != np.array(want))
+    assert all(got[k] and not want[k] for k in disagree)
+    assert len(disagree) <= 2

@@ -93,14 +93,23 @@ def box_scales(request: PlanRequest, margin_lon_m: float, margin_lat_m: float) -
     collision with an agent once, when it starts). The smaller box still blocks the way.
     ``Plan.extras["shrunk_agents"]`` counts them.
     """
-    k = request.agents.n
-    scale = np.ones(k)
-    hit = overlapping_now(request, margin_lon_m, margin_lat_m, scale)
+    a, e = request.agents, request.ego
+    scale = np.ones(a.n)
+    # Only boxes whose circumscribed circles meet can overlap: the test on those alone.
+    reach = 0.5 * np.hypot(e.length_m + 2 * margin_lon_m, e.width_m + 2 * margin_lat_m)
+    near = np.hypot(*(a.xy[:, 0] - e.xy).T) <= reach + 0.5 * np.hypot(a.length_m, a.width_m)
+    if not near.any():
+        return scale
+    hit = near.copy()
+    hit[near] = overlapping_now(
+        request.with_agents(a.subset(near)), margin_lon_m, margin_lat_m, scale[near]
+    )
     for factor in BOX_SCALES:
         if not hit.any():
             break
         scale = np.where(hit, factor, scale)
-        hit &= overlapping_now(request, margin_lon_m, margin_lat_m, scale)
+        sub = request.with_agents(a.subset(hit))
+        hit[hit] = overlapping_now(sub, margin_lon_m, margin_lat_m, scale[hit])
     return np.where(hit, 0.0, scale)
 
 
