@@ -88,7 +88,12 @@ def path_coords(reference: np.ndarray, agents: AgentForecasts) -> PathCoords:
         backward = np.concatenate([rate[:, :1], rate], axis=1)
         ok_fwd = np.concatenate([fine, np.zeros((k, 1), dtype=bool)], axis=1)
         ok_bwd = np.concatenate([np.zeros((k, 1), dtype=bool), fine], axis=1)
-        speed = np.where(ok_fwd | ~ok_bwd, forward, backward)
+        # Neither: the forecast's velocity along the path's direction there.
+        step = np.diff(agents.xy, axis=1) / dt[None, :, None]  # (K, T-1, 2)
+        vel = np.concatenate([step, step[:, -1:]], axis=1)
+        heading = seg_heading[seg]
+        tangential = vel[..., 0] * np.cos(heading) + vel[..., 1] * np.sin(heading)
+        speed = np.where(ok_fwd, forward, np.where(ok_bwd, backward, tangential))
     else:
         speed = np.zeros((k, t))
     return PathCoords(
