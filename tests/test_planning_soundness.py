@@ -296,13 +296,13 @@ def test_frenet_failures_say_why():
     assert failure_reason({"speed": 125, "collision": 0}, 0) == (
         "no feasible path (no agents): speed 125"
     )
-    assert failure_reason({"lat_accel": 3, "off_road": 5}, 4).startswith(
-        "no feasible path (vehicle or road limits): off_road 5, lat_accel 3"
+    assert failure_reason({"lat_accel": 3, "off_road": 5}, 4, False) == (
+        "no feasible path (also without agents): off_road 5, lat_accel 3"
     )
-    assert failure_reason({"collision": 10, "safety_distance": 2}, 4).startswith(
-        "all candidates collide: collision 10"
+    assert failure_reason({"collision": 10, "safety_distance": 2}, 4, True) == (
+        "all candidates collide: collision 10, safety_distance 2"
     )
-    assert failure_reason({"collision": 10, "accel": 2}, 4).startswith("no feasible trajectory")
+    assert failure_reason({"collision": 10, "accel": 2}, 4, True).startswith("blocked by agents")
     assert failure_reason({}, 0) == "no candidate generated"
 
 
@@ -318,7 +318,7 @@ def test_a_frenet_failure_names_the_rejections():
     req = plan_request(frame, LaneMap(), target_speed_mps=20.0)
     plan = FrenetPlanner("fiss_plus").plan(req)
     assert not plan.ok
-    assert plan.reason.split(":")[0] in {"all candidates collide", "no feasible trajectory"}
+    assert plan.reason.split(":")[0] in {"all candidates collide", "blocked by agents"}
     assert any(word in plan.reason for word in ("collision", "safety_distance"))
 
 
@@ -421,3 +421,22 @@ def test_overlapping_now_matches_a_sampling_oracle(seed):
     disagree = np.flatnonzero(got != np.array(want))
     assert all(got[k] and not want[k] for k in disagree)
     assert len(disagree) <= 2
+
+
+@needs_fiss
+def test_a_failure_without_any_agent_to_blame_says_so():
+    """25 m/s into a right-angle turn 20 m ahead: no candidate keeps within the lateral
+    acceleration limit, with or without the car parked far off the road."""
+    from replay.planning.frenet import FrenetPlanner
+
+    frame = _frame(
+        [(0, 0, 0, 25.0, 4.5, 1.8), (0.0, 200.0, 0, 0.0, 4.5, 1.8)],
+        [[(0, 0), (20, 0), (20, -300)], [(0.0, 200.0)]],
+    )
+    req = plan_request(frame, LaneMap(), target_speed_mps=25.0)
+    planner = FrenetPlanner("fiss_plus")
+    plan = planner.plan(req)
+    assert not plan.ok
+    assert plan.reason.startswith("no feasible path (also without agents): ")
+    alone = planner.plan(req.with_agents(AgentForecasts.empty(req.times_s)))
+    assert alone.reason.startswith("no feasible path (no agents): ")

@@ -17,7 +17,9 @@ The adapter:
   fastest the recorded driver drove over the horizon) and the ego's speed, times
   TOP_SPEED_FACTOR plus TOP_SPEED_MARGIN_MPS, rounded up to TOP_SPEED_STEP_MPS
   (fiss-planner's default 30 m/s rejected every candidate of an ego at motorway speed);
-- a failure names its cause from fiss-planner's rejection counts (:func:`failure_reason`);
+- a failure names its cause (:func:`failure_reason`): fiss-planner's rejection counts,
+  and whether the request has a plan without its agents (planned once more, on failures
+  only, outside ``plan_ms``);
 - obstacles: each agent's forecast, time-stamped, with its box (static when it never
   moves); the binding takes one ``fp.Obstacle`` per agent, so this conversion is the one
   loop over agents (about 2 us each, measured in benchmarks/bench_planner.py);
@@ -147,31 +149,35 @@ def overlapping_now(
     return np.asarray(~apart.any(axis=1))
 
 
-def failure_reason(rejections: dict[str, int], n_agents: int) -> str:
-    """Why fiss-planner found no plan, from its rejection counts per class:
+def failure_reason(
+    rejections: dict[str, int], n_agents: int, feasible_without_agents: bool | None = None
+) -> str:
+    """Why fiss-planner found no plan, from its rejection counts per class and, with
+    agents, whether the same request without any agent has a plan:
 
     - "no candidate generated";
-    - "no feasible path (no agents)" / "no feasible path (vehicle or road limits)": every
-      candidate broke a limit of the vehicle or the road, none met an obstacle;
+    - "no feasible path (no agents)": no agent, and every candidate broke a limit of the
+      vehicle or the road;
+    - "no feasible path (also without agents)": the request fails without its agents too
+      (the reference, the lanes or the ego's state: no agent is to blame);
     - "all candidates collide": every rejection was a collision or a safety distance;
-    - "no feasible trajectory": both kinds;
+    - "blocked by agents": a plan exists without the agents, and with them every
+      candidate collided or broke a limit (e.g. avoiding one swerves too hard);
 
     followed by the counts, largest first (e.g. ``": collision 80, lat_accel 45"``).
     """
     counts = {k: int(n) for k, n in rejections.items() if int(n) > 0}
-    total = sum(counts.values())
-    if total == 0:
+    if not counts:
         return "no candidate generated"
     kinematic = sum(counts.get(k, 0) for k in KINEMATIC_REJECTIONS)
-    obstacles = sum(counts.get(k, 0) for k in OBSTACLE_REJECTIONS)
-    if obstacles == 0:
-        what = "no feasible path " + (
-            "(no agents)" if n_agents == 0 else "(vehicle or road limits)"
-        )
+    if n_agents == 0:
+        what = "no feasible path (no agents)"
+    elif feasible_without_agents is False:
+        what = "no feasible path (also without agents)"
     elif kinematic == 0:
         what = "all candidates collide"
     else:
-        what = "no feasible trajectory"
+        what = "blocked by agents"
     detail = ", ".join(f"{k} {n}" for k, n in sorted(counts.items(), key=lambda kv: -kv[1]))
     return f"{what}: {detail}"
 
@@ -343,9 +349,19 @@ class FrenetPlanner:
         stats = result.stats
         blocking = int(stats.blocking_id)
         if not result.success:
+            plan_ms = (time.perf_counter() - start) * 1e3  # without the diagnosis below
+            rejections = dict(stats.rejections)
+            alone = None
+            if request.agents.n:  # the same request without agents: who is to blame?
+                planner.reset()
+                alone = bool(
+                    planner.plan(
+                        state, ref, corridor, [], target_speed=float(request.target_speed_mps)
+                    ).success
+                )
             return Plan.failed(
-                failure_reason(dict(stats.rejections), request.agents.n),
-                plan_ms=(time.perf_counter() - start) * 1e3,
+                failure_reason(rejections, request.agents.n, alone),
+                plan_ms=plan_ms,
                 blocking_id=blocking,
             )
         times, xy, heading, speed = self._resample(result.trajectory, request.times_s)
