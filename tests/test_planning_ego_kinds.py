@@ -124,3 +124,12 @@ def test_a_planner_beside_a_replay_skips_a_pedestrian_ego():
     assert np.isnan(out["planner_label"]).all()
     assert annotator.skipped == {"pedestrian": 1}
     assert "skipped 1 frames whose ego is not a vehicle (pedestrian: 1)" in annotator.summary()
+
+
+def test_an_unknown_ego_kinds_value_is_a_planning_error():
+    from replay.planning.errors import PlanningError
+    from replay.planning.inputs import plans_for
+
+    with pytest.raises(PlanningError, match="vehicles, all"):
+        plans_for(_frame(0.0), "cars")
+    assert plans_for(_frame(0.0, ego=2), "all") and not plans_for(_frame(0.0, ego=2), "vehicles")

@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from replay.planning.errors import NoReferencePath
+from replay.planning.errors import NoReferencePath, PlanningError
 from replay.planning.types import AgentForecasts, EgoState, PlanRequest, plan_times
 from risk import geometry
 from risk.frame import KIND_NAMES, Frame, Kind, LaneMap
@@ -89,7 +89,7 @@ def plans_for(frame: Frame, ego_kinds: str) -> bool:
     with ``vehicles`` only a vehicle ego (pedestrians, cyclists and ``other`` are
     skipped)."""
     if ego_kinds not in EGO_KINDS:
-        raise ValueError(f"ego_kinds: expected one of {', '.join(EGO_KINDS)}, got {ego_kinds!r}")
+        raise PlanningError(f"ego kinds: expected one of {', '.join(EGO_KINDS)}, got {ego_kinds!r}")
     return ego_kinds == "all" or int(frame.kinds[frame.ego]) == int(Kind.VEHICLE)
 
 
