@@ -37,6 +37,10 @@ EGO_BODY = "/scene/ego/body"  # capsule + heading nose, label "ego <id>"
 EGO_PATH = "/scene/ego/path"
 PLAN_ALL = "/scene/ego/plan_all_agents"  # a planner's plan with every agent
 PLAN_FILTERED = "/scene/ego/plan_filtered"  # and with the agents the cascade kept
+# The ego's pose over time (translation and a turn that puts its heading up, its left to
+# the left): no drawing of its own; the ego view takes it as its origin, so the whole
+# scene is shown from the ego, driving up the view.
+EGO_FRAME = "/scene/ego_frame"
 AGENTS = "/scene/agents"  # one subtree per other agent: /scene/agents/<id>/...
 LINKS = "/scene/links"  # optional: one child per stage, ego -> every agent kept after it
 
@@ -327,6 +331,40 @@ def ego_bounds(
     return x_range, y_range
 
 
+#: The ego view: this far behind the ego (m); ahead, its plans' reach (EGO_VIEW_AHEAD_M
+#: at least, more on faster roads up to EGO_VIEW_MAX_AHEAD_M).
+EGO_VIEW_BEHIND_M = 15.0
+EGO_VIEW_AHEAD_M = 45.0
+EGO_VIEW_MAX_AHEAD_M = 145.0
+#: The ego view's width / height: a tall panel beside the scene view (the left column is
+#: split between the two 2D views), so the ego drives up it, along its long side.
+EGO_VIEW_ASPECT = 0.72
+
+
+def ego_view_bounds(plan_reach_m: float, *, aspect: float = EGO_VIEW_ASPECT):
+    """Visual bounds of the ego view in its frame (EGO_FRAME: the ego at 0, ahead is up,
+    i.e. view y negative): from EGO_VIEW_BEHIND_M behind to ``plan_reach_m`` plus 10 m
+    ahead (within EGO_VIEW_AHEAD_M .. EGO_VIEW_MAX_AHEAD_M), centred across. A 5 s plan
+    then fills most of the view's height: at 10 m/s it is 50 m of a 75 m view."""
+    ahead = min(max(plan_reach_m + 10.0, EGO_VIEW_AHEAD_M), EGO_VIEW_MAX_AHEAD_M)
+    half_x = (ahead + EGO_VIEW_BEHIND_M) * aspect / 2.0
+    return (-half_x, half_x), (-ahead, EGO_VIEW_BEHIND_M)
+
+
+def ego_frame_matrices(heading_rad: np.ndarray) -> np.ndarray:
+    """``(K, 3, 3)``: the EGO_FRAME transforms' linear parts (the ego's frame in the
+    scene's map coordinates) for headings ``(K,)``. A point of the ego's frame at ``(u,
+    v)`` (view coordinates: u to the right, v down) lies at ``-v`` ahead and ``-u`` to the
+    left of the ego: the turn by the heading times the swap ``[[0, -1], [-1, 0]]``."""
+    c, s = np.cos(heading_rad), np.sin(heading_rad)
+    out = np.zeros((c.size, 3, 3))
+    # R(heading) @ [[0, -1], [-1, 0]] = [[s, -c], [-c, -s]]
+    out[:, 0, 0], out[:, 0, 1] = s, -c
+    out[:, 1, 0], out[:, 1, 1] = -c, -s
+    out[:, 2, 2] = 1.0
+    return out
+
+
 def _finite(points: np.ndarray) -> np.ndarray:
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     pts = pts[np.isfinite(pts).all(axis=1)]
@@ -344,6 +382,7 @@ def blueprint(
     focus_agents: Sequence[int] = (),
     has_misses: bool = False,
     units: dict[str, str] | None = None,
+    ego_view: tuple[tuple[float, float], tuple[float, float]] | None = None,
 ) -> rrb.Blueprint:
     """The layout that opens with the recording.
 
@@ -352,6 +391,10 @@ def blueprint(
     agents that matter: tiers and misses; more can be added in the viewer;
     ``log10_ranges``: the models plotted as log10, with their y range), and below it the
     misses list (a text log: clicking a row selects the agent) and the summary.
+
+    ``ego_view`` (bounds from :func:`ego_view_bounds`; given when the recording has
+    plans): a second 2D view beside the scene that follows the ego (origin EGO_FRAME:
+    the ego at 0, heading right), so that a 5 s plan is readable without zooming.
     """
     x_range, y_range = bounds
     scene = rrb.Spatial2DView(
@@ -383,8 +426,19 @@ def blueprint(
         if active_model is not None and active_model in model_names
         else 0
     )
+    top: rrb.Spatial2DView | rrb.Horizontal = scene
+    if ego_view is not None:
+        follow = rrb.Spatial2DView(
+            name="Ego view (plans: white all agents, orange filtered)",
+            origin=EGO_FRAME,
+            contents=f"{SCENE}/**",
+            background=BACKGROUND,
+            visual_bounds=rrb.VisualBounds2D(x_range=ego_view[0], y_range=ego_view[1]),
+            defaults=[rr.LineStrips2D.from_fields(draw_order=ORDER_AGENTS, show_labels=True)],
+        )
+        top = rrb.Horizontal(scene, follow, column_shares=[1.5, 1.0])
     left = rrb.Vertical(
-        scene, rrb.Horizontal(funnel, missed, timing), row_shares=[2.4, 1.3], name="Scene"
+        top, rrb.Horizontal(funnel, missed, timing), row_shares=[2.4, 1.3], name="Scene"
     )
     right = rrb.Vertical(
         rrb.Tabs(*risk_tabs, active_tab=active, name="Risk per agent"),

@@ -86,6 +86,7 @@ def _write(
         if _decades(scene.rows[f"risk:{m}"]) > options.log10_decades
     }
     focus = focus_agents(scene)
+    reach = _plan_reach_m(frames, scene)
     bp = L.blueprint(
         model_names=models,
         log10_ranges=log10_ranges,
@@ -95,6 +96,7 @@ def _write(
         bounds=L.ego_bounds(_ego_points(scene, info)),
         focus_agents=focus,
         has_misses=bool(scene.rows["miss"].any()),
+        ego_view=None if reach is None else L.ego_view_bounds(reach),
     )
     rec = rr.RecordingStream(application_id=options.application_id)
     try:
@@ -103,6 +105,8 @@ def _write(
         _log_static(rec, info, scene)
         if frames:
             _log_scene_layers(rec, info, scene, frames, options=options)
+            if reach is not None:
+                _log_ego_frame(rec, scene)
             _log_timelines(rec, info, scene, set(log10_ranges), focus)
             _log_cascade_series(rec, info, scene, frames)
         rec.flush()
@@ -500,6 +504,45 @@ def _add_plans(batch: C.Batch, static: C.Batch, scene: SceneRows, frames) -> Non
                 )  # fmt: skip
         cols = parts.columns(n_frames)
         _add_entities(batch, static, [path], n_frames, cols, L.ORDER_PATHS + 1.0, labels=False)
+
+
+def _plan_reach_m(frames: Sequence[FrameRows], scene: SceneRows) -> float | None:
+    """How far ahead of the ego its plans reach (m, the 90th percentile over frames of the
+    farthest plan point); None when no frame has a plan (no ego view then)."""
+    r = scene.rows
+    ego_xy = np.full((len(frames), 2), np.nan)
+    ego_xy[scene.frame_of[r["is_ego"]]] = r["xy"][r["is_ego"]]
+    reach = [
+        float(np.hypot(*(np.asarray(plan) - ego_xy[f]).T).max())
+        for f, frame in enumerate(frames)
+        for plan in (frame.plan_all, frame.plan_filtered)
+        if len(plan) >= 2 and np.isfinite(ego_xy[f]).all()
+    ]
+    return float(np.percentile(reach, 90)) if reach else None
+
+
+def _log_ego_frame(rec: rr.RecordingStream, scene: SceneRows) -> None:
+    """The ego's pose per frame at EGO_FRAME (see recordings.layout): its position and
+    :func:`recordings.layout.ego_frame_matrices`, so that the view with this origin shows
+    the ego driving up, its left to the left."""
+    r = scene.rows
+    ego = r["is_ego"]
+    rows = np.flatnonzero(ego)
+    frame = scene.frame_of[rows]
+    xyz = np.column_stack([r["xy"][rows], np.zeros(rows.size)])
+    times = [
+        rr.TimeColumn(L.TIMELINE, duration=scene.times_s[frame]),
+        rr.TimeColumn(L.FRAME_TIMELINE, sequence=scene.frame_index[frame]),
+    ]
+    rec.send_columns(
+        L.EGO_FRAME,
+        indexes=times,
+        columns=rr.Transform3D.columns(
+            translation=xyz,
+            mat3x3=L.ego_frame_matrices(r["heading"][rows]),
+        ),
+        strict=True,
+    )
 
 
 # ---------------------------------------------------------------------- labels and misses

@@ -151,10 +151,12 @@ def test_forecasts_subset_empty_and_resampling():
 def test_plan_request_on_the_road():
     req = road_request()
     assert req.agents.ids.tolist() == list(ps.OTHERS)
-    np.testing.assert_allclose(req.reference[0], [0.0, 0.0])
-    # long enough for the ego at 10 m/s over 5 s plus the margin
+    # the lane centre from REFERENCE_BEHIND_M + the ego's length behind the ego
+    np.testing.assert_allclose(req.reference[0], [-14.5, 0.0])
+    # long enough beyond the ego for its 10 m/s over 5 s, the margin and the fastest
+    # other agent's travel (10 m/s over 5 s)
     length = geometry.cumulative_lengths(req.reference[None])[0, -1]
-    assert length >= 50.0 + 50.0
+    assert length - 14.5 >= 50.0 + 50.0 + 50.0
     # the oncoming lane runs the other way: no usable side lane
     assert (req.lanes_left, req.lanes_right) == (0, 0)
     i = req.agents.ids.tolist().index(ps.ONCOMING)
@@ -265,7 +267,7 @@ def test_idm_free_road_keeps_the_target_speed_along_the_reference():
     plan = IdmPlanner().plan(req)
     np.testing.assert_allclose(plan.speed_mps, 10.0)
     np.testing.assert_allclose(plan.xy[:, 0], 10.0 * plan.times_s, atol=1e-9)
-    np.testing.assert_allclose(plan.xy[:, 1], 0.0)
+    np.testing.assert_allclose(plan.xy[:, 1], 0.0, atol=1e-9)
     assert plan.blocking_id == -1 and not plan.stops
 
 

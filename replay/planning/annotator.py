@@ -12,6 +12,10 @@ engine adds what it returns to the frame's :attr:`outputs.sinks.FrameResult.extr
 - with ``truth``: ``planner_label`` and ``planner_shift_m``, ``(N,)`` over the frame's
   agents (NaN for the ego, invalid agents and unknown labels), which the agents table
   writes as columns.
+
+Car planners plan for vehicle egos only (``ego_kinds="vehicles"``, the default): a frame
+whose ego is a pedestrian, a cyclist or another agent gets no plan (a failed plan naming
+why) and unknown labels, and is counted in ``skipped`` and the summary line.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ import numpy as np
 from outputs.sinks import FrameResult, SceneInfo
 from replay.planning.compare import DEFAULT_TOLERANCE_M, compare_plans
 from replay.planning.errors import NoReferencePath
-from replay.planning.inputs import plan_request
+from replay.planning.inputs import ego_kind, plan_request, plans_for
 from replay.planning.truth import planner_truth, target_speed
 from replay.planning.types import Plan, Planner, PlanRequest
 from risk.filtering import cascade_answer
@@ -45,6 +49,8 @@ class PlannerAnnotator:
     tolerance_m: float = DEFAULT_TOLERANCE_M
     horizon_s: float = 5.0
     dt_s: float = 0.1
+    #: ``vehicles`` (plan for vehicle egos only) or ``all`` (replay.planning.inputs).
+    ego_kinds: str = "vehicles"
 
     def __post_init__(self) -> None:
         self.info: SceneInfo | None = None
@@ -52,6 +58,8 @@ class PlannerAnnotator:
         self._columns: dict[int, int] = {}
         #: Per annotated frame: (all-agents plan ms, filtered plan ms, changed or None).
         self.records: list[tuple[float, float, bool | None]] = []
+        #: Frames not planned for the ego's kind, by kind name.
+        self.skipped: dict[str, int] = {}
 
     @property
     def name(self) -> str:
@@ -60,8 +68,15 @@ class PlannerAnnotator:
     def summary(self) -> str:
         """One line for the end of a run: how often the cascade changed the plan, and
         the median planning times with all agents and with the cascade's."""
+        skipped = (
+            f"; skipped {sum(self.skipped.values())} frames whose ego is not a vehicle ("
+            + ", ".join(f"{k}: {n}" for k, n in sorted(self.skipped.items()))
+            + ")"
+            if self.skipped
+            else ""
+        )
         if not self.records:
-            return f"Planner {self.name}: no frame planned"
+            return f"Planner {self.name}: no frame planned{skipped}"
         all_ms = np.array([r[0] for r in self.records])
         filtered_ms = np.array([r[1] for r in self.records])
         changed = [r[2] for r in self.records if r[2] is not None]
@@ -77,7 +92,7 @@ class PlannerAnnotator:
             f"Planner {self.name}: the cascade's agents changed the plan in "
             f"{sum(changed)} of {len(changed)} comparable frames"
             + (f" ({failed} frames without a plan either way)" if failed else "")
-            + f"; {times}"
+            + f"; {times}{skipped}"
         )
 
     def begin(self, info: SceneInfo) -> None:
@@ -97,6 +112,17 @@ class PlannerAnnotator:
         """The frame's plans (and labels); see the module docstring."""
         assert self.info is not None, "begin() first"
         frame = result.frame
+        if not plans_for(frame, self.ego_kinds):
+            kind = ego_kind(frame)
+            self.skipped[kind] = self.skipped.get(kind, 0) + 1
+            skipped = Plan.failed(f"the ego is a {kind}: car planners plan for vehicles")
+            out: dict[str, Any] = {"plan_all": skipped}
+            if self.filtered:
+                out.update(plan_filtered=skipped, plan_changed=None)
+            if self.truth:
+                n = frame.n_agents
+                out.update(planner_label=np.full(n, np.nan), planner_shift_m=np.full(n, np.nan))
+            return out
         speed_now = float(frame.speed[frame.ego])
         target = speed_now
         tracks = self._tracks_now()
@@ -105,7 +131,7 @@ class PlannerAnnotator:
             column = self._columns[frame.ego_id]
             target = target_speed(tracks, row, column, self.horizon_s, speed_now)
         n = frame.n_agents
-        out: dict[str, Any] = {}
+        out = {}
         try:
             request = plan_request(
                 frame, self.info.map, target_speed_mps=target, horizon_s=self.horizon_s,

@@ -7,10 +7,19 @@ candidates, costs and checks.
 
 The adapter:
 
-- reference line: ``request.reference``; corridor: ``lanes_right`` + the ego's lane +
-  ``lanes_left`` parallel lanes of ``lane_width_m`` (``fp.Corridor.parallel_lanes``);
-- ego: projected onto the reference (arc ``s``, offset ``d``; speed split along and
-  across the path by the heading's angle to it);
+- reference line: ``request.reference`` (the ego's lane centre line, no kink at the
+  ego); corridor: ``lanes_right`` + the ego's lane + ``lanes_left`` parallel lanes of
+  ``lane_width_m`` (``fp.Corridor.parallel_lanes``);
+- ego: projected onto the reference (arc ``s``, offset ``d``: the ego at its lateral
+  offset from its lane centre; speed split along and across the path by the heading's
+  angle to it, so the heading error is in the initial state);
+- limits from the scene: the vehicle's top speed is the larger of the target speed (the
+  fastest the recorded driver drove over the horizon) and the ego's speed, times
+  TOP_SPEED_FACTOR plus TOP_SPEED_MARGIN_MPS, rounded up to TOP_SPEED_STEP_MPS
+  (fiss-planner's default 30 m/s rejected every candidate of an ego at motorway speed);
+- a failure names its cause (:func:`failure_reason`): fiss-planner's rejection counts,
+  and whether the request has a plan without its agents (planned once more, on failures
+  only, outside ``plan_ms``);
 - obstacles: each agent's forecast, time-stamped, with its box (static when it never
   moves); the binding takes one ``fp.Obstacle`` per agent, so this conversion is the one
   loop over agents (about 2 us each, measured in benchmarks/bench_planner.py);
@@ -45,6 +54,133 @@ INSTALL_HINT = "pip install 'riskreplay[planner]'"
 #: quintic lateral profiles and the spline fit of the reference line.
 MAY_MATTER_SLACK_M = 2.0
 
+#: The top speed from the scene: the fastest of target, ego and agents, times this, plus
+#: the margin, rounded up to the step (so that few planner instances are made: one per
+#: top speed).
+TOP_SPEED_FACTOR = 1.1
+TOP_SPEED_MARGIN_MPS = 2.0
+TOP_SPEED_STEP_MPS = 5.0
+
+#: The ego's lane is widened to hold the ego's footprint now, plus fiss-planner's lane
+#: margin and this slack (m), tapering back to the lane over the horizon's driving.
+EGO_LANE_SLACK_M = 0.05
+
+#: fiss-planner's rejection classes: limits of the vehicle and the road, and obstacles.
+KINEMATIC_REJECTIONS = ("invalid", "speed", "accel", "curvature", "lat_accel", "off_road")
+OBSTACLE_REJECTIONS = ("collision", "safety_distance")
+
+
+def top_speed_mps(request: PlanRequest) -> float:
+    """The vehicle's top speed for this request (see the module docstring). The agents'
+    speeds do not count: a filter's or the planner truth's subset of the agents must not
+    change the vehicle (and the ego need not outrun anyone to follow them)."""
+    fastest = max(request.target_speed_mps, request.ego.speed_mps, 0.0)
+    top = fastest * TOP_SPEED_FACTOR + TOP_SPEED_MARGIN_MPS
+    return float(math.ceil(top / TOP_SPEED_STEP_MPS) * TOP_SPEED_STEP_MPS)
+
+
+#: Scales tried for the box of an agent that overlaps the ego now (see box_scales).
+BOX_SCALES = (0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.2, 0.1)
+
+
+def box_scales(request: PlanRequest, margin_lon_m: float, margin_lat_m: float) -> np.ndarray:
+    """``(K,)``: the factor for each agent's length and width given to fiss-planner: 1,
+    or for an agent whose recorded box overlaps the ego's now (inflated by fiss-planner's
+    collision margins) the largest of BOX_SCALES that clears it, 0 when none does (the
+    agent is then left out).
+
+    Every candidate starts in collision with such an agent, so fiss-planner rejected them
+    all (in MONA, where recorded boxes of queued cars overlap, a third of the failures of
+    a sample), although no plan can undo a collision already in progress (nuPlan counts a
+    collision with an agent once, when it starts). The smaller box still blocks the way.
+    ``Plan.extras["shrunk_agents"]`` counts them.
+    """
+    a, e = request.agents, request.ego
+    scale = np.ones(a.n)
+    # Only boxes whose circumscribed circles meet can overlap: the test on those alone.
+    reach = 0.5 * np.hypot(e.length_m + 2 * margin_lon_m, e.width_m + 2 * margin_lat_m)
+    near = np.hypot(*(a.xy[:, 0] - e.xy).T) <= reach + 0.5 * np.hypot(a.length_m, a.width_m)
+    if not near.any():
+        return scale
+    hit = near.copy()
+    hit[near] = overlapping_now(
+        request.with_agents(a.subset(near)), margin_lon_m, margin_lat_m, scale[near]
+    )
+    for factor in BOX_SCALES:
+        if not hit.any():
+            break
+        scale = np.where(hit, factor, scale)
+        sub = request.with_agents(a.subset(hit))
+        hit[hit] = overlapping_now(sub, margin_lon_m, margin_lat_m, scale[hit])
+    return np.where(hit, 0.0, scale)
+
+
+def overlapping_now(
+    request: PlanRequest, margin_lon_m: float, margin_lat_m: float, scale: np.ndarray
+) -> np.ndarray:
+    """``(K,)`` bool: the agent's box at t = 0, its length and width times ``scale``,
+    overlaps the ego's box inflated by the margins (separating-axis test, vectorised)."""
+    a = request.agents
+    if a.n == 0:
+        return np.zeros(0, dtype=bool)
+    e = request.ego
+
+    def corners(xy: np.ndarray, heading: np.ndarray, half_l: np.ndarray, half_w: np.ndarray):
+        c, s = np.cos(heading)[:, None], np.sin(heading)[:, None]
+        u = np.array([1.0, -1.0, -1.0, 1.0])[None] * half_l[:, None]
+        v = np.array([1.0, 1.0, -1.0, -1.0])[None] * half_w[:, None]
+        return np.stack([xy[:, None, 0] + c * u - s * v, xy[:, None, 1] + s * u + c * v], -1)
+
+    ego = corners(
+        e.xy[None], np.array([e.heading_rad]),
+        np.array([e.length_m / 2 + margin_lon_m]), np.array([e.width_m / 2 + margin_lat_m]),
+    )  # fmt: skip
+    other = corners(a.xy[:, 0], a.heading_rad[:, 0], scale * a.length_m / 2, scale * a.width_m / 2)
+    axes_ego = np.array([[math.cos(e.heading_rad), math.sin(e.heading_rad)]])
+    axes_ego = np.concatenate([axes_ego, axes_ego[:, ::-1] * [-1.0, 1.0]])  # (2, 2)
+    h = a.heading_rad[:, 0]
+    axes_other = np.stack(
+        [np.stack([np.cos(h), np.sin(h)], -1), np.stack([-np.sin(h), np.cos(h)], -1)], 1
+    )  # (K, 2, 2)
+    axes = np.concatenate([np.broadcast_to(axes_ego, (a.n, 2, 2)), axes_other], 1)  # (K, 4, 2)
+    pe = np.einsum("kad,pd->kap", axes, ego[0])  # (K, 4 axes, 4 corners)
+    po = np.einsum("kad,kpd->kap", axes, other)
+    apart = (pe.max(-1) < po.min(-1)) | (po.max(-1) < pe.min(-1))
+    return np.asarray(~apart.any(axis=1))
+
+
+def failure_reason(
+    rejections: dict[str, int], n_agents: int, feasible_without_agents: bool | None = None
+) -> str:
+    """Why fiss-planner found no plan, from its rejection counts per class and, with
+    agents, whether the same request without any agent has a plan:
+
+    - "no candidate generated";
+    - "no feasible path (no agents)": no agent, and every candidate broke a limit of the
+      vehicle or the road;
+    - "no feasible path (also without agents)": the request fails without its agents too
+      (the reference, the lanes or the ego's state: no agent is to blame);
+    - "all candidates collide": every rejection was a collision or a safety distance;
+    - "blocked by agents": a plan exists without the agents, and with them every
+      candidate collided or broke a limit (e.g. avoiding one swerves too hard);
+
+    followed by the counts, largest first (e.g. ``": collision 80, lat_accel 45"``).
+    """
+    counts = {k: int(n) for k, n in rejections.items() if int(n) > 0}
+    if not counts:
+        return "no candidate generated"
+    kinematic = sum(counts.get(k, 0) for k in KINEMATIC_REJECTIONS)
+    if n_agents == 0:
+        what = "no feasible path (no agents)"
+    elif feasible_without_agents is False:
+        what = "no feasible path (also without agents)"
+    elif kinematic == 0:
+        what = "all candidates collide"
+    else:
+        what = "blocked by agents"
+    detail = ", ".join(f"{k} {n}" for k, n in sorted(counts.items(), key=lambda kv: -kv[1]))
+    return f"{what}: {detail}"
+
 
 def load_fiss_planner() -> ModuleType:
     """The ``fiss_planner`` module, or PlannerUnavailable naming the extra to install."""
@@ -73,12 +209,61 @@ class FrenetPlanner:
         self.variant = variant
         self.name = variant
         self.overrides = dict(overrides or {})
-        self._planners: dict[tuple[float, float, float, float], Any] = {}
+        self._planners: dict[tuple[float, float, float, float, float], Any] = {}
+        self._config_made: Any = None
 
     # ------------------------------------------------------------------ the planner
+    def _corridor(
+        self, request: PlanRequest, length_m: float, s0: float, d0: float, rel: float
+    ) -> Any:
+        """``lanes_right`` + the ego's lane + ``lanes_left`` parallel lanes of
+        ``lane_width_m``, the ego's lane widened where the ego's footprint now sticks out
+        of it (its offset ``d0`` and heading ``rel`` to the reference), back to the lane
+        over the horizon at the ego's speed, and never narrower than the ego plus the
+        slack: otherwise an ego astride a lane line, turned in its lane, or wider than a
+        3.5 m lane less fiss-planner's margins (a 2.8 m truck, a 3.4 m bus) is off the
+        road in every candidate."""
+        fp = self.fp
+        w = request.lane_width_m
+        ego = request.ego
+        taper = max(request.horizon_s * max(ego.speed_mps, request.target_speed_mps), 10.0)
+        # The bands are linear between stations (and held beyond them): the fade needs
+        # its two ends; a few between follow the max() of the widened and the lane edge.
+        stations = np.unique(
+            np.clip(np.r_[0.0, s0 + taper * np.linspace(0.0, 1.0, 9), length_m], 0.0, length_m)
+        )
+        across = 0.5 * ego.length_m * abs(math.sin(rel)) + 0.5 * ego.width_m * abs(math.cos(rel))
+        slack = self._config().sampling.lane_margin + EGO_LANE_SLACK_M
+        half = max(0.5 * w, 0.5 * ego.width_m + slack)  # the ego's lane holds the ego
+        fade = np.clip(1.0 - (stations - s0) / taper, 0.0, 1.0)  # 1 up to the ego, then 0
+        corridor = fp.Corridor(stations.tolist())
+        for k in range(-request.lanes_right, request.lanes_left + 1):
+            centre = np.full(stations.size, k * w)
+            left, right = centre + 0.5 * w, centre - 0.5 * w
+            if k == 0:
+                centre = fade * d0  # where the ego is, then its lane's centre
+                left = np.maximum(centre + half, fade * (d0 + across + slack))
+                right = np.minimum(centre - half, fade * (d0 - across - slack))
+            band = fp.LaneBand()
+            band.lane_id, band.offset = k, k
+            band.left, band.right = left.tolist(), right.tolist()
+            band.center = centre.tolist()
+            corridor.add_lane(band)
+        return corridor
+
     def _config(self) -> Any:
-        """The variant's configuration with the overrides applied."""
+        """The configuration (:meth:`_make_config`), made once; read, never changed."""
+        if self._config_made is None:
+            self._config_made = self._make_config()
+        return self._config_made
+
+    def _make_config(self) -> Any:
+        """The variant's configuration with the overrides applied. Collisions with an
+        agent behind the ego in its lane are ignored (``collision.ignore_rear_in_lane``):
+        a follower that hits the ego is at fault (nuPlan's rule), and a queued follower
+        within fiss-planner's safety gap otherwise rejects every candidate."""
         config = self.fp.make_config(self.variant)
+        config.collision.ignore_rear_in_lane = True
         for path, value in self.overrides.items():
             *parents, last = path.split(".")
             target = config
@@ -87,26 +272,40 @@ class FrenetPlanner:
             setattr(target, last, value)
         return config
 
+    def _vehicle(self, request: PlanRequest) -> Any:
+        """fiss-planner's vehicle: the ego's size, the top speed from the scene."""
+        vehicle = self.fp.VehicleParams()
+        if request.ego.length_m > 0 and request.ego.width_m > 0:
+            vehicle.length = request.ego.length_m
+            vehicle.width = request.ego.width_m
+        vehicle.max_speed = top_speed_mps(request)
+        return vehicle
+
     def _planner(self, request: PlanRequest) -> Any:
-        """One fiss-planner instance per (dt, horizon, ego size), reset for each call."""
-        key = (request.dt_s, request.horizon_s, request.ego.length_m, request.ego.width_m)
+        """One fiss-planner instance per (dt, horizon, ego size, top speed), reset for
+        each call."""
+        vehicle = self._vehicle(request)
+        key = (
+            request.dt_s, request.horizon_s, float(vehicle.length), float(vehicle.width),
+            float(vehicle.max_speed),
+        )  # fmt: skip
         planner = self._planners.get(key)
         if planner is None:
-            config = self._config()
+            config = self._make_config()  # its own: the sampling is set per instance
             config.sampling.dt = request.dt_s
             config.sampling.max_t = request.horizon_s
             config.sampling.min_t = min(config.sampling.min_t, request.horizon_s)
-            vehicle = self.fp.VehicleParams()
-            if request.ego.length_m > 0 and request.ego.width_m > 0:
-                vehicle.length = request.ego.length_m
-                vehicle.width = request.ego.width_m
             planner = self.fp.make_planner(config, vehicle)
             self._planners[key] = planner
         planner.reset()
         return planner
 
-    def _obstacles(self, request: PlanRequest) -> list[Any]:
-        a = request.agents
+    def _obstacles(self, request: PlanRequest, scale: np.ndarray) -> list[Any]:
+        """fiss-planner's obstacles: every agent's forecast, its box times ``scale``
+        (``box_scales``; agents with scale 0 left out)."""
+        keep = scale > 0.0
+        a = request.agents.subset(keep) if not keep.all() else request.agents
+        scale = scale[keep]
         times = a.times_s.tolist()
         moves = np.asarray((np.abs(np.diff(a.xy, axis=1)) > 1e-9).any(axis=(1, 2)), dtype=bool)
         static = (~moves).tolist()
@@ -115,8 +314,8 @@ class FrenetPlanner:
             make(int(i), float(ln), float(w), times, x, y, h, bool(still))
             for i, ln, w, x, y, h, still in zip(
                 a.ids.tolist(),
-                a.length_m.tolist(),
-                a.width_m.tolist(),
+                (scale * a.length_m).tolist(),
+                (scale * a.width_m).tolist(),
                 a.xy[..., 0].tolist(),
                 a.xy[..., 1].tolist(),
                 a.heading_rad.tolist(),
@@ -129,12 +328,10 @@ class FrenetPlanner:
         fp = self.fp
         start = time.perf_counter()
         ref = fp.ReferenceLine(request.reference[:, 0], request.reference[:, 1])
-        corridor = fp.Corridor.parallel_lanes(
-            0.0, ref.length, request.lane_width_m, request.lanes_left, request.lanes_right
-        )
         ego = request.ego
         proj = ref.project(float(ego.xy[0]), float(ego.xy[1]))
         rel = ego.heading_rad - ref.at(proj.s).yaw
+        corridor = self._corridor(request, float(ref.length), float(proj.s), float(proj.d), rel)
         state = fp.FrenetState(
             s=proj.s,
             s_d=ego.speed_mps * math.cos(rel),
@@ -142,7 +339,9 @@ class FrenetPlanner:
             d=proj.d,
             d_d=ego.speed_mps * math.sin(rel),
         )
-        obstacles = self._obstacles(request)
+        config = self._config()
+        scale = box_scales(request, config.collision.margin_lon, config.collision.margin_lat)
+        obstacles = self._obstacles(request, scale)
         planner = self._planner(request)
         result = planner.plan(
             state, ref, corridor, obstacles, target_speed=float(request.target_speed_mps)
@@ -150,9 +349,19 @@ class FrenetPlanner:
         stats = result.stats
         blocking = int(stats.blocking_id)
         if not result.success:
+            plan_ms = (time.perf_counter() - start) * 1e3  # without the diagnosis below
+            rejections = dict(stats.rejections)
+            alone = None
+            if request.agents.n:  # the same request without agents: who is to blame?
+                planner.reset()
+                alone = bool(
+                    planner.plan(
+                        state, ref, corridor, [], target_speed=float(request.target_speed_mps)
+                    ).success
+                )
             return Plan.failed(
-                "no feasible trajectory",
-                plan_ms=(time.perf_counter() - start) * 1e3,
+                failure_reason(rejections, request.agents.n, alone),
+                plan_ms=plan_ms,
                 blocking_id=blocking,
             )
         times, xy, heading, speed = self._resample(result.trajectory, request.times_s)
@@ -167,7 +376,11 @@ class FrenetPlanner:
             lane=int(result.trajectory.lane),
             stops=bool((speed < STOP_SPEED_MPS).any()),
             blocking_id=blocking,
-            extras={"core_ms": float(stats.time_ms), "candidates": float(stats.num_generated)},
+            extras={
+                "core_ms": float(stats.time_ms),
+                "candidates": float(stats.num_generated),
+                "shrunk_agents": float((scale < 1.0).sum()),
+            },
         )
 
     @staticmethod
@@ -217,7 +430,7 @@ class FrenetPlanner:
         if a.n == 0:
             return np.zeros(0, dtype=bool)
         config = self._config()
-        vehicle = self.fp.VehicleParams()
+        vehicle = self._vehicle(request)
         cost, safety, coll = config.cost, config.safety, config.collision
         horizon = request.horizon_s
         ego = request.ego

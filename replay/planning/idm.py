@@ -9,17 +9,27 @@ with ``v`` the ego's speed, ``v0`` the target speed, ``s`` the bumper-to-bumper 
 leader and ``dv = v - v_leader``. The ego is simulated forward along its reference path at
 the request's ``dt_s`` over the horizon (a ballistic update that never reverses).
 
+The ego's path: the reference (its lane's centre line) with the ego's lateral offset
+from it now, returning to the centre line along a half-cosine over ``lane_return_s`` at
+the ego's speed (at least ``lane_return_min_m``), so that a plan starts where the ego is.
+
 Who counts, at each step (vectorised over agents; the loop runs over time steps only):
 
-- **Leaders**: agents whose predicted box overlaps the ego's lane corridor (lateral offset
-  of the centre from the reference below half the lane width plus the box's half extent
-  across the path), whose centre lies ahead of the ego's centre along the path, and which
-  move along the path (heading within 45 degrees of it). Gap and speed are measured along
-  the path.
+- **The corridor** is the ego's swept path: an agent is in it when its predicted box,
+  projected inside the reference (not beyond either end), comes within the ego's half
+  width plus ``corridor_margin_m`` of the ego's path (its centre's offset from the path
+  below that plus the rotated box's half extent across the path). This is nuPlan's test
+  (the path to go buffered by the ego's half width, intersected with the agents' boxes)
+  with a margin for the reference's chords and smoothing; docs/planners.md says why.
+- **Leaders**: agents in the corridor whose centre lies ahead of the ego's centre along
+  the path and which move along the path (heading within 45 degrees of it). Gap and speed
+  are measured along the path.
 - **Conflicts** (crossing or oncoming agents in the corridor ahead): the first point ahead
-  where the agent's box is in the corridor is a conflict point. When the ego, at its
-  current speed, would occupy that point within ``time_margin_s`` of the agent's stay in
-  the corridor, the agent acts as a stopped leader there: the ego yields.
+  where the agent's box is in the corridor is a conflict point. When the ego would occupy
+  that point within ``time_margin_s`` of the agent's stay in the corridor, the agent acts
+  as a stopped leader there: the ego yields. When the ego would get there is timed on the
+  free-road IDM speed profile from its speed now (a stopped ego moves off; timed at its
+  current speed it would never arrive, and never yield).
 
 Each agent gives one IDM acceleration; the least counts (clipped to ``[-max_decel, a0]``).
 ``blocking_id``: the agent with the least acceleration at the first step where it lies
@@ -28,12 +38,14 @@ more than ``blocking_margin_mps2`` below the free-road acceleration.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
+from converters.lanegraph import simplify
 from replay.planning.path_coords import CoordsCache, PathCoords, project
 from replay.planning.types import STOP_SPEED_MPS, Plan, PlanRequest
 from risk import geometry
@@ -49,7 +61,13 @@ class IdmSettings:
     acceleration is clipped to; ``time_margin_s``: how close in time the ego may pass a
     crossing agent's stay in its corridor before it yields; ``blocking_margin_mps2``: how
     far below the free-road acceleration an agent must push the ego to be reported as
-    blocking.
+    blocking; ``corridor_margin_m``: added to the ego's half width for the corridor;
+    ``lane_return_s`` / ``lane_return_min_m``: how far (time at the ego's speed, least
+    distance) the ego's path takes to return from its offset to the lane centre;
+    ``reference_tolerance_m``: the planner works on the reference thinned by
+    Ramer-Douglas-Peucker to this tolerance (every agent at every step is projected onto
+    it: a straight motorway reference of 140 points becomes 2, and a longer reference
+    costs nothing where it is straight).
     """
 
     a0_mps2: float = 1.0
@@ -60,6 +78,10 @@ class IdmSettings:
     max_decel_mps2: float = 8.0
     time_margin_s: float = 1.5
     blocking_margin_mps2: float = 0.1
+    corridor_margin_m: float = 0.2
+    lane_return_s: float = 3.0
+    lane_return_min_m: float = 15.0
+    reference_tolerance_m: float = 0.02
 
 
 class IdmPlanner:
@@ -71,6 +93,17 @@ class IdmPlanner:
     def __init__(self, settings: IdmSettings | None = None) -> None:
         self.settings = IdmSettings() if settings is None else settings
         self._coords = CoordsCache()
+        self._thinned: tuple[np.ndarray, np.ndarray] | None = None
+
+    def _reference(self, request: PlanRequest) -> np.ndarray:
+        """The request's reference thinned (see IdmSettings), the same object for the
+        same reference (so that the coordinates cache serves a filter's and the
+        counterfactual plans of one request)."""
+        ref = request.reference
+        if self._thinned is None or self._thinned[0] is not ref:
+            thin = np.ascontiguousarray(ref[simplify(ref, self.settings.reference_tolerance_m)])
+            self._thinned = (ref, thin)
+        return self._thinned[1]
 
     # ------------------------------------------------------------------ may_matter
     def may_matter(self, request: PlanRequest) -> np.ndarray:
@@ -80,9 +113,9 @@ class IdmPlanner:
         means no constraint, and its acceleration term is then +inf, which leaves the
         minimum over agents unchanged):
 
-        - as a leader: its box is in the corridor at step ``k`` (``lateral_m < lane_width
-          / 2 + half_across_m``), it moves along the path, and its arc exceeds the ego's
-          arc ``s_k``;
+        - as a leader: its box is in the corridor at step ``k`` (see :func:`_corridor`;
+          the corridor depends on the request alone, not on the simulation), it moves
+          along the path, and its arc exceeds the ego's arc ``s_k``;
         - as a conflict: it crosses or comes towards the ego, and at some step ``j >= k``
           its box is in the corridor with its arc beyond ``s_k``.
 
@@ -95,9 +128,11 @@ class IdmPlanner:
         a = request.agents.on_times(request.times_s)
         if a.n == 0:
             return np.zeros(0, dtype=bool)
-        c = self._coords.get(request.reference, a)
-        inside = _in_corridor(c, request.lane_width_m)
-        s0 = float(project(request.reference, request.ego.xy[None])[1][0])
+        ref = self._reference(request)
+        c = self._coords.get(ref, a)
+        lane = _EgoLane.of(request, ref, self.settings)
+        inside = _corridor(c, lane, request.ego.width_m, self.settings)
+        s0 = lane.s0
         v = max(request.ego.speed_mps, 0.0)
         b = self.settings.max_decel_mps2
         t = np.minimum(a.times_s, v / b)  # braking at the limit stops at v / b
@@ -113,17 +148,18 @@ class IdmPlanner:
         times = request.times_s
         dt = request.dt_s
         n_steps = times.size
-        ref = request.reference
+        ref = self._reference(request)
         ego = request.ego
         half_ego = ego.length_m / 2.0
         v0 = max(request.target_speed_mps, 0.1)
         sqrt_ab = 2.0 * math.sqrt(p.a0_mps2 * p.b_mps2)
+        lane = _EgoLane.of(request, ref, p)
 
         agents = request.agents.on_times(times)  # the plan's steps
         ids = agents.ids
         if agents.n:
             coords = self._coords.get(ref, agents)
-            inside = _in_corridor(coords, request.lane_width_m)
+            inside = _corridor(coords, lane, ego.width_m, p)
             # Only agents that are ever in the corridor can constrain (see may_matter):
             # the loop over steps works on those alone.
             ever = np.asarray(inside.any(axis=1))
@@ -134,7 +170,7 @@ class IdmPlanner:
             any_crossing = bool(crossing.any())
         s = np.empty(n_steps)
         v = np.empty(n_steps)
-        s[0] = float(project(ref, ego.xy[None])[1][0])
+        s[0] = lane.s0
         v[0] = max(ego.speed_mps, 0.0)
         blocking_id = -1
         # Agents that alone set a step's acceleration (see plan's docstring): the only
@@ -146,7 +182,7 @@ class IdmPlanner:
             if ids.size:
                 gap, v_lead = self._constraints(
                     coords, inside, crossing if any_crossing else None, t_out, k, times,
-                    s[k], v[k], half_ego,
+                    s[k], v[k], half_ego, v0,
                 )  # fmt: skip
                 s_star = p.s0_m + np.maximum(
                     0.0, v[k] * p.headway_s + v[k] * (v[k] - v_lead) / sqrt_ab
@@ -173,7 +209,7 @@ class IdmPlanner:
             else:  # stops within the step
                 s[k + 1] = s[k] + v[k] ** 2 / (2.0 * -accel)
                 v[k + 1] = 0.0
-        xy, heading = _along(ref, s)
+        xy, heading = lane.points(ref, s)
         return Plan(
             ok=True,
             times_s=times,
@@ -198,6 +234,7 @@ class IdmPlanner:
         s_ego: float,
         v_ego: float,
         half_ego: float,
+        v0: float,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Gap ``(K,)`` (m, NaN: not constraining) and leader speed along the path ``(K,)``
         for every agent at step ``k``."""
@@ -219,14 +256,15 @@ class IdmPlanner:
             s_c = c.arc_m[rows, first]
             half = c.half_along_m[rows, first]
             t_in = times[first]
-            speed = max(v_ego, 1e-3)
-            t_arrive = times[k] + (s_c - half - s_ego - half_ego) / speed
-            t_clear = times[k] + (s_c + half - s_ego + half_ego) / speed
-            m = self.settings.time_margin_s
+            p = self.settings
+            reach = s_c - half - s_ego - half_ego
+            clear = s_c + half - s_ego + half_ego
+            t_arrive = times[k] + free_road_time_s(reach, v_ego, v0, p.a0_mps2, p.delta)
+            t_clear = times[k] + free_road_time_s(clear, v_ego, v0, p.a0_mps2, p.delta)
+            m = p.time_margin_s
             conflict = has & (t_arrive <= t_out + m) & (t_clear >= t_in - m)
-            gap_c = s_c - half - s_ego - half_ego
-            use = conflict & ~(gap_c >= gap)  # the nearer constraint of the two
-            gap = np.where(use, gap_c, gap)
+            use = conflict & ~(reach >= gap)  # the nearer constraint of the two
+            gap = np.where(use, reach, gap)
             v_lead = np.where(use, 0.0, v_lead)
         return gap, v_lead
 
@@ -235,16 +273,92 @@ def _clip(accel: float, p: IdmSettings) -> float:
     return min(max(accel, -p.max_decel_mps2), p.a0_mps2)
 
 
-def _in_corridor(c: PathCoords, lane_width_m: float) -> np.ndarray:
-    """``(K, T)``: the box overlaps the ego's lane corridor around the reference."""
-    return np.asarray(c.lateral_m < lane_width_m / 2.0 + c.half_across_m)
+@dataclass(frozen=True)
+class _EgoLane:
+    """The ego's path: the reference with a lateral offset ``d0`` (m, + left) at the
+    ego's arc ``s0`` that returns to 0 along a half-cosine over ``return_m``."""
+
+    s0: float
+    d0: float
+    return_m: float
+
+    @classmethod
+    def of(cls, request: PlanRequest, reference: np.ndarray, p: IdmSettings) -> _EgoLane:
+        ego = request.ego
+        dist, arc = project(reference, ego.xy[None])
+        d = np.diff(reference, axis=0)
+        cum = geometry.cumulative_lengths(reference[None])[0]
+        seg = int(np.clip(np.searchsorted(cum, arc[0], side="right") - 1, 0, len(d) - 1))
+        foot = np.array([np.interp(arc[0], cum, reference[:, c]) for c in (0, 1)])
+        rel = ego.xy - foot
+        side = 1.0 if d[seg, 0] * rel[1] - d[seg, 1] * rel[0] >= 0.0 else -1.0
+        speed = max(ego.speed_mps, request.target_speed_mps, 0.0)
+        return cls(
+            s0=float(arc[0]),
+            d0=side * float(dist[0]),
+            return_m=max(p.lane_return_s * speed, p.lane_return_min_m),
+        )
+
+    def offset_at(self, arc: np.ndarray) -> np.ndarray:
+        """The path's lateral offset (m) at arc lengths ``arc`` (any shape)."""
+        x = np.clip((np.asarray(arc) - self.s0) / self.return_m, 0.0, 1.0)
+        return self.d0 * 0.5 * (1.0 + np.cos(np.pi * x))
+
+    def points(self, reference: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Points ``(T, 2)`` and headings ``(T,)`` of the path at arc lengths ``s``."""
+        path = reference[None]
+        cum = geometry.cumulative_lengths(path)
+        xy, seg = geometry.interpolate(path, cum, s[None])
+        d = np.diff(reference, axis=0)
+        base = np.arctan2(d[:, 1], d[:, 0])[np.minimum(seg[0], len(d) - 1)]
+        normal = np.stack([-np.sin(base), np.cos(base)], axis=1)
+        x = np.clip((s - self.s0) / self.return_m, 0.0, 1.0)
+        slope = -self.d0 * 0.5 * np.pi / self.return_m * np.sin(np.pi * x)
+        return xy[0] + normal * self.offset_at(s)[:, None], base + np.arctan(slope)
 
 
-def _along(reference: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Points ``(T, 2)`` and headings ``(T,)`` at arc lengths ``s`` along the reference."""
-    path = reference[None]
-    cum = geometry.cumulative_lengths(path)
-    xy, seg = geometry.interpolate(path, cum, s[None])
-    d = np.diff(reference, axis=0)
-    heading = np.arctan2(d[:, 1], d[:, 0])[np.minimum(seg[0], len(d) - 1)]
-    return xy[0], heading
+def _corridor(c: PathCoords, lane: _EgoLane, ego_width_m: float, p: IdmSettings) -> np.ndarray:
+    """``(K, T)``: the box, projected inside the reference, comes within the ego's half
+    width plus the margin of the ego's path (the module's docstring)."""
+    reach = ego_width_m / 2.0 + p.corridor_margin_m + c.half_across_m
+    return np.asarray(c.on_path & (np.abs(c.offset_m - lane.offset_at(c.arc_m)) < reach))
+
+
+@functools.lru_cache(maxsize=4)
+def _free_road_profile(delta: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """IDM on a free road from standstill in units of the target speed ``v0`` and the
+    acceleration ``a0`` (``du/dtau = 1 - u^delta``, ``dxi/dtau = u`` with ``u = v / v0``,
+    ``tau = t a0 / v0``, ``xi = x a0 / v0^2``): the same curve for every v0 and a0.
+    Returns ``tau``, ``u`` and ``xi`` on a grid of 0.01 up to tau = 20 (u > 0.9999)."""
+    step = 0.01
+    n = 2001
+    u = np.zeros(n)
+    xi = np.zeros(n)
+    for i in range(n - 1):  # once per process: RK4 of an autonomous ODE
+        ui = u[i]
+        k1 = 1.0 - ui**delta
+        k2 = 1.0 - (ui + 0.5 * step * k1) ** delta
+        k3 = 1.0 - (ui + 0.5 * step * k2) ** delta
+        k4 = 1.0 - (ui + step * k3) ** delta
+        u[i + 1] = ui + step * (k1 + 2 * k2 + 2 * k3 + k4) / 6.0
+        xi[i + 1] = xi[i] + 0.5 * step * (ui + u[i + 1])
+    return np.arange(n) * step, u, xi
+
+
+def free_road_time_s(
+    distance_m: np.ndarray, v_mps: float, v0_mps: float, a0_mps2: float, delta: float
+) -> np.ndarray:
+    """Time (s) the ego needs to cover ``distance_m`` (any shape; 0 where not positive)
+    on a free road under IDM from speed ``v_mps`` towards ``v0_mps``. At or above the
+    target speed it keeps its speed (IDM would slow it towards v0: a little later)."""
+    dist = np.maximum(np.asarray(distance_m, dtype=np.float64), 0.0)
+    tau, u, xi = _free_road_profile(float(delta))
+    ratio = v_mps / v0_mps
+    if ratio >= u[-1]:
+        return dist / max(v_mps, 1e-9)
+    tau0 = float(np.interp(ratio, u, tau))
+    xi0 = float(np.interp(tau0, tau, xi))
+    target = xi0 + dist * a0_mps2 / v0_mps**2
+    beyond = tau[-1] + (target - xi[-1]) / u[-1]  # past the table: at u[-1]
+    tau_end = np.where(target <= xi[-1], np.interp(target, xi, tau), beyond)
+    return (tau_end - tau0) * v0_mps / a0_mps2

@@ -14,15 +14,32 @@ import math
 
 import numpy as np
 
-from replay.planning.errors import NoReferencePath
+from replay.planning.errors import NoReferencePath, PlanningError
 from replay.planning.types import AgentForecasts, EgoState, PlanRequest, plan_times
 from risk import geometry
-from risk.frame import Frame, LaneMap
+from risk.frame import KIND_NAMES, Frame, Kind, LaneMap
+
+#: Which egos the car planners plan for: ``vehicles`` (the default: a pedestrian or a
+#: cyclist is not driven by a car planner) or ``all``.
+EGO_KINDS: tuple[str, ...] = ("vehicles", "all")
 
 #: Extra reference length beyond what the ego covers within the horizon (m): room for the
 #: planners' look-ahead (fiss-planner samples end states up to the horizon and checks the
-#: gap to a leader beyond the trajectory's end).
+#: gap to a leader beyond the trajectory's end). The reference also covers the fastest
+#: other agent's travel over the horizon beyond that (see :func:`plan_request`).
 REFERENCE_MARGIN_M = 50.0
+
+#: The reference starts this far behind the point where the ego's path meets its lane
+#: centre (m), so that the ego and the agents just behind it project inside it.
+REFERENCE_BEHIND_M = 10.0
+
+#: A map path starts at the agent and joins its lane's centre line ``join_m`` (2 m) ahead
+#: of its projection, at most 2 m to the side (converters.lanegraph.PathSettings): a first
+#: segment at most this long (m) in a path of three or more points is that join, and the
+#: reference drops it (the lane centre line, with the ego at its lateral offset, has no
+#: kink; a 1 m offset over a 2 m join is a 0.46 rad turn that no smoothing removes).
+JOIN_MAX_M = 3.0
+
 
 #: The reference is resampled at this spacing (m) and smoothed by a moving average over
 #: +-REFERENCE_SMOOTH_M: recorded paths join the lane graph with short kinked segments
@@ -31,6 +48,13 @@ REFERENCE_MARGIN_M = 50.0
 #: rejected every candidate for lateral acceleration at 12 m/s.
 REFERENCE_SPACING_M = 1.0
 REFERENCE_SMOOTH_M = 4.0
+
+#: At speed the smoothing window grows to +-(this many seconds x the ego's speed): at
+#: 40 m/s a lateral acceleration of 4 m/s^2 (fiss-planner's limit) is a curvature of
+#: 0.0025 /m, which the joints of a lane's centre line pieces exceed over +-4 m. A
+#: moving average over +-h moves a curve of radius R inwards by about h^2 / (6 R): 0.13 m
+#: for +-20 m on a 500 m motorway curve.
+REFERENCE_SMOOTH_S = 0.5
 
 #: The smoothed reference keeps a point every this many metres (and its last point): the
 #: planners' projections cost in proportion to its segments (every agent at every time is
@@ -55,6 +79,20 @@ LANE_COVERAGE = 0.5
 MIN_LANE_STRETCH_M = 30.0
 
 
+def ego_kind(frame: Frame) -> str:
+    """The frame's ego kind by name (``risk.Kind``: vehicle, pedestrian, cyclist, other)."""
+    return KIND_NAMES[int(frame.kinds[frame.ego])]
+
+
+def plans_for(frame: Frame, ego_kinds: str) -> bool:
+    """Whether a car planner plans for the frame's ego under ``ego_kinds`` (EGO_KINDS):
+    with ``vehicles`` only a vehicle ego (pedestrians, cyclists and ``other`` are
+    skipped)."""
+    if ego_kinds not in EGO_KINDS:
+        raise PlanningError(f"ego kinds: expected one of {', '.join(EGO_KINDS)}, got {ego_kinds!r}")
+    return ego_kinds == "all" or int(frame.kinds[frame.ego]) == int(Kind.VEHICLE)
+
+
 def plan_request(
     frame: Frame,
     lane_map: LaneMap,
@@ -72,11 +110,19 @@ def plan_request(
     e = frame.ego
     ego_speed = float(frame.speed[e])
     reach_m = max(ego_speed, float(target_speed_mps)) * horizon_s
-    reference = reference_path(frame, min_length_m=reach_m + REFERENCE_MARGIN_M)
+    others = np.flatnonzero(frame.others)
+    # Long enough that every agent ahead within the margin stays on it over the horizon:
+    # an agent whose forecast ran past the end was clamped to the end point, its speed
+    # along the path fell to 0, and IDM braked for a phantom standing car there.
+    fastest = float(frame.speed[others].max(initial=0.0))
+    reference = reference_path(
+        frame,
+        min_length_m=reach_m + REFERENCE_MARGIN_M + fastest * horizon_s,
+        smooth_m=max(REFERENCE_SMOOTH_M, REFERENCE_SMOOTH_S * reach_m / horizon_s),
+    )
     left, right = side_lanes(
         reference, lane_map, lane_width_m=lane_width_m, stretch_m=max(reach_m, MIN_LANE_STRETCH_M)
     )
-    others = np.flatnonzero(frame.others)
     return PlanRequest(
         ego=EgoState(
             xy=frame.xy[e].copy(),
@@ -96,30 +142,48 @@ def plan_request(
     )
 
 
-def reference_path(frame: Frame, *, min_length_m: float) -> np.ndarray:
-    """The ego's first path candidate, extended straight or cut to ``min_length_m``,
-    smoothed, a point every REFERENCE_POINT_SPACING_M: ``(P, 2)`` in m."""
+def reference_path(
+    frame: Frame, *, min_length_m: float, smooth_m: float = REFERENCE_SMOOTH_M
+) -> np.ndarray:
+    """The ego's lane centre line: its first path candidate without the join from the
+    ego to the centre line (see JOIN_MAX_M), extended REFERENCE_BEHIND_M backwards and
+    straight forwards or cut to ``min_length_m`` beyond the ego, smoothed over
+    ``+-smooth_m``, a point every REFERENCE_POINT_SPACING_M: ``(P, 2)`` in m. The ego
+    sits at its lateral offset from it; the planners take that offset and the heading
+    error into their initial state."""
     e = frame.ego
     row = int(np.searchsorted(frame.path_agent, e))
-    paths = frame.paths[row : row + 1]
-    points = frame.path_points[row : row + 1]
-    length = float(geometry.cumulative_lengths(paths)[0, -1])
+    n_points = int(frame.path_points[row])
+    path = frame.paths[row, :n_points]
+    length = float(geometry.cumulative_lengths(path[None])[0, -1])
     if length < MIN_PATH_M:
         raise NoReferencePath(
             f"ego {frame.ego_id} at t={frame.t:g} s has no path to plan along "
             f"(its path is {length:.2f} m long); choose a moving ego or a scene with paths"
         )
+    pts = path[np.r_[True, np.any(np.diff(path, axis=0) != 0.0, axis=1)]]
+    if len(pts) >= 3 and float(np.hypot(*(pts[1] - pts[0]))) <= JOIN_MAX_M:
+        pts = pts[1:]  # the join: the rest is the lane's centre line
+    # Backwards along the centre line's first metre (or first segment when shorter).
+    cum0 = geometry.cumulative_lengths(pts[None])[0]
+    ahead = geometry.interpolate(pts[None], cum0[None], np.array([[min(1.0, cum0[-1])]]))[0]
+    direction = ahead[0, 0] - pts[0]
+    direction /= max(float(np.hypot(*direction)), 1e-12)
+    behind = REFERENCE_BEHIND_M + float(frame.length[e])
+    pts = np.vstack([pts[0] - behind * direction, pts])
+    # The ego's arc on it: the reference reaches min_length_m beyond that.
+    cum1 = geometry.cumulative_lengths(pts[None])[0]
+    ego_arc = float(geometry.project_points(frame.xy[e][None], pts, cum1)[1][0])
+    want = ego_arc + float(min_length_m)
     ext, _ = geometry.extend_paths(
-        paths, points, frame.heading[e : e + 1], np.array([float(min_length_m)])
+        pts[None], np.array([len(pts)]), frame.heading[e : e + 1], np.array([want])
     )
     # Cut to what the planners need: every agent at every time is projected onto it.
     cum = geometry.cumulative_lengths(ext)
-    cut, n_cut = geometry.cut_paths(ext, cum, np.array([float(min_length_m)]))
+    cut, n_cut = geometry.cut_paths(ext, cum, np.array([want]))
     pts = cut[0, : int(n_cut[0])]
     keep = np.r_[True, np.any(np.diff(pts, axis=0) != 0.0, axis=1)]
-    smooth = smooth_polyline(
-        pts[keep], spacing_m=REFERENCE_SPACING_M, half_window_m=REFERENCE_SMOOTH_M
-    )
+    smooth = smooth_polyline(pts[keep], spacing_m=REFERENCE_SPACING_M, half_window_m=smooth_m)
     step = max(round(REFERENCE_POINT_SPACING_M / REFERENCE_SPACING_M), 1)
     rows = np.r_[np.arange(0, smooth.shape[0] - 1, step), smooth.shape[0] - 1]
     return np.ascontiguousarray(smooth[rows])
@@ -149,9 +213,13 @@ def forecasts_for(frame: Frame, indices: np.ndarray, times_s: np.ndarray) -> Age
     """Predicted boxes of the agents ``indices`` (K,) at ``times_s`` (T,).
 
     The toolkit's prediction (risk.prediction): constant speed along the agent's first path
-    candidate, extended straight along its last segment. Heading: the path's direction at
-    the predicted point for moving agents; the agent's own heading for standing ones (a
-    parked car's box keeps its orientation whatever its path says).
+    candidate, extended straight along its last segment. Heading: the agent's recorded
+    heading now (a standing agent keeps it: a parked car's box keeps its orientation
+    whatever its path says); then the path's direction at the predicted point, except on
+    a join (a first segment of at most JOIN_MAX_M in a path of three or more points: the
+    blend from the agent to its lane centre, whose direction is not where the agent
+    points; a truck recorded at 0.001 rad got 0.39 rad from it), along which the heading
+    turns linearly from the recorded one to the direction of the lane beyond the join.
     """
     idx = np.asarray(indices, dtype=np.int64)
     times = np.asarray(times_s, dtype=np.float64)
@@ -168,8 +236,16 @@ def forecasts_for(frame: Frame, indices: np.ndarray, times_s: np.ndarray) -> Age
     ux, uy = geometry.segment_unit_vectors(paths, heading)
     flat = seg + (np.arange(idx.size) * ux.shape[1])[:, None]
     path_heading = np.arctan2(np.take(uy.ravel(), flat), np.take(ux.ravel(), flat))
-    moving = speed > 0.0
-    heading_kt = np.where(moving[:, None], path_heading, heading[:, None])
+    first_len = np.hypot(*(paths[:, 1] - paths[:, 0]).T)  # (K,)
+    join = (frame.path_points[rows] >= 3) & (first_len <= JOIN_MAX_M) & (first_len > 0)
+    beyond = np.arctan2(uy[:, 1], ux[:, 1]) if ux.shape[1] > 1 else heading  # (K,)
+    turn = np.angle(np.exp(1j * (beyond - heading)))  # wrapped to (-pi, pi]
+    share = np.clip(arc / np.where(join, first_len, 1.0)[:, None], 0.0, 1.0)
+    on_join = join[:, None] & (arc < first_len[:, None])
+    heading_kt = np.where(arc > 0.0, path_heading, heading[:, None])
+    heading_kt = np.where(
+        on_join, np.angle(np.exp(1j * (heading[:, None] + share * turn[:, None]))), heading_kt
+    )
     return AgentForecasts(
         ids=frame.ids[idx],
         kinds=frame.kinds[idx],

@@ -27,7 +27,10 @@ class PathCoords:
     distance of the centre from the reference, m), ``half_along_m`` / ``half_across_m``
     (the rotated box's half extents along / across the path, m), ``along`` (bool: heading
     within ALONG_ANGLE_RAD of the path direction), ``speed_along_mps`` (rate of change of
-    ``arc_m``; a finite difference of the forecast)."""
+    ``arc_m``; a finite difference of the forecast), ``offset_m`` (signed lateral offset,
+    + to the left of the path's direction, m) and ``on_path`` (bool: the centre projects
+    inside the reference, not beyond either end; beyond an end ``arc_m`` is clamped to
+    it and says nothing about where the agent is along the path)."""
 
     arc_m: np.ndarray
     lateral_m: np.ndarray
@@ -35,6 +38,8 @@ class PathCoords:
     half_across_m: np.ndarray
     along: np.ndarray
     speed_along_mps: np.ndarray
+    offset_m: np.ndarray
+    on_path: np.ndarray
 
     def rows(self, which: np.ndarray) -> PathCoords:
         """The agents selected by a mask or index array ``(K,)``."""
@@ -45,6 +50,8 @@ class PathCoords:
             half_across_m=self.half_across_m[which],
             along=self.along[which],
             speed_along_mps=self.speed_along_mps[which],
+            offset_m=self.offset_m[which],
+            on_path=self.on_path[which],
         )
 
 
@@ -70,10 +77,23 @@ def path_coords(reference: np.ndarray, agents: AgentForecasts) -> PathCoords:
     rel = agents.heading_rad - seg_heading[seg]
     c, s = np.abs(np.cos(rel)), np.abs(np.sin(rel))
     half_l, half_w = agents.length_m[:, None] / 2.0, agents.width_m[:, None] / 2.0
+    offset, on_path = _side_and_span(reference, cum, agents.xy, arc, seg, seg_heading)
     if t >= 2:
+        # Forward differences, backward at the last step and where the next step is beyond
+        # the reference's end (its clamped arc would make the agent seem to stop there).
         dt = np.diff(agents.times_s)
         rate = np.diff(arc, axis=1) / dt[None, :]
-        speed = np.concatenate([rate, rate[:, -1:]], axis=1)
+        fine = on_path[:, :-1] & on_path[:, 1:]
+        forward = np.concatenate([rate, rate[:, -1:]], axis=1)
+        backward = np.concatenate([rate[:, :1], rate], axis=1)
+        ok_fwd = np.concatenate([fine, np.zeros((k, 1), dtype=bool)], axis=1)
+        ok_bwd = np.concatenate([np.zeros((k, 1), dtype=bool), fine], axis=1)
+        # Neither: the forecast's velocity along the path's direction there.
+        step = np.diff(agents.xy, axis=1) / dt[None, :, None]  # (K, T-1, 2)
+        vel = np.concatenate([step, step[:, -1:]], axis=1)
+        heading = seg_heading[seg]
+        tangential = vel[..., 0] * np.cos(heading) + vel[..., 1] * np.sin(heading)
+        speed = np.where(ok_fwd, forward, np.where(ok_bwd, backward, tangential))
     else:
         speed = np.zeros((k, t))
     return PathCoords(
@@ -83,7 +103,31 @@ def path_coords(reference: np.ndarray, agents: AgentForecasts) -> PathCoords:
         half_across_m=s * half_l + c * half_w,
         along=np.cos(rel) >= math.cos(ALONG_ANGLE_RAD),
         speed_along_mps=speed,
+        offset_m=np.where(offset < 0.0, -dist, dist),
+        on_path=on_path,
     )
+
+
+def _side_and_span(
+    reference: np.ndarray,
+    cum: np.ndarray,
+    xy: np.ndarray,
+    arc: np.ndarray,
+    seg: np.ndarray,
+    seg_heading: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(K, T)`` each: the points' offset from their foot on the reference across the
+    foot's segment (its sign says left / right) and whether the foot lies inside the
+    reference (a point beyond either end projects onto the end point)."""
+    foot_x = np.interp(arc, cum, reference[:, 0])
+    foot_y = np.interp(arc, cum, reference[:, 1])
+    ux, uy = np.cos(seg_heading[seg]), np.sin(seg_heading[seg])
+    rx, ry = xy[..., 0] - foot_x, xy[..., 1] - foot_y
+    across = ux * ry - uy * rx
+    ahead = ux * rx + uy * ry  # along the segment from the foot: non-zero only at an end
+    eps = 1e-6
+    beyond = ((arc <= cum[0] + eps) & (ahead < -eps)) | ((arc >= cum[-1] - eps) & (ahead > eps))
+    return across, ~beyond
 
 
 class CoordsCache:

@@ -34,7 +34,7 @@ from replay.core.engine import Stride, seen_from
 from replay.errors import ReplayError
 from replay.planning.compare import compare_plans
 from replay.planning.errors import NoReferencePath
-from replay.planning.inputs import plan_request
+from replay.planning.inputs import ego_kind, plan_request, plans_for
 from replay.planning.registry import make_planner
 from replay.planning.truth import planner_truth, target_speed
 from replay.planning.types import Plan, Planner, PlanRequest
@@ -63,6 +63,9 @@ class PlanSettings:
     horizon_s: float = 5.0
     dt_s: float = 0.1
     truth: bool = False
+    #: ``vehicles``: plan for vehicle egos only (ego-frames of pedestrians, cyclists and
+    #: other agents are skipped and counted); ``all``: every ego.
+    ego_kinds: str = "vehicles"
 
     def make_filters(self) -> list[Filter]:
         """The filters, parsed once (an unknown spec raises FilterSpecError)."""
@@ -92,12 +95,13 @@ PLAN_COLUMNS = (
     "scene", "dataset", "planner", "ego_id", "frame", "t_s", "filter", "n_others",
     "n_agents", "filter_ms", "plan_ms", "plan_ok", "changed", "max_shift_m", "why",
     "stops", "lane", "blocking_id", "blocking_dropped", "reason", "target_speed_mps",
+    "ego_kind",
 )  # fmt: skip
 
 #: Column types of the tables (columns that may be all null need theirs stated).
 SCHEMA: dict[str, str] = {
     "scene": "str", "dataset": "str", "planner": "str", "filter": "str", "why": "str",
-    "reason": "str", "ego_id": "int", "frame": "int", "n_others": "int", "n_agents": "int",
+    "reason": "str", "ego_kind": "str", "ego_id": "int", "frame": "int", "n_others": "int", "n_agents": "int",
     "lane": "int", "blocking_id": "int", "agent_id": "int", "kind": "int", "t_s": "float",
     "filter_ms": "float", "plan_ms": "float", "max_shift_m": "float",
     "target_speed_mps": "float", "distance_m": "float", "planner_shift_m": "float",
@@ -121,6 +125,10 @@ class ScenePlans:
     egos: tuple[int, ...]
     ego_frames: int
     no_path: int
+    #: Ego-frames and distinct egos not planned for their kind (PlanSettings.ego_kinds),
+    #: by kind name.
+    skipped_ego_frames: dict[str, int] = dataclasses.field(default_factory=dict)
+    skipped_egos: dict[str, int] = dataclasses.field(default_factory=dict)
 
 
 def scene_key(path: pathlib.Path) -> str:
@@ -188,7 +196,14 @@ def plan_scene(
     if truth is not None and cascade is None:
         cascade = CascadeFilter(settings.cascade)
     n_frames = no_path = 0
+    skipped: dict[str, int] = {}
+    skipped_ids: dict[str, set[int]] = {}
     for ego_id, index, frame in ego_frames(scene, egos, Stride.of(every)):
+        kind = ego_kind(frame)
+        if not plans_for(frame, settings.ego_kinds):
+            skipped[kind] = skipped.get(kind, 0) + 1
+            skipped_ids.setdefault(kind, set()).add(ego_id)
+            continue
         n_frames += 1
         row = round((frame.t - tracks.t0_s) / tracks.dt_s)
         speed_now = float(frame.speed[frame.ego])
@@ -197,6 +212,7 @@ def plan_scene(
             "scene": scene_key(path), "dataset": dataset, "planner": planner.name,
             "ego_id": ego_id, "frame": index, "t_s": float(frame.t),
             "n_others": int(frame.others.sum()), "target_speed_mps": target,
+            "ego_kind": kind,
         }  # fmt: skip
         try:
             request = plan_request(
@@ -240,6 +256,8 @@ def plan_scene(
         egos=egos,
         ego_frames=n_frames,
         no_path=no_path,
+        skipped_ego_frames=skipped,
+        skipped_egos={k: len(v) for k, v in skipped_ids.items()},
     )
 
 

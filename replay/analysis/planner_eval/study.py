@@ -44,6 +44,7 @@ from replay.analysis.planner_eval.open_loop import (
 from replay.core.egos import load_scene
 from replay.core.engine import Stride
 from replay.core.pool import parallel_map
+from replay.planning.inputs import plans_for
 from risk.evaluation import bootstrap_weights, percentile_interval
 from risk.filtering import CascadeFilter
 
@@ -61,6 +62,10 @@ class PlanTables:
     ego_frames: int
     no_path: int
     datasets: dict[str, str]
+    #: Ego-frames / distinct egos skipped for their kind (PlanSettings.ego_kinds), by kind.
+    skipped_ego_frames: dict[str, int] = dataclasses.field(default_factory=dict)
+    skipped_egos: dict[str, int] = dataclasses.field(default_factory=dict)
+    ego_kinds: str = "vehicles"
 
 
 def _task(item: tuple[str, PlanSettings, Any, Any]) -> ScenePlans:
@@ -108,7 +113,18 @@ def run_open_loop(
         ego_frames=sum(r.ego_frames for r in results),
         no_path=sum(r.no_path for r in results),
         datasets=datasets,
+        skipped_ego_frames=_add_counts(r.skipped_ego_frames for r in results),
+        skipped_egos=_add_counts(r.skipped_egos for r in results),
+        ego_kinds=settings.ego_kinds,
     )
+
+
+def _add_counts(parts: Any) -> dict[str, int]:
+    total: dict[str, int] = {}
+    for part in parts:
+        for key, n in part.items():
+            total[key] = total.get(key, 0) + n
+    return dict(sorted(total.items()))
 
 
 _POLARS_TYPES = {"str": pl.String, "int": pl.Int64, "float": pl.Float64, "bool": pl.Boolean}
@@ -138,7 +154,9 @@ def _kept_and_distances(item: tuple[str, PlanSettings, Any, Any]) -> tuple[list[
     cascade = CascadeFilter(settings.cascade)
     kept: list[int] = []
     distances: list[np.ndarray] = []
-    for n, (_, _, frame) in enumerate(ego_frames(scene, _egos(scene, ego), Stride.of(every))):
+    seen = ego_frames(scene, _egos(scene, ego), Stride.of(every))
+    planned = (f for _, _, f in seen if plans_for(f, settings.ego_kinds))  # as the open loop
+    for n, frame in enumerate(planned):
         kept.append(cascade.apply(frame).n_kept)
         d = frame.xy[frame.others] - frame.xy[frame.ego]
         distances.append(np.stack([np.full(d.shape[0], n), np.hypot(d[:, 0], d[:, 1])], axis=1))
@@ -237,6 +255,9 @@ def summarize(tables: PlanTables, *, n_boot: int = 1000, seed: int = 0) -> dict[
         "scenes": len(tables.scenes),
         "ego_frames": tables.ego_frames,
         "ego_frames_without_path": tables.no_path,
+        "ego_kinds": tables.ego_kinds,
+        "skipped_ego_frames_by_kind": tables.skipped_ego_frames,
+        "skipped_egos_by_kind": tables.skipped_egos,
         "distinct_egos": 0,
         "filters": {},
         "by_agent_count": {},
@@ -359,6 +380,15 @@ def format_summary(summary: dict[str, Any]) -> str:
         f"{summary['ego_frames']} ego-frames ({summary['distinct_egos']} distinct egos; "
         f"{summary['ego_frames_without_path']} without a path to plan along)",
     ]
+    skipped = summary.get("skipped_ego_frames_by_kind") or {}
+    if skipped:
+        egos = summary.get("skipped_egos_by_kind") or {}
+        lines.append(
+            f"  skipped {sum(skipped.values())} ego-frames of {sum(egos.values())} egos that "
+            "are not vehicles ("
+            + ", ".join(f"{k}: {n}" for k, n in skipped.items())
+            + "); --ego-kinds all plans for them too"
+        )
     every = summary.get("all_agents")
     if every:
         ms = every["plan_ms"]

@@ -47,6 +47,12 @@ from risk.filtering import FILTER_FORMS
 @ego_option("Default: each scene's own ego.")
 @every_option
 @click.option(
+    "--ego-kinds", type=click.Choice(["vehicles", "all"]), default="vehicles",
+    show_default=True,
+    help="Which egos the car planners plan for: vehicles (ego-frames of pedestrians, "
+    "cyclists and other agents are skipped and counted in summary.json) or all.",
+)  # fmt: skip
+@click.option(
     "--planner", "planners", multiple=True, default=("idm",), show_default=True,
     type=click.Choice(list(PLANNERS)),
     help="The planner (repeatable: each runs the same frames). idm: the built-in IDM "
@@ -127,6 +133,7 @@ def plan(
     out_dir: pathlib.Path,
     ego: int | str | None,
     every: Stride,
+    ego_kinds: str,
     planners: tuple[str, ...],
     filters: tuple[str, ...],
     cascade_file: pathlib.Path | None,
@@ -178,7 +185,7 @@ def plan(
     planners = tuple(dict.fromkeys(planners))
     settings = PlanSettings(
         planner=planners[0], filters=tuple(filters), cascade=cascade,
-        tolerance_m=tolerance_m, horizon_s=horizon_s, truth=truth,
+        tolerance_m=tolerance_m, horizon_s=horizon_s, truth=truth, ego_kinds=ego_kinds,
     )  # fmt: skip
     resolve_matched(settings, {"nearest_k": 1, "radius_m": 1.0}).make_filters()  # bad specs
     for name in planners:
