@@ -577,3 +577,19 @@ def test_coords_cache_serves_subsets_and_never_a_changed_forecast():
     assert np.array_equal(
         cache.get(request.reference, moved).arc_m, path_coords(request.reference, moved).arc_m
     )
+
+
+def test_cold_drops_what_an_earlier_call_cached():
+    """The study times the all-agents plan and each filter's plan on one request: after
+    cold() a call finds nothing cached from the one before (else a filtered plan would
+    reuse the all-agents plan's projections and look cheaper than it is)."""
+    from replay.planning.idm import IdmPlanner
+    from replay.planning.path_coords import CoordsCache
+    from replay.planning.types import cold
+
+    planner = IdmPlanner()
+    planner._thinned = (np.zeros((2, 2)), np.zeros((2, 2)))
+    stale = planner._coords
+    assert cold(planner) is planner
+    assert planner._thinned is None
+    assert isinstance(planner._coords, CoordsCache) and planner._coords is not stale

@@ -31,7 +31,7 @@ from replay.planning.compare import DEFAULT_TOLERANCE_M, compare_plans
 from replay.planning.errors import NoReferencePath
 from replay.planning.inputs import ego_kind, plan_request, plans_for
 from replay.planning.truth import planner_truth, target_speed
-from replay.planning.types import Plan, Planner, PlanRequest
+from replay.planning.types import Plan, Planner, PlanRequest, cold
 from risk.filtering import cascade_answer
 from risk.frame import Frame
 from risk.hindsight import Tracks
@@ -144,7 +144,7 @@ class PlannerAnnotator:
             if self.truth:
                 out.update(planner_label=np.full(n, np.nan), planner_shift_m=np.full(n, np.nan))
             return out
-        everyone = self.planner.plan(request)
+        everyone = cold(self.planner).plan(request)
         if not self.filtered:
             out.update(plan_all=everyone)
             self.records.append((everyone.plan_ms, float("nan"), None))
@@ -153,7 +153,7 @@ class PlannerAnnotator:
             return out
         kept = cascade_answer(frame, result.cascade, self.info.cascade).kept_ids
         keep = np.isin(request.agents.ids, kept)
-        filtered = self.planner.plan(request.with_agents(request.agents.subset(keep)))
+        filtered = cold(self.planner).plan(request.with_agents(request.agents.subset(keep)))
         change = compare_plans(everyone, filtered, tolerance_m=self.tolerance_m)
         out.update(plan_all=everyone, plan_filtered=filtered, plan_changed=change)
         self.records.append((everyone.plan_ms, filtered.plan_ms, change.changed))

@@ -95,6 +95,13 @@ class IdmPlanner:
         self._coords = CoordsCache()
         self._thinned: tuple[np.ndarray, np.ndarray] | None = None
 
+    def forget(self) -> None:
+        """Drop the cached thinned reference and path coordinates, so that the next call
+        pays for its own (a timed comparison of two calls must not let one reuse the
+        other's work: see replay.planning.types.cold)."""
+        self._coords = CoordsCache()
+        self._thinned = None
+
     def _reference(self, request: PlanRequest) -> np.ndarray:
         """The request's reference thinned (see IdmSettings), the same object for the
         same reference (so that the coordinates cache serves a filter's and the

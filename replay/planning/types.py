@@ -253,3 +253,15 @@ class Planner(Protocol):
     def plan(self, request: PlanRequest) -> Plan: ...
 
     def may_matter(self, request: PlanRequest) -> np.ndarray: ...
+
+
+def cold(planner: Planner) -> Planner:
+    """``planner`` with any cache of earlier calls dropped (its ``forget()``, where it has
+    one), so that the next call's ``plan_ms`` is what that call costs on its own: the
+    planner study times the all-agents plan and each filter's plan on the same request,
+    and a filtered plan that reused the all-agents plan's projections would look cheaper
+    than it is."""
+    forget = getattr(planner, "forget", None)
+    if callable(forget):
+        forget()
+    return planner

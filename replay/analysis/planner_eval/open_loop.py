@@ -37,7 +37,7 @@ from replay.planning.errors import NoReferencePath
 from replay.planning.inputs import ego_kind, plan_request, plans_for
 from replay.planning.registry import make_planner
 from replay.planning.truth import planner_truth, target_speed
-from replay.planning.types import Plan, Planner, PlanRequest
+from replay.planning.types import Plan, Planner, PlanRequest, cold
 from risk.cascade import CascadeConfig
 from risk.filtering import CascadeFilter, Filter, parse_filter
 from risk.frame import Frame
@@ -229,14 +229,14 @@ def plan_scene(
                     reason=str(exc),
                 )  # fmt: skip
             continue
-        reference = planner.plan(request)
+        reference = cold(planner).plan(request)
         _add_plan(plans, common, ALL_AGENTS, request.agents.n, 0.0, reference, reference, None)
         kept_by: dict[str, np.ndarray] = {}
         for flt in filters:
             answer = flt.apply(frame)
             kept_by[flt.name] = answer.kept_ids
             keep = np.isin(request.agents.ids, answer.kept_ids)
-            plan = planner.plan(request.with_agents(request.agents.subset(keep)))
+            plan = cold(planner).plan(request.with_agents(request.agents.subset(keep)))
             change = compare_plans(reference, plan, tolerance_m=settings.tolerance_m)
             _add_plan(
                 plans, common, flt.name, int(keep.sum()), answer.time_ms, plan, reference,
