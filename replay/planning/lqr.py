@@ -24,9 +24,15 @@ as :class:`~replay.planning.tracking.VehicleState`'s ``speed_mps``.
 **The controller** (one-step LQR over a ``horizon_steps`` look-ahead, inputs held
 constant over it, as nuPlan's and PDM's trackers):
 
-- longitudinal: state speed, input acceleration; the speed ``horizon_steps`` ahead is
-  ``v + N dt a``, and ``a = -(B q (v - v_ref)) / (B^2 q + r)`` with ``B = N dt`` and
-  ``v_ref`` the reference speed ``N`` steps ahead;
+- longitudinal: state (position along the reference, speed), input acceleration; ``N``
+  steps ahead the speed is ``v + B_v a`` (``B_v = N dt``) and the distance travelled
+  ``N dt v + B_s a`` (``B_s = dt^2 N (N - 1) / 2``, Euler); the cost
+  ``q_v (v_N - v_ref)^2 + q_s (s_N - s_ref)^2 + r a^2`` against the reference ``N``
+  steps ahead gives ``a = (q_v B_v (v_ref - v) + q_s B_s d) / (q_v B_v^2 + q_s B_s^2 + r)``
+  with ``d`` the distance still to go. PDM's tracker has ``q_s = 0`` (speed only): it
+  then runs 0.4 m/s above a plan braking at 4 m/s^2 and stops 4 m beyond it, and PDM's
+  scorer saw every IDM proposal that stops 1 m behind a standing car collide with it.
+  ``q_position = 100`` keeps a stop within 0.6 m of its plan (tests/test_tracker.py);
 - lateral: state (lateral error, heading error, steering angle) of the rear axle against
   the reference pose at the current time, input steering rate ``u``; linearised
   (small angles) with the speed profile of the chosen acceleration and the reference's
@@ -88,7 +94,8 @@ class TrackerSettings:
     """The bicycle's limits and lags and the LQR weights.
 
     Weights, horizon, lags and the stopping controller are PDM-Closed's
-    (tuplan_garage ``batch_lqr.py``, ``batch_kinematic_bicycle.py``). ``max_steer_rad``
+    (tuplan_garage ``batch_lqr.py``, ``batch_kinematic_bicycle.py``) except
+    ``q_position`` (PDM: 0; see the module docstring). ``max_steer_rad``
     is PDM's pi / 3; ``max_accel_mps2`` / ``max_decel_mps2`` are physical limits of a car
     (PDM leaves acceleration unclipped): 8 m/s^2 is IdmSettings' braking limit.
     """
@@ -96,6 +103,7 @@ class TrackerSettings:
     dt_s: float = 0.1
     horizon_steps: int = 10
     q_speed: float = 10.0
+    q_position: float = 100.0
     r_accel: float = 1.0
     q_lateral_error: float = 1.0
     q_heading_error: float = 10.0
@@ -186,7 +194,7 @@ def bicycle_step(
 
 # ---------------------------------------------------------------------- the reference
 @dataclass(frozen=True, eq=False, kw_only=True)
-class Reference:
+class Reference:  # not slotted: arc_m is cached on the instance
     """Reference trajectories ``(B, R)`` on the tracker's time grid ``0, dt, ...``:
     rear-axle positions ``rear_xy`` ``(B, R, 2)``, heading, speed and curvature
     (1/m, of the rear axle's path)."""
@@ -195,6 +203,12 @@ class Reference:
     heading_rad: np.ndarray
     speed_mps: np.ndarray
     curvature_per_m: np.ndarray
+
+    @functools.cached_property
+    def arc_m(self) -> np.ndarray:
+        """``(B, R)``: distance travelled along the rear-axle reference (m)."""
+        step = np.hypot(*np.moveaxis(np.diff(self.rear_xy, axis=1), -1, 0))
+        return np.concatenate([np.zeros((step.shape[0], 1)), np.cumsum(step, axis=1)], axis=1)
 
 
 def reference_from_centres(
@@ -362,14 +376,26 @@ def lqr_commands(
     speed = states[:, StateIndex.SPEED]
     v_ref = reference.speed_mps[:, ahead]
 
-    # Longitudinal: one-step LQR on the speed N steps ahead.
-    gain_b = n * s.dt_s
-    accel = (gain_b * s.q_speed / (gain_b * gain_b * s.q_speed + s.r_accel)) * (v_ref - speed)
-
-    # Lateral: the error state of the rear axle against the reference pose now.
     ref_h = reference.heading_rad[:, k]
     cos_h, sin_h = np.cos(ref_h), np.sin(ref_h)
     delta = states[:, [StateIndex.REAR_X, StateIndex.REAR_Y]] - reference.rear_xy[:, k]
+
+    # Longitudinal: one-step LQR on the speed N steps ahead (and, with q_position > 0,
+    # on the distance to the reference's position then).
+    gain_v = n * s.dt_s
+    if s.q_position > 0.0:
+        gain_s = s.dt_s * s.dt_s * n * (n - 1) / 2.0
+        ahead_of_ref = delta[:, 0] * cos_h + delta[:, 1] * sin_h
+        # past the reference's end it goes on at its last speed (the Tracker contract)
+        beyond = (step + n - ahead) * s.dt_s * reference.speed_mps[:, last]
+        to_go = reference.arc_m[:, ahead] + beyond - reference.arc_m[:, k] - ahead_of_ref - gain_v * speed
+        accel = (s.q_speed * gain_v * (v_ref - speed) + s.q_position * gain_s * to_go) / (
+            s.q_speed * gain_v * gain_v + s.q_position * gain_s * gain_s + s.r_accel
+        )
+    else:
+        accel = (gain_v * s.q_speed / (gain_v * gain_v * s.q_speed + s.r_accel)) * (v_ref - speed)
+
+    # Lateral: the error state of the rear axle against the reference pose now.
     e0 = delta[:, 1] * cos_h - delta[:, 0] * sin_h
     psi0 = wrap_angle(states[:, StateIndex.HEADING] - ref_h)
     delta0 = states[:, StateIndex.STEER]

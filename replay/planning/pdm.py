@@ -92,6 +92,9 @@ class PdmSettings:
     drivable-area metric tolerates 0.3 m; our lanes, unlike nuPlan's drivable layer, have
     no shoulders). ``blocking_margin_mps2``: how far below the free-road acceleration a
     leader must push the chosen proposal to be reported as blocking (as ``idm``).
+    ``score_tie``: proposals scoring within this of the best tie; among them the one
+    nearest the centreline wins, then the higher score (PDM takes the exact argmax, and a
+    sideways proposal can win by rounding: 1e-6 more progress).
     """
 
     target_fractions: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8, 1.0)
@@ -118,6 +121,7 @@ class PdmSettings:
     brake_max_speed_mps: float = 5.0
     brake_decel_mps2: float = 4.05
     blocking_margin_mps2: float = 0.1
+    score_tie: float = 1e-3
     # nuPlan's comfort bounds
     max_lon_accel_mps2: float = 2.40
     min_lon_accel_mps2: float = -4.05
@@ -327,7 +331,7 @@ class PdmPlanner:
         sim_xy = _centres(sim, proposals.wheelbase_m)
         scores = self._score(request, line, agents, sim, sim_xy)
         total = scores.total
-        best = int(np.argmax(total))  # ties: the first (the slowest on the centreline)
+        best = _best(total, proposals.offset_m, p.score_tie)
         ego = request.ego
         brake = bool(
             scores.collision_step[best] * request.dt_s <= p.brake_within_s
@@ -706,6 +710,14 @@ class PdmPlanner:
 
 
 # ---------------------------------------------------------------------- helpers
+def _best(total: np.ndarray, offset_m: np.ndarray, tie: float) -> int:
+    """The chosen proposal: among those within ``tie`` of the best score, the one nearest
+    the centreline, then the highest score, then the first."""
+    near = np.flatnonzero(total >= total.max() - tie)
+    order = np.lexsort((-total[near], np.abs(offset_m[near])))
+    return int(near[order[0]])
+
+
 def _centres(sim: np.ndarray, wheelbase: float) -> np.ndarray:
     """Box centres ``(..., 2)`` of bicycle states ``(..., N_STATE)`` (rear axle)."""
     rear = sim[..., [lqr.StateIndex.REAR_X, lqr.StateIndex.REAR_Y]]
