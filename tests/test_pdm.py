@@ -18,8 +18,7 @@ from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from replay.planning import AgentForecasts, EgoState, PlanRequest, compare_plans, plan_request
-from replay.planning import lqr
+from replay.planning import AgentForecasts, EgoState, PlanRequest, compare_plans, lqr, plan_request
 from replay.planning.pdm import (
     MultiMetric,
     PdmPlanner,
@@ -123,7 +122,9 @@ def test_emergency_brake_when_a_collision_is_near_at_low_speed():
     frame = ps.road_frame([ps.STOPPED])
     frame_req = plan_request(frame, ps.road_map(), target_speed_mps=4.0)
     ego = EgoState(xy=np.array([40.0 - 4.5 - 2.0, 0.0]), heading_rad=0.0, speed_mps=4.0)
-    req = dataclasses.replace(frame_req, ego=ego, reference=np.array([[ego.xy[0], 0.0], [200.0, 0.0]]))
+    req = dataclasses.replace(
+        frame_req, ego=ego, reference=np.array([[ego.xy[0], 0.0], [200.0, 0.0]])
+    )
     plan = PdmPlanner().plan(req)
     assert plan.extras["emergency_brake"] == 1.0
     assert plan.blocking_id == ps.STOPPED
@@ -159,7 +160,12 @@ def hand_request(agents: list[tuple] | None = None, *, lanes_left=0, lanes_right
     velocity."""
     times = np.arange(51) * 0.1
     agents = agents or []
-    xy = np.array([[[x + v * math.cos(h) * t, y + v * math.sin(h) * t] for t in times] for x, y, h, v, _ in agents])
+    xy = np.array(
+        [
+            [[x + v * math.cos(h) * t, y + v * math.sin(h) * t] for t in times]
+            for x, y, h, v, _ in agents
+        ]
+    )
     forecasts = AgentForecasts(
         ids=np.arange(len(agents)) + 10,
         kinds=[k for *_, k in agents],
@@ -167,7 +173,9 @@ def hand_request(agents: list[tuple] | None = None, *, lanes_left=0, lanes_right
         width_m=np.full(len(agents), 1.8),
         times_s=times,
         xy=xy.reshape(len(agents), times.size, 2),
-        heading_rad=np.array([[h] * times.size for _, _, h, _, _ in agents]).reshape(len(agents), times.size),
+        heading_rad=np.array([[h] * times.size for _, _, h, _, _ in agents]).reshape(
+            len(agents), times.size
+        ),
     )
     return PlanRequest(
         ego=EgoState(xy=np.zeros(2), heading_rad=0.0, speed_mps=10.0),
@@ -247,18 +255,24 @@ def test_a_static_object_halves_the_score_and_a_rear_end_is_not_at_fault():
 def test_a_proposal_off_the_drivable_area_scores_zero():
     # one lane: edges at +-1.75 m, tolerance 0.3 m. 1 m to the side: the corner at
     # 1.9 m is within it; 1.5 m: the corner at 2.4 m is not
-    scores = PdmPlanner().score(hand_request(), straight_sim([10.0, 10.0, 10.0], ys=[0.0, 1.0, 1.5]))
+    scores = PdmPlanner().score(
+        hand_request(), straight_sim([10.0, 10.0, 10.0], ys=[0.0, 1.0, 1.5])
+    )
     assert scores.multi[MultiMetric.DRIVABLE_AREA].tolist() == [1.0, 1.0, 0.0]
     assert scores.total[2] == 0.0
     # with a lane to the left the same proposal is on the road
-    two = PdmPlanner().score(hand_request(lanes_left=1), straight_sim([10.0, 10.0, 10.0], ys=[0.0, 1.0, 1.5]))
+    two = PdmPlanner().score(
+        hand_request(lanes_left=1), straight_sim([10.0, 10.0, 10.0], ys=[0.0, 1.0, 1.5])
+    )
     assert two.multi[MultiMetric.DRIVABLE_AREA].tolist() == [1.0, 1.0, 1.0]
 
 
 def test_driving_against_the_reference_direction():
     # backwards along the lane: 1.5 m (ok), 5 m (0.5), 10 m (0)
     sim = straight_sim([0.3, 1.0, 2.0], headings=[math.pi] * 3, x0=20.0)
-    req = dataclasses.replace(hand_request(), ego=EgoState(xy=np.array([20.0, 0.0]), heading_rad=math.pi, speed_mps=1.0))
+    req = dataclasses.replace(
+        hand_request(), ego=EgoState(xy=np.array([20.0, 0.0]), heading_rad=math.pi, speed_mps=1.0)
+    )
     scores = PdmPlanner().score(req, sim)
     assert scores.multi[MultiMetric.DRIVING_DIRECTION].tolist() == [1.0, 0.5, 0.0]
 
@@ -291,7 +305,9 @@ def _polygons_touch(a: np.ndarray, b: np.ndarray) -> bool:
 
     if any(inside(p, b) for p in a) or any(inside(p, a) for p in b):
         return True
-    return any(cross(a[i], a[(i + 1) % 4], b[j], b[(j + 1) % 4]) for i in range(4) for j in range(4))
+    return any(
+        cross(a[i], a[(i + 1) % 4], b[j], b[(j + 1) % 4]) for i in range(4) for j in range(4)
+    )
 
 
 @settings(max_examples=25, deadline=None)
@@ -318,7 +334,15 @@ def test_contacts_match_a_per_pair_loop(seed):
     sim[..., lqr.StateIndex.SPEED] = rng.uniform(0, 15, (n_p, n_t))
     sim_xy = _centres(sim, float(lqr.wheelbase_m(req.ego.length_m)))
     c = contacts(req, req.agents, sim, sim_xy, look)
-    got = set(zip(c.proposal.tolist(), c.step.tolist(), c.lookahead.tolist(), c.agent.tolist(), strict=True))
+    got = set(
+        zip(
+            c.proposal.tolist(),
+            c.step.tolist(),
+            c.lookahead.tolist(),
+            c.agent.tolist(),
+            strict=True,
+        )
+    )
     want = set()
     a = req.agents
     for p in range(n_p):
@@ -333,7 +357,13 @@ def test_contacts_match_a_per_pair_loop(seed):
                 ego_box = box_corners(x, y, h, req.ego.length_m, req.ego.width_m)
                 for k in range(n_k):
                     ta = t + ahead
-                    box = box_corners(a.xy[k, ta, 0], a.xy[k, ta, 1], a.heading_rad[k, ta], a.length_m[k], a.width_m[k])
+                    box = box_corners(
+                        a.xy[k, ta, 0],
+                        a.xy[k, ta, 1],
+                        a.heading_rad[k, ta],
+                        a.length_m[k],
+                        a.width_m[k],
+                    )
                     if _polygons_touch(ego_box, box):
                         want.add((p, t, d, k))
     assert got == want
@@ -359,10 +389,16 @@ def test_replay_plan_and_run_with_pdm(tmp_path):
     )  # fmt: skip
     assert result.exit_code == 0, result.output
     rows = pl.read_parquet(out / "plans.parquet")
-    assert rows["plan_ok"].all() and (rows["planner"] == "pdm").all() if "planner" in rows.columns else rows["plan_ok"].all()
+    assert (
+        rows["plan_ok"].all() and (rows["planner"] == "pdm").all()
+        if "planner" in rows.columns
+        else rows["plan_ok"].all()
+    )
     first = {r["filter"]: r for r in rows.filter(pl.col("frame") == 0).iter_rows(named=True)}
     assert first["none"]["blocking_id"] == ps.STOPPED
     assert first["nearest:1"]["changed"] is True  # the nearest is the car behind
-    run = CliRunner().invoke(main, ["run", str(scene), "--planner", "pdm", "-o", str(tmp_path / "r.rrd")])
+    run = CliRunner().invoke(
+        main, ["run", str(scene), "--planner", "pdm", "-o", str(tmp_path / "r.rrd")]
+    )
     assert run.exit_code == 0, run.output
     assert (tmp_path / "r.rrd").stat().st_size > 0

@@ -156,8 +156,12 @@ def test_lateral_response_matches_the_matrix_products(seed):
         free, g = _lateral_response(v0, accel, moments[:, k], dt, wb, n)
         for b in range(batch):
             window = kappa[b, np.minimum(np.arange(k, k + n), length - 1)]
-            a_m, b_m, g_m = _lateral_by_matrices(v0[b] + accel[b] * dt * np.arange(n), window, dt, wb[b])
-            np.testing.assert_allclose(free[b, :3], a_m[[0, 0, 1], [1, 2, 2]], rtol=1e-12, atol=1e-12)
+            a_m, b_m, g_m = _lateral_by_matrices(
+                v0[b] + accel[b] * dt * np.arange(n), window, dt, wb[b]
+            )
+            np.testing.assert_allclose(
+                free[b, :3], a_m[[0, 0, 1], [1, 2, 2]], rtol=1e-12, atol=1e-12
+            )
             np.testing.assert_allclose(free[b, 3:], b_m[:2], rtol=1e-12, atol=1e-12)
             np.testing.assert_allclose(g[b], g_m[:2], rtol=1e-12, atol=1e-12)
             # the rest of A is the identity, B2 = n dt, g2 = 0

@@ -388,7 +388,13 @@ def lqr_commands(
         ahead_of_ref = delta[:, 0] * cos_h + delta[:, 1] * sin_h
         # past the reference's end it goes on at its last speed (the Tracker contract)
         beyond = (step + n - ahead) * s.dt_s * reference.speed_mps[:, last]
-        to_go = reference.arc_m[:, ahead] + beyond - reference.arc_m[:, k] - ahead_of_ref - gain_v * speed
+        to_go = (
+            reference.arc_m[:, ahead]
+            + beyond
+            - reference.arc_m[:, k]
+            - ahead_of_ref
+            - gain_v * speed
+        )
         accel = (s.q_speed * gain_v * (v_ref - speed) + s.q_position * gain_s * to_go) / (
             s.q_speed * gain_v * gain_v + s.q_position * gain_s * gain_s + s.r_accel
         )
