@@ -357,74 +357,120 @@ def _affine_sum(dt_s: float) -> np.ndarray:
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class TrackingProblem:
+    """A reference prepared for the controller: everything that depends on the time
+    index only, computed once for all steps, time-major ``(R, B, ...)`` (row ``k`` is
+    what step ``k`` reads). Built by :meth:`of`."""
+
+    settings: TrackerSettings
+    wheelbase: np.ndarray  # (B,) m
+    rear: np.ndarray  # (R, B) complex: reference rear-axle positions x + iy
+    unrotate: np.ndarray  # (R, B) complex: exp(-i heading), into the reference's frame
+    heading: np.ndarray  # (R, B) rad
+    base_accel: np.ndarray  # (R, B): the longitudinal command's reference part
+    moments: np.ndarray  # (R, B, 5): curvature moments of the look-ahead window
+    stopping_ref: np.ndarray  # (R, B) bool: the reference speed ahead is a stop
+    v_ref_ahead: np.ndarray  # (R, B) m/s: the reference speed n steps ahead
+
+    @classmethod
+    def of(
+        cls, reference: Reference, wheelbase: np.ndarray | float, settings: TrackerSettings
+    ) -> TrackingProblem:
+        s = settings
+        n = s.horizon_steps
+        r = reference.speed_mps.shape[1]
+        rows = np.arange(r)
+        ahead = np.minimum(rows + n, r - 1)
+        v_ahead = reference.speed_mps[:, ahead]  # (B, R)
+        # Longitudinal: a = c_v (v_ref - v) + c_s (to_go), to_go = the reference's travel
+        # to n steps ahead (past its end at its last speed, the Tracker contract) minus
+        # how far the vehicle is ahead of the reference now minus n dt v.
+        gain_v = n * s.dt_s
+        gain_s = s.dt_s * s.dt_s * n * (n - 1) / 2.0
+        den = s.q_speed * gain_v * gain_v + s.q_position * gain_s * gain_s + s.r_accel
+        c_v, c_s = s.q_speed * gain_v / den, s.q_position * gain_s / den
+        arc = reference.arc_m
+        beyond = (rows + n - ahead)[None, :] * s.dt_s * reference.speed_mps[:, -1:]
+        travel = arc[:, ahead] + beyond - arc
+        base = c_v * v_ahead + c_s * travel
+        heading = reference.heading_rad
+        return cls(
+            settings=s,
+            wheelbase=np.broadcast_to(
+                np.asarray(wheelbase, dtype=np.float64), (reference.speed_mps.shape[0],)
+            ),
+            rear=np.ascontiguousarray(
+                (reference.rear_xy[..., 0] + 1j * reference.rear_xy[..., 1]).T
+            ),
+            unrotate=np.ascontiguousarray(np.exp(-1j * heading).T),
+            heading=np.ascontiguousarray(heading.T),
+            base_accel=np.ascontiguousarray(base.T),
+            moments=np.ascontiguousarray(
+                np.moveaxis(curvature_moments(reference.curvature_per_m, n), 1, 0)
+            ),
+            stopping_ref=np.ascontiguousarray((v_ahead <= s.stop_speed_mps).T),
+            v_ref_ahead=np.ascontiguousarray(v_ahead.T),
+        )
+
+    @property
+    def speed_gain(self) -> float:
+        """How much the command drops per m/s of the vehicle's speed (``c_v + c_s n dt``)."""
+        s = self.settings
+        n = s.horizon_steps
+        gain_v = n * s.dt_s
+        gain_s = s.dt_s * s.dt_s * n * (n - 1) / 2.0
+        den = s.q_speed * gain_v * gain_v + s.q_position * gain_s * gain_s + s.r_accel
+        return (s.q_speed * gain_v + s.q_position * gain_s * gain_v) / den
+
+    @property
+    def position_gain(self) -> float:
+        """How much the command drops per m the vehicle is ahead of the reference."""
+        s = self.settings
+        n = s.horizon_steps
+        gain_v = n * s.dt_s
+        gain_s = s.dt_s * s.dt_s * n * (n - 1) / 2.0
+        den = s.q_speed * gain_v * gain_v + s.q_position * gain_s * gain_s + s.r_accel
+        return s.q_position * gain_s / den
+
+
 def lqr_commands(
-    states: np.ndarray,
-    reference: Reference,
-    step: int,
-    wheelbase: np.ndarray | float,
-    settings: TrackerSettings,
-    moments: np.ndarray | None = None,
+    states: np.ndarray, problem: TrackingProblem, step: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Acceleration (m/s^2) and steering-rate (rad/s) commands ``(B,)`` for the states
-    ``(B, N_STATE)`` at time index ``step`` of the reference (see the module docstring).
-    ``moments``: :func:`curvature_moments` of the reference (computed when not given)."""
-    s = settings
+    ``(B, N_STATE)`` at time index ``step`` of the reference (see the module docstring;
+    past the reference's last index, its last row)."""
+    p = problem
+    s = p.settings
     n = s.horizon_steps
-    last = reference.speed_mps.shape[1] - 1
-    k = min(step, last)
-    ahead = min(step + n, last)
+    k = min(step, p.heading.shape[0] - 1)
     speed = states[:, StateIndex.SPEED]
-    v_ref = reference.speed_mps[:, ahead]
+    # The rear axle in the reference pose's frame: along (ahead of it) and lateral error.
+    rear = states[:, StateIndex.REAR_X] + 1j * states[:, StateIndex.REAR_Y]
+    local = (rear - p.rear[k]) * p.unrotate[k]
+    # Longitudinal: one-step LQR on speed and position n steps ahead (TrackingProblem.of).
+    accel = p.base_accel[k] - p.speed_gain * speed - p.position_gain * local.real
 
-    ref_h = reference.heading_rad[:, k]
-    cos_h, sin_h = np.cos(ref_h), np.sin(ref_h)
-    delta = states[:, [StateIndex.REAR_X, StateIndex.REAR_Y]] - reference.rear_xy[:, k]
-
-    # Longitudinal: one-step LQR on the speed N steps ahead (and, with q_position > 0,
-    # on the distance to the reference's position then).
-    gain_v = n * s.dt_s
-    if s.q_position > 0.0:
-        gain_s = s.dt_s * s.dt_s * n * (n - 1) / 2.0
-        ahead_of_ref = delta[:, 0] * cos_h + delta[:, 1] * sin_h
-        # past the reference's end it goes on at its last speed (the Tracker contract)
-        beyond = (step + n - ahead) * s.dt_s * reference.speed_mps[:, last]
-        to_go = (
-            reference.arc_m[:, ahead]
-            + beyond
-            - reference.arc_m[:, k]
-            - ahead_of_ref
-            - gain_v * speed
-        )
-        accel = (s.q_speed * gain_v * (v_ref - speed) + s.q_position * gain_s * to_go) / (
-            s.q_speed * gain_v * gain_v + s.q_position * gain_s * gain_s + s.r_accel
-        )
-    else:
-        accel = (gain_v * s.q_speed / (gain_v * gain_v * s.q_speed + s.r_accel)) * (v_ref - speed)
-
-    # Lateral: the error state of the rear axle against the reference pose now.
-    e0 = delta[:, 1] * cos_h - delta[:, 0] * sin_h
-    psi0 = wrap_angle(states[:, StateIndex.HEADING] - ref_h)
+    # Lateral: error state (e, psi, delta) now, and n steps ahead with u = 0.
+    e0 = local.imag
+    psi0 = wrap_angle(states[:, StateIndex.HEADING] - p.heading[k])
     delta0 = states[:, StateIndex.STEER]
-    if moments is None:
-        moments = curvature_moments(reference.curvature_per_m, n)
-    free, g = _lateral_response(speed, accel, moments[:, k], s.dt_s, wheelbase, n)
-    # the error n steps ahead with u = 0 (heading wrapped, as PDM; the steering angle
-    # needs no wrapping within its limits)
+    free, g = _lateral_response(speed, accel, p.moments[k], s.dt_s, p.wheelbase, n)
     e_n = e0 + free[:, 0] * psi0 + free[:, 1] * delta0 + g[:, 0]
-    psi_n = wrap_angle(psi0 + free[:, 2] * delta0 + g[:, 1])
-    b0, b1, b2 = free[:, 3], free[:, 4], n * s.dt_s
-    num = s.q_lateral_error * b0 * e_n + s.q_heading_error * b1 * psi_n + (s.q_steer * b2) * delta0
-    den = (
-        s.q_lateral_error * b0 * b0
-        + s.q_heading_error * b1 * b1
-        + (s.q_steer * b2 * b2 + s.r_steer_rate)
-    )
+    psi_n = psi0 + free[:, 2] * delta0 + g[:, 1]  # small: PDM's wrap would not change it
+    b0, b1 = free[:, 3], free[:, 4]
+    num = s.q_lateral_error * b0 * e_n + s.q_heading_error * b1 * psi_n
+    den = s.q_lateral_error * b0 * b0 + s.q_heading_error * b1 * b1 + s.r_steer_rate
+    if s.q_steer:
+        b2 = n * s.dt_s
+        num = num + s.q_steer * b2 * delta0
+        den = den + s.q_steer * b2 * b2
     steer_rate = -num / den
 
     # Near standstill: a proportional speed controller, steering held.
-    stopping = (v_ref <= s.stop_speed_mps) & (speed <= s.stop_speed_mps)
+    stopping = p.stopping_ref[k] & (speed <= s.stop_speed_mps)
     if stopping.any():
-        accel = np.where(stopping, -s.stop_gain * (speed - v_ref), accel)
+        accel = np.where(stopping, -s.stop_gain * (speed - p.v_ref_ahead[k]), accel)
         steer_rate = np.where(stopping, 0.0, steer_rate)
     return accel, steer_rate
 
@@ -439,15 +485,15 @@ def simulate(
     """The bicycle under the LQR tracker from ``initial`` ``(B, N_STATE)`` for ``n_steps``
     steps of ``settings.dt_s`` along ``reference`` (time index 0 = ``initial``'s time):
     states ``(B, n_steps + 1, N_STATE)``."""
-    out = np.empty((initial.shape[0], n_steps + 1, N_STATE))
-    out[:, 0] = initial
-    moments = curvature_moments(reference.curvature_per_m, settings.horizon_steps)
+    problem = TrackingProblem.of(reference, wheelbase, settings)
+    out = np.empty((n_steps + 1, initial.shape[0], N_STATE))  # time-major while stepping
+    out[0] = initial
     for k in range(n_steps):  # time steps only; the batch is vectorised
-        accel, steer_rate = lqr_commands(out[:, k], reference, k, wheelbase, settings, moments)
-        out[:, k + 1] = bicycle_step(
-            out[:, k], accel, steer_rate, settings.dt_s, wheelbase, settings
+        accel, steer_rate = lqr_commands(out[k], problem, k)
+        out[k + 1] = bicycle_step(
+            out[k], accel, steer_rate, settings.dt_s, problem.wheelbase, settings
         )
-    return out
+    return np.ascontiguousarray(np.moveaxis(out, 0, 1))
 
 
 # ---------------------------------------------------------------------- the Tracker
@@ -495,7 +541,9 @@ class LqrTracker:
         initial[0, StateIndex.STEER] = state.steer_rad
         states = simulate(initial, reference, n_full, wheelbase, s)[:, -1]
         if rest > 1e-9:  # the last, shorter step, with the commands of the next time index
-            accel, steer_rate = lqr_commands(states, reference, n_full, wheelbase, s)
+            accel, steer_rate = lqr_commands(
+                states, TrackingProblem.of(reference, wheelbase, s), n_full
+            )
             states = bicycle_step(states, accel, steer_rate, rest, wheelbase, s)
         final = states[0]
         return VehicleState(

@@ -207,6 +207,16 @@ class _AgentsAlong:
     half_across_m: np.ndarray
     speed_along_mps: np.ndarray
 
+    def rows(self, which: np.ndarray) -> _AgentsAlong:
+        """The agents selected by a mask or index array ``(K,)``."""
+        return _AgentsAlong(
+            arc_m=self.arc_m[which],
+            lateral_m=self.lateral_m[which],
+            half_along_m=self.half_along_m[which],
+            half_across_m=self.half_across_m[which],
+            speed_along_mps=self.speed_along_mps[which],
+        )
+
     @classmethod
     def of(cls, line: _Centreline, agents: AgentForecasts) -> _AgentsAlong:
         arc, lateral, path_h = line.project(agents.xy)
@@ -368,12 +378,10 @@ class PdmPlanner:
         )
 
     # ------------------------------------------------------------------ stages
-    def _leader_reach(
-        self, request: PlanRequest, line: _Centreline, along: _AgentsAlong
-    ) -> np.ndarray:
-        """``(K, T)``: where an agent's box reaches some proposal's corridor ahead."""
+    def _leader_reach(self, request: PlanRequest, along: _AgentsAlong, s0: float) -> np.ndarray:
+        """``(K, T)``: where an agent's box reaches some proposal's corridor ahead of the
+        ego's arc ``s0``, before the corridor's end."""
         ego = request.ego
-        s0 = float(line.project(ego.xy[None])[0][0])
         widest = max(abs(o) for o in self.settings.lateral_offsets_m)
         corridor = np.abs(along.lateral_m) < widest + ego.width_m / 2.0 + along.half_across_m
         end = s0 + self._corridor_length(request)
@@ -391,21 +399,51 @@ class PdmPlanner:
     ) -> tuple[_Centreline, AgentForecasts, _Proposals, np.ndarray]:
         """The centreline, the agents on the plan's times, the simulated proposals (built
         on the agents the leader search can read) and the mask ``(K,)`` of agents read
-        anywhere (the leader search, or a bounding-circle candidate of the scorer)."""
+        anywhere (the leader search, or a bounding-circle candidate of the scorer).
+
+        Two distance bounds from the ego's position keep the work in proportion to the
+        agents near the ego, never dropping one that either test would read: a leader's
+        centre lies within ``corridor + |d0| + widest offset + half width + 2 r`` of the
+        ego (``d0`` the ego's offset from the reference, ``r`` the agent's half diagonal;
+        a path is never shorter than its chord), and a scorer candidate's within the
+        farthest simulated box centre (moved ahead by the largest look-ahead) plus both
+        half diagonals.
+        """
         line = _Centreline.of(request.reference)
         agents = request.agents.on_times(request.times_s)
+        ego = request.ego
+        s0_arr, d0_arr, _ = line.project(ego.xy[None])
+        s0, d0 = float(s0_arr[0]), float(d0_arr[0])
+        leaders = np.zeros(agents.n, dtype=bool)
+        leaders_along = None
         if agents.n:
-            along = _AgentsAlong.of(line, agents)
-            leaders = self._leader_reach(request, line, along).any(axis=1)
-        else:
-            along = None
-            leaders = np.zeros(0, dtype=bool)
-        proposals = self._proposals(request, line, agents.ids[leaders], along, leaders)
+            distance = np.hypot(agents.xy[..., 0] - ego.xy[0], agents.xy[..., 1] - ego.xy[1])
+            half_diagonal = np.hypot(agents.length_m, agents.width_m) / 2.0
+            widest = max(abs(o) for o in self.settings.lateral_offsets_m)
+            bound = self._corridor_length(request) + abs(d0) + widest + ego.width_m / 2.0
+            maybe = np.flatnonzero(
+                (distance <= (bound + 2.0 * half_diagonal + 1e-6)[:, None]).any(axis=1)
+            )
+            if maybe.size:
+                along = _AgentsAlong.of(line, agents.subset(maybe))
+                reach = self._leader_reach(request, along, s0).any(axis=1)
+                leaders[maybe[reach]] = True
+                leaders_along = along.rows(reach) if reach.any() else None
+        proposals = self._proposals(request, line, leaders_along, agents.ids[leaders], s0)
         if agents.n == 0:
             return line, agents, proposals, leaders
-        sim_xy = _centres(proposals.simulated, proposals.wheelbase_m)
+        sim = proposals.simulated
+        sim_xy = _centres(sim, proposals.wheelbase_m)
         look = self._lookahead_steps(request.dt_s)
-        near = _candidates(request, agents, proposals.simulated, sim_xy, look).any(axis=(0, 1, 2))
+        farthest = float(np.hypot(sim_xy[..., 0] - ego.xy[0], sim_xy[..., 1] - ego.xy[1]).max())
+        farthest += float(sim[..., lqr.StateIndex.SPEED].max()) * float(look.max()) * request.dt_s
+        ego_half_diagonal = math.hypot(ego.length_m, ego.width_m) / 2.0
+        near_bound = farthest + ego_half_diagonal + half_diagonal + 1e-6
+        maybe_near = np.flatnonzero((distance <= near_bound[:, None]).any(axis=1))
+        near = np.zeros(agents.n, dtype=bool)
+        if maybe_near.size:
+            cand = _candidates(request, agents.subset(maybe_near), sim, sim_xy, look)
+            near[maybe_near] = cand.any(axis=(0, 1, 2))
         return line, agents, proposals, leaders | near
 
     def _lookahead_steps(self, dt_s: float) -> np.ndarray:
@@ -415,9 +453,9 @@ class PdmPlanner:
         self,
         request: PlanRequest,
         line: _Centreline,
+        leaders: _AgentsAlong | None,
         leader_ids: np.ndarray,
-        along_all: _AgentsAlong | None,
-        leader_mask: np.ndarray,
+        s0: float,
     ) -> _Proposals:
         """IDM along every (offset, target) pair, then each tracked by the bicycle."""
         p = self.settings
@@ -433,7 +471,6 @@ class PdmPlanner:
         )
         n_p = offsets.size
         target = np.maximum(fractions * max(request.target_speed_mps, 0.0), 0.1)
-        s0 = float(line.project(ego.xy[None])[0][0])
         half_len, half_wid = ego.length_m / 2.0, ego.width_m / 2.0
         sqrt_ab = 2.0 * math.sqrt(p.idm_accel_mps2 * p.idm_decel_mps2)
 
@@ -448,20 +485,16 @@ class PdmPlanner:
         a_lead_t = np.zeros((n_t, n_p))
         lead_t = np.full((n_t, n_p), -1, dtype=np.int64)
         corridor = None
-        if leader_ids.size and along_all is not None:
-            rows = np.flatnonzero(leader_mask)
-            arc_t = np.ascontiguousarray(along_all.arc_m[rows].T)  # (T, L)
+        if leaders is not None:
+            arc_t = np.ascontiguousarray(leaders.arc_m.T)  # (T, L)
             # the gap to the ego is back - s (bumper to bumper along the path)
-            back_t = (
-                np.ascontiguousarray((along_all.arc_m[rows] - along_all.half_along_m[rows]).T)
-                - half_len
-            )
-            corridor = np.abs(along_all.lateral_m[rows].T[:, None, :] - offsets[None, :, None]) < (
-                half_wid + along_all.half_across_m[rows].T[:, None, :]
+            back_t = np.ascontiguousarray((leaders.arc_m - leaders.half_along_m).T) - half_len
+            corridor = np.abs(leaders.lateral_m.T[:, None, :] - offsets[None, :, None]) < (
+                half_wid + leaders.half_across_m.T[:, None, :]
             )  # (T, P, L)
             end = s0 + self._corridor_length(request)
-            corridor &= (arc_t - along_all.half_along_m[rows].T < end)[:, None, :]
-            speed_t = np.ascontiguousarray(along_all.speed_along_mps[rows].T)
+            corridor &= (arc_t - leaders.half_along_m.T < end)[:, None, :]
+            speed_t = np.ascontiguousarray(leaders.speed_along_mps.T)
             any_t = corridor.any(axis=(1, 2))
         proposal_rows = np.arange(n_p)
         inv_target = 1.0 / target
