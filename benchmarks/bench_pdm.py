@@ -6,7 +6,8 @@ Usage::
     .venv/bin/python benchmarks/bench_pdm.py            # 2 scenes, 40 requests, 5 rounds
     .venv/bin/python benchmarks/bench_pdm.py --quick    # 12 requests, 2 rounds
 
-The scenes: a MONA and an exiD scene of ../shared/data/recorded, converted with
+The scenes: two MONA scenes of ../shared/data/recorded (36-43 valid agents a frame; the
+exiD scenes there have 16 or fewer), converted with
 ``python -m replay convert commonroad FILE -o x.mcap`` into a temporary folder. The
 requests: every moving vehicle as the ego, one frame per second, built as ``replay plan``
 builds them (:func:`replay.planning.inputs.plan_request`, target speed from the recorded
@@ -53,7 +54,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 RECORDED = ROOT.parent / "shared" / "data" / "recorded"
 SCENES = (
     RECORDED / "mona" / "C-DEU_MONAEast-2_1040_T-1119.xml",
-    RECORDED / "exid" / "DEU_AachenBrand-1_431052_T-1127.cr.xml",
+    RECORDED / "mona" / "C-DEU_MONAEast-2_400_T-479.xml",
 )
 RESULTS = ROOT / "benchmarks" / "results" / "pdm.md"
 AGENTS = (25, 40)
@@ -65,7 +66,7 @@ def requests(folder: pathlib.Path, limit: int) -> list[tuple[str, PlanRequest]]:
         if not source.is_file():
             print(f"skipped (not found): {source}", file=sys.stderr)
             continue
-        target = folder / f"{source.parent.name}.mcap"
+        target = folder / f"{source.stem}.mcap"
         subprocess.run(
             [sys.executable, "-m", "replay", "convert", "commonroad", str(source), "-o", str(target)],
             check=True, capture_output=True,

@@ -13,7 +13,7 @@ Stated errors of ``lqr`` (measured; PDM-Closed's weights, 4.5 m car, 10 m/s, 5 s
   on (one overshoot of 0.21 m at 2.5 s);
 - braking from 20 m/s at 4 m/s^2 to a stop: within 0.6 m of the plan (0.51 m measured).
   PDM's speed-only longitudinal LQR (``q_position=0``) runs 0.4 m/s above such a plan and
-  stops 4 m beyond it; the position term (``q_position``, our addition) removes that.
+  comes to rest 4.5 m beyond it; the position term (``q_position``, our addition) removes that.
 """
 
 from __future__ import annotations

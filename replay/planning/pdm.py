@@ -480,10 +480,10 @@ class PdmPlanner:
         s[0] = s0
         v[0] = max(ego.speed_mps, 0.0)
         # Per step, for the leader bookkeeping after the loop: free-road and with-leader
-        # accelerations, and the leader's row (-1: none).
+        # accelerations, and the nearest agent's row in the corridor ahead.
         a_free_t = np.zeros((n_t, n_p))
         a_lead_t = np.zeros((n_t, n_p))
-        lead_t = np.full((n_t, n_p), -1, dtype=np.int64)
+        lead_t = np.zeros((n_t, n_p), dtype=np.int64)
         corridor = None
         if leaders is not None:
             arc_t = np.ascontiguousarray(leaders.arc_m.T)  # (T, L)
@@ -504,17 +504,13 @@ class PdmPlanner:
             a_free = a_max - a_max * (vk * inv_target) ** p.idm_exponent
             accel = a_free
             if corridor is not None and any_t[k]:
+                # no leader: the gap is inf, its IDM term 0 and accel the free-road one
                 masked = np.where(corridor[k] & (arc_t[k] > sk[:, None]), back_t[k], np.inf)
                 j = np.argmin(masked, axis=1)
                 gap = masked[proposal_rows, j] - sk
-                has = gap < np.inf
-                s_star = (
-                    p.idm_min_gap_m + vk * p.idm_headway_s + vk * (vk - speed_t[k, j]) / sqrt_ab
-                )
-                with_leader = a_free - a_max * (s_star / np.maximum(gap, p.idm_min_gap_m)) ** 2
-                accel = np.where(has, with_leader, a_free)
-                a_free_t[k], a_lead_t[k] = a_free, with_leader
-                lead_t[k] = np.where(has, j, -1)
+                s_star = p.idm_min_gap_m + vk * (p.idm_headway_s + (vk - speed_t[k, j]) / sqrt_ab)
+                accel = a_free - a_max * (s_star / np.maximum(gap, p.idm_min_gap_m)) ** 2
+                a_free_t[k], a_lead_t[k], lead_t[k] = a_free, accel, j
             accel = np.minimum(np.maximum(accel, -b_max), a_max)
             v_next = vk + accel * dt
             s[k + 1] = sk + (vk + 0.5 * dt * accel) * dt
@@ -524,7 +520,9 @@ class PdmPlanner:
                 s[k + 1, stops] = sk[stops] + vk[stops] ** 2 / (2.0 * -accel[stops])
                 v[k + 1, stops] = 0.0
         s, v = s.T, v.T
-        limited = (lead_t >= 0) & (a_lead_t < a_free_t - p.blocking_margin_mps2)
+        # a leader limits a step where it lowers the acceleration by the margin (a step
+        # without a leader has a_lead = a_free = 0 here)
+        limited = a_lead_t < a_free_t - p.blocking_margin_mps2
         leader = np.where(limited, lead_t, -1).T  # (P, T)
 
         xy, heading = line.pose(s, offsets[:, None])
