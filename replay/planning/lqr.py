@@ -124,7 +124,7 @@ def wheelbase_m(length_m: np.ndarray | float) -> np.ndarray:
 
 
 def rear_axle_xy(
-    centre_xy: np.ndarray, heading_rad: np.ndarray, wheelbase: np.ndarray
+    centre_xy: np.ndarray, heading_rad: np.ndarray | float, wheelbase: np.ndarray | float
 ) -> np.ndarray:
     """Rear-axle positions ``(..., 2)`` of boxes centred at ``centre_xy`` ``(..., 2)``:
     half a wheelbase behind the centre along the heading."""
@@ -133,7 +133,9 @@ def rear_axle_xy(
     return centre_xy - np.stack([back * np.cos(h), back * np.sin(h)], axis=-1)
 
 
-def centre_xy(rear_xy: np.ndarray, heading_rad: np.ndarray, wheelbase: np.ndarray) -> np.ndarray:
+def centre_xy(
+    rear_xy: np.ndarray, heading_rad: np.ndarray | float, wheelbase: np.ndarray | float
+) -> np.ndarray:
     """Box centres ``(..., 2)`` of rear-axle positions ``rear_xy`` (inverse of
     :func:`rear_axle_xy`)."""
     h = np.asarray(heading_rad)

@@ -426,7 +426,7 @@ class PdmPlanner:
             )
             if maybe.size:
                 along = _AgentsAlong.of(line, agents.subset(maybe))
-                reach = self._leader_reach(request, along, s0).any(axis=1)
+                reach = np.asarray(self._leader_reach(request, along, s0).any(axis=1))
                 leaders[maybe[reach]] = True
                 leaders_along = along.rows(reach) if reach.any() else None
         proposals = self._proposals(request, line, leaders_along, agents.ids[leaders], s0)
@@ -495,7 +495,7 @@ class PdmPlanner:
             end = s0 + self._corridor_length(request)
             corridor &= (arc_t - leaders.half_along_m.T < end)[:, None, :]
             speed_t = np.ascontiguousarray(leaders.speed_along_mps.T)
-            any_t = corridor.any(axis=(1, 2))
+            any_t = np.asarray(corridor.any(axis=(1, 2)))
         proposal_rows = np.arange(n_p)
         inv_target = 1.0 / target
         a_max, b_max = p.idm_accel_mps2, p.idm_decel_mps2
@@ -629,7 +629,7 @@ class PdmPlanner:
         look = self._lookahead_steps(dt)
         # Agents touching the ego now are ignored (PDM: already collided).
         now = boxes_overlap(
-            ego.xy[0], ego.xy[1], ego.heading_rad, ego.length_m, ego.width_m,
+            ego.xy[0], ego.xy[1], np.asarray(ego.heading_rad), np.asarray(ego.length_m), np.asarray(ego.width_m),
             agents.xy[:, 0, 0], agents.xy[:, 0, 1], agents.heading_rad[:, 0], agents.length_m, agents.width_m,
         )  # fmt: skip
         c = contacts(request, agents, sim, sim_xy, look, ignore=now)
@@ -656,7 +656,7 @@ class PdmPlanner:
         front_x = cx + ego.length_m / 2.0 * np.cos(heading[ip, it])
         front_y = cy + ego.length_m / 2.0 * np.sin(heading[ip, it])
         front = boxes_overlap(
-            front_x, front_y, heading[ip, it], 0.0, ego.width_m,
+            front_x, front_y, heading[ip, it], np.zeros(1), np.asarray(ego.width_m),
             agents.xy[ik, ta, 0], agents.xy[ik, ta, 1], agents.heading_rad[ik, ta],
             agents.length_m[ik], agents.width_m[ik],
         )  # fmt: skip
@@ -826,7 +826,7 @@ def contacts(
     cy = sim_xy[ip, it, 1] + shift * np.sin(h)
     ta = it + look[idd]
     hit = boxes_overlap(
-        cx, cy, h, ego.length_m, ego.width_m,
+        cx, cy, h, np.asarray(ego.length_m), np.asarray(ego.width_m),
         agents.xy[ik, ta, 0], agents.xy[ik, ta, 1], agents.heading_rad[ik, ta],
         agents.length_m[ik], agents.width_m[ik],
     )  # fmt: skip
