@@ -106,7 +106,7 @@ def stages(pdm: PdmPlanner, request: PlanRequest) -> dict[str, float]:
     """CPU ms of pdm's stages on one request (one run each, after the timed rounds)."""
     out: dict[str, float] = {}
     t = time.process_time()
-    line, agents, proposals, relevant = pdm._relevant(request)
+    line, agents, proposals, relevant, candidates = pdm._relevant(request)
     out["relevance + IDM + simulation"] = (time.process_time() - t) * 1e3
     t = time.process_time()
     pdm._simulate(request, proposals.states, request.dt_s)
@@ -115,7 +115,14 @@ def stages(pdm: PdmPlanner, request: PlanRequest) -> dict[str, float]:
     ) * 1e3
     sim = proposals.simulated
     t = time.process_time()
-    pdm._score(request, line, agents.subset(relevant), sim, _centres(sim, proposals.wheelbase_m))
+    pdm._score(
+        request,
+        line,
+        agents.subset(relevant),
+        sim,
+        _centres(sim, proposals.wheelbase_m),
+        candidates,
+    )
     out["scoring"] = (time.process_time() - t) * 1e3
     return out
 

@@ -326,20 +326,19 @@ class PdmPlanner:
             return np.zeros(0, dtype=bool)
         if request.reference.shape[0] < 2:
             return np.ones(request.agents.n, dtype=bool)
-        _, _, _, relevant = self._relevant(request)
-        return relevant
+        return self._relevant(request)[3]
 
     # ------------------------------------------------------------------ plan
     def plan(self, request: PlanRequest) -> Plan:
         start = time.perf_counter()
         if request.reference.shape[0] < 2 or not np.any(np.diff(request.reference, axis=0)):
             return Plan.failed("the reference path has fewer than two distinct points")
-        line, agents, proposals, relevant = self._relevant(request)
+        line, agents, proposals, relevant, candidates = self._relevant(request)
         agents = agents.subset(relevant)
         p = self.settings
         sim = proposals.simulated
         sim_xy = _centres(sim, proposals.wheelbase_m)
-        scores = self._score(request, line, agents, sim, sim_xy)
+        scores = self._score(request, line, agents, sim, sim_xy, candidates)
         total = scores.total
         best = _best(total, proposals.offset_m, p.score_tie)
         ego = request.ego
@@ -396,10 +395,11 @@ class PdmPlanner:
 
     def _relevant(
         self, request: PlanRequest
-    ) -> tuple[_Centreline, AgentForecasts, _Proposals, np.ndarray]:
+    ) -> tuple[_Centreline, AgentForecasts, _Proposals, np.ndarray, np.ndarray | None]:
         """The centreline, the agents on the plan's times, the simulated proposals (built
-        on the agents the leader search can read) and the mask ``(K,)`` of agents read
-        anywhere (the leader search, or a bounding-circle candidate of the scorer).
+        on the agents the leader search can read), the mask ``(K,)`` of agents read
+        anywhere (the leader search, or a bounding-circle candidate of the scorer) and the
+        scorer's candidates ``(P, T, D, K')`` of those agents (None without agents).
 
         Two distance bounds from the ego's position keep the work in proportion to the
         agents near the ego, never dropping one that either test would read: a leader's
@@ -431,7 +431,7 @@ class PdmPlanner:
                 leaders_along = along.rows(reach) if reach.any() else None
         proposals = self._proposals(request, line, leaders_along, agents.ids[leaders], s0)
         if agents.n == 0:
-            return line, agents, proposals, leaders
+            return line, agents, proposals, leaders, None
         sim = proposals.simulated
         sim_xy = _centres(sim, proposals.wheelbase_m)
         look = self._lookahead_steps(request.dt_s)
@@ -441,10 +441,19 @@ class PdmPlanner:
         near_bound = farthest + ego_half_diagonal + half_diagonal + 1e-6
         maybe_near = np.flatnonzero((distance <= near_bound[:, None]).any(axis=1))
         near = np.zeros(agents.n, dtype=bool)
+        cand = np.zeros((*sim.shape[:2], look.size, 0), dtype=bool)
         if maybe_near.size:
             cand = _candidates(request, agents.subset(maybe_near), sim, sim_xy, look)
             near[maybe_near] = cand.any(axis=(0, 1, 2))
-        return line, agents, proposals, leaders | near
+        relevant = leaders | near
+        # the candidates of the relevant agents, in their order (leaders far from every
+        # simulated box have none)
+        column = np.full(agents.n, -1)
+        column[maybe_near] = np.arange(maybe_near.size)
+        columns = column[relevant]
+        relevant_cand = np.zeros((*cand.shape[:3], columns.size), dtype=bool)
+        relevant_cand[..., columns >= 0] = cand[..., columns[columns >= 0]]
+        return line, agents, proposals, relevant, relevant_cand
 
     def _lookahead_steps(self, dt_s: float) -> np.ndarray:
         return np.array([round(t / dt_s) for t in self.settings.ttc_lookahead_s], dtype=np.int64)
@@ -586,8 +595,10 @@ class PdmPlanner:
         agents: AgentForecasts,
         sim: np.ndarray,
         sim_xy: np.ndarray,
+        candidates: np.ndarray | None = None,
     ) -> ProposalScores:
-        """Metric rows and scores of the simulated proposals (see :class:`ProposalScores`)."""
+        """Metric rows and scores of the simulated proposals (see :class:`ProposalScores`);
+        ``candidates``: the bounding-circle candidates of these agents when known."""
         p = self.settings
         ego = request.ego
         dt = request.dt_s
@@ -632,7 +643,7 @@ class PdmPlanner:
             ego.xy[0], ego.xy[1], np.asarray(ego.heading_rad), np.asarray(ego.length_m), np.asarray(ego.width_m),
             agents.xy[:, 0, 0], agents.xy[:, 0, 1], agents.heading_rad[:, 0], agents.length_m, agents.width_m,
         )  # fmt: skip
-        c = contacts(request, agents, sim, sim_xy, look, ignore=now)
+        c = contacts(request, agents, sim, sim_xy, look, ignore=now, candidates=candidates)
         ip, it, idd, ik, ta, cx, cy = (
             c.proposal,
             c.step,
@@ -806,19 +817,21 @@ def contacts(
     sim_xy: np.ndarray,
     look: np.ndarray,
     ignore: np.ndarray | None = None,
+    candidates: np.ndarray | None = None,
 ) -> Contacts:
     """Every ``(proposal, step, look-ahead, agent)`` whose boxes overlap (separating axes,
     :func:`risk.hindsight.boxes_overlap`), the ego's box at ``sim_xy`` with the simulated
     heading, moved ahead by speed times ``look * dt``, against the agent's box at
     ``step + look``; only the pairs whose bounding circles touch are tested
-    (:func:`_candidates`). ``ignore`` ``(K,)``: agents left out."""
+    (:func:`_candidates`, or ``candidates`` ``(P, T, D, K)`` when already computed).
+    ``ignore`` ``(K,)``: agents left out."""
     ego = request.ego
     dt = request.dt_s
     heading = sim[..., lqr.StateIndex.HEADING]
     speed = sim[..., lqr.StateIndex.SPEED]
-    cand = _candidates(request, agents, sim, sim_xy, look)  # (P, T, D, K)
+    cand = _candidates(request, agents, sim, sim_xy, look) if candidates is None else candidates
     if ignore is not None:
-        cand &= ~ignore[None, None, None, :]
+        cand = cand & ~ignore[None, None, None, :]
     ip, it, idd, ik = np.nonzero(cand)
     shift = look[idd] * dt * speed[ip, it]
     h = heading[ip, it]
@@ -853,13 +866,13 @@ def _first_contact(
     """For contacts listed by proposal ``ip``, agent ``ik`` and rank ``order``: per
     ``(P, K)`` whether the first contact counts, its step (inf: none) and the agent row
     (-1: none) as ``(P, K)`` arrays."""
-    first_rank = np.full((n_p, n_k), np.iinfo(np.int64).max)
-    np.minimum.at(first_rank, (ip, ik), order)
-    is_first = order == first_rank[ip, ik]
+    key = ip * n_k + ik
+    by = np.lexsort((order, key))  # by pair, then rank: the first of each pair leads
+    first = by[np.r_[True, key[by][1:] != key[by][:-1]]] if by.size else by
     counted = np.zeros((n_p, n_k), dtype=bool)
     at = np.full((n_p, n_k), np.inf)
-    counted[ip[is_first], ik[is_first]] = counts[is_first]
-    at[ip[is_first], ik[is_first]] = step[is_first]
+    counted[ip[first], ik[first]] = counts[first]
+    at[ip[first], ik[first]] = step[first]
     agent = np.where(counted, np.arange(n_k)[None, :], -1)
     return counted, at, agent
 
