@@ -402,3 +402,12 @@ def test_replay_plan_and_run_with_pdm(tmp_path):
     )
     assert run.exit_code == 0, run.output
     assert (tmp_path / "r.rrd").stat().st_size > 0
+
+
+def test_a_reference_without_direction_fails_with_its_reason():
+    req = dataclasses.replace(
+        hand_request([(30.0, 0.0, 0.0, 0.0, int(Kind.VEHICLE))]), reference=np.zeros((3, 2))
+    )
+    plan = PdmPlanner().plan(req)
+    assert not plan.ok and plan.reason == "the reference path has fewer than two distinct points"
+    assert PdmPlanner().may_matter(req).tolist() == [True]

@@ -324,14 +324,14 @@ class PdmPlanner:
         module's docstring); costs about one plan."""
         if request.agents.n == 0:
             return np.zeros(0, dtype=bool)
-        if request.reference.shape[0] < 2:
-            return np.ones(request.agents.n, dtype=bool)
+        if not _usable(request.reference):
+            return np.ones(request.agents.n, dtype=bool)  # plan fails whatever the agents
         return self._relevant(request)[3]
 
     # ------------------------------------------------------------------ plan
     def plan(self, request: PlanRequest) -> Plan:
         start = time.perf_counter()
-        if request.reference.shape[0] < 2 or not np.any(np.diff(request.reference, axis=0)):
+        if not _usable(request.reference):
             return Plan.failed("the reference path has fewer than two distinct points")
         line, agents, proposals, relevant, candidates = self._relevant(request)
         agents = agents.subset(relevant)
@@ -752,6 +752,11 @@ class PdmPlanner:
 
 
 # ---------------------------------------------------------------------- helpers
+def _usable(reference: np.ndarray) -> bool:
+    """The reference has two distinct points (a direction to extend it along)."""
+    return reference.shape[0] >= 2 and bool(np.any(np.diff(reference, axis=0)))
+
+
 def _best(total: np.ndarray, offset_m: np.ndarray, tie: float) -> int:
     """The chosen proposal: among those within ``tie`` of the best score, the one nearest
     the centreline, then the highest score, then the first."""
