@@ -87,6 +87,8 @@ class StateIndex(IntEnum):
 
 
 N_STATE = len(StateIndex)
+# Plain ints for the per-step code (indexing with an IntEnum member costs twice as much).
+_X, _Y, _HEADING, _SPEED, _ACCEL, _STEER = (int(i) for i in StateIndex)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -166,19 +168,19 @@ def bicycle_step(
     not wrapped (they stay continuous along a simulation).
     """
     s = settings
-    heading = states[:, StateIndex.HEADING]
-    speed = states[:, StateIndex.SPEED]
-    steer = states[:, StateIndex.STEER]
-    accel = states[:, StateIndex.ACCEL]
+    heading = states[:, _HEADING]
+    speed = states[:, _SPEED]
+    steer = states[:, _STEER]
+    accel = states[:, _ACCEL]
     out = np.empty_like(states)
-    new_accel = out[:, StateIndex.ACCEL]
+    new_accel = out[:, _ACCEL]
     # (np.minimum / np.maximum: np.clip's wrapper costs more than the work here)
     np.multiply(accel_cmd - accel, dt_s / (dt_s + s.accel_lag_s), out=new_accel)
     new_accel += accel
     np.minimum(
         np.maximum(new_accel, -s.max_decel_mps2, out=new_accel), s.max_accel_mps2, out=new_accel
     )
-    new_steer = out[:, StateIndex.STEER]
+    new_steer = out[:, _STEER]
     np.multiply(steer_rate_cmd, dt_s * dt_s / (dt_s + s.steer_lag_s), out=new_steer)
     new_steer += steer
     np.minimum(
@@ -186,10 +188,10 @@ def bicycle_step(
     )
 
     travel = dt_s * speed
-    out[:, StateIndex.REAR_X] = states[:, StateIndex.REAR_X] + travel * np.cos(heading)
-    out[:, StateIndex.REAR_Y] = states[:, StateIndex.REAR_Y] + travel * np.sin(heading)
-    out[:, StateIndex.HEADING] = heading + travel * np.tan(steer) / wheelbase
-    new_speed = out[:, StateIndex.SPEED]
+    out[:, _X] = states[:, _X] + travel * np.cos(heading)
+    out[:, _Y] = states[:, _Y] + travel * np.sin(heading)
+    out[:, _HEADING] = heading + travel * np.tan(steer) / wheelbase
+    new_speed = out[:, _SPEED]
     np.multiply(new_accel, dt_s, out=new_speed)
     new_speed += speed
     stops = new_speed < 0.0  # comes to rest within the step: no reversing
@@ -457,17 +459,17 @@ def lqr_commands(
     s = p.settings
     n = s.horizon_steps
     k = min(step, p.heading.shape[0] - 1)
-    speed = states[:, StateIndex.SPEED]
+    speed = states[:, _SPEED]
     # The rear axle in the reference pose's frame: along (ahead of it) and lateral error.
-    rear = states[:, StateIndex.REAR_X] + 1j * states[:, StateIndex.REAR_Y]
+    rear = states[:, _X] + 1j * states[:, _Y]
     local = (rear - p.rear[k]) * p.unrotate[k]
     # Longitudinal: one-step LQR on speed and position n steps ahead (TrackingProblem.of).
     accel = p.base_accel[k] - p.speed_gain * speed - p.position_gain * local.real
 
     # Lateral: error state (e, psi, delta) now, and n steps ahead with u = 0.
     e0 = local.imag
-    psi0 = wrap_angle(states[:, StateIndex.HEADING] - p.heading[k])
-    delta0 = states[:, StateIndex.STEER]
+    psi0 = wrap_angle(states[:, _HEADING] - p.heading[k])
+    delta0 = states[:, _STEER]
     free, g = _lateral_response(speed, accel, p.moments[k], s.dt_s, p.wheelbase, n)
     e_n = e0 + free[:, 0] * psi0 + free[:, 1] * delta0 + g[:, 0]
     psi_n = psi0 + free[:, 2] * delta0 + g[:, 1]  # small: PDM's wrap would not change it
