@@ -7,10 +7,11 @@ One call (:meth:`PdmPlanner.plan`), every stage vectorised over proposals ``P``,
    ends so that no projection is clamped at its ends (the phantom of issue 35).
 2. **Proposals**: IDM along the centreline shifted by each lateral offset (0, +1, -1 m),
    at each target speed (0.2 ... 1.0 of the request's target speed): ``P = 15``. One
-   state array ``(P, T, N_PROPOSAL)`` with the columns of :class:`ProposalColumn`. At each
-   step every proposal's leader is the nearest forecast agent ahead whose box reaches
-   into the proposal's corridor (the shifted path widened by the ego's half width, as
-   PDM's), up to the corridor's end (``max(target, ego speed) * horizon`` ahead).
+   state array ``(P, T, N_PROPOSAL)`` with the columns of :class:`ProposalColumn`. Every
+   2 steps (held in between, as PDM) each proposal's leader is the nearest forecast agent
+   ahead whose box reaches into the proposal's corridor (the shifted path widened by the
+   ego's half width, as PDM's), up to the corridor's end (``max(target, ego speed) *
+   horizon`` ahead).
 3. **Simulation**: each proposal tracked by the kinematic bicycle under the batch LQR
    tracker (:mod:`replay.planning.lqr`), from the ego's actual pose, over the whole
    request horizon.
@@ -92,7 +93,8 @@ class PdmSettings:
     drivable-area metric tolerates 0.3 m; our lanes, unlike nuPlan's drivable layer, have
     no shoulders). ``blocking_margin_mps2``: how far below the free-road acceleration a
     leader must push the chosen proposal to be reported as blocking (as ``idm``).
-    ``score_tie``: proposals scoring within this of the best tie; among them the one
+    ``leader_update_steps``: the leader search runs every this many steps and its answer
+    is held in between (PDM: 2). ``score_tie``: proposals scoring within this of the best tie; among them the one
     nearest the centreline wins, then the higher score (PDM takes the exact argmax, and a
     sideways proposal can win by rounding: 1e-6 more progress).
     """
@@ -121,6 +123,7 @@ class PdmSettings:
     brake_max_speed_mps: float = 5.0
     brake_decel_mps2: float = 4.05
     blocking_margin_mps2: float = 0.1
+    leader_update_steps: int = 2
     score_tie: float = 1e-3
     # nuPlan's comfort bounds
     max_lon_accel_mps2: float = 2.40
@@ -232,6 +235,19 @@ class _AgentsAlong:
             half_across_m=s * half_l + c * half_w,
             speed_along_mps=speed_along,
         )
+
+
+def _at_steps(agents: AgentForecasts, steps: np.ndarray) -> AgentForecasts:
+    """The forecasts at some of their time indices ``steps`` (S,)."""
+    return AgentForecasts(
+        ids=agents.ids,
+        kinds=agents.kinds,
+        length_m=agents.length_m,
+        width_m=agents.width_m,
+        times_s=agents.times_s[steps],
+        xy=agents.xy[:, steps],
+        heading_rad=agents.heading_rad[:, steps],
+    )
 
 
 def _velocities(agents: AgentForecasts) -> np.ndarray:
@@ -425,7 +441,8 @@ class PdmPlanner:
                 (distance <= (bound + 2.0 * half_diagonal + 1e-6)[:, None]).any(axis=1)
             )
             if maybe.size:
-                along = _AgentsAlong.of(line, agents.subset(maybe))
+                searched = _at_steps(agents.subset(maybe), self._search_steps(request))
+                along = _AgentsAlong.of(line, searched)
                 reach = np.asarray(self._leader_reach(request, along, s0).any(axis=1))
                 leaders[maybe[reach]] = True
                 leaders_along = along.rows(reach) if reach.any() else None
@@ -454,6 +471,10 @@ class PdmPlanner:
         relevant_cand = np.zeros((*cand.shape[:3], columns.size), dtype=bool)
         relevant_cand[..., columns >= 0] = cand[..., columns[columns >= 0]]
         return line, agents, proposals, relevant, relevant_cand
+
+    def _search_steps(self, request: PlanRequest) -> np.ndarray:
+        """The steps at which the IDM searches for leaders (the last step plans nothing)."""
+        return np.arange(0, max(request.times_s.size - 1, 1), self.settings.leader_update_steps)
 
     def _lookahead_steps(self, dt_s: float) -> np.ndarray:
         return np.array([round(t / dt_s) for t in self.settings.ttc_lookahead_s], dtype=np.int64)
@@ -494,13 +515,13 @@ class PdmPlanner:
         a_lead_t = np.zeros((n_t, n_p))
         lead_t = np.zeros((n_t, n_p), dtype=np.int64)
         corridor = None
-        if leaders is not None:
-            arc_t = np.ascontiguousarray(leaders.arc_m.T)  # (T, L)
+        if leaders is not None:  # (L, S): the leaders at the search steps
+            arc_t = np.ascontiguousarray(leaders.arc_m.T)  # (S, L)
             # the gap to the ego is back - s (bumper to bumper along the path)
             back_t = np.ascontiguousarray((leaders.arc_m - leaders.half_along_m).T) - half_len
             corridor = np.abs(leaders.lateral_m.T[:, None, :] - offsets[None, :, None]) < (
                 half_wid + leaders.half_across_m.T[:, None, :]
-            )  # (T, P, L)
+            )  # (S, P, L)
             end = s0 + self._corridor_length(request)
             corridor &= (arc_t - leaders.half_along_m.T < end)[:, None, :]
             speed_t = np.ascontiguousarray(leaders.speed_along_mps.T)
@@ -508,18 +529,32 @@ class PdmPlanner:
         proposal_rows = np.arange(n_p)
         inv_target = 1.0 / target
         a_max, b_max = p.idm_accel_mps2, p.idm_decel_mps2
+        every = p.leader_update_steps
+        # The leader found at the last search, held until the next (as PDM): where its
+        # rear is along the path (inf: none), its speed along the path, its row.
+        held_back = np.full(n_p, np.inf)
+        held_speed = np.zeros(n_p)
+        held_row = np.zeros(n_p, dtype=np.int64)
         for k in range(n_t - 1):  # time steps only: proposals and agents vectorised
             vk, sk = v[k], s[k]
             a_free = a_max - a_max * (vk * inv_target) ** p.idm_exponent
             accel = a_free
-            if corridor is not None and any_t[k]:
-                # no leader: the gap is inf, its IDM term 0 and accel the free-road one
-                masked = np.where(corridor[k] & (arc_t[k] > sk[:, None]), back_t[k], np.inf)
-                j = np.argmin(masked, axis=1)
-                gap = masked[proposal_rows, j] - sk
-                s_star = p.idm_min_gap_m + vk * (p.idm_headway_s + (vk - speed_t[k, j]) / sqrt_ab)
-                accel = a_free - a_max * (s_star / np.maximum(gap, p.idm_min_gap_m)) ** 2
-                a_free_t[k], a_lead_t[k], lead_t[k] = a_free, accel, j
+            if corridor is not None:
+                i, search = divmod(k, every)
+                if search == 0:
+                    if any_t[i]:
+                        masked = np.where(corridor[i] & (arc_t[i] > sk[:, None]), back_t[i], np.inf)
+                        held_row = np.argmin(masked, axis=1)
+                        held_back = masked[proposal_rows, held_row]
+                        held_speed = speed_t[i, held_row]
+                    else:
+                        held_back = np.full(n_p, np.inf)
+                if np.isfinite(held_back).any():
+                    # no leader: the gap is inf, its IDM term 0, accel the free-road one
+                    gap = held_back - sk
+                    s_star = p.idm_min_gap_m + vk * (p.idm_headway_s + (vk - held_speed) / sqrt_ab)
+                    accel = a_free - a_max * (s_star / np.maximum(gap, p.idm_min_gap_m)) ** 2
+                    a_free_t[k], a_lead_t[k], lead_t[k] = a_free, accel, held_row
             accel = np.minimum(np.maximum(accel, -b_max), a_max)
             v_next = vk + accel * dt
             s[k + 1] = sk + (vk + 0.5 * dt * accel) * dt
