@@ -829,10 +829,20 @@ def _candidates(
         math.hypot(ego.length_m, ego.width_m) / 2.0
         + np.hypot(agents.length_m, agents.width_m) / 2.0
     )
-    dx = cx[..., None] - np.moveaxis(ax, 0, -1)[None]
-    dy = cy[..., None] - np.moveaxis(ay, 0, -1)[None]
-    within = (np.arange(n_t)[:, None] + look[None, :] <= n_t - 1)[None, :, :, None]
-    return np.asarray((dx * dx + dy * dy <= (reach * reach)[None, None, None, :]) & within)
+    # Coarse, (K, T, D): the agent against the circle around all P ego centres at (t, d)
+    # (a centre within r of the agent puts the agent within radius + r of the circle's
+    # centre); only what passes is tested per proposal.
+    mx, my = cx.mean(axis=0), cy.mean(axis=0)  # (T, D)
+    radius = np.sqrt(((cx - mx) ** 2 + (cy - my) ** 2).max(axis=0))
+    within = np.arange(n_t)[:, None] + look[None, :] <= n_t - 1
+    wide = radius[None] + reach[:, None, None] + 1e-6
+    coarse = ((ax - mx) ** 2 + (ay - my) ** 2 <= wide * wide) & within[None]
+    ik, it, idd = np.nonzero(coarse)
+    dx = cx[:, it, idd] - ax[ik, it, idd]  # (P, m)
+    dy = cy[:, it, idd] - ay[ik, it, idd]
+    out = np.zeros((*cx.shape, agents.n), dtype=bool)
+    out[:, it, idd, ik] = dx * dx + dy * dy <= reach[ik] * reach[ik]
+    return out
 
 
 @dataclass(frozen=True, eq=False)
