@@ -54,14 +54,15 @@ heading (the :class:`~replay.planning.tracking.Tracker` contract).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import Any, Protocol, TypeVar, cast
 
 import numpy as np
 
-from replay.planning.tracking import VehicleState
 from replay.planning.types import Plan
 
 #: Wheelbase as a share of the box length (see the module docstring).
@@ -529,6 +530,29 @@ def _plan_on_grid(plan: Plan, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return np.stack([x, y], axis=1), h, v
 
 
+class _BoxState(Protocol):
+    """What :meth:`LqrTracker.follow` reads of a state: the fields of
+    :class:`~replay.planning.tracking.VehicleState`. (tracking.py loads this module to make
+    the tracker; importing it back would close an import cycle, so the state is described
+    here and copied with ``dataclasses.replace``.)"""
+
+    @property
+    def xy(self) -> np.ndarray: ...
+    @property
+    def heading_rad(self) -> float: ...
+    @property
+    def speed_mps(self) -> float: ...
+    @property
+    def accel_mps2(self) -> float: ...
+    @property
+    def steer_rad(self) -> float: ...
+    @property
+    def length_m(self) -> float: ...
+
+
+_State = TypeVar("_State", bound=_BoxState)
+
+
 class LqrTracker:
     """The tracker ``"lqr"``: the kinematic bicycle under the batch LQR tracker (B = 1),
     simulated at ``settings.dt_s`` (a last, shorter step ends exactly at ``duration_s``)."""
@@ -538,7 +562,10 @@ class LqrTracker:
     def __init__(self, settings: TrackerSettings | None = None) -> None:
         self.settings = TrackerSettings() if settings is None else settings
 
-    def follow(self, state: VehicleState, plan: Plan, duration_s: float) -> VehicleState:
+    def follow(self, state: _State, plan: Plan, duration_s: float) -> _State:
+        """The state (a :class:`~replay.planning.tracking.VehicleState`) after tracking
+        ``plan`` for ``duration_s`` (the :class:`~replay.planning.tracking.Tracker`
+        contract); box size kept."""
         s = self.settings
         n_full = math.floor(duration_s / s.dt_s + 1e-9)
         rest = duration_s - n_full * s.dt_s
@@ -561,7 +588,8 @@ class LqrTracker:
             )
             states = bicycle_step(states, accel, steer_rate, rest, wheelbase, s)
         final = states[0]
-        return VehicleState(
+        moved = dataclasses.replace(
+            cast(Any, state),
             xy=centre_xy(
                 final[[StateIndex.REAR_X, StateIndex.REAR_Y]],
                 final[StateIndex.HEADING],
@@ -571,6 +599,5 @@ class LqrTracker:
             speed_mps=float(final[StateIndex.SPEED]),
             accel_mps2=float(final[StateIndex.ACCEL]),
             steer_rad=float(final[StateIndex.STEER]),
-            length_m=state.length_m,
-            width_m=state.width_m,
         )
+        return cast(_State, moved)
