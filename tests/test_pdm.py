@@ -408,3 +408,35 @@ def test_a_reference_without_direction_fails_with_its_reason():
     plan = PdmPlanner().plan(req)
     assert not plan.ok and plan.reason == "the reference path has fewer than two distinct points"
     assert PdmPlanner().may_matter(req).tolist() == [True]
+
+
+@pytest.mark.parametrize("tracker", ["perfect", "lqr"])
+def test_closed_loop_stops_behind_the_standing_car(tracker):
+    """Re-planning every 0.1 s for 12 s and following each plan for 0.1 s (perfect or
+    LQR tracker), the ego stops behind the standing car without touching it. (The plan
+    must not carry the simulation's actuator lag: a plan that did braked a third as hard
+    as asked at every re-plan and drove into the car.)"""
+    from replay.planning.tracking import VehicleState, make_tracker
+
+    base = road_request([ps.STOPPED])
+    follow = make_tracker(tracker)
+    planner = PdmPlanner()
+    state = VehicleState(xy=np.zeros(2), heading_rad=0.0, speed_mps=ps.EGO_SPEED_MPS)
+    car = base.agents.xy[0, 0]
+    for _ in range(120):
+        ego = EgoState(
+            xy=state.xy, heading_rad=state.heading_rad, speed_mps=state.speed_mps,
+            accel_mps2=state.accel_mps2,
+        )  # fmt: skip
+        reference = np.array([[state.xy[0], 0.0], [state.xy[0] + 300.0, 0.0]])
+        plan = planner.plan(dataclasses.replace(base, ego=ego, reference=reference))
+        state = follow.follow(state, plan, 0.1)
+        touching = boxes_overlap(
+            state.xy[0], state.xy[1], np.asarray(state.heading_rad), np.asarray(4.5),
+            np.asarray(1.8), car[0], car[1], np.asarray(0.0), np.asarray(4.5), np.asarray(1.8),
+        )  # fmt: skip
+        assert not touching
+    assert state.speed_mps < 0.2
+    gap = (car[0] - 2.25) - (state.xy[0] + 2.25)
+    assert 0.5 < gap < 3.0  # IDM's 1 m jam gap, give or take the tracker
+    assert abs(state.xy[1]) < 0.1

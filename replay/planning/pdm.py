@@ -5,8 +5,9 @@ One call (:meth:`PdmPlanner.plan`), every stage vectorised over proposals ``P``,
 
 1. **Centreline**: the request's reference (the ego's route), extended straight at both
    ends so that no projection is clamped at its ends (the phantom of issue 35).
-2. **Proposals**: IDM along the centreline shifted by each lateral offset (0, +1, -1 m),
-   at each target speed (0.2 ... 1.0 of the request's target speed): ``P = 15``. One
+2. **Proposals**: IDM along the centreline shifted by each lateral offset (0, +1, -1 m;
+   merged in from the ego's own offset, :func:`merge`), at each target speed (0.2 ... 1.0
+   of the request's target speed): ``P = 15``. One
    state array ``(P, T, N_PROPOSAL)`` with the columns of :class:`ProposalColumn`. Every
    2 steps (held in between, as PDM) each proposal's leader is the nearest forecast agent
    ahead whose box reaches into the proposal's corridor (the shifted path widened by the
@@ -19,8 +20,9 @@ One call (:meth:`PdmPlanner.plan`), every stage vectorised over proposals ``P``,
    multiplicative at-fault collision (0, or 0.5 for objects of kind OTHER), drivable area,
    driving direction; weighted progress (5), time to collision (5), comfort (2);
    ``score = product * weighted mean``.
-5. **Decision**: the best proposal's simulated trajectory, or an emergency brake when it
-   collides at fault within 2 s while the ego drives at 5 m/s or less.
+5. **Decision**: the best proposal (its IDM trajectory, as PDM: the simulation is for the
+   scores), or an emergency brake when it collides at fault within 2 s while the ego
+   drives at 5 m/s or less.
 
 Where it departs from the paper and why: ``docs/planners.md``, section "pdm".
 
@@ -94,9 +96,15 @@ class PdmSettings:
     no shoulders). ``blocking_margin_mps2``: how far below the free-road acceleration a
     leader must push the chosen proposal to be reported as blocking (as ``idm``).
     ``leader_update_steps``: the leader search runs every this many steps and its answer
-    is held in between (PDM: 2). ``score_tie``: proposals scoring within this of the best tie; among them the one
-    nearest the centreline wins, then the higher score (PDM takes the exact argmax, and a
-    sideways proposal can win by rounding: 1e-6 more progress).
+    is held in between (PDM: 2). ``merge_time_s``, ``merge_min_m``: a proposal's path
+    starts at the ego's lateral offset from the reference and merges into its own offset
+    over this much travel at the ego's speed (at least ``merge_min_m``), a smoothstep
+    (PDM's paths start at their offset: nuPlan's tracker closes the gap).
+    ``score_tie``: proposals scoring within this of the best tie; among them the one
+    nearest the centreline wins, then the higher score. PDM takes the exact argmax, and a
+    sideways proposal then wins by trifles: 1e-6 more progress on a straight road, or, in
+    closed loop creeping up to a standing car, 0.03 m of 4.7 m (0.0025 of the score), so
+    that the ego weaved from one side to the other.
     """
 
     target_fractions: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8, 1.0)
@@ -124,7 +132,9 @@ class PdmSettings:
     brake_decel_mps2: float = 4.05
     blocking_margin_mps2: float = 0.1
     leader_update_steps: int = 2
-    score_tie: float = 1e-3
+    merge_time_s: float = 2.0
+    merge_min_m: float = 5.0
+    score_tie: float = 0.01
     # nuPlan's comfort bounds
     max_lon_accel_mps2: float = 2.40
     min_lon_accel_mps2: float = -4.05
@@ -235,6 +245,19 @@ class _AgentsAlong:
             half_across_m=s * half_l + c * half_w,
             speed_along_mps=speed_along,
         )
+
+
+def merge(
+    arc_m: np.ndarray, offset_m: np.ndarray, s0: float, d0: float, length_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """A proposal path's lateral offset (m, + left) and its slope d offset / d arc at arc
+    lengths ``arc_m``: ``d0`` (the ego's) at ``s0``, ``offset_m`` from ``s0 + length_m``
+    on, a smoothstep between (broadcasting)."""
+    u = np.clip((arc_m - s0) / length_m, 0.0, 1.0)
+    left = 1.0 - u * u * (3.0 - 2.0 * u)  # share of d0 still in the offset
+    offset = offset_m + (d0 - offset_m) * left
+    slope = (d0 - offset_m) * (-6.0 * u * (1.0 - u)) / length_m
+    return offset, slope
 
 
 def _at_steps(agents: AgentForecasts, steps: np.ndarray) -> AgentForecasts:
@@ -366,10 +389,11 @@ class PdmPlanner:
             xy, heading, speed = _brake(request, p.brake_decel_mps2)
             row = int(scores.collision_row[best])
             blocking = int(agents.ids[row]) if row >= 0 else -1
-        else:
-            xy = sim_xy[best]
-            heading = np.unwrap(sim[best, :, lqr.StateIndex.HEADING])
-            speed = sim[best, :, lqr.StateIndex.SPEED]
+        else:  # the proposal itself, as PDM (its simulation was for the scores)
+            chosen = proposals.states[best]
+            xy = chosen[:, [ProposalColumn.X, ProposalColumn.Y]]
+            heading = np.unwrap(chosen[:, ProposalColumn.HEADING])
+            speed = chosen[:, ProposalColumn.SPEED]
             limited = proposals.leader[best][proposals.leader[best] >= 0]
             blocking = int(proposals.leader_ids[limited[0]]) if limited.size else -1
         _, lateral_end, _ = line.project(xy[-1:])
@@ -393,11 +417,15 @@ class PdmPlanner:
         )
 
     # ------------------------------------------------------------------ stages
-    def _leader_reach(self, request: PlanRequest, along: _AgentsAlong, s0: float) -> np.ndarray:
+    def _leader_reach(
+        self, request: PlanRequest, along: _AgentsAlong, s0: float, d0: float
+    ) -> np.ndarray:
         """``(K, T)``: where an agent's box reaches some proposal's corridor ahead of the
-        ego's arc ``s0``, before the corridor's end."""
+        ego's arc ``s0`` (the ego ``d0`` to the left of the reference), before the
+        corridor's end."""
         ego = request.ego
-        widest = max(abs(o) for o in self.settings.lateral_offsets_m)
+        # the proposals' paths run between the ego's offset d0 and their own
+        widest = max(max(abs(o) for o in self.settings.lateral_offsets_m), abs(d0))
         corridor = np.abs(along.lateral_m) < widest + ego.width_m / 2.0 + along.half_across_m
         end = s0 + self._corridor_length(request)
         return corridor & (along.arc_m > s0) & (along.arc_m - along.half_along_m < end)
@@ -419,8 +447,8 @@ class PdmPlanner:
 
         Two distance bounds from the ego's position keep the work in proportion to the
         agents near the ego, never dropping one that either test would read: a leader's
-        centre lies within ``corridor + |d0| + widest offset + half width + 2 r`` of the
-        ego (``d0`` the ego's offset from the reference, ``r`` the agent's half diagonal;
+        centre lies within ``corridor + |d0| + max(widest offset, |d0|) + half width + 2 r``
+        of the ego (``d0`` the ego's offset from the reference, ``r`` the agent's half diagonal;
         a path is never shorter than its chord), and a scorer candidate's within the
         farthest simulated box centre (moved ahead by the largest look-ahead) plus both
         half diagonals.
@@ -435,7 +463,7 @@ class PdmPlanner:
         if agents.n:
             distance = np.hypot(agents.xy[..., 0] - ego.xy[0], agents.xy[..., 1] - ego.xy[1])
             half_diagonal = np.hypot(agents.length_m, agents.width_m) / 2.0
-            widest = max(abs(o) for o in self.settings.lateral_offsets_m)
+            widest = max(max(abs(o) for o in self.settings.lateral_offsets_m), abs(d0))
             bound = self._corridor_length(request) + abs(d0) + widest + ego.width_m / 2.0
             maybe = np.flatnonzero(
                 (distance <= (bound + 2.0 * half_diagonal + 1e-6)[:, None]).any(axis=1)
@@ -443,10 +471,10 @@ class PdmPlanner:
             if maybe.size:
                 searched = _at_steps(agents.subset(maybe), self._search_steps(request))
                 along = _AgentsAlong.of(line, searched)
-                reach = np.asarray(self._leader_reach(request, along, s0).any(axis=1))
+                reach = np.asarray(self._leader_reach(request, along, s0, d0).any(axis=1))
                 leaders[maybe[reach]] = True
                 leaders_along = along.rows(reach) if reach.any() else None
-        proposals = self._proposals(request, line, leaders_along, agents.ids[leaders], s0)
+        proposals = self._proposals(request, line, leaders_along, agents.ids[leaders], s0, d0)
         if agents.n == 0:
             return line, agents, proposals, leaders, None
         sim = proposals.simulated
@@ -486,6 +514,7 @@ class PdmPlanner:
         leaders: _AgentsAlong | None,
         leader_ids: np.ndarray,
         s0: float,
+        d0: float,
     ) -> _Proposals:
         """IDM along every (offset, target) pair, then each tracked by the bicycle."""
         p = self.settings
@@ -503,6 +532,7 @@ class PdmPlanner:
         target = np.maximum(fractions * max(request.target_speed_mps, 0.0), 0.1)
         half_len, half_wid = ego.length_m / 2.0, ego.width_m / 2.0
         sqrt_ab = 2.0 * math.sqrt(p.idm_accel_mps2 * p.idm_decel_mps2)
+        merge_m = max(p.merge_time_s * max(ego.speed_mps, 0.0), p.merge_min_m)
 
         # Time-major arrays (row k is contiguous): the loop runs over steps only.
         s = np.empty((n_t, n_p))
@@ -519,7 +549,8 @@ class PdmPlanner:
             arc_t = np.ascontiguousarray(leaders.arc_m.T)  # (S, L)
             # the gap to the ego is back - s (bumper to bumper along the path)
             back_t = np.ascontiguousarray((leaders.arc_m - leaders.half_along_m).T) - half_len
-            corridor = np.abs(leaders.lateral_m.T[:, None, :] - offsets[None, :, None]) < (
+            path_offset, _ = merge(arc_t[:, None, :], offsets[None, :, None], s0, d0, merge_m)
+            corridor = np.abs(leaders.lateral_m.T[:, None, :] - path_offset) < (
                 half_wid + leaders.half_across_m.T[:, None, :]
             )  # (S, P, L)
             end = s0 + self._corridor_length(request)
@@ -569,7 +600,9 @@ class PdmPlanner:
         limited = a_lead_t < a_free_t - p.blocking_margin_mps2
         leader = np.where(limited, lead_t, -1).T  # (P, T)
 
-        xy, heading = line.pose(s, offsets[:, None])
+        offset_pt, slope = merge(s, offsets[:, None], s0, d0, merge_m)
+        xy, heading = line.pose(s, offset_pt)
+        heading = heading + np.arctan(slope)
         states = np.empty((n_p, n_t, N_PROPOSAL))
         states[..., ProposalColumn.X] = xy[..., 0]
         states[..., ProposalColumn.Y] = xy[..., 1]
