@@ -53,6 +53,7 @@ PLANNER_PARAMS = [
     pytest.param("fop", marks=needs_fiss),
     pytest.param("fiss", marks=needs_fiss),
     pytest.param("fiss_plus", marks=needs_fiss),
+    pytest.param("pdm"),
 ]
 
 
@@ -444,9 +445,9 @@ def test_may_matter_skips_agents_far_away(name, road):
 
 # ---------------------------------------------------------------------- registry, errors
 def test_registry_names_and_unknown_name():
-    assert PLANNERS == ("idm", "fop", "fiss", "fiss_plus")
+    assert PLANNERS == ("idm", "fop", "fiss", "fiss_plus", "pdm")
     assert "idm" in available_planners()
-    with pytest.raises(UnknownPlanner, match="idm, fop, fiss, fiss_plus"):
+    with pytest.raises(UnknownPlanner, match="idm, fop, fiss, fiss_plus, pdm"):
         make_planner("astar")
 
 
@@ -458,7 +459,7 @@ def test_missing_extra_names_the_install_command(monkeypatch):
     assert "pip install 'riskreplay[planner]'" in message
     assert "\n" not in message
     assert isinstance(info.value, RiskReplayError)
-    assert available_planners() == ("idm",)
+    assert available_planners() == ("idm", "pdm")
 
 
 # ---------------------------------------------------------------------- the scene file

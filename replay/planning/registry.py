@@ -1,15 +1,16 @@
-"""The planners by name: ``idm`` (numpy only, always there) and fiss-planner's Frenet
-planners ``fop``, ``fiss``, ``fiss_plus`` (the optional extra ``riskreplay[planner]``)."""
+"""The planners by name: ``idm`` and ``pdm`` (numpy only, always there) and fiss-planner's
+Frenet planners ``fop``, ``fiss``, ``fiss_plus`` (the optional extra ``riskreplay[planner]``)."""
 
 from __future__ import annotations
 
 from replay.planning.errors import PlannerUnavailable, UnknownPlanner
 from replay.planning.frenet import VARIANTS, FrenetPlanner, load_fiss_planner
 from replay.planning.idm import IdmPlanner
+from replay.planning.pdm import PdmPlanner
 from replay.planning.types import Planner
 
 #: Every planner name, the default first.
-PLANNERS: tuple[str, ...] = ("idm", *VARIANTS)
+PLANNERS: tuple[str, ...] = ("idm", *VARIANTS, "pdm")
 
 #: Names that need the optional package fiss-planner.
 NEEDS_EXTRA: frozenset[str] = frozenset(VARIANTS)
@@ -20,6 +21,8 @@ def make_planner(name: str) -> Planner:
     names the extra to install."""
     if name == "idm":
         return IdmPlanner()
+    if name == "pdm":
+        return PdmPlanner()
     if name in VARIANTS:
         return FrenetPlanner(name)
     raise UnknownPlanner(f"unknown planner {name!r}; expected one of {', '.join(PLANNERS)}")

@@ -57,7 +57,8 @@ from risk.filtering import FILTER_FORMS
     type=click.Choice(list(PLANNERS)),
     help="The planner (repeatable: each runs the same frames). idm: the built-in IDM "
     "planner along the ego's path (core dependencies only); fop, fiss, fiss_plus: "
-    "fiss-planner's Frenet planners (pip install 'riskreplay[planner]').",
+    "fiss-planner's Frenet planners (pip install 'riskreplay[planner]'); pdm: a "
+    "PDM-Closed-style planner (core dependencies only; docs/planners.md).",
 )  # fmt: skip
 @click.option(
     "--filter", "filters", multiple=True, default=("cascade",), show_default=True,

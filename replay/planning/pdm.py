@@ -1,0 +1,984 @@
+"""``pdm``: a PDM-Closed-style planner in numpy (after Dauner et al., CoRL 2023).
+
+One call (:meth:`PdmPlanner.plan`), every stage vectorised over proposals ``P``, agents
+``K`` and time ``T`` (the only Python loops run over time steps):
+
+1. **Centreline**: the request's reference (the ego's route), extended straight at both
+   ends so that no projection is clamped at its ends (the phantom of issue 35).
+2. **Proposals**: IDM along the centreline shifted by each lateral offset (0, +1, -1 m;
+   merged in from the ego's own offset, :func:`merge`), at each target speed (0.2 ... 1.0
+   of the request's target speed): ``P = 15``. One
+   state array ``(P, T, N_PROPOSAL)`` with the columns of :class:`ProposalColumn`. Every
+   2 steps (held in between, as PDM) each proposal's leader is the nearest forecast agent
+   ahead whose box reaches into the proposal's corridor (the shifted path widened by the
+   ego's half width, as PDM's), up to the corridor's end (``max(target, ego speed) *
+   horizon`` ahead).
+3. **Simulation**: each proposal tracked by the kinematic bicycle under the batch LQR
+   tracker (:mod:`replay.planning.lqr`), from the ego's actual pose, over the whole
+   request horizon.
+4. **Scoring** as PDM (:class:`MultiMetric`, :class:`WeightedMetric` rows ``(M, P)``):
+   multiplicative at-fault collision (0, or 0.5 for objects of kind OTHER), drivable area,
+   driving direction; weighted progress (5), time to collision (5), comfort (2);
+   ``score = product * weighted mean``.
+5. **Decision**: the best proposal (its IDM trajectory, as PDM: the simulation is for the
+   scores), or an emergency brake when it collides at fault within 2 s while the ego
+   drives at 5 m/s or less.
+
+Where it departs from the paper and why: ``docs/planners.md``, section "pdm".
+
+``may_matter`` is exact in the sense of the planner's own arithmetic: an agent is read
+only by the leader search (stage 2) and by the box tests of the scorer, whose candidate
+pairs come from a bounding-circle test against the simulated ego boxes (stage 4). The
+planner itself keeps only the agents that pass either test (:meth:`PdmPlanner._relevant`)
+before any number depends on them, so an agent that passes neither leaves every array
+bit for bit the same.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from dataclasses import dataclass, replace
+from enum import IntEnum
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+from replay.planning import lqr
+from replay.planning.types import STOP_SPEED_MPS, AgentForecasts, Plan, PlanRequest
+from risk import geometry
+from risk.frame import Kind
+from risk.hindsight import boxes_overlap
+
+#: The reference is extended straight by this much at both ends (m): agents beyond its
+#: ends project onto the extension instead of onto its end points.
+REFERENCE_EXTENSION_M = 1000.0
+
+
+class ProposalColumn(IntEnum):
+    """Columns of the proposal array ``(P, T, N_PROPOSAL)``: box centre (m), heading
+    (rad), speed (m/s), progress along the reference (m)."""
+
+    X = 0
+    Y = 1
+    HEADING = 2
+    SPEED = 3
+    PROGRESS = 4
+
+
+N_PROPOSAL = len(ProposalColumn)
+
+
+class MultiMetric(IntEnum):
+    """Rows of the multiplicative metrics ``(3, P)``."""
+
+    NO_AT_FAULT_COLLISION = 0
+    DRIVABLE_AREA = 1
+    DRIVING_DIRECTION = 2
+
+
+class WeightedMetric(IntEnum):
+    """Rows of the weighted metrics ``(3, P)``."""
+
+    PROGRESS = 0
+    TTC = 1
+    COMFORT = 2
+
+
+@dataclass(frozen=True, kw_only=True)
+class PdmSettings:
+    """PDM-Closed's constants (tuplan_garage ``pdm_closed_planner.yaml``, the scorer and the
+    emergency brake) unless said otherwise.
+
+    ``drivable_margin_m``: how far a corner may lie outside the usable lanes (nuPlan's
+    drivable-area metric tolerates 0.3 m; our lanes, unlike nuPlan's drivable layer, have
+    no shoulders). ``blocking_margin_mps2``: how far below the free-road acceleration a
+    leader must push the chosen proposal to be reported as blocking (as ``idm``).
+    ``leader_update_steps``: the leader search runs every this many steps and its answer
+    is held in between (PDM: 2). ``merge_time_s``, ``merge_min_m``: a proposal's path
+    starts at the ego's lateral offset from the reference and merges into its own offset
+    over this much travel at the ego's speed (at least ``merge_min_m``), a smoothstep
+    (PDM's paths start at their offset: nuPlan's tracker closes the gap).
+    ``score_tie``: proposals scoring within this of the best tie; among them the one
+    nearest the centreline wins, then the higher score. PDM takes the exact argmax, and a
+    sideways proposal then wins by trifles: 1e-6 more progress on a straight road, or, in
+    closed loop creeping up to a standing car, 0.03 m of 4.7 m (0.0025 of the score), so
+    that the ego weaved from one side to the other.
+    """
+
+    target_fractions: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8, 1.0)
+    lateral_offsets_m: tuple[float, ...] = (0.0, 1.0, -1.0)
+    idm_accel_mps2: float = 1.5
+    idm_decel_mps2: float = 3.0
+    idm_headway_s: float = 1.5
+    idm_min_gap_m: float = 1.0
+    idm_exponent: float = 10.0
+    weight_progress: float = 5.0
+    weight_ttc: float = 5.0
+    weight_comfort: float = 2.0
+    static_collision_score: float = 0.5
+    stopped_speed_mps: float = 0.05
+    ttc_stopped_speed_mps: float = 5e-3
+    ttc_lookahead_s: tuple[float, ...] = (0.0, 0.3, 0.6, 0.9)
+    ahead_angle_rad: float = math.radians(30.0)
+    behind_angle_rad: float = math.radians(150.0)
+    progress_min_m: float = 0.1
+    direction_ok_m: float = 2.0
+    direction_violation_m: float = 6.0
+    drivable_margin_m: float = 0.3
+    brake_within_s: float = 2.0
+    brake_max_speed_mps: float = 5.0
+    brake_decel_mps2: float = 4.05
+    blocking_margin_mps2: float = 0.1
+    leader_update_steps: int = 2
+    merge_time_s: float = 2.0
+    merge_min_m: float = 5.0
+    score_tie: float = 0.01
+    # nuPlan's comfort bounds
+    max_lon_accel_mps2: float = 2.40
+    min_lon_accel_mps2: float = -4.05
+    max_abs_lat_accel_mps2: float = 4.89
+    max_abs_yaw_rate: float = 0.95
+    max_abs_yaw_accel: float = 1.93
+    max_abs_lon_jerk: float = 4.13
+    max_abs_jerk: float = 8.37
+
+
+# ---------------------------------------------------------------------- the centreline
+@dataclass(frozen=True, eq=False)
+class _Centreline:
+    """The extended reference: vertices ``(V, 2)``, arc length at them ``(V,)`` (0 at the
+    original start), the tangent heading at them ``(V,)`` (unwrapped; the mean of the
+    adjacent segments) and each segment's heading ``(V - 1,)``."""
+
+    xy: np.ndarray
+    arc_m: np.ndarray
+    vertex_heading: np.ndarray
+    segment_heading: np.ndarray
+
+    @classmethod
+    def of(cls, reference: np.ndarray) -> _Centreline:
+        keep = np.r_[True, np.any(np.diff(reference, axis=0) != 0.0, axis=1)]
+        ref = reference[keep]
+        d = np.diff(ref, axis=0)
+        first = d[0] / np.hypot(*d[0])
+        last = d[-1] / np.hypot(*d[-1])
+        xy = np.vstack(
+            [ref[0] - REFERENCE_EXTENSION_M * first, ref, ref[-1] + REFERENCE_EXTENSION_M * last]
+        )
+        seg = np.diff(xy, axis=0)
+        seg_heading = np.unwrap(np.arctan2(seg[:, 1], seg[:, 0]))
+        # a vertex's tangent: the mean of its two segments' directions (unwrapped)
+        vertex = np.r_[seg_heading[0], 0.5 * (seg_heading[:-1] + seg_heading[1:]), seg_heading[-1]]
+        arc = geometry.cumulative_lengths(xy[None])[0] - REFERENCE_EXTENSION_M
+        return cls(xy=xy, arc_m=arc, vertex_heading=vertex, segment_heading=seg_heading)
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Arc length, signed lateral offset (+ left) and the path's heading there, each
+        ``points.shape[:-1]``, of points ``(..., 2)``."""
+        shape = points.shape[:-1]
+        flat = points.reshape(-1, 2)
+        dist, arc = geometry.project_points(flat, self.xy, self.arc_m)
+        seg = np.clip(
+            np.searchsorted(self.arc_m, arc, side="right") - 1, 0, len(self.segment_heading) - 1
+        )
+        h = self.segment_heading[seg]
+        rel = flat - self.xy[seg]
+        side = np.where(np.cos(h) * rel[:, 1] - np.sin(h) * rel[:, 0] >= 0.0, 1.0, -1.0)
+        return arc.reshape(shape), (side * dist).reshape(shape), h.reshape(shape)
+
+    def pose(self, arc_m: np.ndarray, offset_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Points ``(..., 2)`` and headings at arc lengths ``arc_m`` on the centreline
+        shifted ``offset_m`` to the left (broadcast together); the heading is interpolated
+        between the vertices' tangents (continuous along the path)."""
+        arc_m, offset_m = np.broadcast_arrays(arc_m, offset_m)
+        seg = np.clip(
+            np.searchsorted(self.arc_m, arc_m, side="right") - 1, 0, len(self.segment_heading) - 1
+        )
+        a0 = self.arc_m[seg]
+        span = self.arc_m[seg + 1] - a0
+        w = (arc_m - a0) / span
+        xy = self.xy[seg] + w[..., None] * (self.xy[seg + 1] - self.xy[seg])
+        heading = self.vertex_heading[seg] + w * (
+            self.vertex_heading[seg + 1] - self.vertex_heading[seg]
+        )
+        normal = np.stack([-np.sin(heading), np.cos(heading)], axis=-1)
+        return xy + offset_m[..., None] * normal, heading
+
+
+# ---------------------------------------------------------------------- agents
+@dataclass(frozen=True, eq=False)
+class _AgentsAlong:
+    """Agents on the plan's times in the centreline's coordinates, shapes ``(K, T)``:
+    arc, signed lateral offset, the box's half extents along / across the path, speed
+    along the path (finite differences of the forecast, projected on the path)."""
+
+    arc_m: np.ndarray
+    lateral_m: np.ndarray
+    half_along_m: np.ndarray
+    half_across_m: np.ndarray
+    speed_along_mps: np.ndarray
+
+    def rows(self, which: np.ndarray) -> _AgentsAlong:
+        """The agents selected by a mask or index array ``(K,)``."""
+        return _AgentsAlong(
+            arc_m=self.arc_m[which],
+            lateral_m=self.lateral_m[which],
+            half_along_m=self.half_along_m[which],
+            half_across_m=self.half_across_m[which],
+            speed_along_mps=self.speed_along_mps[which],
+        )
+
+    @classmethod
+    def of(cls, line: _Centreline, agents: AgentForecasts) -> _AgentsAlong:
+        arc, lateral, path_h = line.project(agents.xy)
+        rel = agents.heading_rad - path_h
+        c, s = np.abs(np.cos(rel)), np.abs(np.sin(rel))
+        half_l, half_w = agents.length_m[:, None] / 2.0, agents.width_m[:, None] / 2.0
+        velocity = _velocities(agents)
+        speed_along = velocity[..., 0] * np.cos(path_h) + velocity[..., 1] * np.sin(path_h)
+        return cls(
+            arc_m=arc,
+            lateral_m=lateral,
+            half_along_m=c * half_l + s * half_w,
+            half_across_m=s * half_l + c * half_w,
+            speed_along_mps=speed_along,
+        )
+
+
+def merge(
+    arc_m: np.ndarray, offset_m: np.ndarray, s0: float, d0: float, length_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """A proposal path's lateral offset (m, + left) and its slope d offset / d arc at arc
+    lengths ``arc_m``: ``d0`` (the ego's) at ``s0``, ``offset_m`` from ``s0 + length_m``
+    on, a smoothstep between (broadcasting)."""
+    u = np.clip((arc_m - s0) / length_m, 0.0, 1.0)
+    left = 1.0 - u * u * (3.0 - 2.0 * u)  # share of d0 still in the offset
+    offset = offset_m + (d0 - offset_m) * left
+    slope = (d0 - offset_m) * (-6.0 * u * (1.0 - u)) / length_m
+    return offset, slope
+
+
+def _at_steps(agents: AgentForecasts, steps: np.ndarray) -> AgentForecasts:
+    """The forecasts at some of their time indices ``steps`` (S,)."""
+    return AgentForecasts(
+        ids=agents.ids,
+        kinds=agents.kinds,
+        length_m=agents.length_m,
+        width_m=agents.width_m,
+        times_s=agents.times_s[steps],
+        xy=agents.xy[:, steps],
+        heading_rad=agents.heading_rad[:, steps],
+    )
+
+
+def _velocities(agents: AgentForecasts) -> np.ndarray:
+    """Velocity ``(K, T, 2)`` (m/s) of the forecasts: forward differences, the last step
+    repeated (zeros with a single time)."""
+    if agents.times_s.size < 2:
+        return np.zeros(agents.xy.shape)
+    v = np.diff(agents.xy, axis=1) / np.diff(agents.times_s)[None, :, None]
+    return np.concatenate([v, v[:, -1:]], axis=1)
+
+
+# ---------------------------------------------------------------------- scores
+@dataclass(frozen=True, eq=False)
+class ProposalScores:
+    """The scorer's answer for ``P`` proposals.
+
+    ``multi`` ``(3, P)``: rows of :class:`MultiMetric`; ``weighted`` ``(3, P)``: rows of
+    :class:`WeightedMetric`, progress normalised (by the best progress among proposals
+    whose multiplicative product is not 0); ``progress_m`` ``(P,)``: raw progress along the
+    reference; ``total`` ``(P,)``: ``product(multi) * weighted mean``; ``collision_step``
+    ``(P,)``: time index of the first at-fault collision (inf: none); ``collision_row``
+    ``(P,)``: the agent (row of the scored agents) hit then, -1 none.
+    """
+
+    multi: np.ndarray
+    weighted: np.ndarray
+    progress_m: np.ndarray
+    total: np.ndarray
+    collision_step: np.ndarray
+    collision_row: np.ndarray
+
+    @classmethod
+    def of(
+        cls,
+        multi: np.ndarray,
+        weighted_raw: np.ndarray,
+        collision_step: np.ndarray,
+        collision_row: np.ndarray,
+        settings: PdmSettings,
+    ) -> ProposalScores:
+        """Aggregates as PDM: progress is normalised by the best progress among the
+        proposals not zeroed by a multiplicative metric (all 1 where that best is below
+        ``progress_min_m``, 0 where zeroed)."""
+        p = settings
+        product = multi.prod(axis=0)
+        raw = weighted_raw[WeightedMetric.PROGRESS] * product
+        best = raw.max()
+        weighted = weighted_raw.copy()
+        if best > p.progress_min_m:
+            weighted[WeightedMetric.PROGRESS] = raw / best
+        else:
+            weighted[WeightedMetric.PROGRESS] = np.where(product == 0.0, 0.0, 1.0)
+        weights = np.array([p.weight_progress, p.weight_ttc, p.weight_comfort])
+        return cls(
+            multi=multi,
+            weighted=weighted,
+            progress_m=weighted_raw[WeightedMetric.PROGRESS].copy(),
+            total=product * (weights @ weighted) / weights.sum(),
+            collision_step=collision_step,
+            collision_row=np.asarray(collision_row, dtype=np.int64),
+        )
+
+
+# ---------------------------------------------------------------------- the planner
+@dataclass(frozen=True, eq=False)
+class _Proposals:
+    states: np.ndarray  # (P, T, N_PROPOSAL)
+    offset_m: np.ndarray  # (P,)
+    fraction: np.ndarray  # (P,)
+    leader: np.ndarray  # (P, T) int: index into leader_ids of the limiting leader, -1 none
+    leader_ids: np.ndarray  # (L,) int64: ids of the agents the leader search reads
+    simulated: np.ndarray  # (P, T, N_STATE) rear-axle bicycle states
+    wheelbase_m: float
+
+
+class PdmPlanner:
+    """PDM-Closed-style planner (see the module's docstring)."""
+
+    name = "pdm"
+
+    def __init__(
+        self, settings: PdmSettings | None = None, tracker: lqr.TrackerSettings | None = None
+    ) -> None:
+        self.settings = PdmSettings() if settings is None else settings
+        self.tracker = lqr.TrackerSettings() if tracker is None else tracker
+
+    # ------------------------------------------------------------------ may_matter
+    def may_matter(self, request: PlanRequest) -> np.ndarray:
+        """``(K,)`` bool: False for agents the planner provably never reads (see the
+        module's docstring); costs about one plan."""
+        if request.agents.n == 0:
+            return np.zeros(0, dtype=bool)
+        if not _usable(request.reference):
+            return np.ones(request.agents.n, dtype=bool)  # plan fails whatever the agents
+        return self._relevant(request)[3]
+
+    # ------------------------------------------------------------------ plan
+    def plan(self, request: PlanRequest) -> Plan:
+        start = time.perf_counter()
+        if not _usable(request.reference):
+            return Plan.failed("the reference path has fewer than two distinct points")
+        line, agents, proposals, relevant, candidates = self._relevant(request)
+        agents = agents.subset(relevant)
+        p = self.settings
+        sim = proposals.simulated
+        sim_xy = _centres(sim, proposals.wheelbase_m)
+        scores = self._score(request, line, agents, sim, sim_xy, candidates)
+        total = scores.total
+        best = _best(total, proposals.offset_m, p.score_tie)
+        ego = request.ego
+        brake = bool(
+            scores.collision_step[best] * request.dt_s <= p.brake_within_s
+            and ego.speed_mps <= p.brake_max_speed_mps
+        )
+        if brake:
+            xy, heading, speed = _brake(request, p.brake_decel_mps2)
+            row = int(scores.collision_row[best])
+            blocking = int(agents.ids[row]) if row >= 0 else -1
+        else:  # the proposal itself, as PDM (its simulation was for the scores)
+            chosen = proposals.states[best]
+            xy = chosen[:, [ProposalColumn.X, ProposalColumn.Y]]
+            heading = np.unwrap(chosen[:, ProposalColumn.HEADING])
+            speed = chosen[:, ProposalColumn.SPEED]
+            limited = proposals.leader[best][proposals.leader[best] >= 0]
+            blocking = int(proposals.leader_ids[limited[0]]) if limited.size else -1
+        _, lateral_end, _ = line.project(xy[-1:])
+        return Plan(
+            ok=True,
+            times_s=request.times_s,
+            xy=xy,
+            heading_rad=heading,
+            speed_mps=speed,
+            plan_ms=(time.perf_counter() - start) * 1e3,
+            lane=int(np.rint(lateral_end[0] / request.lane_width_m)),
+            stops=bool((speed < STOP_SPEED_MPS).any()),
+            blocking_id=blocking,
+            extras={
+                "score": float(total[best]),
+                "offset_m": float(proposals.offset_m[best]),
+                "target_fraction": float(proposals.fraction[best]),
+                "emergency_brake": float(brake),
+                "proposals": float(total.size),
+            },
+        )
+
+    # ------------------------------------------------------------------ stages
+    def _leader_reach(
+        self, request: PlanRequest, along: _AgentsAlong, s0: float, d0: float
+    ) -> np.ndarray:
+        """``(K, T)``: where an agent's box reaches some proposal's corridor ahead of the
+        ego's arc ``s0`` (the ego ``d0`` to the left of the reference), before the
+        corridor's end."""
+        ego = request.ego
+        # the proposals' paths run between the ego's offset d0 and their own
+        widest = max(max(abs(o) for o in self.settings.lateral_offsets_m), abs(d0))
+        corridor = np.abs(along.lateral_m) < widest + ego.width_m / 2.0 + along.half_across_m
+        end = s0 + self._corridor_length(request)
+        return corridor & (along.arc_m > s0) & (along.arc_m - along.half_along_m < end)
+
+    @staticmethod
+    def _corridor_length(request: PlanRequest) -> float:
+        """How far ahead of the ego the leader search looks (m): PDM's corridor is the
+        distance driven at the highest target speed over the horizon."""
+        fastest = max(request.target_speed_mps, request.ego.speed_mps, 0.0)
+        return fastest * request.horizon_s + request.ego.length_m / 2.0
+
+    def _relevant(
+        self, request: PlanRequest
+    ) -> tuple[_Centreline, AgentForecasts, _Proposals, np.ndarray, np.ndarray | None]:
+        """The centreline, the agents on the plan's times, the simulated proposals (built
+        on the agents the leader search can read), the mask ``(K,)`` of agents read
+        anywhere (the leader search, or a bounding-circle candidate of the scorer) and the
+        scorer's candidates ``(P, T, D, K')`` of those agents (None without agents).
+
+        Two distance bounds from the ego's position keep the work in proportion to the
+        agents near the ego, never dropping one that either test would read: a leader's
+        centre lies within ``corridor + |d0| + max(widest offset, |d0|) + half width + 2 r``
+        of the ego (``d0`` the ego's offset from the reference, ``r`` the agent's half diagonal;
+        a path is never shorter than its chord), and a scorer candidate's within the
+        farthest simulated box centre (moved ahead by the largest look-ahead) plus both
+        half diagonals.
+        """
+        line = _Centreline.of(request.reference)
+        agents = request.agents.on_times(request.times_s)
+        ego = request.ego
+        s0_arr, d0_arr, _ = line.project(ego.xy[None])
+        s0, d0 = float(s0_arr[0]), float(d0_arr[0])
+        leaders = np.zeros(agents.n, dtype=bool)
+        leaders_along = None
+        if agents.n:
+            distance = np.hypot(agents.xy[..., 0] - ego.xy[0], agents.xy[..., 1] - ego.xy[1])
+            half_diagonal = np.hypot(agents.length_m, agents.width_m) / 2.0
+            widest = max(max(abs(o) for o in self.settings.lateral_offsets_m), abs(d0))
+            bound = self._corridor_length(request) + abs(d0) + widest + ego.width_m / 2.0
+            maybe = np.flatnonzero(
+                (distance <= (bound + 2.0 * half_diagonal + 1e-6)[:, None]).any(axis=1)
+            )
+            if maybe.size:
+                searched = _at_steps(agents.subset(maybe), self._search_steps(request))
+                along = _AgentsAlong.of(line, searched)
+                reach = np.asarray(self._leader_reach(request, along, s0, d0).any(axis=1))
+                leaders[maybe[reach]] = True
+                leaders_along = along.rows(reach) if reach.any() else None
+        proposals = self._proposals(request, line, leaders_along, agents.ids[leaders], s0, d0)
+        if agents.n == 0:
+            return line, agents, proposals, leaders, None
+        sim = proposals.simulated
+        sim_xy = _centres(sim, proposals.wheelbase_m)
+        look = self._lookahead_steps(request.dt_s)
+        farthest = float(np.hypot(sim_xy[..., 0] - ego.xy[0], sim_xy[..., 1] - ego.xy[1]).max())
+        farthest += float(sim[..., lqr.StateIndex.SPEED].max()) * float(look.max()) * request.dt_s
+        ego_half_diagonal = math.hypot(ego.length_m, ego.width_m) / 2.0
+        near_bound = farthest + ego_half_diagonal + half_diagonal + 1e-6
+        maybe_near = np.flatnonzero((distance <= near_bound[:, None]).any(axis=1))
+        near = np.zeros(agents.n, dtype=bool)
+        cand = np.zeros((*sim.shape[:2], look.size, 0), dtype=bool)
+        if maybe_near.size:
+            cand = _candidates(request, agents.subset(maybe_near), sim, sim_xy, look)
+            near[maybe_near] = cand.any(axis=(0, 1, 2))
+        relevant = leaders | near
+        # the candidates of the relevant agents, in their order (leaders far from every
+        # simulated box have none)
+        column = np.full(agents.n, -1)
+        column[maybe_near] = np.arange(maybe_near.size)
+        columns = column[relevant]
+        relevant_cand = np.zeros((*cand.shape[:3], columns.size), dtype=bool)
+        relevant_cand[..., columns >= 0] = cand[..., columns[columns >= 0]]
+        return line, agents, proposals, relevant, relevant_cand
+
+    def _search_steps(self, request: PlanRequest) -> np.ndarray:
+        """The steps at which the IDM searches for leaders (the last step plans nothing)."""
+        return np.arange(0, max(request.times_s.size - 1, 1), self.settings.leader_update_steps)
+
+    def _lookahead_steps(self, dt_s: float) -> np.ndarray:
+        return np.array([round(t / dt_s) for t in self.settings.ttc_lookahead_s], dtype=np.int64)
+
+    def _proposals(
+        self,
+        request: PlanRequest,
+        line: _Centreline,
+        leaders: _AgentsAlong | None,
+        leader_ids: np.ndarray,
+        s0: float,
+        d0: float,
+    ) -> _Proposals:
+        """IDM along every (offset, target) pair, then each tracked by the bicycle."""
+        p = self.settings
+        ego = request.ego
+        times = request.times_s
+        dt = request.dt_s
+        n_t = times.size
+        offsets = np.repeat(
+            np.asarray(p.lateral_offsets_m, dtype=np.float64), len(p.target_fractions)
+        )
+        fractions = np.tile(
+            np.asarray(p.target_fractions, dtype=np.float64), len(p.lateral_offsets_m)
+        )
+        n_p = offsets.size
+        target = np.maximum(fractions * max(request.target_speed_mps, 0.0), 0.1)
+        half_len, half_wid = ego.length_m / 2.0, ego.width_m / 2.0
+        sqrt_ab = 2.0 * math.sqrt(p.idm_accel_mps2 * p.idm_decel_mps2)
+        merge_m = max(p.merge_time_s * max(ego.speed_mps, 0.0), p.merge_min_m)
+
+        # Time-major arrays (row k is contiguous): the loop runs over steps only.
+        s = np.empty((n_t, n_p))
+        v = np.empty((n_t, n_p))
+        s[0] = s0
+        v[0] = max(ego.speed_mps, 0.0)
+        # Per step, for the leader bookkeeping after the loop: free-road and with-leader
+        # accelerations, and the nearest agent's row in the corridor ahead.
+        a_free_t = np.zeros((n_t, n_p))
+        a_lead_t = np.zeros((n_t, n_p))
+        lead_t = np.zeros((n_t, n_p), dtype=np.int64)
+        corridor = None
+        if leaders is not None:  # (L, S): the leaders at the search steps
+            arc_t = np.ascontiguousarray(leaders.arc_m.T)  # (S, L)
+            # the gap to the ego is back - s (bumper to bumper along the path)
+            back_t = np.ascontiguousarray((leaders.arc_m - leaders.half_along_m).T) - half_len
+            path_offset, _ = merge(arc_t[:, None, :], offsets[None, :, None], s0, d0, merge_m)
+            corridor = np.abs(leaders.lateral_m.T[:, None, :] - path_offset) < (
+                half_wid + leaders.half_across_m.T[:, None, :]
+            )  # (S, P, L)
+            end = s0 + self._corridor_length(request)
+            corridor &= (arc_t - leaders.half_along_m.T < end)[:, None, :]
+            speed_t = np.ascontiguousarray(leaders.speed_along_mps.T)
+            any_t = np.asarray(corridor.any(axis=(1, 2)))
+        proposal_rows = np.arange(n_p)
+        inv_target = 1.0 / target
+        a_max, b_max = p.idm_accel_mps2, p.idm_decel_mps2
+        every = p.leader_update_steps
+        # The leader found at the last search, held until the next (as PDM): where its
+        # rear is along the path (inf: none), its speed along the path, its row.
+        held_back = np.full(n_p, np.inf)
+        held_speed = np.zeros(n_p)
+        held_row = np.zeros(n_p, dtype=np.int64)
+        for k in range(n_t - 1):  # time steps only: proposals and agents vectorised
+            vk, sk = v[k], s[k]
+            a_free = a_max - a_max * (vk * inv_target) ** p.idm_exponent
+            accel = a_free
+            if corridor is not None:
+                i, search = divmod(k, every)
+                if search == 0:
+                    if any_t[i]:
+                        masked = np.where(corridor[i] & (arc_t[i] > sk[:, None]), back_t[i], np.inf)
+                        held_row = np.argmin(masked, axis=1)
+                        held_back = masked[proposal_rows, held_row]
+                        held_speed = speed_t[i, held_row]
+                    else:
+                        held_back = np.full(n_p, np.inf)
+                if np.isfinite(held_back).any():
+                    # no leader: the gap is inf, its IDM term 0, accel the free-road one
+                    gap = held_back - sk
+                    s_star = p.idm_min_gap_m + vk * (p.idm_headway_s + (vk - held_speed) / sqrt_ab)
+                    accel = a_free - a_max * (s_star / np.maximum(gap, p.idm_min_gap_m)) ** 2
+                    a_free_t[k], a_lead_t[k], lead_t[k] = a_free, accel, held_row
+            accel = np.minimum(np.maximum(accel, -b_max), a_max)
+            v_next = vk + accel * dt
+            s[k + 1] = sk + (vk + 0.5 * dt * accel) * dt
+            v[k + 1] = v_next
+            stops = v_next < 0.0
+            if stops.any():  # stops within the step: no reversing
+                s[k + 1, stops] = sk[stops] + vk[stops] ** 2 / (2.0 * -accel[stops])
+                v[k + 1, stops] = 0.0
+        s, v = s.T, v.T
+        # a leader limits a step where it lowers the acceleration by the margin (a step
+        # without a leader has a_lead = a_free = 0 here)
+        limited = a_lead_t < a_free_t - p.blocking_margin_mps2
+        leader = np.where(limited, lead_t, -1).T  # (P, T)
+
+        offset_pt, slope = merge(s, offsets[:, None], s0, d0, merge_m)
+        xy, heading = line.pose(s, offset_pt)
+        heading = heading + np.arctan(slope)
+        states = np.empty((n_p, n_t, N_PROPOSAL))
+        states[..., ProposalColumn.X] = xy[..., 0]
+        states[..., ProposalColumn.Y] = xy[..., 1]
+        states[..., ProposalColumn.HEADING] = heading
+        states[..., ProposalColumn.SPEED] = v
+        states[..., ProposalColumn.PROGRESS] = s
+        simulated, wb = self._simulate(request, states, dt)
+        return _Proposals(
+            states=states,
+            offset_m=offsets,
+            fraction=fractions,
+            leader=leader,
+            leader_ids=leader_ids,
+            simulated=simulated,
+            wheelbase_m=wb,
+        )
+
+    def _simulate(
+        self, request: PlanRequest, states: np.ndarray, dt: float
+    ) -> tuple[np.ndarray, float]:
+        """Each proposal tracked from the ego's pose by the bicycle under the LQR tracker
+        over the whole horizon: states ``(P, T, N_STATE)`` (rear axle) and the wheelbase."""
+        ego = request.ego
+        n_p, n_t = states.shape[:2]
+        wb = float(lqr.wheelbase_m(ego.length_m))
+        wheelbase = np.full(n_p, wb)
+        xy = states[..., [ProposalColumn.X, ProposalColumn.Y]]
+        heading = states[..., ProposalColumn.HEADING]
+        reference = lqr.reference_from_centres(
+            xy, heading, states[..., ProposalColumn.SPEED], wheelbase
+        )
+        initial = np.zeros((n_p, lqr.N_STATE))
+        initial[:, [lqr.StateIndex.REAR_X, lqr.StateIndex.REAR_Y]] = lqr.rear_axle_xy(
+            ego.xy, ego.heading_rad, wb
+        )
+        initial[:, lqr.StateIndex.HEADING] = ego.heading_rad
+        initial[:, lqr.StateIndex.SPEED] = max(ego.speed_mps, 0.0)
+        initial[:, lqr.StateIndex.ACCEL] = ego.accel_mps2
+        # The request carries no steering angle: the ego is taken to follow its route's
+        # curvature now (a logged ego does), which avoids a steering step on curves.
+        initial[:, lqr.StateIndex.STEER] = np.arctan(wb * reference.curvature_per_m[0, 0])
+        settings = self.tracker if self.tracker.dt_s == dt else replace(self.tracker, dt_s=dt)
+        return lqr.simulate(initial, reference, n_t - 1, wheelbase, settings), wb
+
+    # ------------------------------------------------------------------ scoring
+    def score(self, request: PlanRequest, simulated: np.ndarray) -> ProposalScores:
+        """The scores of simulated proposals ``(P, T, N_STATE)`` (bicycle states, rear
+        axle, on the request's times) against the request's agents and lanes."""
+        line = _Centreline.of(request.reference)
+        agents = request.agents.on_times(request.times_s)
+        wheelbase = float(lqr.wheelbase_m(request.ego.length_m))
+        return self._score(request, line, agents, simulated, _centres(simulated, wheelbase))
+
+    def _score(
+        self,
+        request: PlanRequest,
+        line: _Centreline,
+        agents: AgentForecasts,
+        sim: np.ndarray,
+        sim_xy: np.ndarray,
+        candidates: np.ndarray | None = None,
+    ) -> ProposalScores:
+        """Metric rows and scores of the simulated proposals (see :class:`ProposalScores`);
+        ``candidates``: the bounding-circle candidates of these agents when known."""
+        p = self.settings
+        ego = request.ego
+        dt = request.dt_s
+        n_p = sim.shape[0]
+        heading = sim[..., lqr.StateIndex.HEADING]
+        speed = sim[..., lqr.StateIndex.SPEED]
+        rear = sim[..., [lqr.StateIndex.REAR_X, lqr.StateIndex.REAR_Y]]
+        arc, lateral, path_h = line.project(sim_xy)  # (P, T)
+
+        # Where the ego's corners are: lanes around the reference (corners' lateral
+        # offsets from the centre's, the path taken as straight over the box).
+        rel = heading - path_h
+        corner_l = np.array([1.0, 1.0, -1.0, -1.0]) * ego.length_m / 2.0
+        corner_w = np.array([1.0, -1.0, -1.0, 1.0]) * ego.width_m / 2.0
+        corner_lat = (
+            lateral[..., None]
+            + corner_l * np.sin(rel)[..., None]
+            + corner_w * np.cos(rel)[..., None]
+        )
+        w = request.lane_width_m
+        left_edge = (request.lanes_left + 0.5) * w + p.drivable_margin_m
+        right_edge = -(request.lanes_right + 0.5) * w - p.drivable_margin_m
+        off_road = ((corner_lat > left_edge) | (corner_lat < right_edge)).any(axis=-1)  # (P, T)
+        lane_of = np.rint(corner_lat / w)
+        multiple_lanes = lane_of.max(axis=-1) != lane_of.min(axis=-1)
+        straddles = off_road | multiple_lanes
+
+        multi = np.ones((len(MultiMetric), n_p))
+        weighted = np.ones((len(WeightedMetric), n_p))
+        multi[MultiMetric.DRIVABLE_AREA] = np.where(off_road.any(axis=1), 0.0, 1.0)
+        multi[MultiMetric.DRIVING_DIRECTION] = self._direction(sim_xy, rel)
+        weighted[WeightedMetric.PROGRESS] = np.maximum(arc[:, -1] - arc[:, 0], 0.0)
+        weighted[WeightedMetric.COMFORT] = self._comfortable(
+            sim, dt, float(lqr.wheelbase_m(ego.length_m))
+        )
+        if agents.n == 0:
+            return ProposalScores.of(multi, weighted, np.full(n_p, np.inf), np.full(n_p, -1), p)
+
+        look = self._lookahead_steps(dt)
+        # Agents touching the ego now are ignored (PDM: already collided).
+        now = boxes_overlap(
+            ego.xy[0], ego.xy[1], np.asarray(ego.heading_rad), np.asarray(ego.length_m), np.asarray(ego.width_m),
+            agents.xy[:, 0, 0], agents.xy[:, 0, 1], agents.heading_rad[:, 0], agents.length_m, agents.width_m,
+        )  # fmt: skip
+        c = contacts(request, agents, sim, sim_xy, look, ignore=now, candidates=candidates)
+        ip, it, idd, ik, ta, cx, cy = (
+            c.proposal,
+            c.step,
+            c.lookahead,
+            c.agent,
+            c.agent_step,
+            c.x,
+            c.y,
+        )
+
+        # Classes at a contact: the ego stands, the agent stands, the agent is behind the
+        # ego, the agent touches the ego's front edge, otherwise lateral (nuPlan's order).
+        velocity = _velocities(agents)
+        agent_speed = np.hypot(velocity[ik, ta, 0], velocity[ik, ta, 1])
+        to_agent = agents.xy[ik, ta] - rear[ip, it]
+        bearing = np.abs(
+            lqr.wrap_angle(np.arctan2(to_agent[:, 1], to_agent[:, 0]) - heading[ip, it])
+        )
+        behind = bearing > p.behind_angle_rad
+        ahead = bearing < p.ahead_angle_rad
+        front_x = cx + ego.length_m / 2.0 * np.cos(heading[ip, it])
+        front_y = cy + ego.length_m / 2.0 * np.sin(heading[ip, it])
+        front = boxes_overlap(
+            front_x, front_y, heading[ip, it], np.zeros(1), np.asarray(ego.width_m),
+            agents.xy[ik, ta, 0], agents.xy[ik, ta, 1], agents.heading_rad[ik, ta],
+            agents.length_m[ik], agents.width_m[ik],
+        )  # fmt: skip
+        ego_stands = speed[ip, it] <= p.stopped_speed_mps
+        agent_stands = (agent_speed <= p.stopped_speed_mps) | (agents.kinds[ik] == Kind.OTHER)
+        at_fault = ~ego_stands & (agent_stands | (~behind & (front | straddles[ip, it])))
+
+        # Each (proposal, agent) counts at its first contact (later ones are ignored, as
+        # PDM's collided-track lists do); contacts in order of time, then look-ahead.
+        order = it * look.size + idd
+        collision = idd == 0
+        collision_score, collision_step, collision_agent = _first_contact(
+            n_p,
+            agents.n,
+            ip[collision],
+            ik[collision],
+            order[collision],
+            it[collision],
+            at_fault[collision],
+        )
+        factor = np.where(agents.kinds == Kind.OTHER, p.static_collision_score, 0.0)
+        multi[MultiMetric.NO_AT_FAULT_COLLISION] = np.where(
+            collision_score, factor[np.maximum(collision_agent, 0)], 1.0
+        ).min(axis=1)
+        first_fault = np.where(collision_score, collision_step, np.inf)
+        worst = np.argmin(first_fault, axis=1)
+        step = first_fault[np.arange(n_p), worst]
+        collision_row = np.where(np.isfinite(step), worst, -1)
+
+        # TTC: contacts while the ego stands are skipped (not ignored for later, as PDM).
+        moving = speed[ip, it] >= p.ttc_stopped_speed_mps
+        ttc_fault = ahead | (straddles[ip, it] & ~behind)
+        ttc_counts, _, _ = _first_contact(
+            n_p, agents.n, ip[moving], ik[moving], order[moving], it[moving], ttc_fault[moving]
+        )
+        weighted[WeightedMetric.TTC] = np.where(ttc_counts.any(axis=1), 0.0, 1.0)
+        return ProposalScores.of(multi, weighted, step, collision_row, p)
+
+    def _direction(self, sim_xy: np.ndarray, rel_heading: np.ndarray) -> np.ndarray:
+        """Driving direction ``(P,)``: the longest stretch (m) driven against the
+        reference's direction: up to 2 m 1, up to 6 m 0.5, else 0."""
+        p = self.settings
+        step = np.zeros(sim_xy.shape[:2])
+        step[:, 1:] = np.hypot(*np.moveaxis(np.diff(sim_xy, axis=1), -1, 0))
+        against = np.abs(lqr.wrap_angle(rel_heading)) > math.pi / 2.0
+        run = np.cumsum(np.where(against, step, 0.0), axis=1)
+        # the run restarts where the ego drives with the reference again
+        restart = np.maximum.accumulate(np.where(against, 0.0, run), axis=1)
+        longest = (run - restart).max(axis=1)
+        return np.where(
+            longest <= p.direction_ok_m, 1.0, np.where(longest <= p.direction_violation_m, 0.5, 0.0)
+        )
+
+    def _comfortable(self, sim: np.ndarray, dt: float, wheelbase: float) -> np.ndarray:
+        """``(P,)`` 1.0 where every comfort bound of nuPlan holds over the horizon (PDM's
+        Savitzky-Golay smoothing, as linear operators built once per length)."""
+        p = self.settings
+        n_t = sim.shape[1]
+        lon = sim[..., lqr.StateIndex.ACCEL]
+        yaw_rate_model = (
+            sim[..., lqr.StateIndex.SPEED] * np.tan(sim[..., lqr.StateIndex.STEER]) / wheelbase
+        )
+        lat = sim[..., lqr.StateIndex.SPEED] * yaw_rate_model
+        heading = np.unwrap(sim[..., lqr.StateIndex.HEADING], axis=1)
+        whole = _savgol(n_t, n_t, 2, 0, dt)
+        lon_s, lat_s = lon @ whole.T, lat @ whole.T
+        short = _savgol(n_t, 8, 2, 0, dt)
+        jerk_op = _savgol(n_t, n_t, 2, 1, dt) @ short
+        lon_jerk = lon @ jerk_op.T
+        jerk = np.hypot(lon, lat) @ jerk_op.T
+        yaw_rate = heading @ _savgol(n_t, 5, 2, 1, dt).T
+        yaw_accel = heading @ _savgol(n_t, 5, 3, 2, dt).T
+        ok = (
+            ((lon_s > p.min_lon_accel_mps2) & (lon_s < p.max_lon_accel_mps2)).all(axis=1)
+            & (np.abs(lat_s) < p.max_abs_lat_accel_mps2).all(axis=1)
+            & (np.abs(jerk) < p.max_abs_jerk).all(axis=1)
+            & (np.abs(lon_jerk) < p.max_abs_lon_jerk).all(axis=1)
+            & (np.abs(yaw_rate) < p.max_abs_yaw_rate).all(axis=1)
+            & (np.abs(yaw_accel) < p.max_abs_yaw_accel).all(axis=1)
+        )
+        return ok.astype(np.float64)
+
+
+# ---------------------------------------------------------------------- helpers
+def _usable(reference: np.ndarray) -> bool:
+    """The reference has two distinct points (a direction to extend it along)."""
+    return reference.shape[0] >= 2 and bool(np.any(np.diff(reference, axis=0)))
+
+
+def _best(total: np.ndarray, offset_m: np.ndarray, tie: float) -> int:
+    """The chosen proposal: among those within ``tie`` of the best score, the one nearest
+    the centreline, then the highest score, then the first."""
+    near = np.flatnonzero(total >= total.max() - tie)
+    order = np.lexsort((-total[near], np.abs(offset_m[near])))
+    return int(near[order[0]])
+
+
+def _centres(sim: np.ndarray, wheelbase: float) -> np.ndarray:
+    """Box centres ``(..., 2)`` of bicycle states ``(..., N_STATE)`` (rear axle)."""
+    rear = sim[..., [lqr.StateIndex.REAR_X, lqr.StateIndex.REAR_Y]]
+    return lqr.centre_xy(rear, sim[..., lqr.StateIndex.HEADING], wheelbase)
+
+
+def _candidates(
+    request: PlanRequest,
+    agents: AgentForecasts,
+    sim: np.ndarray,
+    sim_xy: np.ndarray,
+    look: np.ndarray,
+) -> np.ndarray:
+    """``(P, T, D, K)``: the ego's box at step ``t`` of proposal ``p``, moved ahead by its
+    speed times look-ahead ``d``, and agent ``k``'s box at step ``t + d`` could touch (their
+    bounding circles do). Pairs whose ``t + d`` lies beyond the forecast are not checked."""
+    ego = request.ego
+    n_t = sim.shape[1]
+    heading = sim[..., lqr.StateIndex.HEADING]
+    shift = sim[..., lqr.StateIndex.SPEED][..., None] * (look * request.dt_s)  # (P, T, D)
+    cx = sim_xy[..., 0, None] + shift * np.cos(heading)[..., None]
+    cy = sim_xy[..., 1, None] + shift * np.sin(heading)[..., None]
+    ta = np.minimum(np.arange(n_t)[:, None] + look[None, :], n_t - 1)  # (T, D)
+    ax = agents.xy[:, ta, 0]  # (K, T, D)
+    ay = agents.xy[:, ta, 1]
+    reach = (
+        math.hypot(ego.length_m, ego.width_m) / 2.0
+        + np.hypot(agents.length_m, agents.width_m) / 2.0
+    )
+    # Coarse, (K, T, D): the agent against the circle around all P ego centres at (t, d)
+    # (a centre within r of the agent puts the agent within radius + r of the circle's
+    # centre); only what passes is tested per proposal.
+    mx, my = cx.mean(axis=0), cy.mean(axis=0)  # (T, D)
+    radius = np.sqrt(((cx - mx) ** 2 + (cy - my) ** 2).max(axis=0))
+    within = np.arange(n_t)[:, None] + look[None, :] <= n_t - 1
+    wide = radius[None] + reach[:, None, None] + 1e-6
+    coarse = ((ax - mx) ** 2 + (ay - my) ** 2 <= wide * wide) & within[None]
+    ik, it, idd = np.nonzero(coarse)
+    dx = cx[:, it, idd] - ax[ik, it, idd]  # (P, m)
+    dy = cy[:, it, idd] - ay[ik, it, idd]
+    out = np.zeros((*cx.shape, agents.n), dtype=bool)
+    out[:, it, idd, ik] = dx * dx + dy * dy <= reach[ik] * reach[ik]
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Contacts:
+    """Box contacts, one entry each ``(C,)``: proposal, time index, look-ahead index,
+    agent row, the agent's time index (``step + look[lookahead]``) and the centre of the
+    ego's box (moved ahead by its speed times the look-ahead)."""
+
+    proposal: np.ndarray
+    step: np.ndarray
+    lookahead: np.ndarray
+    agent: np.ndarray
+    agent_step: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+
+
+def contacts(
+    request: PlanRequest,
+    agents: AgentForecasts,
+    sim: np.ndarray,
+    sim_xy: np.ndarray,
+    look: np.ndarray,
+    ignore: np.ndarray | None = None,
+    candidates: np.ndarray | None = None,
+) -> Contacts:
+    """Every ``(proposal, step, look-ahead, agent)`` whose boxes overlap (separating axes,
+    :func:`risk.hindsight.boxes_overlap`), the ego's box at ``sim_xy`` with the simulated
+    heading, moved ahead by speed times ``look * dt``, against the agent's box at
+    ``step + look``; only the pairs whose bounding circles touch are tested
+    (:func:`_candidates`, or ``candidates`` ``(P, T, D, K)`` when already computed).
+    ``ignore`` ``(K,)``: agents left out."""
+    ego = request.ego
+    dt = request.dt_s
+    heading = sim[..., lqr.StateIndex.HEADING]
+    speed = sim[..., lqr.StateIndex.SPEED]
+    cand = _candidates(request, agents, sim, sim_xy, look) if candidates is None else candidates
+    if ignore is not None:
+        cand = cand & ~ignore[None, None, None, :]
+    ip, it, idd, ik = np.nonzero(cand)
+    shift = look[idd] * dt * speed[ip, it]
+    h = heading[ip, it]
+    cx = sim_xy[ip, it, 0] + shift * np.cos(h)
+    cy = sim_xy[ip, it, 1] + shift * np.sin(h)
+    ta = it + look[idd]
+    hit = boxes_overlap(
+        cx, cy, h, np.asarray(ego.length_m), np.asarray(ego.width_m),
+        agents.xy[ik, ta, 0], agents.xy[ik, ta, 1], agents.heading_rad[ik, ta],
+        agents.length_m[ik], agents.width_m[ik],
+    )  # fmt: skip
+    return Contacts(
+        proposal=ip[hit],
+        step=it[hit],
+        lookahead=idd[hit],
+        agent=ik[hit],
+        agent_step=ta[hit],
+        x=cx[hit],
+        y=cy[hit],
+    )
+
+
+def _first_contact(
+    n_p: int,
+    n_k: int,
+    ip: np.ndarray,
+    ik: np.ndarray,
+    order: np.ndarray,
+    step: np.ndarray,
+    counts: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For contacts listed by proposal ``ip``, agent ``ik`` and rank ``order``: per
+    ``(P, K)`` whether the first contact counts, its step (inf: none) and the agent row
+    (-1: none) as ``(P, K)`` arrays."""
+    key = ip * n_k + ik
+    by = np.lexsort((order, key))  # by pair, then rank: the first of each pair leads
+    first = by[np.r_[True, key[by][1:] != key[by][:-1]]] if by.size else by
+    counted = np.zeros((n_p, n_k), dtype=bool)
+    at = np.full((n_p, n_k), np.inf)
+    counted[ip[first], ik[first]] = counts[first]
+    at[ip[first], ik[first]] = step[first]
+    agent = np.where(counted, np.arange(n_k)[None, :], -1)
+    return counted, at, agent
+
+
+@functools.lru_cache(maxsize=32)
+def _savgol(n: int, window: int, poly: int, deriv: int, dt: float) -> np.ndarray:
+    """The Savitzky-Golay filter on ``n`` samples as a matrix ``(n, n)`` (``y = M x``),
+    with scipy's edge handling; the window is cut to ``n``."""
+    window = min(window, n)
+    poly = min(poly, window - 1)
+    return np.asarray(savgol_filter(np.eye(n), window, poly, deriv=deriv, delta=dt, axis=0))
+
+
+def _brake(request: PlanRequest, decel_mps2: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The emergency brake: straight ahead along the ego's heading at ``decel_mps2`` to a
+    stop (PDM brakes along the current heading too)."""
+    ego = request.ego
+    t = request.times_s
+    v0 = max(ego.speed_mps, 0.0)
+    stop_t = v0 / decel_mps2
+    tt = np.minimum(t, stop_t)
+    dist = v0 * tt - 0.5 * decel_mps2 * tt * tt
+    speed = np.maximum(v0 - decel_mps2 * t, 0.0)
+    direction = np.array([math.cos(ego.heading_rad), math.sin(ego.heading_rad)])
+    xy = ego.xy[None, :] + dist[:, None] * direction[None, :]
+    return xy, np.full(t.size, ego.heading_rad), speed
