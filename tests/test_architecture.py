@@ -64,8 +64,6 @@ ALLOWED_INNER_IMPORTS = {
     ("replay/analysis/experiment/report.py", "replay.analysis.stats.plots"),
     # importlib.metadata (about 25 ms of every command's start-up) only for __version__
     ("replay/__init__.py", "importlib.metadata"),
-    # the LQR tracker only when asked for (make_tracker("lqr"))
-    ("replay/planning/tracking.py", "replay.planning.lqr"),
 }
 
 

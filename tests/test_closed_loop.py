@@ -7,7 +7,6 @@ per-agent oracle, and ``replay plan --closed-loop`` through click's CliRunner.
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import math
 import pathlib
 
@@ -26,8 +25,6 @@ from replay.planning import reactive
 from risk import Frame, Scene
 from risk.hindsight import box_corners, boxes_overlap
 from tests.planner_scenes import road_map
-
-HAS_LQR = importlib.util.find_spec("replay.planning.lqr") is not None
 
 # ---------------------------------------------------------------------- a scene
 EGO, STOPPED, FOLLOWER = 0, 1, 5
@@ -405,17 +402,6 @@ def test_cli_agents_and_tracker_options(follower_scene, tmp_path, agents):
     assert "at fault" in result.output
 
 
-@pytest.mark.skipif(HAS_LQR, reason="replay.planning.lqr is installed: --tracker lqr works")
-def test_cli_lqr_tracker_without_its_module_is_a_one_line_error(follower_scene, tmp_path):
-    out = tmp_path / "out"
-    result = _plan(follower_scene, "-o", out, "--closed-loop", "--tracker", "lqr")
-    assert result.exit_code == 1
-    lines = result.output.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("Error: --tracker lqr")
-    assert "Traceback" not in result.output and not out.exists()
-
-
-@pytest.mark.skipif(not HAS_LQR, reason="replay.planning.lqr is not merged yet")
 def test_lqr_tracker_runs_the_follower_scene(follower_scene):
     settings = ClosedLoopSettings(plan=PlanSettings(filters=()), agents="reactive", tracker="lqr")
     (row,) = run_ego(follower_scene, EGO, settings)

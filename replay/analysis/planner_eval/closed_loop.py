@@ -62,7 +62,7 @@ LANE_WIDTH_M = 3.5
 AGENT_MODES: tuple[str, ...] = ("reactive", "log")
 DEFAULT_AGENTS = "reactive"
 #: The tracker the ego follows its plans with (one of replay.planning.tracking.TRACKERS).
-DEFAULT_TRACKER = "perfect"
+DEFAULT_TRACKER = "lqr"
 #: Drivable area is judged up to this far (m) beyond the recorded ego's last position
 #: along its route: a drone recording's map covers the recorded area only, and the ego
 #: that drives on (the reference runs straight on past the map) is off the map, not off
@@ -584,13 +584,8 @@ def _close_following_s(
 
 # ---------------------------------------------------------------------- the unit of work
 def load_tracker(name: str) -> Tracker:
-    """The tracker ``name``; a tracker whose module is not installed is a user error."""
-    try:
-        return make_tracker(name)
-    except ImportError as exc:
-        raise ReplayError(
-            f"--tracker {name}: not available here ({exc}); use --tracker perfect"
-        ) from None
+    """The tracker ``name`` (an unknown name is a user error)."""
+    return make_tracker(name)
 
 
 @functools.lru_cache(maxsize=2)
