@@ -443,7 +443,7 @@ def test_the_agent_directly_ahead_of_the_ego_is_found_per_frame():
     """Hand-made rows: frame 0 with the ego heading east, frame 1 heading north."""
     from types import SimpleNamespace
 
-    from recordings.writer import _lead_rows
+    from recordings.labels import lead_rows
 
     xy = np.array([
         [0, 0], [10, 0.5], [5, 3], [-3, 0], [20, 0],  # frame 0: ego east; lead: (10, 0.5)
@@ -455,7 +455,7 @@ def test_the_agent_directly_ahead_of_the_ego_is_found_per_frame():
         rows={"xy": xy, "heading": heading, "is_ego": is_ego},
         frame_of=np.array([0] * 5 + [1] * 4), times_s=np.array([0.0, 0.1]),
     )  # fmt: skip
-    assert np.flatnonzero(_lead_rows(scene_rows)).tolist() == [1, 6]
+    assert np.flatnonzero(lead_rows(scene_rows)).tolist() == [1, 6]
 
 
 def test_evaluate_exits_non_zero_when_no_reference_has_a_positive(tmp_path):
@@ -491,10 +491,10 @@ def test_risk_timelines_are_bounded_to_the_agents_that_matter(tmp_path, monkeypa
     from test_recordings import read_rrd
 
     from recordings import layout as L
-    from recordings import writer
+    from recordings import timelines
 
     monkeypatch.setenv("RISKREPLAY_OUTPUT_PROCESS", "off")  # (the limit patched here)
-    monkeypatch.setattr(writer, "MAX_TIMELINE_AGENTS", 3)
+    monkeypatch.setattr(timelines, "MAX_TIMELINE_AGENTS", 3)
     s = scene(tmp_path)
     rrd = tmp_path / "s.rrd"
     result = CliRunner().invoke(main, ["run", str(s), "-o", str(rrd), "--no-progress"])
