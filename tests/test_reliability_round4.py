@@ -1,0 +1,119 @@
+"""Reliability round 4 (issue 36), the cases that are not one bad command line: the
+Python API's checks, the option audit over every command, filters given with a matched
+cut, valid label columns still read, and the AOT build key.
+
+The command-line cases (hostile pickles, label columns, NaN and idle options, a scenario
+too long) are in ``reliability_round4.py`` and run with the others in
+``test_reliability.py``; the loader's own bounds in ``test_reliability_pickles.py``.
+"""
+
+from __future__ import annotations
+
+import json
+
+import click
+import numpy as np
+import polars as pl
+import pytest
+from click.testing import CliRunner
+from reliability_cases import scene, table
+
+import risk
+from replay.cli.app import main
+from replay.cli.limits import FiniteRange
+from risk.errors import FrameError, RiskError
+
+# ---------------------------------------------------------------------- the Python API
+TWO = dict(
+    xy=np.array([[0.0, 0.0], [10.0, 0.0]]), heading=[0.0, 0.0], speed=[1.0, 1.0],
+    length=[4.0, 4.0], width=[2.0, 2.0],
+    paths=[np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([[10.0, 0.0], [11.0, 0.0]])], ego=0,
+)  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("change", "field", "words"),
+    [
+        ({"valid": ["yes", "no"]}, "valid", "expected booleans, got text"),
+        ({"valid": [2, 1]}, "valid", "expected booleans"),
+        ({"ids": [1.5, 2]}, "ids", "expected integers, got fractions"),
+        ({"ids": [2**64, 1]}, "ids", "integers beyond 64 bits"),
+        ({"ids": [2**63, 1]}, "ids", "outside the int64 range"),
+        ({"ego": True}, "ego", "an agent index"),
+        ({"ego": 1.0}, "ego", "an agent index"),
+        ({"t": "noon"}, "t", "a number of seconds"),
+        ({"speed": ["a", "b"]}, "speed", "expected numbers, got text"),
+        ({"xy": [["a", "b"], ["c", "d"]]}, "xy", "expected numbers, got text"),
+        ({"heading": [0.0, None]}, "heading", "Python objects"),
+        ({"kinds": [99, 0]}, "kinds", "unknown kind code"),
+        ({"kinds": ["car", "vehicle"]}, "kinds", "unknown kind 'car'"),
+        ({"paths": [np.zeros((10**6, 2)), [np.zeros((2, 2))] * 30]}, "paths", "resample"),
+    ],
+)
+def test_the_api_refuses_what_it_used_to_coerce_naming_the_field(change, field, words):
+    with pytest.raises(FrameError) as err:
+        risk.Frame.from_arrays(**{**TWO, **change})
+    assert err.value.field == field and words in str(err.value), str(err.value)
+    assert isinstance(err.value, RiskError) and "\n" not in str(err.value)
+
+
+def test_the_api_still_takes_plain_equivalents():
+    """Integral floats as ids, 0/1 as flags, numpy integers as the ego: unchanged."""
+    frame = risk.Frame.from_arrays(
+        **{**TWO, "ego": np.int64(0)}, ids=[7.0, 9.0], valid=[1, 1], t=np.float32(0.5)
+    )
+    assert frame.ids.tolist() == [7, 9] and frame.valid.all()
+
+
+# ---------------------------------------------------------------------- options
+def _commands(group: click.Group, ctx: click.Context, path=()):
+    for name in group.list_commands(ctx):
+        cmd = group.get_command(ctx, name)
+        if isinstance(cmd, click.Group):
+            yield from _commands(cmd, ctx, (*path, name))
+        elif cmd is not None:
+            yield (*path, name), cmd
+
+
+def test_every_number_option_refuses_nan_and_infinity():
+    """The audit: no float option of any command is a plain click float (it lets NaN in)."""
+    ctx = click.Context(main)
+    plain = [
+        f"{' '.join(path)} {p.opts[0]}"
+        for path, cmd in _commands(main, ctx)
+        for p in cmd.params
+        if isinstance(p.type, click.types.FloatParamType) and not isinstance(p.type, FiniteRange)
+    ]
+    assert plain == []
+    with pytest.raises(click.BadParameter):
+        FiniteRange(min=0.0).convert("nan", None, None)
+
+
+def test_nearest_match_beside_the_same_explicit_cut_is_accepted(tmp_path):
+    """``--filter nearest:match --filter nearest:1`` was refused as "given twice" (the
+    early check filled match with 1); a matched cut equal to a given one is that filter."""
+    s = scene(tmp_path)
+    out = tmp_path / "out"
+    result = CliRunner().invoke(main, [
+        "plan", str(s), "-o", str(out), "--filter", "nearest:match", "--filter", "nearest:1",
+        "--no-plots", "--no-progress", "--workers", "1",
+    ])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    filters = json.loads((out / "summary.json").read_text())["planners"]["idm"]["filters"]
+    assert "nearest:1" in filters
+
+
+# ---------------------------------------------------------------------- label columns
+def test_label_columns_of_words_nulls_and_booleans_are_read(tmp_path):
+    """A CSV's true/false words with gaps, and an all-null column, still evaluate."""
+    t = table(tmp_path, ".t.parquet")
+    df = pl.read_parquet(t)
+    words = pl.Series("planner_label", ["true", "false", None] * df.height)[: df.height]
+    df = df.with_columns(words, pl.lit(None).alias("label_objects_of_interest"))
+    csv = tmp_path / "tab.csv"
+    df.write_csv(csv)
+    result = CliRunner().invoke(main, [
+        "evaluate", str(csv), "-o", str(tmp_path / "ev"), "--bootstrap", "0", "--no-plots",
+        "--no-progress",
+    ])  # fmt: skip
+    assert result.exit_code == 0, result.output
