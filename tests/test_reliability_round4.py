@@ -117,3 +117,21 @@ def test_label_columns_of_words_nulls_and_booleans_are_read(tmp_path):
         "--no-progress",
     ])  # fmt: skip
     assert result.exit_code == 0, result.output
+
+
+# ---------------------------------------------------------------------- the AOT build key
+def test_the_aot_build_key_follows_the_cpu_numba_is_asked_for(monkeypatch):
+    """A module built for the host must not be loaded by a process asked for generic code
+    (NUMBA_CPU_NAME / NUMBA_CPU_FEATURES), nor the other way round; the build compiles
+    for the CPU named."""
+    from risk import kernel_aot
+
+    for name in kernel_aot.CPU_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    host = kernel_aot.build_key()
+    assert kernel_aot.target_cpu() == "host"
+    monkeypatch.setenv("NUMBA_CPU_NAME", "generic")
+    generic = kernel_aot.build_key()
+    assert generic != host and kernel_aot.target_cpu() == "generic"
+    monkeypatch.setenv("NUMBA_CPU_FEATURES", "+sse2")
+    assert kernel_aot.build_key() not in (host, generic)
