@@ -104,6 +104,12 @@ def round4_cases(generated_count: int = 30) -> list[Case]:
             s = scene(d)
             return _run([cmd, s, "-o", d / "out", option, value, "--no-progress"], s)
 
+    @add("same-path-evaluate-report-is-the-summary", "same-path")
+    def _(d):
+        s = scene(d)
+        return _run(["evaluate", s, "-o", d / "ev", "--report", d / "ev" / "summary.json",
+                     "--bootstrap", "0", "--no-progress"], s)  # fmt: skip
+
     # a scenario whose step count passes the file-size check but not the memory one
     @add("steps-scenarionet-2e6", "memory")
     def _(d):
