@@ -13,6 +13,7 @@ import numpy as np
 import polars as pl
 from hostile_pickles import generated, measured
 from reliability_cases import Case, _run, scene, table
+from test_convert_commonroad import scenario_xml
 from test_convert_scenarionet import scenario
 
 
@@ -109,6 +110,45 @@ def round4_cases(generated_count: int = 30) -> list[Case]:
         s = scene(d)
         return _run(["evaluate", s, "-o", d / "ev", "--report", d / "ev" / "summary.json",
                      "--bootstrap", "0", "--no-progress"], s)  # fmt: skip
+
+    # the smaller ones: messages that name what is wrong and what to do
+    @add("same-path-run-o-and-table-one-file", "same-path")
+    def _(d):
+        s = scene(d)
+        return _run(["run", s, "-o", d / "out", "--table", d / "out", "--no-progress"], s)
+
+    for cmd in ("evaluate", "experiment", "plan", "convert-synthetic-situations"):
+
+        @add(f"unwritable-{cmd}-output-under-a-file", "unwritable")
+        def _(d, cmd=cmd):
+            s = scene(d)
+            (d / "afile").write_text("x")
+            target = d / "afile" / "out"
+            args = {
+                "evaluate": ["evaluate", s, "-o", target, "--bootstrap", "0"],
+                "experiment": ["experiment", "-o", target],
+                "plan": ["plan", s, "-o", target],
+                "convert-synthetic-situations": ["convert", "synthetic", "--situations", "2",
+                                                 "-o", target],
+            }[cmd]  # fmt: skip
+            return _run([*args, "--no-progress"], s, d / "afile")
+
+    @add("option-run-every-1e-9s", "option", names_file=False)
+    def _(d):
+        s = scene(d)
+        return _run(["run", s, "--every", "1e-9s", "--no-rrd", "--table", d / "t.parquet",
+                     "--no-progress"], s)  # fmt: skip
+
+    @add("converter-commonroad-predecessor-ref-text", "converter")
+    def _(d):
+        x = d / "c.xml"
+        x.write_text(scenario_xml().replace('<predecessor ref="1"/>', '<predecessor ref="one"/>'))
+        return _run(["convert", "commonroad", x, "-o", d / "o.mcap"], x)
+
+    @add("message-set-key-5000-characters", "option", names_file=False)
+    def _(d):
+        s = scene(d)
+        return _run(["run", s, "--set", "survival." + "w" * 5000 + "=1", "--no-progress"], s)
 
     # a scenario whose step count passes the file-size check but not the memory one
     @add("steps-scenarionet-2e6", "memory")

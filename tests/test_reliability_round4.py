@@ -135,3 +135,80 @@ def test_the_aot_build_key_follows_the_cpu_numba_is_asked_for(monkeypatch):
     assert generic != host and kernel_aot.target_cpu() == "generic"
     monkeypatch.setenv("NUMBA_CPU_FEATURES", "+sse2")
     assert kernel_aot.build_key() not in (host, generic)
+
+
+# ---------------------------------------------------------------------- the smaller ones
+def test_a_full_stdout_after_the_outputs_says_what_was_kept(tmp_path):
+    """``replay run -o out.rrd > /dev/full``: the recording is complete and kept, and the
+    error says so (it said only "cannot write to standard output")."""
+    import subprocess
+
+    from reliability_cases import REPLAY
+
+    s = scene(tmp_path)
+    with open("/dev/full", "wb") as full:
+        done = subprocess.run(
+            [*REPLAY, "run", str(s), "-o", "out.rrd", "--no-progress"], cwd=tmp_path,
+            stdout=full, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+    assert done.returncode == 1, done.stderr
+    errors = [ln for ln in done.stderr.splitlines() if ln.startswith("Error:")]
+    assert len(errors) == 1 and "standard output" in errors[0], done.stderr
+    assert "complete and kept: out.rrd" in errors[0]
+    assert (tmp_path / "out.rrd").stat().st_size > 0
+
+
+def test_two_outputs_onto_one_file_name_their_options(tmp_path):
+    import subprocess
+
+    from reliability_cases import REPLAY
+
+    s = scene(tmp_path)
+    done = subprocess.run(
+        [*REPLAY, "run", str(s), "-o", "out", "--table", "out", "--no-progress"],
+        cwd=tmp_path, capture_output=True, text=True,
+    )  # fmt: skip
+    assert "(-o and --table)" in done.stderr, done.stderr
+
+
+def test_a_very_long_scenario_id_makes_a_short_file_name(tmp_path):
+    """A 300-character id failed with "File name too long": cut, with a hash."""
+    import pickle
+
+    from test_convert_scenarionet import scenario
+
+    from outputs.atomic import MAX_STEM, safe_name
+
+    for k, long_id in enumerate(["x" * 300, "x" * 299 + "y"]):
+        sd = scenario(id=long_id)
+        sd["metadata"]["scenario_id"] = long_id
+        (tmp_path / f"{k}.pkl").write_bytes(pickle.dumps(sd))
+    out = tmp_path / "out"
+    result = CliRunner().invoke(
+        main, ["convert", "scenarionet", str(tmp_path), "-o", str(out), "--no-progress"]
+    )
+    assert result.exit_code == 0, result.output
+    names = sorted(p.name for p in out.iterdir())
+    assert len(names) == 2 and all(len(n) <= MAX_STEM + 10 for n in names), names
+    assert safe_name("x" * 300) != safe_name("x" * 299 + "y")  # the hash keeps them apart
+    assert safe_name("short id") == "short_id"
+
+
+def test_a_map_the_writer_refuses_names_the_file(tmp_path):
+    from converters.errors import ConversionError
+    from converters.scene.writer import SceneWriter
+    from risk.frame import Lane, LaneMap
+
+    bad = LaneMap(lanes=(Lane(0, np.array([[0.0, 0.0], [np.nan, 1.0]])),))
+    with pytest.raises(ConversionError, match=r"x\.mcap: the map: lane 0: centre line"):
+        SceneWriter(tmp_path / "x.mcap", bad, frame_period_s=0.1)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_error_lines_are_capped_keeping_start_and_end():
+    from replay.cli.app import MAX_ERROR_CHARS, capped
+
+    line = capped("start " + "9" * 5000 + " what to do")
+    assert len(line) == MAX_ERROR_CHARS and line.startswith("start 999")
+    assert line.endswith(" what to do") and " … " in line
+    assert capped("a\nb  c") == "a b c"
