@@ -137,16 +137,18 @@ def _plain_dtype(value: object) -> np.dtype:
     return value
 
 
-def _canonical_states(dtype: np.dtype) -> list[tuple]:
+def _canonical_states(dtype: np.dtype) -> list[Any]:
     """The BUILD states numpy writes for ``dtype`` in either byte order."""
     return [d.__reduce__()[2] for d in (dtype, dtype.newbyteorder("<"), dtype.newbyteorder(">"))]
 
 
-class ScenarioUnpickler(pickle._Unpickler):  # type: ignore[name-defined,misc]
+class ScenarioUnpickler(pickle._Unpickler):
     """The pure-Python unpickler with every opcode that builds, fills or calls checked
     (see the module docstring); ``budget_s`` is the CPU time allowed."""
 
-    dispatch: ClassVar[dict[int, Callable[..., Any]]] = dict(pickle._Unpickler.dispatch)  # type: ignore[attr-defined]
+    dispatch: ClassVar[dict[int, Callable[..., Any]]] = dict(pickle._Unpickler.dispatch)
+    pop_mark: Callable[[], list[Any]]  # (the base class's; not in its type stubs)
+    metastack: list[list[Any]]
 
     def __init__(self, file: io.BytesIO, *, budget_s: float = TIME_BUDGET_S) -> None:
         super().__init__(file, fix_imports=True, encoding="ASCII", errors="strict")
@@ -217,7 +219,7 @@ class ScenarioUnpickler(pickle._Unpickler):  # type: ignore[name-defined,misc]
         self.read = self._unframer.read
         self.readinto = self._unframer.readinto
         self.readline = self._unframer.readline
-        self.metastack = []
+        self.metastack: list[list[Any]] = []
         self.stack: list[Any] = []
         self.append = self.stack.append
         self.proto = 0
@@ -378,7 +380,7 @@ class ScenarioUnpickler(pickle._Unpickler):  # type: ignore[name-defined,misc]
             raise _Refused("a dtype with an unexpected state")
         if state not in _canonical_states(dtype):
             raise _Refused(f"a dtype {dtype} with an unexpected state")
-        dtype.__setstate__(state)
+        dtype.__setstate__(state)  # type: ignore[attr-defined]
 
     def _build_array(self, seed: np.ndarray, state: object) -> None:
         """``ndarray.__setstate__((1, shape, dtype, fortran, raw))``, checked before numpy
@@ -443,12 +445,12 @@ class ScenarioUnpickler(pickle._Unpickler):  # type: ignore[name-defined,misc]
         return dtype
 
     def _set(self, items: object = (), *, frozen: bool = False) -> Any:
-        if type(items) not in (list, tuple):
+        if not isinstance(items, (list, tuple)):
             raise _Refused("a set made from something other than a list")
-        for item in items:  # type: ignore[attr-defined]
+        for item in items:
             _check_key(item)
-        made = frozenset(items) if frozen else set(items)  # type: ignore[arg-type]
-        return self._new(made, list(items))  # type: ignore[arg-type]
+        made = frozenset(items) if frozen else set(items)
+        return self._new(made, list(items))
 
     def _encode(self, text: object, encoding: object = "latin1") -> bytes:
         """``_codecs.encode(text, 'latin1')``: how protocols 0-2 write bytes."""
@@ -464,9 +466,9 @@ class ScenarioUnpickler(pickle._Unpickler):  # type: ignore[name-defined,misc]
         raise _Refused("bytearray with unexpected arguments")
 
     def _complex(self, real: object = 0.0, imag: object = 0.0) -> complex:
-        if not all(type(v) in (int, float) for v in (real, imag)):
+        if not (isinstance(real, (int, float)) and isinstance(imag, (int, float))):
             raise _Refused("complex with unexpected arguments")
-        return complex(real, imag)  # type: ignore[arg-type]
+        return complex(real, imag)
 
     def _defaultdict(self, factory: object = None, *rest: object) -> dict:
         """``defaultdict(int)`` as a plain dict (no factory survives): its items follow."""

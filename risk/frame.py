@@ -451,7 +451,7 @@ def _checked(name: str, values: object, dtype: type) -> np.ndarray:
             raise FrameError(name, "expected integers, got fractions or non-finite numbers")
         if kind not in "iuf":
             raise FrameError(name, f"expected integers, got {_what(a)}")
-        info = np.iinfo(want)
+        info = np.iinfo(want)  # type: ignore[type-var]
         if a.size and (int(a.min()) < info.min or int(a.max()) > info.max):
             raise FrameError(
                 name, f"a value lies outside the {want} range [{info.min}, {info.max}]"

@@ -84,7 +84,7 @@ class LazyGroup(click.Group):
             _end_line(sys.stderr)  # (a progress bar may have left the cursor mid-line)
             raise click.ClickException(capped(str(exc))) from None
         except click.ClickException as exc:  # a command's own, and usage errors
-            exc.message = capped(exc.message)
+            exc.message = capped(exc.message)  # type: ignore[misc]
             raise
 
 
