@@ -43,6 +43,7 @@ import math
 import os
 import pathlib
 import pickle
+import signal
 import struct
 import time
 from collections.abc import Callable
@@ -539,6 +540,60 @@ def load(path: str | os.PathLike, *, what: str = "ScenarioNet scenario") -> Any:
     except OSError as exc:
         raise ConversionError(f"{path}: cannot read ({exc.strerror or exc})") from None
     return loads(data, where=str(path), what=what)
+
+
+def load_isolated(path: str | os.PathLike, *, what: str = "ScenarioNet scenario") -> Any:
+    """:func:`load` in a forked child process: should a file still crash the loader (a
+    bug in it, numpy or Python), that child dies, not the process converting the other
+    scenarios (issue 36: in ``batch`` a crash lost the good scenario beside the bad one).
+
+    The child sends the object back pickled; its bytes are read with :func:`loads` again
+    (a child that went wrong is not trusted either). A child killed by a signal is one
+    ConversionError naming the file. Without ``os.fork`` (Windows): :func:`load`."""
+    if not hasattr(os, "fork"):
+        return load(path, what=what)
+    budget_s = TIME_BUDGET_S + SECONDS_PER_MB * _size(path) / 1e6
+    read_end, write_end = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: load, send, and leave without running the parent's exit code
+        status = 1
+        try:
+            os.close(read_end)
+            signal.alarm(int(10 * budget_s) + 10)  # a wall-clock stop beside the CPU budget
+            try:
+                payload: tuple[bool, Any] = (True, load(path, what=what))
+            except ConversionError as exc:
+                payload = (False, str(exc))
+            with os.fdopen(write_end, "wb") as pipe:
+                pipe.write(pickle.dumps(payload, protocol=5))
+            status = 0
+        finally:
+            os._exit(status)
+    os.close(write_end)
+    with os.fdopen(read_end, "rb") as pipe:
+        data = pipe.read()
+    _, status = os.waitpid(pid, 0)
+    if os.WIFSIGNALED(status) or os.WEXITSTATUS(status) != 0:
+        how = (
+            f"signal {signal.Signals(os.WTERMSIG(status)).name}"
+            if os.WIFSIGNALED(status)
+            else f"status {os.WEXITSTATUS(status)}"
+        )
+        raise ConversionError(
+            f"{path}: reading it stopped the loader's process ({how}); the file is damaged or"
+            f" hostile (nothing else was affected; report it if it is a real {what})"
+        )
+    ok, value = loads(data, where=str(path), what=what)
+    if not ok:
+        raise ConversionError(value)
+    return value
+
+
+def _size(path: str | os.PathLike) -> int:
+    try:
+        return os.stat(path).st_size
+    except OSError:
+        return 0
 
 
 def loads(data: bytes, *, where: str = "input", what: str = "ScenarioNet scenario") -> Any:

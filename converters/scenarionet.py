@@ -239,7 +239,7 @@ def read_scenario(path: str | os.PathLike) -> dict[str, Any]:
         raise ConversionError(
             f"{path}: the index of a ScenarioNet database, not a scenario; give its folder"
         )
-    sd = safe_pickle.load(path)
+    sd = safe_pickle.load_isolated(path)  # (a crash would end a child, not this process)
     check_scenario(sd, str(path))
     return sd
 

@@ -11,6 +11,7 @@ scenarios re-pickled in every protocol 0-5 load back identical.
 from __future__ import annotations
 
 import json
+import os
 import pathlib
 import pickle
 import subprocess
@@ -181,3 +182,45 @@ def test_batch_names_a_stray_pickle_it_does_not_read(tmp_path):
     stray = [f for f in found if f.path.name == "notes.pkl"]
     assert stray and stray[0].problem and "notes.pkl" in stray[0].problem
     assert "\n" not in stray[0].problem
+
+
+#: Put on the path of a child: in every process, loading a file whose name starts with
+#: "crash" kills that process with SIGSEGV, as a loader bug would.
+_CRASH_ON_LOAD = """
+import os
+if os.environ.get("RISKREPLAY_TEST_CRASH"):
+    import converters.safe_pickle as _sp
+    _load = _sp.load
+    def load(path, **options):
+        if os.path.basename(str(path)).startswith("crash"):
+            os.kill(os.getpid(), 11)
+        return _load(path, **options)
+    _sp.load = load
+"""
+
+
+def test_a_crash_while_loading_one_scenario_loses_not_the_others(tmp_path):
+    """Crashes are made impossible by the loader's checks; should one happen anyway, it
+    ends the forked child that loads that file: ``batch`` reports that scenario in one
+    line and converts and replays the good one beside it (a worker's death lost both)."""
+    from test_convert_scenarionet import scenario
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    (folder / "good.pkl").write_bytes(pickle.dumps(scenario()))
+    (folder / "crash.pkl").write_bytes(pickle.dumps(scenario(id="other")))
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(_CRASH_ON_LOAD)
+    root = str(TESTS.parent)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(hook), root]),
+           "RISKREPLAY_TEST_CRASH": "1"}  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-m", "replay", "batch", str(folder), "-o", str(tmp_path / "out"),
+         "--no-progress", "--workers", "1"],
+        capture_output=True, text=True, env=env, cwd=tmp_path, timeout=600,
+    )  # fmt: skip
+    assert "Traceback" not in done.stderr, done.stderr
+    assert "crash.pkl: reading it stopped the loader's process (signal SIGSEGV)" in done.stdout
+    assert "replayed 1" in done.stdout, done.stdout
+    assert [p.name for p in (tmp_path / "out" / "scenes").rglob("*.mcap")] == ["hand-1.mcap"]
