@@ -212,3 +212,38 @@ def test_error_lines_are_capped_keeping_start_and_end():
     assert len(line) == MAX_ERROR_CHARS and line.startswith("start 999")
     assert line.endswith(" what to do") and " … " in line
     assert capped("a\nb  c") == "a b c"
+
+
+# ---------------------------------------------------------------------- generated inputs
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_ODD_VALUES = st.one_of(
+    st.integers(min_value=-(2**70), max_value=2**70), st.floats(allow_nan=True),
+    st.booleans(), st.text(max_size=4), st.none(), st.binary(max_size=3),
+    st.lists(st.integers(0, 3), max_size=2),
+)  # fmt: skip
+_FIELDS = ("xy", "heading", "speed", "length", "width", "ids", "kinds", "valid", "ego", "t")
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(field=st.sampled_from(_FIELDS), values=st.lists(_ODD_VALUES, min_size=0, max_size=3),
+       scalar=_ODD_VALUES, as_scalar=st.booleans())  # fmt: skip
+def test_the_api_under_300_generated_odd_inputs_raises_only_frame_errors(
+    field, values, scalar, as_scalar
+):
+    """Any mix of odd values in any field: a frame, or a FrameError naming that field;
+    never numpy's or Python's own exception, never a silent coercion of text or None."""
+    change = {field: scalar if as_scalar or field in ("ego", "t") else values}
+    if change[field] is None and field in ("ids", "kinds", "valid"):
+        return  # (None: the documented default)
+    try:
+        frame = risk.Frame.from_arrays(**{**TWO, **change})
+    except FrameError as exc:
+        assert exc.field in (field, "paths", "valid", "ego"), (exc.field, field, str(exc))
+        return
+    given_values = [scalar] if as_scalar or field in ("ego", "t") else values
+    flat = [x for v in given_values for x in (v if isinstance(v, list) else [v])]
+    text_ok = (str,) if field == "kinds" else ()  # (kinds may be names: "vehicle")
+    odd = (bytes, type(None)) if text_ok else (str, bytes, type(None))
+    assert not any(isinstance(v, odd) for v in flat), frame
