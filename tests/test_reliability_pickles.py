@@ -224,3 +224,18 @@ def test_a_crash_while_loading_one_scenario_loses_not_the_others(tmp_path):
     assert "crash.pkl: reading it stopped the loader's process (signal SIGSEGV)" in done.stdout
     assert "replayed 1" in done.stdout, done.stdout
     assert [p.name for p in (tmp_path / "out" / "scenes").rglob("*.mcap")] == ["hand-1.mcap"]
+
+
+@pytest.mark.parametrize("protocol", range(6))
+def test_a_scenario_in_any_protocol_is_recognised_and_converted(tmp_path, protocol):
+    """``batch`` finds scenarios by their first bytes: protocols 0 and 1 have no PROTO
+    opcode (they start with MARK or EMPTY_DICT) and were not recognised."""
+    from test_convert_scenarionet import scenario
+
+    from converters import scenarionet
+
+    path = tmp_path / "s.pkl"
+    path.write_bytes(pickle.dumps(scenario(), protocol=protocol))
+    assert scenarionet.is_scenario_file(path)
+    scene = scenarionet.read_scene(path)
+    assert scene.frames
