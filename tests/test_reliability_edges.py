@@ -291,7 +291,7 @@ def test_evaluate_report_onto_its_own_summary_is_refused(tmp_path):
                                        str(out / "summary.json"), "--bootstrap", "0",
                                        "--no-plots", "--no-progress"])  # fmt: skip
     line = _clean_error(result, out / "summary.json")
-    assert "two outputs" in line
+    assert "lies in the output folder" in line  # refused before the evaluation (issue 36)
     assert not out.exists()
 
 
