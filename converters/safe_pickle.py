@@ -89,7 +89,7 @@ class RefusedGlobal(ConversionError):
     """The pickle names a global that plain ScenarioNet files never use."""
 
 
-class _Refused(pickle.UnpicklingError):
+class _Refused(ConversionError):
     """The pickle does something a scenario file never does (the message says what)."""
 
 
