@@ -248,8 +248,12 @@ class Frame:
             t, (int, float, np.integer, np.floating)
         ):
             raise FrameError("t", f"frame time must be a number of seconds, got {t!r:.40}")
-        if not np.isfinite(t):
-            raise FrameError("t", f"frame time must be finite, got {t}")
+        try:
+            finite = np.isfinite(float(t))
+        except OverflowError:  # (an integer beyond any float)
+            finite = False
+        if not finite:
+            raise FrameError("t", f"frame time must be finite, got {t!r:.40}")
 
         # Path ownership: sorted, in range, every agent has at least one candidate.
         if m < n or agent_a[0] < 0 or agent_a[-1] >= n or (np.diff(agent_a) < 0).any():
