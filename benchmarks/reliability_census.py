@@ -5,7 +5,7 @@ one ``Error:`` line, no traceback, inputs unchanged, nothing left behind, no sur
 process), tracebacks, hangs (killed at the time limit), exit 0 on bad input, changed
 inputs and leftovers. Run from the repository root::
 
-    .venv/bin/python benchmarks/reliability_census.py [--jobs 2] [--verbose]
+    .venv/bin/python benchmarks/reliability_census.py [--jobs 2] [--verbose] [--generated 300]
 """
 
 from __future__ import annotations
@@ -27,8 +27,11 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--time-limit", type=float, default=120.0)
     parser.add_argument("--verbose", action="store_true")
+    parser.add_argument(
+        "--generated", type=int, default=300, help="generated hostile pickles among the cases"
+    )
     ns = parser.parse_args()
-    all_cases = cases()
+    all_cases = cases(ns.generated)
     start = time.monotonic()
     with (
         tempfile.TemporaryDirectory(prefix="reliability-") as root,

@@ -232,6 +232,9 @@ def read_lane_map(root: ET.Element, where: str) -> LaneMap:
             continue
         types = {(t.text or "").strip() for t in elem.findall("laneletType")}
         kind = next((k for name, k in LANELET_KINDS if name in types), "vehicle")
+        for ref in elem.iter():  # every reference checked, used or not (issue 36: a
+            if "ref" in ref.attrib and ref is not elem:  # text one was silently ignored)
+                integer_id(ref.get("ref"), f"{where}: lanelet {lid}: {ref.tag}", "ref")
         successors = tuple(
             integer_id(s.get("ref"), f"{where}: lanelet {lid}: successor", "ref")
             for s in elem.findall("successor")

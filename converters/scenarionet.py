@@ -88,7 +88,7 @@ MAX_POINTS = 1_000_000  # points of one map polyline given as a list
 
 # ---------------------------------------------------------------------- inputs
 def is_scenario_file(path: pathlib.Path) -> bool:
-    """Cheap check: a pickle (protocol 2-5) whose first 4 KiB name the top-level keys of a
+    """Cheap check: a pickle (any protocol, 0-5) whose first 4 KiB name the top-level keys of a
     ScenarioNet scenario (``version``, ``length``, ``metadata`` or ``tracks``), or one of
     the database's index files."""
     if path.name in INDEX_FILES:
@@ -98,10 +98,10 @@ def is_scenario_file(path: pathlib.Path) -> bool:
             head = fh.read(4096)
     except OSError:
         return False
+    protocol_2_to_5 = len(head) > 2 and head[0] == 0x80 and 2 <= head[1] <= 5
+    protocol_0_or_1 = head[:1] in (b"(", b"}")  # a dict: MARK ... DICT, or EMPTY_DICT
     return (
-        len(head) > 2
-        and head[0] == 0x80
-        and 2 <= head[1] <= 5
+        (protocol_2_to_5 or protocol_0_or_1)
         and b"version" in head
         and b"length" in head
         and (b"metadata" in head or b"tracks" in head)
@@ -240,7 +240,7 @@ def read_scenario(path: str | os.PathLike) -> dict[str, Any]:
         raise ConversionError(
             f"{path}: the index of a ScenarioNet database, not a scenario; give its folder"
         )
-    sd = safe_pickle.load(path)
+    sd = safe_pickle.load_isolated(path)  # (a crash would end a child, not this process)
     check_scenario(sd, str(path))
     return sd
 

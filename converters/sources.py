@@ -472,7 +472,9 @@ SOURCES: dict[str, SourceSpec] = {
 SCENE_PATTERNS: tuple[str, ...] = ("*.mcap",)
 """Files that are scenes already (``replay batch`` replays them without converting)."""
 
-DATA_SUFFIXES = frozenset({".xml", ".csv", ".parquet", ".feather", ".tfrecord", ".tfrecords"})
+DATA_SUFFIXES = frozenset(
+    {".xml", ".csv", ".parquet", ".feather", ".tfrecord", ".tfrecords", ".pkl"}
+)
 """Suffixes of files that look like traffic data: one that no source claims is reported
 (a file nobody reads silently is a dataset left out). Other files (READMEs, images, maps
 that no track file uses) are ignored."""
@@ -556,6 +558,12 @@ def discover(paths: Sequence[str | os.PathLike], exclude: pathlib.Path | None = 
 def unreadable_reason(path: pathlib.Path) -> str:
     """One line for a data file no source reads."""
     known = "; ".join(f"{s.name}: {', '.join(s.patterns)}" for s in SOURCES.values())
+    if path.suffix.lower() == ".pkl":  # a pickle beside the data, or a damaged scenario
+        return (
+            f"{path}: a pickle that is not a ScenarioNet scenario (its start names no"
+            " 'version', 'length' and 'tracks' or 'metadata'); convert it with 'replay"
+            " convert scenarionet' to see why, or move it out of the input folder"
+        )
     return (
         f"{path}: no converter reads this file (not one of: {known}); convert it with "
         "'replay convert SOURCE' naming the source, or move it out of the input folder"

@@ -106,6 +106,18 @@ def temp_path_beside(path: str | os.PathLike[str]) -> pathlib.Path:
     return tmp
 
 
+#: Files this process has put in place, in order (the last :data:`_PLACED_KEPT`): a
+#: failure after them (stdout full) can say what was written before it.
+_placed: list[pathlib.Path] = []
+_PLACED_KEPT = 1000
+
+
+def placed_outputs() -> list[pathlib.Path]:
+    """The files this process has renamed into place so far (the latest 1,000)."""
+    del _placed[:-_PLACED_KEPT]
+    return list(_placed)
+
+
 def place(tmp: str | os.PathLike[str], target: str | os.PathLike[str]) -> None:
     """Put a finished temporary file in place: rename it onto ``target``, or, when
     ``target`` is a character device, copy its bytes into the device and remove it (the
@@ -113,6 +125,7 @@ def place(tmp: str | os.PathLike[str], target: str | os.PathLike[str]) -> None:
     ``OSError`` naming ``target``."""
     if check_target(target) != "device":
         os.replace(tmp, target)
+        _placed.append(pathlib.Path(target))
         return
     try:
         with open(tmp, "rb") as src, open(target, "wb") as dst:
@@ -180,9 +193,19 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[str], Any]) -> p
     return pathlib.Path(path)
 
 
+#: Longest stem :func:`safe_name` returns: a file name holds 255 bytes, and the stem
+#: still gets a suffix, a ``-2`` when names collide and a temporary name around it.
+MAX_STEM = 120
+
+
 def safe_name(name: str, fallback: str = "scene") -> str:
     """A file name stem from data (a scenario id, a file name): letters, digits, ``-``,
     ``_`` and ``.`` only, every other run of characters one ``_``; ``fallback`` when
-    nothing is left."""
+    nothing is left. A longer stem than :data:`MAX_STEM` is cut and ends in 12 hex digits
+    of a hash of the whole name (a 300-character scenario id failed with "File name too
+    long"; two long ids that share a beginning stay apart)."""
     cleaned = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._")
+    if len(cleaned) > MAX_STEM:
+        digest = hashlib.sha256(name.encode("utf-8", "surrogatepass")).hexdigest()[:12]
+        cleaned = f"{cleaned[: MAX_STEM - 13]}-{digest}"
     return cleaned or fallback

@@ -233,6 +233,13 @@ class OutputGuard:
                     f"{inp}: is {_KIND_NAMES[kind]}, not a file; give the file itself"
                     " (a pipe or device would be read for ever or not at all)"
                 )
+        for path in [*self.files, *self.folders]:
+            blocker = _file_among_parents(path)
+            if blocker is not None:
+                raise OutputError(
+                    f"{path}: {blocker} is a file, not a folder, so nothing can be written"
+                    " under it; choose an output path in a folder"
+                )
         devices = [p for p in self.files if self._device(p)]
         outputs = [p for p in [*self.files, *self.folders] if p not in devices]
         for path in self.files:
@@ -262,7 +269,7 @@ class OutputGuard:
             for b in outputs[i + 1 :]:
                 if same_file(a, b):
                     raise OutputError(
-                        f"{b}: the same file is given for two outputs ({a} and {b});"
+                        f"{b}: the same file is given for two outputs ({_which(a, b)});"
                         " give each output its own path"
                     )
 
@@ -519,3 +526,41 @@ def run_with_stall_timeout(
             )
     if outcome:
         raise outcome[0]
+
+
+def _which(a: pathlib.Path, b: pathlib.Path) -> str:
+    """How two outputs that are one file were given: the command-line options whose value
+    is that file (``-o and --table``), else the two paths (issue 36: "out and out")."""
+    args = sys.argv[1:]
+    options = []
+    for k, arg in enumerate(args):
+        option, eq, value = arg.partition("=")
+        if not option.startswith("-"):
+            continue
+        if not eq:
+            if k + 1 >= len(args):
+                continue
+            value = args[k + 1]
+        with contextlib.suppress(OSError, ValueError):
+            if value and same_file(pathlib.Path(value), a) and option not in options:
+                options.append(option)
+    if len(options) >= 2:
+        return " and ".join(options)
+    return f"{a} and {b}" if str(a) != str(b) else "the same path twice"
+
+
+def _file_among_parents(path: pathlib.Path) -> pathlib.Path | None:
+    """The nearest existing parent of ``path`` when it is not a folder (``out/x`` with a
+    file ``out``: mkdir failed with a bare "Not a directory", issue 36), else None."""
+    for parent in path.absolute().parents:
+        if parent.exists():
+            return None if parent.is_dir() else _shown(parent, path)
+    return None
+
+
+def _shown(parent: pathlib.Path, path: pathlib.Path) -> pathlib.Path:
+    """``parent`` as the user wrote it (relative when ``path`` was)."""
+    for given in path.parents:
+        if given.absolute() == parent:
+            return given
+    return parent

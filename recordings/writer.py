@@ -14,12 +14,10 @@ computes; see ``SceneRecorder(background=True)``.
 
 from __future__ import annotations
 
-import math
 import os
 import pathlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 # rerun's native log: its I/O errors (a full disk) also reach us as exceptions, which the
 # CLI reports in one line; without this they print two more lines of Rust log first.
@@ -44,7 +42,17 @@ from recordings.frames import (
     WriteOptions,
     too_many_agents,
 )
+from recordings.labels import label_texts, log_misses
 from recordings.summary import recording_name, summary_markdown
+from recordings.timelines import (
+    agent_grid,
+    decades,
+    focus_agents,
+    log10_range,
+    log_cascade_series,
+    log_timelines,
+    timed_batch,
+)
 from risk.cascade import SURVIVAL_MODEL
 from risk.registry import MODELS
 
@@ -76,14 +84,14 @@ def _write(
     options: WriteOptions,
 ) -> None:
     scene = _concatenate(frames, info)
-    n_agents = _agent_grid(scene)[0].size
+    n_agents = agent_grid(scene)[0].size
     if n_agents > MAX_RECORDED_AGENTS:
         raise too_many_agents(output, n_agents)
     models = tuple(info.model_names)
     log10_ranges = {
-        m: _log10_range(scene.rows[f"risk:{m}"])
+        m: log10_range(scene.rows[f"risk:{m}"])
         for m in models
-        if _decades(scene.rows[f"risk:{m}"]) > options.log10_decades
+        if decades(scene.rows[f"risk:{m}"]) > options.log10_decades
     }
     focus = focus_agents(scene)
     reach = _plan_reach_m(frames, scene)
@@ -107,8 +115,8 @@ def _write(
             _log_scene_layers(rec, info, scene, frames, options=options)
             if reach is not None:
                 _log_ego_frame(rec, scene)
-            _log_timelines(rec, info, scene, set(log10_ranges), focus)
-            _log_cascade_series(rec, info, scene, frames)
+            log_timelines(rec, info, scene, set(log10_ranges), focus)
+            log_cascade_series(rec, info, scene, frames)
         rec.flush()
     except (OSError, RuntimeError) as exc:  # I/O and rerun's native errors; bugs propagate
         raise RecordingError(f"could not write {output}: {exc}") from exc
@@ -209,24 +217,6 @@ def _log_map_lines(rec: rr.RecordingStream, info: SceneInfo) -> None:
 
 
 # ---------------------------------------------------------------------- scene layers
-def _time_columns(scene: SceneRows) -> list[rr.TimeColumn]:
-    return [
-        rr.TimeColumn(L.TIMELINE, duration=scene.times_s),
-        rr.TimeColumn(L.FRAME_TIMELINE, sequence=scene.frame_index),
-    ]
-
-
-def _timed_batch(scene: SceneRows) -> C.Batch:
-    """An empty batch over the scene's two timelines (one row per recorded frame)."""
-    ns = np.rint(scene.times_s * 1e9).astype(np.int64)
-    return C.Batch(
-        indexes={
-            L.TIMELINE: (ns, pa.duration("ns")),
-            L.FRAME_TIMELINE: (scene.frame_index, pa.int64()),
-        }
-    )
-
-
 def _tile(color: tuple[int, ...], k: int) -> np.ndarray:
     return np.tile(np.array(color, dtype=np.uint8), (k, 1))
 
@@ -333,8 +323,8 @@ def _log_scene_layers(
     rec, info: SceneInfo, scene: SceneRows, frames, *, options: WriteOptions
 ) -> None:
     """Every layer of the scene view, all frames: one timed and one static record batch."""
-    batch, static = _timed_batch(scene), C.Batch()
-    labels = _label_texts(info, scene, options.labels)
+    batch, static = timed_batch(scene), C.Batch()
+    labels = label_texts(info, scene, options.labels)
     _add_ego(batch, static, scene, labels)
     _add_agents(batch, static, info, scene, labels, show=options.labels != "none")
     if options.links:
@@ -343,7 +333,7 @@ def _log_scene_layers(
     _add_plans(batch, static, scene, frames)
     static.send(rec)
     batch.send(rec)
-    _log_misses(rec, info, scene)
+    log_misses(rec, info, scene)
 
 
 def _add_ego(batch: C.Batch, static: C.Batch, scene: SceneRows, labels: np.ndarray) -> None:
@@ -381,7 +371,7 @@ def _add_agents(
     around a kept agent that really came close (hindsight positive).
     """
     r = scene.rows
-    agent_ids, column, _, _ = _agent_grid(scene)
+    agent_ids, column, _, _ = agent_grid(scene)
     n_frames = scene.times_s.size
     others = column >= 0
     cell = column[others] * n_frames + scene.frame_of[others]
@@ -462,7 +452,7 @@ def _add_paths(batch: C.Batch, static: C.Batch, info: SceneInfo, scene: SceneRow
     owners = np.concatenate([f.survivor_path_owner for f in frames]) if frames else np.zeros(0)
     if owners.size == 0:
         return
-    agent_ids, _, _, _ = _agent_grid(scene)
+    agent_ids, _, _, _ = agent_grid(scene)
     frame_of = np.repeat(np.arange(n_frames), [f.survivor_paths.shape[0] for f in frames])
     col = np.searchsorted(agent_ids, owners)
     with_paths = np.unique(col)
@@ -545,379 +535,6 @@ def _log_ego_frame(rec: rr.RecordingStream, scene: SceneRows) -> None:
     )
 
 
-# ---------------------------------------------------------------------- labels and misses
-def _tier_tags(names: tuple[str, ...]) -> np.ndarray:
-    """Short tier marks for labels: initials (B, I, C) when unique, else 1, 2, 3."""
-    initials = [n[:1].upper() for n in names]
-    tags = (
-        initials if len(set(initials)) == len(initials) else [str(k + 1) for k in range(len(names))]
-    )
-    return np.array([*tags, ""])  # index -1 (no tier) -> ""
-
-
-def _references(rows: dict[str, np.ndarray]) -> np.ndarray:
-    """Which reference marks each row important: ``baseline``, ``hindsight``, both or ``""``."""
-    b, h = rows["baseline"], rows["truth"] == 1.0
-    return np.where(
-        b & h, "baseline+hindsight", np.where(b, "baseline", np.where(h, "hindsight", ""))
-    )
-
-
-def _label_texts(info: SceneInfo, scene: SceneRows, mode: str) -> np.ndarray:
-    """The label of every row (``""``: none; the id still shows on hover).
-
-    ``"kept"`` (default): the ego, the tier agents (``17 I``) and the misses
-    (``17 MISS ✗2``), decluttered: per frame, a label gives way to a more important
-    one within :data:`recordings.layout.LABEL_SPACING_M` (ego, then misses, then deeper
-    tiers), so that no two labels overlap at the opening zoom. ``"all"``: every agent,
-    not decluttered. ``"none"``: no labels.
-    """
-    r = scene.rows
-    n = r["ids"].size
-    if mode == "none":
-        return np.full(n, "", dtype="<U1")
-    if mode == "all":
-        shown = np.ones(n, dtype=bool)
-    else:
-        survivor_tier = np.where(r["dropped_at"] < 0, r["tier"], -1)
-        lead = _lead_rows(scene)
-        wanted = r["is_ego"] | r["miss"] | (survivor_tier >= 0) | lead
-        priority = np.where(r["is_ego"], 1000, np.where(r["miss"], 100, survivor_tier + 1))
-        # The agent directly ahead of the ego keeps its label over any other but the
-        # ego's: de-cluttering hid it behind a tier agent beside it (issue 31).
-        priority = np.where(lead & ~r["is_ego"], 500, priority)
-        shown = _declutter(scene, wanted, priority, L.LABEL_SPACING_M)
-    # Texts only for the labelled rows (string operations are slow in numpy).
-    rows = np.flatnonzero(shown)
-    ids = r["ids"][rows].astype(str)
-    tags = _tier_tags(tuple(t.name for t in info.cascade.tiers))
-    stage = (r["dropped_at"][rows] + 1).astype(str)
-    text = np.where(
-        r["is_ego"][rows], np.char.add("ego ", ids),
-        np.where(
-            r["miss"][rows], np.char.add(np.char.add(ids, " MISS ✗"), stage),
-            np.where(
-                r["dropped_at"][rows] >= 0, np.char.add(np.char.add(ids, " ✗"), stage),
-                np.where(
-                    r["tier"][rows] >= 0,
-                    np.char.rstrip(np.char.add(np.char.add(ids, " "), tags[r["tier"][rows]])),
-                    ids,  # (kept below the first tier: labelled as the agent ahead)
-                ),
-            ),
-        ),
-    )  # fmt: skip
-    out = np.full(n, "", dtype=text.dtype if text.size else "<U1")
-    out[rows] = text
-    return out
-
-
-#: Half the width of the corridor in which an agent counts as directly ahead of the ego.
-LEAD_HALF_WIDTH_M = 2.0
-
-
-def _lead_rows(scene: SceneRows) -> np.ndarray:
-    """Per frame, the row of the nearest agent ahead of the ego: in front of it along
-    its heading and within :data:`LEAD_HALF_WIDTH_M` of its centre line (vectorised
-    over all rows)."""
-    r = scene.rows
-    n_frames = scene.times_s.size
-    ego_row = np.full(n_frames, -1)
-    ego_rows = np.flatnonzero(r["is_ego"])
-    ego_row[scene.frame_of[ego_rows]] = ego_rows
-    e = ego_row[scene.frame_of]
-    has_ego = (e >= 0) & ~r["is_ego"]
-    e = np.maximum(e, 0)
-    d = r["xy"] - r["xy"][e]
-    c, s_ = np.cos(r["heading"][e]), np.sin(r["heading"][e])
-    lon = d[:, 0] * c + d[:, 1] * s_
-    lat = -d[:, 0] * s_ + d[:, 1] * c
-    ahead = has_ego & (lon > 0) & (np.abs(lat) < LEAD_HALF_WIDTH_M)
-    key = np.where(ahead, lon, np.inf)
-    best = np.full(n_frames, np.inf)
-    np.minimum.at(best, scene.frame_of, key)
-    return ahead & (key == best[scene.frame_of])
-
-
-def _declutter(
-    scene: SceneRows, wanted: np.ndarray, priority: np.ndarray, spacing_m: float
-) -> np.ndarray:
-    """``wanted`` rows minus those within ``spacing_m`` of a more important wanted row.
-
-    Per frame (a loop over frames, vectorised over agents): a row gives way to any wanted
-    row of higher priority (ties: the earlier row) closer than ``spacing_m``. Of any two
-    rows that keep their label, neither gives way, so they are at least ``spacing_m``
-    apart.
-    """
-    shown = wanted.copy()
-    rows = np.flatnonzero(wanted)
-    bounds = np.searchsorted(scene.frame_of[rows], np.arange(scene.times_s.size + 1))
-    for f in range(scene.times_s.size):
-        idx = rows[bounds[f] : bounds[f + 1]]
-        if idx.size < 2:
-            continue
-        xy, p = scene.rows["xy"][idx], priority[idx]
-        near = np.linalg.norm(xy[:, None, :] - xy[None, :, :], axis=-1) < spacing_m
-        order = np.arange(idx.size)
-        above = (p[None, :] > p[:, None]) | (
-            (p[None, :] == p[:, None]) & (order[None, :] < order[:, None])
-        )
-        shown[idx[(near & above).any(axis=1)]] = False
-    return shown
-
-
-def miss_episodes(scene: SceneRows, info: SceneInfo) -> list[dict[str, Any]]:
-    """The misses, one entry per episode: an agent dropped although important, over
-    consecutive recorded frames with the same stage and reference.
-
-    Each entry: ``agent``, ``stage`` (1-based), ``model``, ``reference``, ``first``
-    and ``last`` (positions in the recorded frames), ``t_start_s``, ``t_end_s``.
-    """
-    r = scene.rows
-    rows = np.flatnonzero(r["miss"])
-    if rows.size == 0:
-        return []
-    ids, frame, stage = r["ids"][rows], scene.frame_of[rows], r["dropped_at"][rows]
-    ref = _references(r)[rows]
-    order = np.lexsort((frame, ids))
-    ids, frame, stage, ref = ids[order], frame[order], stage[order], ref[order]
-    new = np.ones(ids.size, dtype=bool)
-    new[1:] = (
-        (ids[1:] != ids[:-1]) | (frame[1:] != frame[:-1] + 1)
-        | (stage[1:] != stage[:-1]) | (ref[1:] != ref[:-1])
-    )  # fmt: skip
-    starts = np.flatnonzero(new)
-    ends = np.append(starts[1:], ids.size) - 1
-    names = info.cascade.stage_names
-    return [
-        {
-            "agent": int(ids[s]),
-            "stage": int(stage[s]) + 1,
-            "model": names[int(stage[s])],
-            "reference": str(ref[s]),
-            "first": int(frame[s]),
-            "last": int(frame[e]),
-            "t_start_s": float(scene.times_s[frame[s]]),
-            "t_end_s": float(scene.times_s[frame[e]]),
-        }
-        for s, e in zip(starts, ends, strict=True)
-    ]
-
-
-def _log_misses(rec, info: SceneInfo, scene: SceneRows) -> None:
-    """The misses list: a text log row per episode on the agent's body entity.
-
-    A row at the episode's first frame reads ``agent 17 · dropped by stage 2
-    (trajectory_distance) · important by baseline · 1.2 s (12 frames)``; clicking it
-    in the viewer selects ``/scene/agents/17/body`` (highlighted in the scene) and
-    moves the time cursor to the row's time.
-    """
-    episodes = miss_episodes(scene, info)
-    if not episodes:
-        return
-    n_frames = scene.times_s.size
-    agents = sorted({int(e["agent"]) for e in episodes})
-    slot = {a: i for i, a in enumerate(agents)}
-    text = np.full(len(agents) * n_frames, "", dtype=object)
-    missing = np.ones(len(agents) * n_frames, dtype=bool)
-    for e in episodes:  # one per episode (a few), not per agent-frame
-        cell = slot[int(e["agent"])] * n_frames + int(e["first"])
-        frames = int(e["last"]) - int(e["first"]) + 1
-        duration = float(e["t_end_s"]) - float(e["t_start_s"])
-        text[cell] = (
-            f"agent {e['agent']} · dropped by stage {e['stage']} ({e['model']}) · important by "
-            f"{e['reference']} · {duration:.1f} s ({frames} frame{'s' if frames > 1 else ''})"
-        )  # the row's time is the episode's start
-        missing[cell] = False
-    batch = _timed_batch(scene)
-    texts = C.one_per_row(text.tolist(), pa.utf8(), missing)
-    levels = C.one_per_row(np.full(text.size, "WARN").tolist(), pa.utf8(), missing)
-    colors = C.one_per_row(
-        np.full(text.size, C.pack_colors(np.array([L.MISSED]))[0]), pa.uint32(), missing
-    )
-    for i, agent in enumerate(agents):
-        path, start = L.body_path(agent), i * n_frames
-        batch.add(path, C.LOG_TEXT, texts.slice(start, n_frames))
-        batch.add(path, C.LOG_LEVEL, levels.slice(start, n_frames))
-        batch.add(path, C.LOG_COLOR, colors.slice(start, n_frames))
-    batch.send(rec)
-
-
-# ---------------------------------------------------------------------- timelines
-def _decades(values: np.ndarray) -> float:
-    """How many decades the positive finite ``values`` span (0 when fewer than two)."""
-    pos = values[np.isfinite(values) & (values > 0)]
-    if pos.size < 2:
-        return 0.0
-    return float(np.log10(pos.max()) - np.log10(pos.min()))
-
-
-def _log10_range(values: np.ndarray, window_decades: float = 30.0) -> tuple[float, float]:
-    """The y range of a log10 risk view: from the top value down ``window_decades`` at most.
-
-    Survival risk reaches 1e-300 for agents that never come near; a full-range axis would
-    squash the risks that matter (around the 1e-25 baseline and above) into a line.
-    """
-    pos = values[np.isfinite(values) & (values > 0)]
-    top, bottom = float(np.log10(pos.max())), float(np.log10(pos.min()))
-    return max(bottom, top - window_decades) - 0.5, top + 0.5
-
-
-def _agent_grid(scene: SceneRows) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    if scene.grid is None:
-        scene.grid = _compute_agent_grid(scene)
-    return scene.grid
-
-
-def _compute_agent_grid(scene: SceneRows) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The other agents as columns of a frame x agent grid.
-
-    Returns ``agent_ids (A,)``, ``column (K,)`` (-1 for the ego rows), and each agent's
-    first and last frame ``(A,)``.
-    """
-    r = scene.rows
-    others = ~r["is_ego"]
-    agent_ids, col = np.unique(r["ids"][others], return_inverse=True)
-    column = np.full(r["ids"].size, -1, dtype=np.int64)
-    column[others] = col
-    first = np.full(agent_ids.size, np.iinfo(np.int64).max)
-    last = np.full(agent_ids.size, -1)
-    np.minimum.at(first, col, scene.frame_of[others])
-    np.maximum.at(last, col, scene.frame_of[others])
-    return agent_ids, column, first, last
-
-
-#: Agents with their own risk timelines in one recording (the most important first; see
-#: :func:`focus_agents`). The scene view still draws every agent.
-MAX_TIMELINE_AGENTS = 1000
-
-
-def _log_timelines(
-    rec, info: SceneInfo, scene: SceneRows, log10_models: set[str], focus: Sequence[int]
-) -> None:
-    """``/scene/agents/<id>/risk/<model>``: each agent's risk from its first to its last
-    frame, in the agent's own subtree (beside its body and path).
-
-    Frames in between where the agent is absent (or invalid) hold NaN, which the viewer
-    draws as a gap. Every agent has its own colour and its id as the series name (static);
-    the model views start on the agents that matter (:func:`focus_agents`). Each model is
-    one record batch with a column per agent (null outside the agent's span), not one
-    ``send_columns`` call per agent.
-    """
-    r = scene.rows
-    agent_ids, column, first, last = _agent_grid(scene)
-    if agent_ids.size > MAX_TIMELINE_AGENTS:
-        # Every timeline is a column of one record batch, and rerun's encoding of a
-        # batch grows faster than its columns: 20,000 agents took minutes (seen as a
-        # stalled save). The views keep the agents that matter most, as they open on.
-        keep = np.isin(
-            agent_ids,
-            focus_agents(scene, MAX_TIMELINE_AGENTS, only_important=False),
-        )
-        remap = np.where(keep, np.cumsum(keep) - 1, -1)
-        column = np.where(column >= 0, remap[np.maximum(column, 0)], -1)
-        agent_ids, first, last = agent_ids[keep], first[keep], last[keep]
-    n_frames, others = scene.times_s.size, column >= 0
-    frame_pos = np.arange(n_frames)
-    outside = (frame_pos[None, :] < first[:, None]) | (frame_pos[None, :] > last[:, None])
-    colors = C.one_per_row(C.pack_colors(L.agent_series_colors(agent_ids)), pa.uint32())
-    # Own colours (the same in every model's view) for the agents the views open on; an
-    # agent added in the viewer takes the view's quiet grey. The series name is the
-    # entity path, which holds the agent id.
-    coloured = np.isin(agent_ids, np.asarray(focus, dtype=np.int64))
-    names = C.one_per_row([f"agent {int(a)}" for a in agent_ids], pa.utf8())
-    static, batch = C.Batch(), _timed_batch(scene)  # every model in one record batch
-    thresholds = {s.model: s.threshold for s in info.cascade.stages}
-    for model in info.model_names:
-        grid = np.full((agent_ids.size, n_frames), np.nan)  # (A, F): one row per agent
-        grid[column[others], scene.frame_of[others]] = r[f"risk:{model}"][others]
-        variants = [(False, grid)]
-        if model in log10_models:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                variants.append((True, np.where(grid > 0, np.log10(grid), np.nan)))
-        for is_log, values in variants:
-            # All agents' cells in one array; each agent's column is a zero-copy slice.
-            cells = C.one_per_row(values.reshape(-1), pa.float64(), outside.reshape(-1))
-            for a, agent in enumerate(agent_ids):
-                path = L.risk_path(model, int(agent), log10=is_log)
-                batch.add(path, C.SCALARS, cells.slice(a * n_frames, n_frames))
-                if coloured[a]:
-                    static.add(path, C.SERIES_COLORS, colors.slice(a, 1))
-                    # the tab's legend names the agent (else: its entity path)
-                    static.add(path, C.SERIES_NAMES, names.slice(a, 1))
-            if model in thresholds:
-                _log_threshold(rec, scene, model, thresholds[model], is_log)
-    batch.send(rec)
-    static.send(rec)
-
-
-def _log_threshold(rec, scene: SceneRows, model: str, threshold: float, is_log: bool) -> None:
-    """The stage threshold as a flat line in the model's risk view."""
-    if is_log and threshold <= 0:
-        return
-    value = math.log10(threshold) if is_log else threshold
-    path = L.threshold_path(model, log10=is_log)
-    rec.log(
-        path,
-        rr.SeriesLines(colors=(255, 255, 255), widths=2.5, names="stage threshold"),
-        static=True,
-        strict=True,
-    )
-    rec.send_columns(
-        path,
-        indexes=_time_columns(scene),
-        columns=rr.Scalars.columns(scalars=np.full(scene.times_s.size, value)),
-        strict=True,
-    )
-
-
-# ---------------------------------------------------------------------- cascade series
-def _log_cascade_series(rec, info: SceneInfo, scene: SceneRows, frames=()) -> None:
-    """Funnel counts, cumulative false negatives and compute times, one value per frame."""
-    r, n_frames = scene.rows, scene.times_s.size
-    per_frame = lambda mask: np.bincount(scene.frame_of[mask], minlength=n_frames)  # noqa: E731
-    series: list[tuple[str, str, tuple[int, int, int], np.ndarray]] = [
-        (f"{L.FUNNEL}/0_others", "others", L.OTHERS_SERIES, per_frame(~r["is_ego"])),
-        (f"{L.FUNNEL}/baseline", "baseline", L.MISSED, per_frame(r["baseline"])),
-    ]
-    for s, stage in enumerate(info.cascade.stages):
-        key, color, label = L.stage_key(s, stage.model), L.stage_color(s), f"{s + 1}: {stage.model}"
-        series += [
-            (f"{L.FUNNEL}/{key}", label, color, per_frame(r["kept"][s])),
-            (f"{L.FALSE_NEGATIVES}/{key}", label, color, scene.false_negatives[:, s]),
-            (f"{L.TIMING}/{key}", label, color, scene.stage_time_ms[:, s]),
-        ]
-    for k, tier in enumerate(info.cascade.tiers):
-        path = f"{L.FUNNEL}/tier_{k + 1}_{tier.name}"
-        series.append((path, tier.name, L.tier_color(k), per_frame(r["tier"] >= k)))
-    total_ms = scene.stage_time_ms.sum(axis=1) + scene.sort_time_ms
-    plan_ms = {
-        key: np.array([getattr(f, key) for f in frames], dtype=np.float64)
-        for key in ("plan_all_ms", "plan_filtered_ms")
-    }
-    if np.isfinite(plan_ms["plan_all_ms"]).any():
-        series += [
-            (f"{L.TIMING}/plan_all_agents", "plan, all agents", L.PLAN_ALL_COLOR,
-             plan_ms["plan_all_ms"]),
-            (f"{L.TIMING}/plan_filtered", "plan, cascade's agents", L.PLAN_FILTERED_COLOR,
-             plan_ms["plan_filtered_ms"]),
-        ]  # fmt: skip
-    series += [
-        (f"{L.TIMING}/sort", "sort into tiers", L.tier_color(1), scene.sort_time_ms),
-        (f"{L.TIMING}/cascade_total", "cascade total", L.OTHERS_SERIES, total_ms),
-        (f"{L.TIMING}/survival_all", "survival (all)", L.MISSED, scene.survival_all_time_ms),
-    ]
-    # Two record batches (styles, static; values, one row per frame) for all series.
-    static, batch = C.Batch(), _timed_batch(scene)
-    colors = C.pack_colors(np.array([c for _, _, c, _ in series], dtype=np.uint8))
-    for k, (path, name, _, values) in enumerate(series):
-        static.add(path, C.SERIES_COLORS, C.one_per_row(colors[k : k + 1], pa.uint32()))
-        static.add(path, C.SERIES_NAMES, C.one_per_row([name], pa.utf8()))
-        static.add(path, C.SERIES_WIDTHS, C.one_per_row(np.array([2.0]), pa.float32()))
-        batch.add(path, C.SCALARS, C.one_per_row(np.asarray(values, np.float64), pa.float64()))
-    static.send(rec)
-    batch.send(rec)
-
-
 # ---------------------------------------------------------------------- helpers
 def _baseline_model(models: Sequence[str]) -> str | None:
     """The model whose tab opens first: the survival baseline the cascade is judged by."""
@@ -938,37 +555,3 @@ def _ego_points(scene: SceneRows, info: SceneInfo) -> np.ndarray:
         np.asarray(lane.centerline, dtype=np.float64).reshape(-1, 2) for lane in info.map.lanes
     ]
     return np.concatenate(lanes) if lanes else np.zeros((1, 2))
-
-
-def focus_agents(
-    scene: SceneRows, limit: int = L.FOCUS_AGENTS_MAX, *, only_important: bool = True
-) -> list[int]:
-    """The agents the risk views open on: misses, hindsight positives and tier agents
-    (``only_important=False``: any agent, in the same order).
-
-    Ordered by importance (missed at least once, then came close, then the deepest tier
-    reached, then the highest survival risk), at most ``limit``; the others are one
-    click away in the viewer (each agent's subtree holds all nine timelines).
-    """
-    r = scene.rows
-    agent_ids, column, _, _ = _agent_grid(scene)
-    if agent_ids.size == 0:
-        return []
-    others = column >= 0
-    col = column[others]
-
-    def per_agent(values: np.ndarray, fill: float) -> np.ndarray:
-        out = np.full(agent_ids.size, fill)
-        np.maximum.at(out, col, values[others])
-        return out
-
-    missed = per_agent(r["miss"].astype(float), 0.0)
-    close = per_agent((r["truth"] == 1.0).astype(float), 0.0)
-    tier = per_agent(np.where(r["dropped_at"] < 0, r["tier"], -1).astype(float), -1.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        risk = per_agent(np.nan_to_num(np.log10(r["survival"]), nan=-np.inf), -np.inf)
-    matter = (missed > 0) | (close > 0) | (tier >= 0)
-    order = np.lexsort((-risk, -tier, -close, -missed))
-    if not only_important:
-        return [int(a) for a in agent_ids[order[:limit]]]
-    return [int(agent_ids[a]) for a in order if matter[a]][:limit]

@@ -62,6 +62,10 @@ _MAX_KIND = int(max(Kind))
 #: agent ran for hours. Converters keep 3 by default (``--max-candidates``).
 MAX_CANDIDATES = 64
 
+#: Path points of one frame once every candidate is padded to the longest (320 MB of
+#: float64 pairs): a single 10**6-point path among many agents raised numpy's MemoryError.
+MAX_PADDED_POINTS = 20_000_000
+
 
 def _readonly(a: np.ndarray) -> np.ndarray:
     a.setflags(write=False)
@@ -119,7 +123,7 @@ class Frame:
         ``kinds`` are strings (``vehicle``, ``pedestrian``, ``cyclist``, ``other``) or Kind
         codes; default all vehicles. ``ids`` default to ``0..N-1``.
         """
-        xy_a = np.asarray(xy, dtype=np.float64)
+        xy_a = _checked("xy", xy, np.float64)
         if xy_a.ndim != 2 or xy_a.shape[1] != 2:
             raise FrameError("xy", f"expected shape (N, 2), got {xy_a.shape}")
         n = xy_a.shape[0]
@@ -132,7 +136,7 @@ class Frame:
             if not candidates:
                 raise FrameError("paths", "no path candidate given", index=i)
             for cand in candidates:
-                c = np.asarray(cand, dtype=np.float64)
+                c = _checked("paths", cand, np.float64)
                 if c.ndim != 2 or c.shape[1] != 2:
                     raise FrameError(
                         "paths", f"a path must have shape (P, 2), got {c.shape}", index=i
@@ -142,15 +146,27 @@ class Frame:
                 rows.append(c)
                 owner.append(i)
         max_p = max((r.shape[0] for r in rows), default=1)
+        if len(rows) * max_p > MAX_PADDED_POINTS:  # every candidate padded to the longest
+            longest = int(np.argmax([r.shape[0] for r in rows]))
+            raise FrameError(
+                "paths", f"{len(rows)} candidates padded to the longest ({max_p} points) make"
+                f" {len(rows) * max_p:.3g} points, more than the {MAX_PADDED_POINTS:.3g}"
+                " supported; resample the long paths", index=owner[longest],
+            )  # fmt: skip
         padded = np.empty((len(rows), max_p, 2))
         for m, r in enumerate(rows):
             padded[m, : r.shape[0]] = r
             padded[m, r.shape[0] :] = r[-1]
-        kind_codes = (
-            np.zeros(n, dtype=np.int8)
-            if kinds is None
-            else np.array([Kind.parse(k) for k in kinds], dtype=np.int8)
-        )
+        try:
+            kind_codes = (
+                np.zeros(n, dtype=np.int8)
+                if kinds is None
+                else np.array([Kind.parse(k) for k in kinds], dtype=np.int8)
+            )
+        except (ValueError, TypeError) as exc:
+            if isinstance(exc, FrameError):
+                raise
+            raise FrameError("kinds", f"unknown kind code ({exc})") from None
         return cls.from_padded(
             ids=np.arange(n) if ids is None else ids,
             kinds=kind_codes,
@@ -186,7 +202,7 @@ class Frame:
         t: float = 0.0,
     ) -> Frame:
         """Build and validate a frame from the flat, padded form (what readers produce)."""
-        xy_a = np.array(xy, dtype=np.float64)
+        xy_a = _checked("xy", xy, np.float64)
         if xy_a.ndim != 2 or xy_a.shape[1] != 2:
             raise FrameError("xy", f"expected shape (N, 2), got {xy_a.shape}")
         n = xy_a.shape[0]
@@ -199,7 +215,7 @@ class Frame:
         length_a = _vector("length", length, n, np.float64)
         width_a = _vector("width", width, n, np.float64)
         valid_a = _vector("valid", valid, n, bool)
-        paths_a = np.array(paths, dtype=np.float64)
+        paths_a = _checked("paths", paths, np.float64)
         if paths_a.ndim != 3 or paths_a.shape[2] != 2 or paths_a.shape[1] < 1:
             raise FrameError("paths", f"expected shape (M, P, 2) with P >= 1, got {paths_a.shape}")
         m = paths_a.shape[0]
@@ -219,15 +235,25 @@ class Frame:
             raise FrameError(
                 "kinds", f"unknown kind code {int(kinds_a[i])}", index=i, agent_id=int(ids_a[i])
             )
-        if not (isinstance(ego, (int, np.integer)) and 0 <= int(ego) < n):
+        if isinstance(ego, (bool, np.bool_)) or not isinstance(ego, (int, np.integer)):
+            raise FrameError("ego", f"ego must be an agent index (an integer), got {ego!r:.40}")
+        if not 0 <= int(ego) < n:
             raise FrameError("ego", f"ego index {ego!r} is out of range for {n} agents")
         ego = int(ego)
         if not valid_a[ego]:
             raise FrameError(
                 "valid", "the ego agent must be valid", index=ego, agent_id=int(ids_a[ego])
             )
-        if not np.isfinite(t):
-            raise FrameError("t", f"frame time must be finite, got {t}")
+        if isinstance(t, (bool, np.bool_)) or not isinstance(
+            t, (int, float, np.integer, np.floating)
+        ):
+            raise FrameError("t", f"frame time must be a number of seconds, got {t!r:.40}")
+        try:
+            finite = np.isfinite(float(t))
+        except OverflowError:  # (an integer beyond any float)
+            finite = False
+        if not finite:
+            raise FrameError("t", f"frame time must be finite, got {t!r:.40}")
 
         # Path ownership: sorted, in range, every agent has at least one candidate.
         if m < n or agent_a[0] < 0 or agent_a[-1] >= n or (np.diff(agent_a) < 0).any():
@@ -410,8 +436,46 @@ def _is_polyline(entry: object) -> bool:
     return np.ndim(first) == 1
 
 
+def _checked(name: str, values: object, dtype: type) -> np.ndarray:
+    """``values`` as a new array of ``dtype``, refusing what numpy would coerce silently
+    (issue 36): text, objects, booleans as numbers, fractions or out-of-range values as
+    integers, anything but booleans (or 0/1) as flags. Raises FrameError naming ``name``."""
+    try:
+        a = np.asarray(values)
+    except (ValueError, TypeError, OverflowError) as exc:  # ragged, or not array-like
+        raise FrameError(name, f"not an array of numbers ({exc})") from None
+    kind, want = a.dtype.kind, np.dtype(dtype)
+    if want.kind == "b":
+        if kind in "iu" and a.size and ((a != 0) & (a != 1)).any():
+            raise FrameError(name, "expected booleans (or 0/1), got other integers")
+        if kind not in "biu":
+            raise FrameError(name, f"expected booleans, got {_what(a)}")
+    elif want.kind in "iu":
+        if kind == "f" and a.size and not (np.isfinite(a).all() and (a == np.round(a)).all()):
+            raise FrameError(name, "expected integers, got fractions or non-finite numbers")
+        if kind not in "iuf":
+            raise FrameError(name, f"expected integers, got {_what(a)}")
+        info = np.iinfo(want)  # type: ignore[type-var]
+        if a.size and (int(a.min()) < info.min or int(a.max()) > info.max):
+            raise FrameError(
+                name, f"a value lies outside the {want} range [{info.min}, {info.max}]"
+            )
+    elif kind not in "iuf":
+        raise FrameError(name, f"expected numbers, got {_what(a)}")
+    return np.array(a, dtype=dtype)
+
+
+def _what(a: np.ndarray) -> str:
+    """What an array holds, in words, for a message."""
+    if a.dtype.kind in "US":
+        return f"text ({str(a.flat[0])!r:.30})" if a.size else "text"
+    if a.dtype.kind == "O":
+        return "Python objects (mixed types, or integers beyond 64 bits)"
+    return f"{a.dtype} values"
+
+
 def _vector(name: str, values: object, n: int, dtype: type) -> np.ndarray:
-    a: np.ndarray = np.array(values, dtype=dtype)
+    a = _checked(name, values, dtype)
     if a.shape != (n,):
         raise FrameError(name, f"expected shape ({n},), got {a.shape}")
     return a

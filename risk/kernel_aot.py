@@ -10,7 +10,8 @@ bit (tested).
 
 Where: ``<cache>/aot/<key>/riskreplay_kernel_aot<suffix>``, ``<key>`` a hash of the
 kernel's source files, the numba and llvmlite installations, numpy's version, the Python
-ABI and the CPU (the code is compiled for the host CPU). A changed source, an upgrade or
+ABI and the CPU (the code is compiled for the host CPU, or the one ``NUMBA_CPU_NAME`` /
+``NUMBA_CPU_FEATURES`` name). A changed source, an upgrade or
 another machine sharing the folder gets its own build; the newest :data:`KEEP_BUILDS`
 are kept.
 
@@ -75,8 +76,20 @@ def _cpu_stamp() -> str:
         return f"{platform.processor()}:{platform.machine()}"
 
 
+#: Environment variables that choose the CPU numba compiles for (``NUMBA_CPU_NAME=generic``
+#: for code that runs on any CPU of the architecture): part of the key, so that a module
+#: built for the host is not loaded by a process asked for generic code, or the other way.
+CPU_VARIABLES = ("NUMBA_CPU_NAME", "NUMBA_CPU_FEATURES")
+
+
+def target_cpu() -> str:
+    """The CPU the module is compiled for: ``NUMBA_CPU_NAME`` when set, else the host."""
+    return os.environ.get("NUMBA_CPU_NAME", "").strip() or "host"
+
+
 def build_key() -> str:
-    """The key of the build that fits this source, installation, Python and CPU."""
+    """The key of the build that fits this source, installation, Python and CPU (the
+    host's, and the one :data:`CPU_VARIABLES` ask for)."""
     h = hashlib.sha256()
     for name in SOURCES:
         h.update((HERE / name).read_bytes())
@@ -87,6 +100,7 @@ def build_key() -> str:
         sys.implementation.cache_tag,
         platform.machine(),
         _cpu_stamp(),
+        *(f"{name}={os.environ.get(name, '')}" for name in CPU_VARIABLES),
     ):
         h.update(part.encode())
     return h.hexdigest()[:24]

@@ -31,6 +31,7 @@ from risk.kernel_aot import (
     build_key,
     builds_dir,
     module_path,
+    target_cpu,
 )
 from risk.kernel_shared import cache_dir
 
@@ -96,7 +97,7 @@ def build(cache_dir: str | os.PathLike[str]) -> pathlib.Path:
 
                 cc = CC(MODULE_NAME)
                 cc.output_dir = str(work)
-                cc.target_cpu = "host"
+                cc.target_cpu = target_cpu()  # the host, or NUMBA_CPU_NAME (in the key)
                 cc.verbose = False
                 for name, wrapper in _wrappers(kernel_numba).items():
                     signature = getattr(kernel_numba, name).nopython_signatures[0]

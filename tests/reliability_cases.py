@@ -11,7 +11,10 @@ Kinds: corrupted, truncated, foreign, non-finite, out-of-range, same-path, unwri
 and from issue 31 (:func:`round3_cases`): device (outputs that are named pipes), hang
 (named pipes as inputs, path candidates beyond the cap), memory (a metadata period that
 would size a 78 TiB grid), exit-0 (bad values that used to convert or replay), recursion
-(deep TOML and JSON) and converter (values that raised tracebacks). Full-disk,
+(deep TOML and JSON) and converter (values that raised tracebacks); and from issue 36
+(``reliability_round4.py``): pickle (hostile pickles, measured and generated), label
+(label columns that are not booleans), option (NaN, options that do nothing) and memory
+(a scenario too long to convert). Full-disk,
 killed-mid-write, device-node and signal cases need a tmpfs, ``mknod`` or signals; they
 live in ``test_reliability.py`` and ``test_reliability_edges.py``.
 """
@@ -153,7 +156,8 @@ def _run(args: list[str], *inputs: pathlib.Path):
     return [str(a) for a in args], list(inputs)
 
 
-def cases() -> list[Case]:
+def cases(generated: int = 30) -> list[Case]:
+    """Every case; ``generated``: how many generated hostile pickles join round 4."""
     out: list[Case] = []
 
     def add(name: str, kind: str, names_file: bool = True):
@@ -423,6 +427,9 @@ def cases() -> list[Case]:
         return _run(["convert", "interaction", csv, "--map", osm, "-o", d / "o.mcap"], csv)
 
     out += round3_cases()
+    from reliability_round4 import round4_cases  # (it builds on this module's helpers)
+
+    out += round4_cases(generated)
     return out
 
 

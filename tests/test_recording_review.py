@@ -17,6 +17,7 @@ from outputs.sinks import FrameResult
 from recordings import SceneRecorder
 from recordings import layout as L
 from recordings import writer as W
+from recordings.labels import declutter
 from replay.cli.app import main
 from replay.core.tables import TableSink
 from risk import MODELS
@@ -165,10 +166,10 @@ def test_declutter_by_hand():
     frame_of = np.array([0, 0, 0, 0, 1])
     wanted = np.array([True, True, True, True, True])
     priority = np.array([5, 1, 1, 100, 1])
-    shown = W._declutter(toy_scene(xy, frame_of), wanted, priority, 4.5)
+    shown = declutter(toy_scene(xy, frame_of), wanted, priority, 4.5)
     assert shown.tolist() == [True, False, False, True, True]
     # Unwanted rows never show, and do not push others away.
-    shown = W._declutter(toy_scene(xy, frame_of), np.array([False, True, True, True, True]),
+    shown = declutter(toy_scene(xy, frame_of), np.array([False, True, True, True, True]),
                          priority, 4.5)  # fmt: skip
     assert shown.tolist() == [False, True, False, True, True]
 
@@ -178,7 +179,7 @@ def test_shown_labels_keep_their_distance():
     xy = rng.uniform(0, 60, size=(400, 2))
     frame_of = np.repeat(np.arange(4), 100)
     priority = rng.integers(0, 4, size=400)
-    shown = W._declutter(toy_scene(xy, frame_of), np.ones(400, bool), priority, 7.0)
+    shown = declutter(toy_scene(xy, frame_of), np.ones(400, bool), priority, 7.0)
     for f in range(4):
         pts = xy[shown & (frame_of == f)]
         d = np.linalg.norm(pts[:, None] - pts[None, :], axis=-1) + np.eye(len(pts)) * 1e9

@@ -291,7 +291,7 @@ def test_evaluate_report_onto_its_own_summary_is_refused(tmp_path):
                                        str(out / "summary.json"), "--bootstrap", "0",
                                        "--no-plots", "--no-progress"])  # fmt: skip
     line = _clean_error(result, out / "summary.json")
-    assert "two outputs" in line
+    assert "lies in the output folder" in line  # refused before the evaluation (issue 36)
     assert not out.exists()
 
 
@@ -385,22 +385,47 @@ def test_sensitivity_plot_takes_an_interval_that_misses_its_estimate(tmp_path):
     assert out.is_file() and out.stat().st_size > 0
 
 
+#: Put on a child's path: a spawned pool worker (and only one) announces itself and waits
+#: at start-up, before anything of the project is imported, until the test lets it go.
+_HOLD_WORKERS = """
+import os, pathlib, time
+_cmd = pathlib.Path("/proc/self/cmdline").read_bytes()
+_gate = os.environ.get("RISKREPLAY_TEST_GATE")
+if _gate and b"spawn_main" in _cmd:
+    pathlib.Path(_gate, f"started-{os.getpid()}").touch()
+    _deadline = time.monotonic() + 60
+    while not pathlib.Path(_gate, "go").exists() and time.monotonic() < _deadline:
+        time.sleep(0.01)
+"""
+
+
 def test_ctrl_c_while_batch_workers_start_prints_no_traceback(tmp_path, long_scene):
     """Issue 31: Ctrl-C early in ``batch --workers 2`` made the starting workers print
-    KeyboardInterrupt tracebacks (they now start with SIGINT blocked)."""
+    KeyboardInterrupt tracebacks (they now start with SIGINT blocked). Not left to timing
+    (issue 36): both workers are held at start-up (a ``sitecustomize`` on their path) until
+    the signal has been sent, so it always lands while they start."""
     scenes = tmp_path / "scenes"
     scenes.mkdir()
     for k in range(3):
         os.link(long_scene, scenes / f"s{k}.mcap")
+    hook, gate = tmp_path / "hook", tmp_path / "gate"
+    hook.mkdir()
+    gate.mkdir()
+    (hook / "sitecustomize.py").write_text(_HOLD_WORKERS)
+    path = os.pathsep.join(filter(None, [str(hook), os.environ.get("PYTHONPATH", "")]))
+    env = {**os.environ, "PYTHONPATH": path, "RISKREPLAY_TEST_GATE": str(gate)}
     proc = subprocess.Popen(
         [*REPLAY, "batch", str(scenes), "-o", "out", "--workers", "2", "--no-progress"],
         cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        start_new_session=True,
+        start_new_session=True, env=env,
     )  # fmt: skip
     deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and len(session_members(proc.pid)) < 3:
-        time.sleep(0.02)  # workers are being spawned: interrupt them while they import
-    os.killpg(proc.pid, signal.SIGINT)
+    while time.monotonic() < deadline and len(list(gate.glob("started-*"))) < 2:
+        time.sleep(0.02)
+    assert len(list(gate.glob("started-*"))) == 2, "the workers never started"
+    os.killpg(proc.pid, signal.SIGINT)  # both workers are inside their start-up now
+    time.sleep(0.5)  # (the signal is delivered; then let the workers go on)
+    (gate / "go").touch()
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
@@ -443,7 +468,7 @@ def test_the_agent_directly_ahead_of_the_ego_is_found_per_frame():
     """Hand-made rows: frame 0 with the ego heading east, frame 1 heading north."""
     from types import SimpleNamespace
 
-    from recordings.writer import _lead_rows
+    from recordings.labels import lead_rows
 
     xy = np.array([
         [0, 0], [10, 0.5], [5, 3], [-3, 0], [20, 0],  # frame 0: ego east; lead: (10, 0.5)
@@ -455,7 +480,7 @@ def test_the_agent_directly_ahead_of_the_ego_is_found_per_frame():
         rows={"xy": xy, "heading": heading, "is_ego": is_ego},
         frame_of=np.array([0] * 5 + [1] * 4), times_s=np.array([0.0, 0.1]),
     )  # fmt: skip
-    assert np.flatnonzero(_lead_rows(scene_rows)).tolist() == [1, 6]
+    assert np.flatnonzero(lead_rows(scene_rows)).tolist() == [1, 6]
 
 
 def test_evaluate_exits_non_zero_when_no_reference_has_a_positive(tmp_path):
@@ -491,10 +516,10 @@ def test_risk_timelines_are_bounded_to_the_agents_that_matter(tmp_path, monkeypa
     from test_recordings import read_rrd
 
     from recordings import layout as L
-    from recordings import writer
+    from recordings import timelines
 
     monkeypatch.setenv("RISKREPLAY_OUTPUT_PROCESS", "off")  # (the limit patched here)
-    monkeypatch.setattr(writer, "MAX_TIMELINE_AGENTS", 3)
+    monkeypatch.setattr(timelines, "MAX_TIMELINE_AGENTS", 3)
     s = scene(tmp_path)
     rrd = tmp_path / "s.rrd"
     result = CliRunner().invoke(main, ["run", str(s), "-o", str(rrd), "--no-progress"])

@@ -236,7 +236,11 @@ class SceneWriter:
                         topic=topic, message_encoding=MessageEncoding.Protobuf, schema_id=fox_schema
                     )
             self._foxglove = foxglove
-            self._write(sf.TOPIC_MAP, encode_map(lane_map), 0)
+            try:
+                map_message = encode_map(lane_map)
+            except ConversionError as exc:  # ("lane 0: ..." alone named no file, issue 36)
+                raise ConversionError(f"{self.path}: the map: {exc}") from None
+            self._write(sf.TOPIC_MAP, map_message, 0)
             if labels:
                 self._write(sf.TOPIC_LABELS, encode_labels(labels), 0)
             if foxglove:

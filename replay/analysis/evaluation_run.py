@@ -61,6 +61,19 @@ def _quiet(text: str) -> None:
     pass
 
 
+def check_report_path(report_path: pathlib.Path | None, out_dir: pathlib.Path) -> None:
+    """A report inside OUTPUT must be a ``.md`` file: any other name there may be one of
+    the evaluation's own files (``OUTPUT/summary.json`` was refused only after the whole
+    evaluation had run)."""
+    if report_path is None or report_path.suffix.lower() == ".md":
+        return
+    if report_path.absolute().parent == out_dir.absolute():
+        raise EvaluationError(
+            f"--report {report_path}: lies in the output folder beside the evaluation's own"
+            f" files; name a .md file (e.g. {out_dir / 'report.md'}) or put it elsewhere"
+        )
+
+
 def run_evaluation(
     inputs: Sequence[pathlib.Path],
     out_dir: pathlib.Path,
@@ -86,6 +99,7 @@ def run_evaluation(
     sweep's text as soon as each is computed. ``extra_inputs`` (a cascade file) are
     refused as outputs like ``inputs``. ``planner``: replay the scenes with that planner's
     truth beside the engine."""
+    check_report_path(report_path, out_dir)  # before anything runs (issue 36)
     found = resolve_inputs(list(inputs), output_dir=out_dir, output_stems=EVALUATION_TABLES)
     report_dir = None if report_path is None else report_path.with_suffix("")
     # One guard for every input (the files inside folders too) and every output, the

@@ -23,6 +23,7 @@ import sys
 
 import click
 
+from outputs.atomic import placed_outputs
 from outputs.transaction import target_of_temp
 from replay.core.process_exit import exit_status, signal_name, stop_on_signals
 from risk.errors import RiskReplayError
@@ -77,11 +78,29 @@ class LazyGroup(click.Group):
         except OSError as exc:
             if exc.errno != errno.EPIPE and not isinstance(exc, BrokenPipeError):
                 _end_line(sys.stderr)
-                raise click.ClickException(_os_message(exc)) from None
+                raise click.ClickException(capped(_os_message(exc))) from None
             quiet_broken_pipe()
         except RiskReplayError as exc:  # the one base of every error meant for the user
             _end_line(sys.stderr)  # (a progress bar may have left the cursor mid-line)
-            raise click.ClickException(str(exc)) from None
+            raise click.ClickException(capped(str(exc))) from None
+        except click.ClickException as exc:  # a command's own, and usage errors
+            exc.message = capped(exc.message)  # type: ignore[misc]
+            raise
+
+
+#: Longest error line: a value quoted from a file (5,000 digits, a list of names) made
+#: one line of thousands of characters (issue 36).
+MAX_ERROR_CHARS = 300
+
+
+def capped(message: str) -> str:
+    """``message`` on one line of at most :data:`MAX_ERROR_CHARS` characters: its start
+    and its end (which says what to do), the middle replaced by an ellipsis."""
+    line = " ".join(message.split())
+    if len(line) <= MAX_ERROR_CHARS:
+        return line
+    tail = MAX_ERROR_CHARS // 4
+    return f"{line[: MAX_ERROR_CHARS - tail - 3]} … {line[-tail:]}"
 
 
 class _ClosedStream:
@@ -121,7 +140,20 @@ def _os_message(exc: OSError) -> str:
     standard output, when that is what failed: ``replay models > /dev/full``)."""
     if not exc.filename and exc.strerror and _from_stdout(exc):
         _stdout_to_devnull()  # (so that the exit's own flush does not fail again)
-        return f"cannot write to standard output: {exc.strerror}"
+        written = placed_outputs()
+        if not written:
+            return f"cannot write to standard output: {exc.strerror}"
+        names = ", ".join(str(p) for p in written[:3]) + (", ..." if len(written) > 3 else "")
+        return (
+            f"cannot write to standard output ({exc.strerror}) after writing {len(written)}"
+            f" output(s), which are complete and kept: {names}"
+        )
+    if exc.errno in (errno.ENOTDIR, errno.EEXIST) and exc.filename:
+        # (a file where a folder is needed, or the other way round: say what to do)
+        return (
+            f"{target_of_temp(exc.filename)}: {exc.strerror} (a file stands where a folder is"
+            " needed, or a folder where a file is); choose another path or move it away"
+        )
     if exc.strerror and exc.filename:
         name = target_of_temp(exc.filename)
         if name != exc.filename:

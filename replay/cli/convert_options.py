@@ -15,6 +15,7 @@ from converters.errors import ConversionError
 from converters.lanegraph import PathSettings
 from converters.tracks import PATH_MODES, Skipped
 from outputs.atomic import safe_name as safe_name  # re-exported for the convert_* commands
+from replay.cli.limits import FiniteRange
 from risk.frame import MAX_CANDIDATES
 
 MCAP_SUFFIX = ".mcap"
@@ -38,21 +39,21 @@ def path_options(default: str = "map") -> Callable:
             ),
             click.option(
                 "--horizon-s",
-                type=click.FloatRange(min=0.0),
+                type=FiniteRange(min=0.0),
                 default=PathSettings.horizon_s,
                 show_default=True,
                 help="Prediction horizon T: paths are at least v*T + margin long.",
             ),
             click.option(
                 "--margin-m",
-                type=click.FloatRange(min=0.0),
+                type=FiniteRange(min=0.0),
                 default=PathSettings.margin_m,
                 show_default=True,
                 help="Path length beyond v*T (what a stopped agent gets).",
             ),
             click.option(
                 "--map-path-m",
-                type=click.FloatRange(min=0.0),
+                type=FiniteRange(min=0.0),
                 default=PathSettings.map_path_m,
                 show_default=True,
                 help="Map paths follow the lane graph this far beyond the agent, or to the "

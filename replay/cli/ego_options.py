@@ -7,6 +7,7 @@ from typing import Any
 
 import click
 
+from replay.cli.limits import MIN_PERIOD_S
 from replay.core.egos import ALL_EGOS
 from replay.core.engine import Stride
 from replay.errors import ReplayError
@@ -50,9 +51,17 @@ class StrideParam(click.ParamType):
         if isinstance(value, Stride):
             return value
         try:
-            return Stride.parse(value)
+            stride = Stride.parse(value)
         except ReplayError as exc:
             self.fail(str(exc), param, ctx)
+        if stride.seconds is not None and stride.seconds < MIN_PERIOD_S:
+            # (1e-9s rounded to one frame of every scene: it silently meant every frame)
+            self.fail(
+                f"{value!r} is shorter than any frame period ({MIN_PERIOD_S:g} s at least);"
+                " for every frame give 1",
+                param, ctx,
+            )  # fmt: skip
+        return stride
 
 
 def every_option(func: Callable[..., Any]) -> Callable[..., Any]:

@@ -61,6 +61,9 @@ def check_agents_table(df: pl.DataFrame, path: str | os.PathLike[str]) -> None:
 INTEGER_COLUMNS = ("frame", "agent_id", "ego_id")
 NUMBER_COLUMNS = ("t_s",)
 FLAG_PREFIXES = ("baseline", "kept_", "truth_label")
+#: Reference label columns: booleans, or null where unknown (issue 36: words, lists, a 2
+#: or a NaN there gave a polars traceback or silently counted as true).
+LABEL_PREFIXES = ("planner_label", "label_")
 
 
 def check_column_types(df: pl.DataFrame, path: str | os.PathLike[str]) -> None:
@@ -82,10 +85,10 @@ def check_column_types(df: pl.DataFrame, path: str | os.PathLike[str]) -> None:
         if column in df.columns and not df.schema[column].is_numeric():
             raise wrong(column, "numbers", df.schema[column])
     for column in df.columns:
-        if not column.startswith(FLAG_PREFIXES):
+        if not column.startswith(FLAG_PREFIXES + LABEL_PREFIXES):
             continue
         dtype = df.schema[column]
-        if dtype == pl.Boolean:
+        if dtype == pl.Boolean or (dtype == pl.Null and column.startswith(LABEL_PREFIXES)):
             continue
         if dtype != pl.String:
             raise wrong(column, "true/false", dtype)

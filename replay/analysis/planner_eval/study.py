@@ -207,7 +207,8 @@ def resolve_matched(settings: PlanSettings, matched: dict[str, Any]) -> PlanSett
             spec = f"nearest:{matched['nearest_k']}"
         elif arg == MATCH and kind == "radius":
             spec = f"radius:{matched['radius_m']:g}"
-        specs.append(spec)
+        if spec not in specs:  # a matched cut equal to a given one is that filter (issue 36)
+            specs.append(spec)
     return dataclasses.replace(settings, filters=tuple(specs))
 
 

@@ -24,7 +24,7 @@ from replay.core.stats_sink import (
     time_columns,
     with_ego_column,
 )
-from replay.core.tablecheck import check_agents_table
+from replay.core.tablecheck import LABEL_PREFIXES, check_agents_table
 from replay.errors import StatsError
 
 
@@ -94,6 +94,10 @@ def read_agents_table(path: str | os.PathLike[str], scene: str | None = None) ->
     check_agents_table(df, path)  # empty, non-numeric or out-of-range risks
     if df.schema["baseline"] != pl.Boolean:
         df = df.with_columns(pl.col("baseline").cast(pl.String).str.to_lowercase() == "true")
+    words = [c for c in df.columns if c.startswith(LABEL_PREFIXES) and df.schema[c] != pl.Boolean]
+    df = df.with_columns(  # true/false words of a CSV (checked above), nulls kept
+        (pl.col(c).cast(pl.String).str.to_lowercase() == "true").alias(c) for c in words
+    )
     if "scene" not in df.columns:
         df = df.select(pl.lit(scene or path.stem).alias("scene"), pl.all())
     return with_ego_column(df).with_columns(

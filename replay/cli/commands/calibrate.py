@@ -26,6 +26,7 @@ from replay.analysis.scene_calibration import (
     seed_ranges,
     tier_means,
 )
+from replay.cli.limits import FiniteRange
 from replay.errors import ReplayError
 from risk.calibration import (
     Calibration,
@@ -51,7 +52,7 @@ def _parse_list(value: str, what: str) -> list[str]:
     help="The cascade TOML to write (use it with 'replay run --cascade').",
 )  # fmt: skip
 @click.option(
-    "--max-fn-rate", type=click.FloatRange(0, 1), default=0.0, show_default=True,
+    "--max-fn-rate", type=FiniteRange(0, 1), default=0.0, show_default=True,
     help="Share of the baseline-important agent-frames (survival R_S >= 1e-25) each stage "
     "may drop. 0: no stage drops any important agent of the calibration data.",
 )  # fmt: skip

@@ -21,7 +21,7 @@ from replay.analysis.corpus_evaluation import (
 )
 from replay.analysis.evaluation_run import SensitivityRequest, run_evaluation
 from replay.cli.ego_options import StrideParam, ego_option, every_option
-from replay.cli.limits import RISK_THRESHOLDS, model_names
+from replay.cli.limits import RISK_THRESHOLDS, FiniteRange, model_names, refuse_idle
 from replay.cli.settings_option import load_cascade, set_option
 from replay.core.engine import Stride
 from risk.hindsight import HindsightSettings
@@ -49,21 +49,23 @@ def _names(text: str | None) -> list[str]:
     "--baseline-threshold", type=RISK_THRESHOLDS, default=None,
     help="Survival risk at or above which an agent is important. Default: 1e-25 (the paper's).",
 )  # fmt: skip
-@click.option("--truth-horizon", type=float, default=None, help="Hindsight horizon, s. Default: 5.")
+@click.option(
+    "--truth-horizon", type=FiniteRange(), default=None, help="Hindsight horizon, s. Default: 5."
+)
 @click.option(
     "--truth-gap",
-    type=float,
+    type=FiniteRange(),
     default=None,
     help="Interaction when the box gap is at most this, m. Default: 0.5.",
 )
 @click.option(
     "--truth-pet",
-    type=float,
+    type=FiniteRange(),
     default=None,
     help="Interaction when the PET is at most this, s. Default: 1.",
 )
 @click.option(
-    "--truth-coverage", type=float, default=None,
+    "--truth-coverage", type=FiniteRange(), default=None,
     help="Share of the horizon both agents must be recorded for a negative. Default: 1.",
 )  # fmt: skip
 @click.option(
@@ -185,6 +187,11 @@ def evaluate(
     from replay.core.pool import default_workers
     from risk.registry import resolve_models
 
+    refuse_idle(
+        "--sensitivity", sensitivity, "sensitivity_bootstrap", "sensitivity_every",
+        "sensitivity_scenes",
+    )  # fmt: skip
+    refuse_idle("--report", report_path is not None, "report_note")
     names = model_names(models)
     chosen = tuple(resolve_models(names)) if names is not None else None
     by = check_groupings(_names(groupings))

@@ -25,6 +25,7 @@ from replay.analysis.planner_eval.study import (
     write_study,
 )
 from replay.cli.ego_options import ego_option, every_option
+from replay.cli.limits import FiniteRange, refuse_idle
 from replay.cli.settings_option import load_cascade, set_option
 from replay.core.engine import Stride
 from replay.core.pool import default_workers
@@ -109,12 +110,12 @@ from risk.filtering import FILTER_FORMS
     "scenes' folders), then over each dataset's scenes (those present longest first).",
 )  # fmt: skip
 @click.option(
-    "--tolerance", "tolerance_m", type=click.FloatRange(min=0.0), default=0.5,
+    "--tolerance", "tolerance_m", type=FiniteRange(min=0.0), default=0.5,
     show_default=True,
     help="A plan changed when it moves more than this many metres from the all-agents "
     "plan at an equal time within the horizon, or its stop/go, lane or success differs.",
 )  # fmt: skip
-@click.option("--horizon", "horizon_s", type=click.FloatRange(min=0.5, max=30.0), default=5.0,
+@click.option("--horizon", "horizon_s", type=FiniteRange(min=0.5, max=30.0), default=5.0,
               show_default=True, help="Planning horizon (s).")  # fmt: skip
 @click.option(
     "--report", "report_path", default=None,
@@ -182,6 +183,7 @@ def plan(
           --filter radius:match --closed-loop --closed-loop-sample 400
           -o plan-out/ --report docs/planner-evaluation.md
     """
+    refuse_idle("--closed-loop", closed_loop, "closed_loop_egos", "closed_loop_sample")
     cascade = load_cascade(cascade_file, sets)
     planners = tuple(dict.fromkeys(planners))
     settings = PlanSettings(
