@@ -90,7 +90,7 @@ class LazyGroup(click.Group):
 
 #: Longest error line: a value quoted from a file (5,000 digits, a list of names) made
 #: one line of thousands of characters (issue 36).
-MAX_ERROR_CHARS = 300
+MAX_ERROR_CHARS = 500
 
 
 def capped(message: str) -> str:
