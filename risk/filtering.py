@@ -257,7 +257,12 @@ def cascade_answer(
         )
         for i in dropped_idx
     }
-    own_s = result.reach_time_s + float(result.stage_time_s.sum()) + result.sort_time_s
+    own_s = (
+        result.corridor_time_s
+        + result.reach_time_s
+        + float(result.stage_time_s.sum())
+        + result.sort_time_s
+    )
     return FilterResult(
         filter_name=name,
         t_s=float(frame.t),
