@@ -74,12 +74,11 @@ def site_of(scene: str) -> str:
     """A scene's recording site from its file name: ``highd/DEU_LocationALower26-1_...``
     -> ``DEU_LocationA``, ``mona/C-DEU_MONAEast-2_...`` -> ``DEU_MONAEast``,
     ``sind/CHN_SIND-831_...`` -> ``CHN_SIND`` (the part before the first dash, without a
-    ``C-`` prefix, trailing digits or a carriageway's Upper/Lower)."""
+    ``C-`` prefix, and without a carriageway's Upper/Lower and its recording number)."""
     name = pathlib.PurePath(scene).name
     name = re.sub(r"^C-", "", name)
     base = name.split("-", 1)[0]
-    base = re.sub(r"\d+$", "", base)
-    return re.sub(r"(Upper|Lower)$", "", base)
+    return re.sub(r"(Upper|Lower)\d*$", "", base)
 
 
 def scene_scores(source: str | os.PathLike[str], settings: ScoreSettings) -> pl.DataFrame:
