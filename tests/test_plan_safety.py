@@ -20,7 +20,8 @@ def straight_plan(speed_mps: float, *, stop_at_m: float | None = None) -> Plan:
         brake = speed_mps**2 / 10.0  # braking distance at 5 m/s^2
         t_brake = max(stop_at_m - brake, 0.0) / speed_mps
         after = np.clip(TIMES - t_brake, 0.0, speed_mps / 5.0)
-        x = np.where(TIMES < t_brake, x, speed_mps * t_brake + speed_mps * after - 2.5 * after**2)
+        braking = speed_mps * t_brake + speed_mps * after - 2.5 * after**2
+        x = np.where(t_brake <= TIMES, braking, x)
     speed = np.gradient(x, TIMES)
     return Plan(
         ok=True, times_s=TIMES, xy=np.c_[x, np.zeros_like(x)], heading_rad=np.zeros_like(x),

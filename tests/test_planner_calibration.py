@@ -21,6 +21,7 @@ from replay.analysis.planner_calibration import (
     scene_scores,
     site_of,
     site_split,
+    with_corridor,
 )
 from replay.cli.app import main
 from risk import MODELS
@@ -120,21 +121,21 @@ def _populate_cache(tmp_path: pathlib.Path, n: int, settings: ScoreSettings) -> 
 
 
 def test_cli_end_to_end_on_a_cache(tmp_path):
-    settings = ScoreSettings(planners=("idm", "fop"), corridor=CorridorSettings())
+    settings = ScoreSettings(planners=("idm", "fop"), corridor=None)  # (the cache's key)
     scenes = _populate_cache(tmp_path, 60, settings)
     out = tmp_path / "planner.toml"
     report = tmp_path / "report.json"
     args = [
         "calibrate", *map(str, scenes), "--reference", "planner", "--planner", "idm",
         "--planner", "fop", "--miss-rate", "0.1", "--confidence", "0.8", "--stages", "gaussian",
-        "--scores-cache", str(tmp_path / "cache"), "--holdout", "auto",
+        "--scores-cache", str(tmp_path / "cache"), "--holdout", "auto", "--no-corridor",
         "--leave-one-dataset-out", "--report", str(report), "-o", str(out), "--no-progress",
     ]  # fmt: skip
     res = CliRunner().invoke(main, args)
     assert res.exit_code == 0, res.output
     assert "Guarantee: with probability >= 0.8" in res.output and "Held out" in res.output
     config = CascadeConfig.from_toml(out)
-    assert config.corridor == CorridorSettings() and config.stage_names == ("gaussian",)
+    assert config.corridor is None and config.stage_names == ("gaussian",)
     assert config.guarantee["units"] > 0 and "Made by: replay calibrate" in config.provenance
     payload = json.loads(report.read_text())
     assert set(payload["held_out_sites"]).isdisjoint(payload["calibrated_on"]["sites"])
@@ -142,12 +143,13 @@ def test_cli_end_to_end_on_a_cache(tmp_path):
 
 
 def test_cli_refuses_too_few_scenes_saying_how_many(tmp_path):
-    settings = ScoreSettings(planners=("idm",), corridor=CorridorSettings())
+    settings = ScoreSettings(planners=("idm",), corridor=None)
     scenes = _populate_cache(tmp_path, 30, settings)
     out = tmp_path / "planner.toml"
     res = CliRunner().invoke(main, [
         "calibrate", *map(str, scenes), "--reference", "planner", "--planner", "idm",
         "--stages", "gaussian", "--scores-cache", str(tmp_path / "cache"), "-o", str(out),
+        "--no-corridor",
         "--no-progress",
     ])  # fmt: skip
     assert res.exit_code != 0
@@ -166,3 +168,14 @@ def test_scene_scores_on_a_hand_made_scene(tmp_path):
     )
     stopped = df.filter(pl.col("agent_id") == STOPPED)
     assert stopped["label_idm"].all() and stopped["corridor"].all()
+
+
+def test_the_corridor_column_is_computed_afresh(tmp_path):
+    """The cached scores do not depend on the corridor: its column comes from the scene."""
+    (tmp_path / "road").mkdir()
+    path = write_road_scene(tmp_path / "road" / "road.mcap")
+    df = scene_scores(path, ScoreSettings(planners=("idm",), corridor=None))
+    assert not df["corridor"].any()
+    again = with_corridor(df, path, CorridorSettings())
+    assert again.filter(pl.col("agent_id") == STOPPED)["corridor"].all()
+    assert not with_corridor(df, path, None)["corridor"].any()

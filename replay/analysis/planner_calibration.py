@@ -30,7 +30,7 @@ import polars as pl
 from outputs.atomic import atomic_write
 from replay.analysis.planner_eval.open_loop import _egos, ego_frames, scene_key
 from replay.core.egos import load_scene
-from replay.core.engine import Stride
+from replay.core.engine import Stride, seen_from
 from replay.core.pool import parallel_map
 from replay.errors import ReplayError
 from replay.planning.errors import NoReferencePath
@@ -237,7 +237,11 @@ def cached_scores(
 ) -> pl.DataFrame:
     """:func:`collect_scores` through a folder of per-scene tables: scenes already there
     (same settings) are read, the others computed and written (atomically: a run stopped
-    half-way resumes)."""
+    half-way resumes). The cached tables do not depend on the corridor settings: its
+    column is computed afresh (:func:`with_corridor`, cheap beside the planner truth), so
+    that the corridor can be tuned without planning again."""
+    corridor = settings.corridor
+    settings = dataclasses.replace(settings, corridor=None)
     targets = [cache_file(cache, pathlib.Path(p), settings) for p in paths]
     todo = [
         (str(p), settings, str(t)) for p, t in zip(paths, targets, strict=True) if not t.is_file()
@@ -247,11 +251,38 @@ def cached_scores(
             _cached_task, todo, workers=min(workers, len(todo)), progress=progress,
             desc="planner truth", unit="scene",
         )  # fmt: skip
-    parts = [pl.read_parquet(t) for t in targets]
+    parts = [
+        with_corridor(pl.read_parquet(t), p, corridor) for p, t in zip(paths, targets, strict=True)
+    ]
     parts = [p for p in parts if not p.is_empty()]
     if not parts:
         raise ReplayError("no ego-frame with another agent in the given scenes")
     return pl.concat(parts, how="diagonal_relaxed")
+
+
+def with_corridor(
+    df: pl.DataFrame, source: str | os.PathLike[str], corridor: CorridorSettings | None
+) -> pl.DataFrame:
+    """``df`` (one scene's scores) with its ``corridor`` column computed for ``corridor``
+    from the scene file (False throughout without one)."""
+    if df.is_empty():
+        return df
+    keep = np.zeros(df.height, dtype=bool)
+    if corridor is not None:
+        scene = load_scene(source)
+        frames = dict(scene.indexed)
+        keys = df.select("ego_id", "frame", "agent_id")
+        for (ego_id, index), rows in keys.with_row_index("row").group_by(
+            "ego_id", "frame", maintain_order=True
+        ):
+            frame = seen_from(frames[int(index)], int(ego_id))
+            if frame is None:
+                continue
+            mask, _ = corridor_mask(frame, corridor)
+            assert mask is not None
+            kept_ids = frame.ids[mask]
+            keep[rows["row"].to_numpy()] = np.isin(rows["agent_id"].to_numpy(), kept_ids)
+    return df.with_columns(pl.Series("corridor", keep))
 
 
 # ---------------------------------------------------------------------- calibration
