@@ -67,11 +67,20 @@ def test_kept_agents_and_shared_conflicts_do_not_count():
     agents = standing([7], [30.0])
     plan = straight_plan(10.0)
     ref = conflicts(plan, agents, EGO)  # the all-agents plan hits it too
-    assert safety_verdict(plan, agents, np.array([False]), EGO, reference_conflicts=ref).unsafe is False
+    assert (
+        safety_verdict(plan, agents, np.array([False]), EGO, reference_conflicts=ref).unsafe
+        is False
+    )
     none = np.full(1, np.inf)
-    assert safety_verdict(plan, agents, np.array([True]), EGO, reference_conflicts=none).unsafe is False
+    assert (
+        safety_verdict(plan, agents, np.array([True]), EGO, reference_conflicts=none).unsafe
+        is False
+    )
     failed = Plan.failed("no plan")
-    assert safety_verdict(failed, agents, np.array([False]), EGO, reference_conflicts=none).unsafe is None
+    assert (
+        safety_verdict(failed, agents, np.array([False]), EGO, reference_conflicts=none).unsafe
+        is None
+    )
 
 
 def test_changed_within_the_first_second():
