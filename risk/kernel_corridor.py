@@ -52,9 +52,10 @@ def _corridor_line(paths, path_points, row, x0, y0, heading):
 
 @_inner
 def _corridor_project(xs, ys, cum, qx, qy):
-    """Arc length along the polyline, signed lateral offset (left positive) and the
-    direction (unit x, y) of the nearest point to ``(qx, qy)``; the first segment runs on
-    backwards and the last forwards (a path extended straight)."""
+    """Arc length along the polyline, signed lateral offset (the distance to the nearest
+    point, left positive) and the direction (unit x, y) of the segment of the nearest
+    point to ``(qx, qy)``; the first segment runs on backwards and the last forwards (a
+    path extended straight)."""
     n = xs.shape[0]
     best = math.inf
     arc, lat, ux, uy = 0.0, math.inf, 1.0, 0.0
@@ -74,9 +75,37 @@ def _corridor_project(xs, ys, cum, qx, qy):
             best = d2
             seg = math.sqrt(seg2)
             arc = cum[k] + t * seg
-            lat = (dx * (qy - ys[k]) - dy * (qx - xs[k])) / seg
+            side = dx * (qy - ys[k]) - dy * (qx - xs[k])
+            lat = math.sqrt(d2) if side >= 0 else -math.sqrt(d2)
             ux, uy = dx / seg, dy / seg
     return arc, lat, ux, uy
+
+
+@_inner
+def _at_arc(xs, ys, cum, arc):
+    """The point at arc length ``arc`` along the polyline, straight on beyond either end."""
+    n = xs.shape[0]
+    k = 0
+    while k < n - 2 and cum[k + 1] < arc:
+        k += 1
+    span = cum[k + 1] - cum[k]
+    f = (arc - cum[k]) / span if span > 0 else 0.0
+    return xs[k] + f * (xs[k + 1] - xs[k]), ys[k] + f * (ys[k + 1] - ys[k])
+
+
+@_inner
+def _line_box(xs, ys, cum, a0, a1, pad):
+    """Bounding box ``(x0, y0, x1, y1)`` of the polyline between arc lengths ``a0`` and
+    ``a1`` (straight on beyond its ends), grown by ``pad``."""
+    x, y = _at_arc(xs, ys, cum, a0)
+    x0, y0, x1, y1 = x, y, x, y
+    x, y = _at_arc(xs, ys, cum, a1)
+    x0, y0, x1, y1 = min(x0, x), min(y0, y), max(x1, x), max(y1, y)
+    for k in range(xs.shape[0]):
+        if a0 < cum[k] < a1:
+            x0, y0 = min(x0, xs[k]), min(y0, ys[k])
+            x1, y1 = max(x1, xs[k]), max(y1, ys[k])
+    return np.array([x0 - pad, y0 - pad, x1 + pad, y1 + pad])
 
 
 @_inner
@@ -105,8 +134,9 @@ def corridor_keep(
     within the range for a standing obstacle, reached at ``t <= horizon`` no later than
     ``crossing_slack`` after the ego has passed it (the ego at its present speed).
     One pass over the agents; each costs O(path points) for a leader and O(steps x path
-    points) for a crossing check, which an O(1) distance bound skips for agents that
-    cannot reach the corridor's range in time."""
+    points) for a crossing check, which a bounding-box test skips (exactly: no decision
+    changes) for agents whose motion within the horizon never comes near the part of the
+    corridor a crossing may count."""
     n = xy.shape[0]
     out = np.zeros(n, np.int8)
     if n == 0 or ego < 0 or not valid[ego]:
@@ -120,6 +150,13 @@ def corridor_keep(
     horizon = params[C_HORIZON]
     agents = _others(valid, ego)
     m = agents.shape[0]
+    # A box around every point a crossing may count: ahead of the ego within the range
+    # (plus the largest bumper reach) and within the largest half width of the line.
+    reach_max, half_max = 0.0, 0.0
+    for a in range(m):
+        reach_max = max(reach_max, 0.5 * (length[ego] + length[agents[a]]))
+        half_max = max(half_max, 0.5 * (width[ego] + width[agents[a]]) + params[C_LAT])
+    box = _line_box(ex, ey, ecum, s_ego, s_ego + range_stop + reach_max, half_max)
     lead_arc = np.full(m, math.inf)
     for a in range(m):
         i = agents[a]
@@ -134,13 +171,13 @@ def corridor_keep(
             continue  # (an agent in the corridor behind the ego: not this stage's)
         if params[C_CROSS] < 0.5 or speed[i] <= 0.0:
             continue
-        # O(1) bound: the agent cannot come within the range's reach of the ego in time
-        d0 = math.hypot(xy[i, 0] - xy[ego, 0], xy[i, 1] - xy[ego, 1])
-        if d0 - speed[i] * horizon > range_stop + reach + half:
-            continue
         row = starts[i] if starts[i] < starts[i + 1] else -1
         ax, ay, acum = _corridor_line(paths, path_points, row, xy[i, 0], xy[i, 1], heading[i])
         na = ax.shape[0]
+        # exact pruning: the agent's motion within the horizon never enters that box
+        motion = _line_box(ax, ay, acum, 0.0, speed[i] * horizon, 0.0)
+        if motion[0] > box[2] or box[0] > motion[2] or motion[1] > box[3] or box[1] > motion[3]:
+            continue
         seg = 0
         steps = int(horizon / CROSS_STEP_S + 1e-9)
         for k in range(1, steps + 1):

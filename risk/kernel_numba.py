@@ -54,9 +54,11 @@ from risk.kernel_cascade import (
     tiers,
 )
 from risk.kernel_corridor import (
+    _at_arc,
     _corridor_line,
     _corridor_project,
     _corridor_range,
+    _line_box,
     corridor_keep,
 )
 from risk.kernel_evaluate import (
@@ -116,6 +118,7 @@ __all__ = [
     "CACHE_PROBLEM",
     "PARTS",
     "_CompileNotice",
+    "_at_arc",
     "_boxes",
     "_chunk_box",
     "_corridor_line",
@@ -131,6 +134,7 @@ __all__ = [
     "_gap2",
     "_gauss_reaches",
     "_interp",
+    "_line_box",
     "_others",
     "_overlap_risks",
     "_pair_q",

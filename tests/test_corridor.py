@@ -47,8 +47,8 @@ def _project(line: np.ndarray, q: np.ndarray) -> tuple[float, float, np.ndarray]
             t = min(t, 1.0)
         dist = float(np.hypot(*(q - (line[k] + t * d))))
         if dist < best[0]:
-            lateral = float(d[0] * (q[1] - line[k][1]) - d[1] * (q[0] - line[k][0])) / seg
-            best = (dist, cum[k] + t * seg, lateral, d / seg)
+            side = float(d[0] * (q[1] - line[k][1]) - d[1] * (q[0] - line[k][0]))
+            best = (dist, cum[k] + t * seg, dist if side >= 0 else -dist, d / seg)
     return best[1], best[2], best[3]
 
 
