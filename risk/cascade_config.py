@@ -26,7 +26,7 @@ NAMED_CASCADES: dict[str, pathlib.Path] = {
     "planner": _HERE / "planner_cascade.toml",
     "survival": _HERE / "survival_cascade.toml",
 }
-DEFAULT_CASCADE_NAME = "survival"  # (until a planner-calibrated file ships)
+DEFAULT_CASCADE_NAME = "planner"
 DEFAULT_CASCADE_PATH = NAMED_CASCADES[DEFAULT_CASCADE_NAME]
 
 

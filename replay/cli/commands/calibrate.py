@@ -132,6 +132,16 @@ def _parse_list(value: str, what: str) -> list[str]:
     "--report", "report_path", type=click.Path(dir_okay=False, path_type=pathlib.Path),
     help="With --reference planner: write the guarantee and the held-out figures as JSON.",
 )  # fmt: skip
+@click.option(
+    "--ego", default=None, metavar="ID|all",
+    help="With --reference planner: the ego of every scene (default: the recording's; "
+    "'all': every moving agent, which gives more planner-important agents per scene, not "
+    "more units).",
+)  # fmt: skip
+@click.option(
+    "--preliminary", is_flag=True,
+    help="With --reference planner: mark the file's guarantee as preliminary (status).",
+)  # fmt: skip
 @click.option("--workers", type=click.IntRange(1, 64), default=1, show_default=True,
               help="Processes for the planner truth.")  # fmt: skip
 @click.option("--progress/--no-progress", default=True, help="Progress bar on stderr.")
@@ -154,6 +164,8 @@ def calibrate(
     leave_one_dataset_out: bool,
     scores_cache: pathlib.Path | None,
     report_path: pathlib.Path | None,
+    ego: str | None,
+    preliminary: bool,
     workers: int,
     progress: bool,
 ) -> None:
@@ -183,7 +195,7 @@ def calibrate(
         _calibrate_planner(
             scenes, output, stages, base, note, planners, miss_rate, confidence, unit,
             corridor, every_s, holdout, leave_one_dataset_out, scores_cache, report_path,
-            workers, progress,
+            workers, progress, ego, preliminary,
         )  # fmt: skip
         return
     if planners:
@@ -286,6 +298,8 @@ def _calibrate_planner(
     report_path: pathlib.Path | None,
     workers: int,
     progress: bool,
+    ego: str | None = None,
+    preliminary: bool = False,
 ) -> None:
     """``--reference planner``: the guarantee of :mod:`replay.analysis.planner_calibration`."""
     import json
@@ -322,6 +336,7 @@ def _calibrate_planner(
         planners=tuple(dict.fromkeys(planners)),
         corridor=CorridorSettings() if corridor else None,
         every_s=every_s,
+        ego=_ego_choice(ego),
     )
     files = (output,) if report_path is None else (output, report_path)
     with OutputGuard(inputs=(*scenes, base), files=files):  # before any work
@@ -342,13 +357,18 @@ def _calibrate_planner(
              f"--miss-rate {miss_rate:g}", f"--confidence {confidence:g}", f"--unit {unit}",
              f"--stages {','.join(models)}", f"--every {every_s:g}",
              *(["--no-corridor"] if not corridor else []),
-             *([f"--holdout {holdout}"] if holdout else []), f"-o {output.name}"]
+             *([f"--holdout {holdout}"] if holdout else []),
+             *([f"--ego {ego}"] if ego else []), *(["--preliminary"] if preliminary else []),
+             f"-o {output.name}"]
         )  # fmt: skip
         provenance = "\n".join(
             [f"Made by: {command}", *([f"Note: {note.strip()}"] if note.strip() else []),
              f"Model parameters: {model_parameters()}", text]
         ) + "\n"  # fmt: skip
-        config = dataclasses.replace(result.config, provenance=provenance)
+        guarantee = dict(result.config.guarantee)
+        if preliminary:
+            guarantee["status"] = "preliminary"
+        config = dataclasses.replace(result.config, provenance=provenance, guarantee=guarantee)
         write_text(output, config.to_toml_string())
         if report_path is not None:
             payload = {
@@ -362,3 +382,12 @@ def _calibrate_planner(
             write_text(report_path, json.dumps(json_safe(payload), indent=2) + "\n")
     click.echo(text)
     click.echo(f"Wrote {output}")
+
+
+def _ego_choice(ego: str | None) -> int | str | None:
+    if ego is None or ego == "all":
+        return ego
+    try:
+        return int(ego)
+    except ValueError:
+        raise click.BadParameter("expected an agent id or 'all'", param_hint="--ego") from None
