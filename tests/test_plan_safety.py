@@ -92,3 +92,43 @@ def test_changed_within_the_first_second():
     assert changed_within(a, c, tolerance_m=1.5) is False
     assert changed_within(a, Plan.failed("x")) is True
     assert changed_within(Plan.failed("x"), Plan.failed("y")) is None
+
+
+def test_replay_plan_writes_the_verdict_and_the_shares(tmp_path):
+    """End to end on issue 32's road: a cut that drops the car standing 40 m ahead gives an
+    unsafe plan naming it; the cascade's plan is safe; summary and report carry the
+    shares with intervals."""
+    import json
+
+    import polars as pl
+    from click.testing import CliRunner
+    from planner_scenes import STOPPED, write_road_scene
+
+    from replay.cli.app import main
+
+    (tmp_path / "road").mkdir()
+    road = write_road_scene(tmp_path / "road" / "road.mcap")
+    out = tmp_path / "out"
+    result = CliRunner().invoke(main, [
+        "plan", str(road), "-o", str(out), "--planner", "idm", "--filter", "radius:10",
+        "--filter", "cascade", "--no-progress", "--workers", "1", "--report",
+        str(tmp_path / "report.md"),
+    ])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    rows = pl.read_parquet(out / "plans.parquet")
+    by = {r["filter"]: r for r in rows.filter(pl.col("frame") == 0).iter_rows(named=True)}
+    assert by["radius:10"]["unsafe"] is True and by["radius:10"]["unsafe_agent_id"] == STOPPED
+    assert by["cascade"]["unsafe"] is False and by["cascade"]["unsafe_agent_id"] == -1
+    assert by["none"]["unsafe"] is False and by["none"]["changed_1s"] is False
+    assert {"changed_1s", "max_shift_1s_m", "ego_speed_mps"} <= set(rows.columns)
+    summary = json.loads((out / "summary.json").read_text())
+    f = summary["planners"]["idm"]["filters"]["radius:10"]
+    assert f["unsafe"]["share"] > 0.5 and len(f["unsafe"]["ci95"]) == 2
+    assert set(f["changed_at"]) == {"0.5", "1", "2", "speed_scaled"}
+    assert f["changed_at"]["2"]["share"] <= f["changed_at"]["0.5"]["share"]
+    assert "changed_1s" in f
+    report = (tmp_path / "report.md").read_text()
+    assert (
+        "| filter | changed > 0.5 m | > 1 m | > 2 m | speed-scaled | changed in 1 s | unsafe |"
+        in report
+    )
