@@ -133,11 +133,12 @@ def conflicts(
     ey = plan.xy[None, :, None, 1] + ego_v[None, :, None, 1] * ahead
     ax = moved.xy[:, :, None, 0] + ag_v[:, :, None, 0] * ahead  # (K, T, Q)
     ay = moved.xy[:, :, None, 1] + ag_v[:, :, None, 1] * ahead
-    touch = boxes_overlap(
-        ex, ey, plan.heading_rad[None, :, None], ego.length_m, ego.width_m,
-        ax, ay, moved.heading_rad[:, :, None], agents.length_m[:, None, None],
-        agents.width_m[:, None, None],
-    ).any(axis=2)  # (K, T)  # fmt: skip
+    overlap = boxes_overlap(
+        ex, ey, plan.heading_rad[None, :, None], np.asarray(ego.length_m),
+        np.asarray(ego.width_m), ax, ay, moved.heading_rad[:, :, None],
+        agents.length_m[:, None, None], agents.width_m[:, None, None],
+    )  # fmt: skip
+    touch = np.asarray(np.asarray(overlap).any(axis=2), dtype=bool)  # (K, T)
     hit = touch.any(axis=1)
     first[hit] = times[np.argmax(touch[hit], axis=1)]
     return first
