@@ -36,7 +36,7 @@ from risk.registry import resolve_models
 
 #: The stages of a planner-calibrated cascade when --stages is not given (after the
 #: corridor stage; docs/cascade.md says why these).
-DEFAULT_PLANNER_STAGES = ("trajectory_distance", "gaussian")
+DEFAULT_PLANNER_STAGES = ("gaussian",)
 
 
 def _parse_list(value: str, what: str) -> list[str]:
