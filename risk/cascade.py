@@ -64,6 +64,7 @@ from risk.cascade_config import (
     Tier,
 )
 from risk.frame import KIND_NAMES, Frame
+from risk.kernel_shared import BEHIND, CROSSING, LEADER
 from risk.registry import (
     BASELINE_MODEL,
     BASELINE_THRESHOLD,
@@ -134,6 +135,9 @@ class CascadeResult:
     # None when the cascade has no corridor stage
     protected: np.ndarray | None = field(default=None, repr=False)
     corridor_time_s: float = 0.0  # s, the corridor stage
+    # (N,) bool, dropped by the corridor stage as followers that cannot reach the ego
+    # (their dropped_at is 0); None when the cascade has no corridor stage
+    behind: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def n_kept(self) -> np.ndarray:
@@ -254,16 +258,23 @@ def _run_fused(
     survival_all = kernel.run(frame, _WANT[(_SURV_SLOT,)], fp, ip, steps, unc)[_SURV_SLOT]
     survival_all_time_s = time.perf_counter() - start
 
-    protected, corridor_time_s = corridor_mask(frame, config.corridor)
+    protected, behind, corridor_time_s = corridor_masks(frame, config.corridor)
     shielded = kernel.NOT_PROTECTED if protected is None else protected
     parts = None
-    if plan.one_pass:
-        parts = _one_pass(frame, plan, steps, unc, fp, ip, reachability, survival_all, shielded)
+    judged = kernel.ALL_AGENTS
+    if behind is not None and behind.any():
+        judged = _ro(np.flatnonzero(others & ~behind))
+    if plan.one_pass and (judged is kernel.ALL_AGENTS or judged.size > 0):
+        parts = _one_pass(
+            frame, plan, steps, unc, fp, ip, reachability, survival_all, shielded, judged
+        )
     if parts is None:
         parts = _pass_per_stage(
             frame, config, chosen, settings, steps, unc, fp, ip, reachability, survival_all,
-            shielded,
+            shielded, behind,
         )  # fmt: skip
+    elif judged is not kernel.ALL_AGENTS:
+        parts = _with_behind(parts, behind, others, survival_all, config.baseline_threshold)
     kept, dropped_at, unreachable, survival, tier, baseline, false_negatives, times = parts
     return CascadeResult._make(
         stage_names=plan.stage_names,
@@ -282,24 +293,54 @@ def _run_fused(
         reach_time_s=times[0],
         protected=protected,
         corridor_time_s=corridor_time_s,
+        behind=behind,
     )
 
 
-def corridor_mask(
+def _with_behind(
+    parts: _Parts,
+    behind: Any,
+    others: np.ndarray,
+    survival_all: np.ndarray,
+    baseline_threshold: float,
+) -> _Parts:
+    """The one-pass kernel's result, which judged every agent but the corridor stage's
+    followers, completed for them: dropped ahead of stage 0, counted in the baseline and
+    its false negatives."""
+    kept, dropped_at, unreachable, survival, tier, baseline, false_neg, times = parts
+    dropped_at[behind] = 0
+    important = behind & others & (survival_all >= baseline_threshold)
+    baseline = baseline | important
+    false_neg = false_neg + int(important.sum())
+    return kept, dropped_at, unreachable, survival, tier, baseline, false_neg, times
+
+
+def corridor_masks(
     frame: Frame, corridor: CorridorSettings | None
-) -> tuple[np.ndarray | None, float]:
-    """``(N,)`` bool, read-only: the agents the corridor stage keeps
-    (:func:`risk.kernel.corridor_keep`), and its time (s); None and 0 without one."""
+) -> tuple[np.ndarray | None, np.ndarray | None, float]:
+    """``(N,)`` bool, read-only: the agents the corridor stage keeps and those it drops
+    (:func:`risk.kernel.corridor_keep`), and its time (s); None, None and 0 without one."""
     if corridor is None:
-        return None, 0.0
+        return None, None, 0.0
     start = time.perf_counter()
     fa = kernel.frame_arrays(frame)
     codes = kernel.corridor_keep(
         *fa[:5], fa[6], fa[7], fa[8], fa[9], int(frame.ego), corridor_vector(corridor)
     )
-    protected = codes > 0
+    protected = (codes == LEADER) | (codes == CROSSING)
+    behind = codes == BEHIND
     protected.flags.writeable = False
-    return protected, time.perf_counter() - start
+    behind.flags.writeable = False
+    return protected, behind, time.perf_counter() - start
+
+
+def corridor_mask(
+    frame: Frame, corridor: CorridorSettings | None
+) -> tuple[np.ndarray | None, float]:
+    """``(N,)`` bool, read-only: the agents the corridor stage keeps, and its time (s);
+    None and 0 without one (:func:`corridor_masks`)."""
+    protected, _, elapsed = corridor_masks(frame, corridor)
+    return protected, elapsed
 
 
 #: The corridor settings in the order of the kernel's vector (risk.kernel_corridor).
@@ -397,9 +438,11 @@ def _one_pass(
     reachability: bool,
     survival_all: np.ndarray,
     protected: np.ndarray,
+    agents: np.ndarray,
 ) -> _Parts | None:
     """The bound, every stage, survival of the survivors and their tiers in one kernel
-    call; None when this CPU has no cycle counter (then run a pass per stage).
+    call for ``agents`` (empty: every valid other); None when this CPU has no cycle
+    counter (then run a pass per stage).
 
     Each stage's time (and the bound's, and survival's with the tiers in the sort time)
     is the call's measured wall time shared out in proportion to the CPU cycles the
@@ -409,7 +452,7 @@ def _one_pass(
     start = time.perf_counter()
     kept, dropped_at, unreachable, _, survival, cyc, tier, baseline, false_neg = (
         kernel.cascade_agents(
-            *kernel.frame_arrays(frame), int(frame.ego), kernel.ALL_AGENTS, steps, unc, fp,
+            *kernel.frame_arrays(frame), int(frame.ego), agents, steps, unc, fp,
             ip, plan.slots, plan.thr, plan.stop2, plan.cut2, bool(reachability), _MAX_SPEEDS,
             plan.baseline_threshold, survival_all, plan.tier_min, plan.tier_cap, protected,
         )
@@ -470,15 +513,17 @@ def _pass_per_stage(
     reachability: bool,
     survival_all: np.ndarray,
     protected: np.ndarray,
+    behind: np.ndarray | None = None,
 ) -> _Parts:
     """One kernel call for the bound, one per stage and one for survival, each timed
     (stages of any model). ``protected``: the corridor stage's agents (or empty), kept
-    after every stage without being judged."""
+    after every stage without being judged; ``behind``: those it drops (or None)."""
     n, n_stages = frame.n_agents, len(config.stages)
     surv_slot = _SURV_SLOT
     start = time.perf_counter()
     shielded = protected if protected.shape[0] == n else np.zeros(n, dtype=bool)
-    current = np.flatnonzero(frame.others & ~shielded)
+    dropped_early = np.zeros(n, dtype=bool) if behind is None else behind
+    current = np.flatnonzero(frame.others & ~shielded & ~dropped_early)
     unreachable = np.zeros(n, dtype=bool)
     if reachability and current.size:
         reach = _reachable(frame, current, settings, unc, _MAX_SPEEDS, config.baseline_threshold)
@@ -488,7 +533,7 @@ def _pass_per_stage(
 
     kept = np.zeros((n_stages, n), dtype=bool)
     dropped_at = np.full(n, -1, dtype=np.int8)
-    dropped_at[unreachable] = 0
+    dropped_at[unreachable | dropped_early] = 0
     stage_time_s = np.zeros(n_stages)
     survival_known: np.ndarray | None = None  # computed in the Gaussian stage's loop
     for s, stage in enumerate(config.stages):
@@ -622,12 +667,15 @@ def _run_staged(
     # NaN (ego, invalid) compares False, so they are never baseline-important.
     baseline = others & (np.nan_to_num(survival_all, nan=-np.inf) >= config.baseline_threshold)
 
-    protected, corridor_time_s = corridor_mask(frame, config.corridor)
+    protected, behind, corridor_time_s = corridor_masks(frame, config.corridor)
     shielded = np.zeros(n, dtype=bool) if protected is None else protected
     kept = np.zeros((n_stages, n), dtype=bool)
     dropped_at = np.full(n, -1, dtype=np.int8)
     stage_time_s = np.zeros(n_stages)
     current = others & ~shielded
+    if behind is not None:
+        current &= ~behind
+        dropped_at[behind] = 0
     for s, stage in enumerate(config.stages):
         candidates = np.flatnonzero(current)
         if candidates.size:
@@ -668,6 +716,7 @@ def _run_staged(
         survival_all=survival_all,
         protected=protected,
         corridor_time_s=corridor_time_s,
+        behind=behind,
     )
 
 

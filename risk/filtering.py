@@ -40,6 +40,8 @@ FILTER_FORMS = ("none", "cascade[:NAME]", "nearest:K", "radius:R", "model:NAME[:
 
 #: Why an agent was dropped by a filter other than the cascade's stages.
 REACHABILITY = "reachability"
+#: ... and by the corridor stage (a follower that cannot reach the ego).
+CORRIDOR = "corridor"
 
 
 class FilterSpecError(RiskError):
@@ -251,10 +253,13 @@ def cascade_answer(
     dropped_idx = np.flatnonzero(result.dropped_at >= 0)
     stage_names = result.stage_names
     unreachable = result.unreachable
+    behind = result.behind
     dropped = {
         int(frame.ids[i]): (
             REACHABILITY
             if unreachable is not None and unreachable[i]
+            else CORRIDOR
+            if behind is not None and behind[i]
             else stage_names[int(result.dropped_at[i])]
         )
         for i in dropped_idx

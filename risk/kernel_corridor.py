@@ -17,14 +17,13 @@ import numpy as np
 
 from risk.kernel_jit import _inner, _jit
 from risk.kernel_prediction import _others, _row_starts
+from risk.kernel_shared import BEHIND, CROSSING, LEADER
 
 #: The corridor's numbers in the kernel's float vector, in this order
 #: (:data:`risk.cascade.CORRIDOR_FIELDS` packs them).
 C_LEADERS, C_HEADWAY, C_BRAKE, C_ACCEL, C_MARGIN, C_LAT, C_CROSS, C_SLACK, C_HORIZON = range(9)
 #: Time step (s) of the crossing check along an agent's path.
 CROSS_STEP_S = 0.2
-#: Why an agent was kept: not, an in-corridor leader, a path crossing into the corridor.
-NOT_KEPT, LEADER, CROSSING = 0, 1, 2
 
 
 @_inner
@@ -121,13 +120,17 @@ def corridor_keep(
     xy, heading, speed, length, width, valid, paths, path_points, path_agent, ego, params
 ):
     """The corridor stage: ``(N,)`` int8, :data:`LEADER` or :data:`CROSSING` for the agents
-    it keeps, :data:`NOT_KEPT` for the others (and for the ego and invalid agents).
+    it keeps, :data:`BEHIND` for those it drops, :data:`NOT_KEPT` for the others (and for
+    the ego and invalid agents).
 
     The corridor is the ego's first path candidate, extended straight at both ends; an
     agent is *in* it when its centre's lateral offset is at most ``(w_ego + w_i) / 2 +
     lateral_margin``. **Leaders**: agents in the corridor ahead of the ego whose bumper
     gap is within the range (:func:`_corridor_range`, with the speed at which the ego
     closes on the agent along the corridor); the ``leaders`` nearest are kept.
+    **Behind**: an agent in the corridor behind the ego whose bumper gap exceeds what it
+    can close within the horizon at its speed along the corridor, plus ``margin``: no
+    planner that follows a path reacts to it within the horizon; it is dropped.
     **Crossing** (when ``params[C_CROSS]`` is 1): an agent outside the corridor, moving
     at constant speed along its first path candidate (straight on along its heading or
     its last segment), whose first point inside the corridor lies ahead of the ego and
@@ -164,11 +167,13 @@ def corridor_keep(
         reach = 0.5 * (length[ego] + length[i])
         s, lat, ux, uy = _corridor_project(ex, ey, ecum, xy[i, 0], xy[i, 1])
         if abs(lat) <= half:
+            along = speed[i] * (math.cos(heading[i]) * ux + math.sin(heading[i]) * uy)
             if s > s_ego:
-                along = speed[i] * (math.cos(heading[i]) * ux + math.sin(heading[i]) * uy)
                 if s - s_ego - reach <= _corridor_range(params, v, v - along):
                     lead_arc[a] = s
-            continue  # (an agent in the corridor behind the ego: not this stage's)
+            elif s_ego - s - reach > max(along - v, 0.0) * horizon + params[C_MARGIN]:
+                out[i] = BEHIND  # a follower that cannot close the gap within the horizon
+            continue
         if params[C_CROSS] < 0.5 or speed[i] <= 0.0:
             continue
         row = starts[i] if starts[i] < starts[i + 1] else -1

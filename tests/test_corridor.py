@@ -20,7 +20,7 @@ from risk.cascade import (
 )
 from risk.filtering import filter_frame
 from risk.frame import Frame
-from risk.kernel_corridor import CROSS_STEP_S, CROSSING, LEADER
+from risk.kernel_corridor import BEHIND, CROSS_STEP_S, CROSSING, LEADER
 
 
 # ---------------------------------------------------------------------- the oracle
@@ -79,12 +79,14 @@ def corridor_oracle(frame: Frame, c: CorridorSettings) -> np.ndarray:
         reach = (frame.length[e] + frame.length[i]) / 2
         s, lat, u = _project(ego_line, frame.xy[i])
         if abs(lat) <= half:
+            along = frame.speed[i] * (
+                math.cos(frame.heading[i]) * u[0] + math.sin(frame.heading[i]) * u[1]
+            )
             if s > s_ego:
-                along = frame.speed[i] * (
-                    math.cos(frame.heading[i]) * u[0] + math.sin(frame.heading[i]) * u[1]
-                )
                 if s - s_ego - reach <= c.interaction_range_m(v, v - along):
                     leaders.append((s, i))
+            elif s_ego - s - reach > max(along - v, 0.0) * c.horizon_s + c.margin_m:
+                out[i] = BEHIND
             continue
         if not c.crossing or frame.speed[i] <= 0:
             continue
@@ -134,7 +136,7 @@ def test_leaders_by_hand():
     # a car 60 m ahead in the lane, one 90 m ahead, one in the next lane, one behind
     frame = highway([(60, 0, 0, 25), (90, 0.3, 0, 25), (60, 3.5, 0, 25), (-20, 0, 0, 30)])
     codes = _kernel_codes(frame, c)
-    assert codes.tolist() == [0, LEADER, 0, 0, 0]
+    assert codes.tolist() == [0, LEADER, 0, 0, 0]  # (the follower 20 m behind: too close)
     c2 = CorridorSettings(leaders=2, crossing=False)
     assert _kernel_codes(frame, c2).tolist() == [0, LEADER, LEADER, 0, 0]
 
@@ -211,6 +213,14 @@ def test_protected_agents_skip_the_stages_in_both_cascades():
     assert staged.protected is not None and staged.protected.tolist() == fused.protected.tolist()
     mask, elapsed = corridor_mask(frame, with_corridor.corridor)
     assert mask is not None and elapsed >= 0 and not mask.flags.writeable
+    # the follower 80 m behind is dropped by the corridor stage ahead of stage 0, in both
+    assert fused.behind is not None and fused.behind.tolist() == [False, False, True, False]
+    assert staged.behind is not None and staged.behind.tolist() == fused.behind.tolist()
+    assert fused.dropped_at[2] == staged.dropped_at[2] == 0 and not fused.kept[:, 2].any()
+    assert fused.baseline.tolist() == staged.baseline.tolist()
+    assert fused.false_negatives.tolist() == staged.false_negatives.tolist()
+    answer = filter_frame(frame, with_corridor)
+    assert answer.dropped[2] == "corridor" and 1 in answer.kept_ids.tolist()
 
 
 def test_the_issue_highway_frame_with_the_default_filter():
@@ -241,3 +251,11 @@ def test_corridor_toml_round_trip(tmp_path):
     bad.write_text(config.to_toml_string().replace("leaders = 1", "leaders = -1"))
     with pytest.raises(Exception, match=r"corridor\.leaders"):
         CascadeConfig.from_toml(bad)
+
+
+def test_a_follower_that_cannot_close_the_gap_is_dropped():
+    c = CorridorSettings()
+    # 80 m behind at the ego's speed: dropped; 80 m behind 15 m/s faster: it closes 120 m
+    # within the 8 s horizon, so the other stages judge it; 20 m behind: too close
+    codes = _kernel_codes(highway([(-80, 0, 0, 30), (-80, 0.2, 0, 45), (-20, 0, 0, 30)]), c)
+    assert codes.tolist() == [0, BEHIND, 0, 0]

@@ -44,7 +44,7 @@ from risk.cascade import (
     CorridorSettings,
     Stage,
     Tier,
-    corridor_mask,
+    corridor_masks,
     reachable_mask,
 )
 from risk.registry import BASELINE_THRESHOLD
@@ -86,8 +86,8 @@ def scene_scores(source: str | os.PathLike[str], settings: ScoreSettings) -> pl.
 
     Columns: ``scene``, ``dataset``, ``site``, ``ego_id``, ``frame``, ``t_s``,
     ``agent_id``, ``kind``, ``distance_m``, ``risk_<model>`` for the nine models,
-    ``reachable`` (the bound keeps it), ``corridor`` (the corridor stage keeps it; False
-    without one), and per planner ``label_<planner>`` (null where the planner could not
+    ``reachable`` (the bound keeps it), ``corridor`` and ``behind`` (the corridor stage
+    keeps it, drops it; False without one), and per planner ``label_<planner>`` (null where the planner could not
     plan with all agents, or the ego had no path) and ``shift_<planner>`` (m)."""
     path = pathlib.Path(source)
     scene = load_scene(path)
@@ -109,7 +109,7 @@ def scene_scores(source: str | os.PathLike[str], settings: ScoreSettings) -> pl.
             continue
         values = evaluate(frame, models=list(MODELS))
         reach = reachable_mask(frame, settings.baseline_threshold)
-        protected, _ = corridor_mask(frame, settings.corridor)
+        protected, behind, _ = corridor_masks(frame, settings.corridor)
         d = frame.xy[others] - frame.xy[frame.ego]
         k = others.size
         put("ego_id", np.full(k, ego_id, np.int64))
@@ -122,6 +122,7 @@ def scene_scores(source: str | os.PathLike[str], settings: ScoreSettings) -> pl.
             put(f"risk_{model}", np.asarray(values[model], dtype=np.float64)[others])
         put("reachable", reach[others])
         put("corridor", np.zeros(k, bool) if protected is None else protected[others])
+        put("behind", np.zeros(k, bool) if behind is None else behind[others])
         labels = _planner_labels(
             frame, others, scene, tracks, column_of[ego_id], planners, settings
         )
@@ -263,11 +264,13 @@ def cached_scores(
 def with_corridor(
     df: pl.DataFrame, source: str | os.PathLike[str], corridor: CorridorSettings | None
 ) -> pl.DataFrame:
-    """``df`` (one scene's scores) with its ``corridor`` column computed for ``corridor``
-    from the scene file (False throughout without one)."""
+    """``df`` (one scene's scores) with its ``corridor`` (kept by the corridor stage) and
+    ``behind`` (dropped by it) columns computed for ``corridor`` from the scene file
+    (False throughout without one)."""
     if df.is_empty():
         return df
     keep = np.zeros(df.height, dtype=bool)
+    drop = np.zeros(df.height, dtype=bool)
     if corridor is not None:
         scene = load_scene(source)
         frames = dict(scene.indexed)
@@ -278,11 +281,12 @@ def with_corridor(
             frame = seen_from(frames[int(index)], int(ego_id))
             if frame is None:
                 continue
-            mask, _ = corridor_mask(frame, corridor)
-            assert mask is not None
-            kept_ids = frame.ids[mask]
-            keep[rows["row"].to_numpy()] = np.isin(rows["agent_id"].to_numpy(), kept_ids)
-    return df.with_columns(pl.Series("corridor", keep))
+            mask, behind, _ = corridor_masks(frame, corridor)
+            assert mask is not None and behind is not None
+            at = rows["row"].to_numpy()
+            keep[at] = np.isin(rows["agent_id"].to_numpy(), frame.ids[mask])
+            drop[at] = np.isin(rows["agent_id"].to_numpy(), frame.ids[behind])
+    return df.with_columns(pl.Series("corridor", keep), pl.Series("behind", drop))
 
 
 # ---------------------------------------------------------------------- calibration
@@ -314,10 +318,12 @@ def units_of(df: pl.DataFrame, unit: str) -> np.ndarray:
 
 def stage_scores(df: pl.DataFrame, models: Sequence[str], *, corridor: bool) -> np.ndarray:
     """``(S, A)``: each stage's risk; ``+inf`` where the corridor stage keeps the agent
-    (when ``corridor``), ``-inf`` where the bound drops it otherwise."""
+    (when ``corridor``), ``-inf`` where the bound or the corridor stage drops it."""
     scores = np.stack([df[f"risk_{m}"].to_numpy().astype(np.float64) for m in models])
     shielded = df["corridor"].to_numpy().astype(bool) if corridor else np.zeros(df.height, bool)
     dropped = ~df["reachable"].to_numpy().astype(bool) & ~shielded
+    if corridor and "behind" in df.columns:
+        dropped |= df["behind"].to_numpy().astype(bool) & ~shielded
     scores[:, shielded] = np.inf
     scores[:, dropped] = -np.inf
     return scores
@@ -369,6 +375,8 @@ def cascade_keeps(df: pl.DataFrame, config: CascadeConfig) -> np.ndarray:
         risk = np.nan_to_num(df[f"risk_{stage.model}"].to_numpy().astype(np.float64), nan=-np.inf)
         keep &= risk >= stage.threshold
     if config.corridor is not None:
+        if "behind" in df.columns:
+            keep &= ~df["behind"].to_numpy().astype(bool)
         keep |= df["corridor"].to_numpy().astype(bool)
     return keep
 
