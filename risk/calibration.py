@@ -195,3 +195,207 @@ def tier_thresholds_for_counts(
         pick = np.minimum(starts + c - 1, ends - 1)
         result.append(float(np.median(r_sorted[pick])))
     return tuple(result)
+
+
+# ---------------------------------------------------------------------- with a guarantee
+# Calibration against a reference that is not a risk model (what planners react to):
+# thresholds chosen so that, with probability at least C over the draw of the
+# calibration units, a new unit of the same distribution has an important agent dropped
+# with probability at most A. Finite-sample and distribution-free: the order-statistic
+# (binomial) rule on unit-level scores, split over the stages by Bonferroni.
+
+
+def binomial_cdf(k: int, n: int, p: float) -> float:
+    """``P(Binomial(n, p) <= k)``, summed in log space (no scipy needed)."""
+    if k < 0:
+        return 0.0
+    if k >= n or p <= 0.0:
+        return 1.0
+    if p >= 1.0:
+        return 0.0
+    log_p, log_q = math.log(p), math.log1p(-p)
+    terms = [
+        math.lgamma(n + 1)
+        - math.lgamma(i + 1)
+        - math.lgamma(n - i + 1)
+        + i * log_p
+        + (n - i) * log_q
+        for i in range(k + 1)
+    ]
+    top = max(terms)
+    return min(1.0, math.exp(top) * sum(math.exp(t - top) for t in terms))
+
+
+def allowed_unit_drops(n: int, miss_rate: float, confidence: float) -> int:
+    """The largest ``k`` whose order statistic keeps the guarantee: ``t = X_(k+1)`` (the
+    ``k + 1``-th smallest of ``n`` unit scores, so that ``k`` calibration units fall
+    below it) has ``P(F(t) > A) = P(Binomial(n, A) <= k) <= 1 - C``; -1 when even
+    ``k = 0`` does not (too few units)."""
+    delta = 1.0 - confidence
+    k = -1
+    while k + 1 < n and binomial_cdf(k + 1, n, miss_rate) <= delta:
+        k += 1
+    return k
+
+
+def units_needed(miss_rate: float, confidence: float) -> int:
+    """The fewest units for which any threshold keeps the guarantee: ``(1 - A)^n <= 1 - C``
+    (299 for A = 1 %, C = 95 %)."""
+    if not (0.0 < miss_rate < 1.0 and 0.0 < confidence < 1.0):
+        raise CalibrationError(
+            f"miss rate and confidence must lie in (0, 1), got {miss_rate:g}, {confidence:g}"
+        )
+    return math.ceil(math.log(1.0 - confidence) / math.log1p(-miss_rate) - 1e-12)
+
+
+def _nan_low(values: np.ndarray) -> np.ndarray:
+    """NaN as ``-inf`` (never kept); infinities stay infinite."""
+    return np.nan_to_num(
+        np.asarray(values, dtype=np.float64), nan=-np.inf, posinf=np.inf, neginf=-np.inf
+    )
+
+
+def unit_minimum(scores: np.ndarray, important: np.ndarray, units: np.ndarray) -> np.ndarray:
+    """Per unit with an important agent, the least score of its important agents
+    ``(U,)``, in the order of the sorted unit codes. A threshold at or below it drops
+    none of that unit's important agents. NaN counts as ``-inf`` (never kept)."""
+    s = _nan_low(scores)
+    imp = np.asarray(important, dtype=bool)
+    codes, inverse = np.unique(np.asarray(units)[imp], return_inverse=True)
+    out = np.full(codes.size, np.inf)
+    np.minimum.at(out, inverse, s[imp])
+    return out
+
+
+@dataclass(frozen=True)
+class GuaranteedStage:
+    """One stage calibrated with the order-statistic rule."""
+
+    model: str
+    threshold: float
+    drops_allowed: int  # calibration units whose least important score may fall below
+    units_dropped: int  # calibration units with an important agent this stage drops
+    agents_dropped: int  # important agent-frames this stage drops (alone, on all)
+
+
+@dataclass(frozen=True)
+class GuaranteedCalibration:
+    """The result of :func:`calibrate_with_guarantee`; :meth:`guarantee` is the TOML's
+    ``[guarantee]`` table."""
+
+    stages: tuple[GuaranteedStage, ...]
+    miss_rate: float
+    confidence: float
+    unit: str
+    units: int  # calibration units with at least one important agent
+    positives: int  # important agent-frames
+    stage_miss_rate: float
+    stage_confidence: float
+
+    def guarantee(self) -> dict[str, object]:
+        return {
+            "miss_rate": self.miss_rate,
+            "confidence": self.confidence,
+            "unit": self.unit,
+            "units": self.units,
+            "positives": self.positives,
+            "rule": "order statistic (binomial), Bonferroni over the stages",
+            "stage_miss_rate": self.stage_miss_rate,
+            "stage_confidence": self.stage_confidence,
+            "statement": self.statement(),
+        }
+
+    def statement(self) -> str:
+        return (
+            f"with probability >= {self.confidence:g} over the calibration data, a new "
+            f"{self.unit} like the {self.units} calibration {self.unit}s with an important "
+            f"agent has one of its important agents dropped with probability <= "
+            f"{self.miss_rate:g} (so the expected share of its important agents dropped is "
+            f"<= {self.miss_rate:g})"
+        )
+
+
+def calibrate_with_guarantee(
+    stage_scores: np.ndarray,
+    important: np.ndarray,
+    units: np.ndarray,
+    *,
+    models: Sequence[str],
+    miss_rate: float,
+    confidence: float,
+    unit: str = "scene",
+) -> GuaranteedCalibration:
+    """Thresholds with a stated guarantee (see the section comment above).
+
+    ``stage_scores (S, A)``: each stage's risk on every agent-frame (``+inf`` for agents
+    no stage may drop, e.g. kept by the corridor stage; ``-inf`` for agents dropped
+    whatever the thresholds, e.g. by the reachability bound); ``important (A,)``: the
+    reference's label; ``units (A,)``: the unit (scene) of each agent-frame. Agents of a
+    unit are not independent, units are assumed to be: each unit contributes one score
+    per stage, the least of its important agents'.
+
+    The miss budget is split evenly over the ``S`` stages (Bonferroni): each gets miss
+    rate ``A / S`` at confidence ``1 - (1 - C) / S``, and its threshold is the order
+    statistic of :func:`allowed_unit_drops` on its unit scores (computed on all of a
+    unit's important agents, not only those earlier stages kept, so that each stage's
+    bound holds alone), less :data:`THRESHOLD_MARGIN`, and never below 0. A new unit is
+    missed only when some stage misses it: probability <= ``A`` with confidence >= ``C``.
+    Raises CalibrationError, saying how many units are needed, when there are too few.
+    """
+    scores = np.asarray(stage_scores, dtype=np.float64)
+    imp = np.asarray(important, dtype=bool)
+    unit_codes = np.asarray(units)
+    n_stages = len(models)
+    if scores.ndim != 2 or scores.shape[0] != n_stages:
+        raise CalibrationError(f"stage scores must have shape ({n_stages}, A), got {scores.shape}")
+    if imp.shape != (scores.shape[1],) or unit_codes.shape != imp.shape:
+        raise CalibrationError("important and units must have one entry per agent-frame")
+    if n_stages == 0:
+        raise CalibrationError("no stage to calibrate")
+    stage_miss = miss_rate / n_stages
+    stage_conf = 1.0 - (1.0 - confidence) / n_stages
+    need = units_needed(stage_miss, stage_conf)
+    n_units = int(np.unique(unit_codes[imp]).size)
+    if n_units < need:
+        per = (
+            ""
+            if n_stages == 1
+            else f" ({n_stages} stages: {stage_miss:.3g} at {stage_conf:.4g} each)"
+        )
+        raise CalibrationError(
+            f"miss rate {miss_rate:g} at confidence {confidence:g}{per} needs at least "
+            f"{need} {unit}s with a planner-important agent; the data has {n_units}. Give "
+            f"more scenes, or ask for a larger miss rate or a lower confidence"
+        )
+    k = allowed_unit_drops(n_units, stage_miss, stage_conf)
+    stages = []
+    for s, model in enumerate(models):
+        per_unit = unit_minimum(scores[s], imp, unit_codes)
+        forced = int(np.isneginf(per_unit).sum())
+        if forced > k:
+            raise CalibrationError(
+                f"{forced} {unit}s have an important agent that no threshold of {model} can "
+                f"keep (dropped ahead of the stages, e.g. by the reachability bound), more "
+                f"than the {k} the guarantee allows"
+            )
+        threshold = max(highest_threshold(per_unit, k), 0.0)
+        dropped = imp & (_nan_low(scores[s]) < threshold)
+        stages.append(
+            GuaranteedStage(
+                model=model,
+                threshold=threshold,
+                drops_allowed=k,
+                units_dropped=int((per_unit < threshold).sum()),
+                agents_dropped=int(dropped.sum()),
+            )
+        )
+    return GuaranteedCalibration(
+        stages=tuple(stages),
+        miss_rate=float(miss_rate),
+        confidence=float(confidence),
+        unit=unit,
+        units=n_units,
+        positives=int(imp.sum()),
+        stage_miss_rate=stage_miss,
+        stage_confidence=stage_conf,
+    )

@@ -44,20 +44,27 @@ Choices the spec leaves open (documented here, see also ``docs/cascade.md``):
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
-import pathlib
 import time
-import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from risk.errors import RiskError
+from risk.cascade_config import (
+    DEFAULT_CASCADE_NAME,
+    DEFAULT_CASCADE_PATH,
+    NAMED_CASCADES,
+    CascadeConfig,
+    CascadeConfigError,
+    CorridorSettings,
+    Stage,
+    Tier,
+)
 from risk.frame import KIND_NAMES, Frame
+from risk.kernel_shared import BEHIND, CROSSING, LEADER
 from risk.registry import (
     BASELINE_MODEL,
     BASELINE_THRESHOLD,
@@ -68,9 +75,25 @@ from risk.registry import (
     resolve_prediction,
 )
 from risk.registry import evaluate as risk_evaluate
-from risk.settings import BASELINE_KEY, ModelSettings, SettingsError, flatten_tables, parse_settings
 
-DEFAULT_CASCADE_PATH = pathlib.Path(__file__).with_name("default_cascade.toml")
+__all__ = [
+    "DEFAULT_CASCADE_NAME",
+    "DEFAULT_CASCADE_PATH",
+    "MAX_SPEED_MPS",
+    "NAMED_CASCADES",
+    "SURVIVAL_MODEL",
+    "CascadeConfig",
+    "CascadeConfigError",
+    "CascadeResult",
+    "CorridorSettings",
+    "Stage",
+    "Tier",
+    "assign_tiers",
+    "keep_bounds",
+    "reachable_mask",
+    "run_cascade",
+]
+
 #: The model of the sorting step and of the baseline (survival analysis).
 SURVIVAL_MODEL = BASELINE_MODEL
 
@@ -85,207 +108,6 @@ MAX_SPEED_MPS: dict[str, float] = {
 
 #: Signature of ``risk.evaluate``: frame, model names, parameters -> name -> (N,) risks.
 Evaluator = Callable[..., dict[str, np.ndarray]]
-
-
-class CascadeConfigError(RiskError):
-    """An invalid cascade configuration; the message names the file and the key."""
-
-    def __init__(self, key: str, problem: str, *, source: str = ""):
-        self.key = key
-        self.source = source
-        where = f"{source}: " if source else ""
-        super().__init__(f"{where}{key}: {problem}")
-
-
-# ---------------------------------------------------------------------- configuration
-@dataclass(frozen=True)
-class Stage:
-    """One filter stage: keep an agent when ``risk >= threshold`` under ``model``."""
-
-    model: str  # a name in risk.MODELS, e.g. "path_distance"
-    threshold: float  # in the model's own units (distance risks in (0, 1], R_G in 1/m^2)
-
-
-@dataclass(frozen=True)
-class Tier:
-    """A planner tier; tiers are nested, each one a subset of the one before."""
-
-    name: str  # "behavior", "interactive", "cooperative"
-    min_survival_risk: float  # survivors with survival risk >= this reach the tier
-    max_agents: int | None = None  # optional cap: only the top-k by survival risk
-
-
-@dataclass(frozen=True)
-class CascadeConfig:
-    """Stages, tiers and the survival baseline threshold of one cascade."""
-
-    stages: tuple[Stage, ...]
-    tiers: tuple[Tier, ...]
-    baseline_threshold: float = BASELINE_THRESHOLD  # important when R_S >= this (paper)
-    provenance: str = ""  # how the thresholds were made (calibration record)
-    #: Model and prediction settings of the ``[params.<model>]`` and ``[prediction]``
-    #: tables, as flat keys of :mod:`risk.settings` (empty: the paper's values).
-    settings: Mapping[str, Any] = field(default_factory=dict)
-
-    def model_settings(self) -> ModelSettings:
-        """The parameters, prediction and baseline threshold this cascade names."""
-        return parse_settings(
-            self.settings, base=ModelSettings(baseline_threshold=self.baseline_threshold)
-        )
-
-    def with_settings(self, items: Any) -> CascadeConfig:
-        """This cascade with the settings ``items`` (``KEY=VALUE`` strings or a mapping,
-        see :func:`risk.settings.parse_settings`) on top of its own; ``baseline.threshold``
-        sets :attr:`baseline_threshold`. Raises SettingsError for a bad key or value."""
-        merged = parse_settings(items, base=self.model_settings())
-        flat = {**self.settings, **{k: v for k, v in merged.overrides.items() if k != BASELINE_KEY}}
-        return dataclasses.replace(
-            self, settings=flat, baseline_threshold=merged.baseline_threshold
-        )
-
-    @property
-    def stage_names(self) -> tuple[str, ...]:
-        return tuple(s.model for s in self.stages)
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any], *, source: str = "") -> CascadeConfig:
-        """Build from a parsed TOML document; raises CascadeConfigError naming the key."""
-        return _parse_config(data, source)
-
-    @classmethod
-    def from_toml(cls, path: str | pathlib.Path) -> CascadeConfig:
-        """Read and validate a cascade TOML file."""
-        path = pathlib.Path(path)
-        try:
-            data = tomllib.loads(path.read_text(encoding="utf-8"))
-        except tomllib.TOMLDecodeError as exc:
-            raise CascadeConfigError("toml", f"not valid TOML ({exc})", source=str(path)) from None
-        except UnicodeDecodeError:
-            raise CascadeConfigError("toml", "not a UTF-8 text file", source=str(path)) from None
-        except RecursionError:  # tomllib recurses once per nested array or table
-            raise CascadeConfigError(
-                "toml", "nested deeper than can be parsed (a cascade file nests two levels)",
-                source=str(path),
-            ) from None  # fmt: skip
-        return _parse_config(data, str(path))
-
-    @classmethod
-    def default(cls) -> CascadeConfig:
-        """The calibrated default cascade shipped with the package."""
-        return cls.from_toml(DEFAULT_CASCADE_PATH)
-
-    def to_dict(self) -> dict[str, Any]:
-        """The TOML document of this configuration (``max_agents`` omitted when None)."""
-        tiers = []
-        for t in self.tiers:
-            entry: dict[str, Any] = {"name": t.name, "min_survival_risk": t.min_survival_risk}
-            if t.max_agents is not None:
-                entry["max_agents"] = t.max_agents
-            tiers.append(entry)
-        out: dict[str, Any] = {
-            "provenance": self.provenance,
-            "baseline_threshold": self.baseline_threshold,
-            "stages": [{"model": s.model, "threshold": s.threshold} for s in self.stages],
-            "tiers": tiers,
-        }
-        for key, value in self.settings.items():
-            head, _, rest = key.partition(".")
-            if value is None:
-                value = "none"
-            if head == "prediction":
-                table = out.setdefault("prediction", {})
-                if "." in rest:
-                    kind, fname = rest.split(".", 1)
-                    table.setdefault(kind, {})[fname] = value
-                else:
-                    table[rest] = value
-            else:
-                out.setdefault("params", {}).setdefault(head, {})[rest] = value
-        return out
-
-    def to_toml_string(self) -> str:
-        """The configuration as TOML text (what :meth:`from_toml` reads back)."""
-        import tomli_w
-
-        return tomli_w.dumps(self.to_dict(), multiline_strings=True)
-
-
-_TOP_KEYS = {"provenance", "baseline_threshold", "stages", "tiers", "params", "prediction"}
-_STAGE_KEYS = {"model", "threshold"}
-_TIER_KEYS = {"name", "min_survival_risk", "max_agents"}
-
-
-def _parse_config(data: Mapping[str, Any], source: str) -> CascadeConfig:
-
-    def fail(key: str, problem: str) -> CascadeConfigError:
-        return CascadeConfigError(key, problem, source=source)
-
-    def check_keys(table: Any, allowed: set[str], required: set[str], prefix: str) -> None:
-        if not isinstance(table, Mapping):
-            raise fail(prefix.rstrip("."), "expected a table")
-        for key in table:
-            if key not in allowed:
-                raise fail(f"{prefix}{key}", f"unknown key; expected one of {sorted(allowed)}")
-        for key in sorted(required - set(table)):
-            raise fail(f"{prefix}{key}", "missing key")
-
-    def number(value: Any, key: str) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise fail(key, f"expected a number, got {value!r}")
-        value = float(value)
-        if math.isnan(value) or value < 0:
-            raise fail(key, f"must be a number >= 0, got {value!r}")
-        return value
-
-    check_keys(data, _TOP_KEYS, {"stages", "tiers"}, "")
-    provenance = data.get("provenance", "")
-    if not isinstance(provenance, str):
-        raise fail("provenance", "expected a string")
-    baseline = number(data.get("baseline_threshold", BASELINE_THRESHOLD), "baseline_threshold")
-
-    raw_stages = data["stages"]
-    if not isinstance(raw_stages, list) or not raw_stages:
-        raise fail("stages", "expected a non-empty array of tables ([[stages]])")
-    stages: list[Stage] = []
-    for i, raw in enumerate(raw_stages):
-        prefix = f"stages[{i}]."
-        check_keys(raw, _STAGE_KEYS, _STAGE_KEYS, prefix)
-        model = raw["model"]
-        if model not in MODELS:
-            raise fail(f"{prefix}model", f"unknown model {model!r}; valid: {', '.join(MODELS)}")
-        if any(s.model == model for s in stages):
-            raise fail(f"{prefix}model", f"model {model!r} is already used by an earlier stage")
-        stages.append(Stage(model=model, threshold=number(raw["threshold"], f"{prefix}threshold")))
-
-    raw_tiers = data["tiers"]
-    if not isinstance(raw_tiers, list) or not raw_tiers:
-        raise fail("tiers", "expected a non-empty array of tables ([[tiers]])")
-    tiers = []
-    for i, raw in enumerate(raw_tiers):
-        prefix = f"tiers[{i}]."
-        check_keys(raw, _TIER_KEYS, {"name", "min_survival_risk"}, prefix)
-        name = raw["name"]
-        if not isinstance(name, str) or not name:
-            raise fail(f"{prefix}name", "expected a non-empty string")
-        cap = raw.get("max_agents")
-        if cap is not None and (isinstance(cap, bool) or not isinstance(cap, int) or cap < 1):
-            raise fail(f"{prefix}max_agents", f"expected an integer >= 1, got {cap!r}")
-        risk_min = number(raw["min_survival_risk"], f"{prefix}min_survival_risk")
-        tiers.append(Tier(name=name, min_survival_risk=risk_min, max_agents=cap))
-    if len({t.name for t in tiers}) != len(tiers):
-        raise fail("tiers", "tier names must be unique")
-    try:
-        flat = flatten_tables({k: data[k] for k in ("params", "prediction") if k in data})
-        parse_settings(flat)  # checks every key and value
-    except SettingsError as exc:
-        raise fail("params/prediction", str(exc)) from None
-    return CascadeConfig(
-        stages=tuple(stages),
-        tiers=tuple(tiers),
-        baseline_threshold=baseline,
-        provenance=provenance,
-        settings=flat,
-    )
 
 
 # ---------------------------------------------------------------------- results
@@ -309,6 +131,13 @@ class CascadeResult:
     # 0); None when the bound did not run (the staged cascade)
     unreachable: np.ndarray | None = field(default=None, repr=False)
     reach_time_s: float = 0.0  # s, the reachability bound
+    # (N,) bool, kept by the corridor stage ahead of the others (kept after every stage);
+    # None when the cascade has no corridor stage
+    protected: np.ndarray | None = field(default=None, repr=False)
+    corridor_time_s: float = 0.0  # s, the corridor stage
+    # (N,) bool, dropped by the corridor stage as followers that cannot reach the ego
+    # (their dropped_at is 0); None when the cascade has no corridor stage
+    behind: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def n_kept(self) -> np.ndarray:
@@ -429,13 +258,23 @@ def _run_fused(
     survival_all = kernel.run(frame, _WANT[(_SURV_SLOT,)], fp, ip, steps, unc)[_SURV_SLOT]
     survival_all_time_s = time.perf_counter() - start
 
+    protected, behind, corridor_time_s = corridor_masks(frame, config.corridor)
+    shielded = kernel.NOT_PROTECTED if protected is None else protected
     parts = None
-    if plan.one_pass:
-        parts = _one_pass(frame, plan, steps, unc, fp, ip, reachability, survival_all)
+    judged = kernel.ALL_AGENTS
+    if behind is not None and behind.any():
+        judged = _ro(np.flatnonzero(others & ~behind))
+    if plan.one_pass and (judged is kernel.ALL_AGENTS or judged.size > 0):
+        parts = _one_pass(
+            frame, plan, steps, unc, fp, ip, reachability, survival_all, shielded, judged
+        )
     if parts is None:
         parts = _pass_per_stage(
-            frame, config, chosen, settings, steps, unc, fp, ip, reachability, survival_all
-        )
+            frame, config, chosen, settings, steps, unc, fp, ip, reachability, survival_all,
+            shielded, behind,
+        )  # fmt: skip
+    elif judged is not kernel.ALL_AGENTS:
+        parts = _with_behind(parts, behind, others, survival_all, config.baseline_threshold)
     kept, dropped_at, unreachable, survival, tier, baseline, false_negatives, times = parts
     return CascadeResult._make(
         stage_names=plan.stage_names,
@@ -452,7 +291,71 @@ def _run_fused(
         survival_all=survival_all,
         unreachable=unreachable,
         reach_time_s=times[0],
+        protected=protected,
+        corridor_time_s=corridor_time_s,
+        behind=behind,
     )
+
+
+def _with_behind(
+    parts: _Parts,
+    behind: Any,
+    others: np.ndarray,
+    survival_all: np.ndarray,
+    baseline_threshold: float,
+) -> _Parts:
+    """The one-pass kernel's result, which judged every agent but the corridor stage's
+    followers, completed for them: dropped ahead of stage 0, counted in the baseline and
+    its false negatives."""
+    kept, dropped_at, unreachable, survival, tier, baseline, false_neg, times = parts
+    dropped_at[behind] = 0
+    important = behind & others & (survival_all >= baseline_threshold)
+    baseline = baseline | important
+    false_neg = false_neg + int(important.sum())
+    return kept, dropped_at, unreachable, survival, tier, baseline, false_neg, times
+
+
+def corridor_masks(
+    frame: Frame, corridor: CorridorSettings | None
+) -> tuple[np.ndarray | None, np.ndarray | None, float]:
+    """``(N,)`` bool, read-only: the agents the corridor stage keeps and those it drops
+    (:func:`risk.kernel.corridor_keep`), and its time (s); None, None and 0 without one."""
+    if corridor is None:
+        return None, None, 0.0
+    start = time.perf_counter()
+    fa = kernel.frame_arrays(frame)
+    codes = kernel.corridor_keep(
+        *fa[:5], fa[6], fa[7], fa[8], fa[9], int(frame.ego), corridor_vector(corridor)
+    )
+    protected = (codes == LEADER) | (codes == CROSSING)
+    behind = codes == BEHIND
+    protected.flags.writeable = False
+    behind.flags.writeable = False
+    return protected, behind, time.perf_counter() - start
+
+
+def corridor_mask(
+    frame: Frame, corridor: CorridorSettings | None
+) -> tuple[np.ndarray | None, float]:
+    """``(N,)`` bool, read-only: the agents the corridor stage keeps, and its time (s);
+    None and 0 without one (:func:`corridor_masks`)."""
+    protected, _, elapsed = corridor_masks(frame, corridor)
+    return protected, elapsed
+
+
+#: The corridor settings in the order of the kernel's vector (risk.kernel_corridor).
+CORRIDOR_FIELDS = (
+    "leaders", "headway_s", "brake_mps2", "accel_mps2", "margin_m", "lateral_margin_m",
+    "crossing", "crossing_slack_s", "horizon_s",
+)  # fmt: skip
+
+
+@functools.lru_cache(maxsize=16)
+def corridor_vector(corridor: CorridorSettings) -> np.ndarray:
+    """The kernel's read-only parameter vector of a corridor stage."""
+    vector = np.array([float(getattr(corridor, name)) for name in CORRIDOR_FIELDS])
+    vector.flags.writeable = False
+    return vector
 
 
 #: Stage models that the one-pass kernel (:func:`risk.kernel.cascade_agents`) runs.
@@ -534,9 +437,12 @@ def _one_pass(
     ip: np.ndarray,
     reachability: bool,
     survival_all: np.ndarray,
+    protected: np.ndarray,
+    agents: np.ndarray,
 ) -> _Parts | None:
     """The bound, every stage, survival of the survivors and their tiers in one kernel
-    call; None when this CPU has no cycle counter (then run a pass per stage).
+    call for ``agents`` (empty: every valid other); None when this CPU has no cycle
+    counter (then run a pass per stage).
 
     Each stage's time (and the bound's, and survival's with the tiers in the sort time)
     is the call's measured wall time shared out in proportion to the CPU cycles the
@@ -546,9 +452,9 @@ def _one_pass(
     start = time.perf_counter()
     kept, dropped_at, unreachable, _, survival, cyc, tier, baseline, false_neg = (
         kernel.cascade_agents(
-            *kernel.frame_arrays(frame), int(frame.ego), kernel.ALL_AGENTS, steps, unc, fp,
+            *kernel.frame_arrays(frame), int(frame.ego), agents, steps, unc, fp,
             ip, plan.slots, plan.thr, plan.stop2, plan.cut2, bool(reachability), _MAX_SPEEDS,
-            plan.baseline_threshold, survival_all, plan.tier_min, plan.tier_cap,
+            plan.baseline_threshold, survival_all, plan.tier_min, plan.tier_cap, protected,
         )
     )  # fmt: skip
     wall = time.perf_counter() - start
@@ -606,13 +512,18 @@ def _pass_per_stage(
     ip: np.ndarray,
     reachability: bool,
     survival_all: np.ndarray,
+    protected: np.ndarray,
+    behind: np.ndarray | None = None,
 ) -> _Parts:
     """One kernel call for the bound, one per stage and one for survival, each timed
-    (stages of any model)."""
+    (stages of any model). ``protected``: the corridor stage's agents (or empty), kept
+    after every stage without being judged; ``behind``: those it drops (or None)."""
     n, n_stages = frame.n_agents, len(config.stages)
     surv_slot = _SURV_SLOT
     start = time.perf_counter()
-    current = np.flatnonzero(frame.others)
+    shielded = protected if protected.shape[0] == n else np.zeros(n, dtype=bool)
+    dropped_early = np.zeros(n, dtype=bool) if behind is None else behind
+    current = np.flatnonzero(frame.others & ~shielded & ~dropped_early)
     unreachable = np.zeros(n, dtype=bool)
     if reachability and current.size:
         reach = _reachable(frame, current, settings, unc, _MAX_SPEEDS, config.baseline_threshold)
@@ -622,7 +533,7 @@ def _pass_per_stage(
 
     kept = np.zeros((n_stages, n), dtype=bool)
     dropped_at = np.full(n, -1, dtype=np.int8)
-    dropped_at[unreachable] = 0
+    dropped_at[unreachable | dropped_early] = 0
     stage_time_s = np.zeros(n_stages)
     survival_known: np.ndarray | None = None  # computed in the Gaussian stage's loop
     for s, stage in enumerate(config.stages):
@@ -643,6 +554,10 @@ def _pass_per_stage(
             survival_known = out[surv_slot]
         current = current[keep]
         stage_time_s[s] = time.perf_counter() - start
+    kept[:, shielded] = True
+    if shielded.any():
+        current = np.union1d(current, np.flatnonzero(shielded))
+        survival_known = None  # (the Gaussian stage did not see the corridor's agents)
     survival = np.full(n, np.nan)
     tier = np.full(n, -1, dtype=np.int8)
     sort_time_s = 0.0
@@ -752,10 +667,15 @@ def _run_staged(
     # NaN (ego, invalid) compares False, so they are never baseline-important.
     baseline = others & (np.nan_to_num(survival_all, nan=-np.inf) >= config.baseline_threshold)
 
+    protected, behind, corridor_time_s = corridor_masks(frame, config.corridor)
+    shielded = np.zeros(n, dtype=bool) if protected is None else protected
     kept = np.zeros((n_stages, n), dtype=bool)
     dropped_at = np.full(n, -1, dtype=np.int8)
     stage_time_s = np.zeros(n_stages)
-    current = others
+    current = others & ~shielded
+    if behind is not None:
+        current &= ~behind
+        dropped_at[behind] = 0
     for s, stage in enumerate(config.stages):
         candidates = np.flatnonzero(current)
         if candidates.size:
@@ -766,6 +686,8 @@ def _run_staged(
             kept[s, candidates[keep]] = True
             dropped_at[candidates[~keep]] = s
         current = kept[s]
+    kept[:, shielded] = True
+    current = current | shielded
     false_negatives = (baseline[None, :] & ~kept).sum(axis=1).astype(np.int64)
 
     survivors = np.flatnonzero(current)
@@ -792,6 +714,9 @@ def _run_staged(
         survival_all_time_s=survival_all_time_s,
         others=others,
         survival_all=survival_all,
+        protected=protected,
+        corridor_time_s=corridor_time_s,
+        behind=behind,
     )
 
 

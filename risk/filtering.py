@@ -5,7 +5,9 @@ one small interface (:class:`Filter`: a ``name`` and ``apply(frame) -> FilterRes
 
 - ``none``: every valid other agent (the planner's reference: nothing dropped);
 - ``cascade``: the paper's cascade (:func:`risk.cascade.run_cascade`): cheap stages, then
-  survival analysis sorts the survivors into planner tiers;
+  survival analysis sorts the survivors into planner tiers; ``cascade:NAME`` a shipped
+  cascade by name (``cascade:planner``, ``cascade:survival``;
+  :data:`risk.cascade.NAMED_CASCADES`);
 - ``nearest:K``: the K agents nearest to the ego (centre distance), as learned planners
   keep their 32-64 nearest;
 - ``radius:R``: every agent whose centre lies within R metres of the ego's, as nuPlan's
@@ -27,17 +29,19 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from risk.cascade import CascadeConfig, CascadeResult, run_cascade
+from risk.cascade import NAMED_CASCADES, CascadeConfig, CascadeResult, run_cascade
 from risk.errors import RiskError
 from risk.frame import Frame
 from risk.registry import MODELS
 from risk.registry import evaluate as risk_evaluate
 
 #: The forms ``parse_filter`` understands, for help texts and error messages.
-FILTER_FORMS = ("none", "cascade", "nearest:K", "radius:R", "model:NAME[:THRESHOLD]")
+FILTER_FORMS = ("none", "cascade[:NAME]", "nearest:K", "radius:R", "model:NAME[:THRESHOLD]")
 
 #: Why an agent was dropped by a filter other than the cascade's stages.
 REACHABILITY = "reachability"
+#: ... and by the corridor stage (a follower that cannot reach the ego).
+CORRIDOR = "corridor"
 
 
 class FilterSpecError(RiskError):
@@ -249,15 +253,23 @@ def cascade_answer(
     dropped_idx = np.flatnonzero(result.dropped_at >= 0)
     stage_names = result.stage_names
     unreachable = result.unreachable
+    behind = result.behind
     dropped = {
         int(frame.ids[i]): (
             REACHABILITY
             if unreachable is not None and unreachable[i]
+            else CORRIDOR
+            if behind is not None and behind[i]
             else stage_names[int(result.dropped_at[i])]
         )
         for i in dropped_idx
     }
-    own_s = result.reach_time_s + float(result.stage_time_s.sum()) + result.sort_time_s
+    own_s = (
+        result.corridor_time_s
+        + result.reach_time_s
+        + float(result.stage_time_s.sum())
+        + result.sort_time_s
+    )
     return FilterResult(
         filter_name=name,
         t_s=float(frame.t),
@@ -293,6 +305,12 @@ def parse_filter(spec: str, cascade: CascadeConfig | None = None) -> Filter:
         return KeepAll()
     if kind == "cascade" and not arg:
         return CascadeFilter(config)
+    if kind == "cascade":
+        if arg not in NAMED_CASCADES:
+            raise FilterSpecError(
+                spec, f"no shipped cascade {arg!r}; named: {', '.join(NAMED_CASCADES)}"
+            )
+        return CascadeFilter(CascadeConfig.named(arg), name=text)
     if kind == "nearest":
         try:
             k = int(arg)

@@ -63,6 +63,7 @@ __all__ = [
     "N_MODELS",
     "SLOTS",
     "cascade_agents",
+    "corridor_keep",
     "evaluate_agents",
     "frame_arrays",
     "pack_params",
@@ -109,6 +110,7 @@ IMPLEMENTATION, _compiled = _load()
 evaluate_agents = _compiled.evaluate_agents
 reachable = _compiled.reachable
 tiers = _compiled.tiers
+corridor_keep = _compiled.corridor_keep
 #: None where the CPU has no cycle counter (:data:`HAVE_CYCLE_COUNTER`) in the
 #: ahead-of-time module.
 cascade_agents = getattr(_compiled, "cascade_agents", None)
@@ -483,6 +485,8 @@ def _warm_up_evaluate(c: types.ModuleType) -> None:
 
 
 _MAX_SPEEDS = _constant(np.full(4, 10.0))
+#: ``protected`` of :func:`cascade_agents` without a corridor stage.
+NOT_PROTECTED = _NOT_PROTECTED = _constant(np.zeros(0, dtype=np.bool_))
 
 
 def _warm_up_sorting(c: types.ModuleType) -> None:
@@ -495,6 +499,7 @@ def _warm_up_sorting(c: types.ModuleType) -> None:
         np.zeros(2), _constant(np.array([1e-25])),
         _constant(np.array([-1], dtype=np.int64)),
     )  # fmt: skip
+    c.corridor_keep(*fa[:5], fa[6], fa[7], fa[8], fa[9], 0, _constant(np.ones(9)))
 
 
 def _warm_up_cascade(c: types.ModuleType) -> None:
@@ -515,4 +520,5 @@ def _warm_up_fused(c: types.ModuleType) -> None:
         _constant(np.full(3, np.inf)), True, _MAX_SPEEDS, 1e-25,
         np.zeros(2),  # (writable: a row of evaluate_agents' result in the cascade)
         _constant(np.array([1e-25])), _constant(np.array([-1], dtype=np.int64)),
+        _NOT_PROTECTED,
     )  # fmt: skip

@@ -45,7 +45,7 @@ log = logging.getLogger("risk")
 
 MODULE_NAME = "riskreplay_kernel_aot"
 #: The compiled functions that :mod:`risk.kernel` calls.
-ENTRY_POINTS = ("evaluate_agents", "reachable", "tiers", "cascade_agents")
+ENTRY_POINTS = ("evaluate_agents", "reachable", "tiers", "cascade_agents", "corridor_keep")
 #: A build lock older than this is taken to be left by a killed build.
 STALE_LOCK_S = 15 * 60
 HERE = pathlib.Path(__file__).resolve().parent

@@ -186,6 +186,7 @@ def cascade_agents(
     survival_all,
     tier_min,
     tier_cap,
+    protected,
 ):
     """The fused cascade: one pass per agent of ``agents`` through the reachability bound
     (when ``use_bound``) and the stages (model slot ``stage_models[s]``, one of PATH, TRAJ,
@@ -215,8 +216,13 @@ def cascade_agents(
     on the Python side: the frame's arrays (:func:`risk.kernel.frame_arrays`), the
     prediction and model parameters (:func:`risk.registry.kernel_inputs`), the stages
     (``risk.cascade._Plan``: ``stage_models`` .. ``stage_drop_d2``, the tiers), and the
-    baseline."""
+    baseline.
+
+    ``protected`` (N,) bool, or empty for none: agents the corridor stage kept
+    (:func:`risk.kernel_corridor.corridor_keep`); they skip the bound and the stages, are
+    kept after every stage and get their survival risk and tier as survivors."""
     n = xy.shape[0]
+    has_protected = protected.shape[0] == n
     n_st = stage_models.shape[0]
     if agents.shape[0] == 0:
         agents = _others(valid, ego)
@@ -325,7 +331,8 @@ def cascade_agents(
     t_prev = t
     for a_idx in range(agents.shape[0]):
         i = agents[a_idx]
-        if use_bound and baseline_threshold > 0:
+        shielded = has_protected and protected[i]
+        if use_bound and baseline_threshold > 0 and not shielded:
             ok = _reach_keep(
                 paths, starts, i, ego, speed, kinds, horizon, max_speed_by_kind, limits
             )
@@ -344,7 +351,7 @@ def cascade_agents(
         q_pair = -1  # the pair (m n_ego_paths + e) whose q and det qs, dets hold; -1: none
         q_dmin = INF
         code[i] = n_st
-        for s in range(n_st):
+        for s in range(0 if shielded else n_st):
             slot = stage_models[s]
             thr = stage_thresholds[s]
             keep = False

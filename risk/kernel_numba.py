@@ -7,7 +7,8 @@ numpy's summation), :mod:`risk.kernel_paths` (path geometry and distances),
 :mod:`risk.kernel_prediction` (prediction and the ego's candidates),
 :mod:`risk.kernel_overlap` (the Gaussian overlap and survival analysis),
 :mod:`risk.kernel_evaluate` (every model, :func:`evaluate_agents`) and
-:mod:`risk.kernel_cascade` (the bound, the tier sort and the fused cascade). This module
+:mod:`risk.kernel_cascade` (the bound, the tier sort and the fused cascade) and
+:mod:`risk.kernel_corridor` (the corridor stage). This module
 names every compiled function of them, so that :mod:`risk.kernel` warms them up by name.
 
 One pass per agent row: for each path candidate of each requested agent the kernel
@@ -36,6 +37,7 @@ from __future__ import annotations
 
 from risk import (
     kernel_cascade,
+    kernel_corridor,
     kernel_evaluate,
     kernel_jit,
     kernel_overlap,
@@ -50,6 +52,14 @@ from risk.kernel_cascade import (
     cascade_agents,
     reachable,
     tiers,
+)
+from risk.kernel_corridor import (
+    _at_arc,
+    _corridor_line,
+    _corridor_project,
+    _corridor_range,
+    _line_box,
+    corridor_keep,
 )
 from risk.kernel_evaluate import (
     _time_gap,
@@ -100,6 +110,7 @@ PARTS = (
     kernel_overlap,
     kernel_evaluate,
     kernel_cascade,
+    kernel_corridor,
 )
 
 __all__ = [
@@ -107,8 +118,12 @@ __all__ = [
     "CACHE_PROBLEM",
     "PARTS",
     "_CompileNotice",
+    "_at_arc",
     "_boxes",
     "_chunk_box",
+    "_corridor_line",
+    "_corridor_project",
+    "_corridor_range",
     "_cut",
     "_cut_boxes",
     "_cycles",
@@ -119,6 +134,7 @@ __all__ = [
     "_gap2",
     "_gauss_reaches",
     "_interp",
+    "_line_box",
     "_others",
     "_overlap_risks",
     "_pair_q",
@@ -137,6 +153,7 @@ __all__ = [
     "_touch0",
     "cascade_agents",
     "compile_like",
+    "corridor_keep",
     "evaluate_agents",
     "np_sum",
     "reachable",

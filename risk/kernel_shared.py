@@ -84,6 +84,11 @@ N_CIRC = INT_AT["circles", "n_circles"]
 RADIUS_RULE = INT_AT["circles", "radius_rule"]  # index into registry.RADIUS_RULES
 DT_TAU = FLOAT_AT["survival", "dt_over_escape_time"]
 
+#: What the corridor stage (risk.kernel_corridor.corridor_keep) says of an agent: nothing
+#: (the other stages judge it), kept as an in-corridor leader, kept as a path crossing
+#: into the corridor, dropped as a follower that cannot reach the ego within the horizon.
+NOT_KEPT, LEADER, CROSSING, BEHIND = 0, 1, 2, 3
+
 #: Segments per chunk of the bounding-box pruning (as risk.geometry.CHUNK_SEGMENTS).
 K = 8
 #: Numpy's pairwise summation block (numpy/core/src/umath/loops_utils.h).

@@ -254,7 +254,7 @@ def test_from_toml_reports_bad_toml_with_the_file(tmp_path):
 
 
 def test_default_config_loads_and_is_the_paper_cascade():
-    config = CascadeConfig.default()
+    config = CascadeConfig.named("survival")
     assert config.stage_names == ("path_distance", "trajectory_distance", "gaussian")
     assert [t.name for t in config.tiers] == ["behavior", "interactive", "cooperative"]
     assert config.baseline_threshold == 1e-25
@@ -602,3 +602,12 @@ def test_without_a_cycle_counter_the_cascade_times_each_stage(monkeypatch):
         np.testing.assert_array_equal(
             getattr(one_pass, name), getattr(per_stage, name), err_msg=name
         )
+
+
+def test_the_default_is_the_planner_calibrated_cascade_with_its_guarantee():
+    config = CascadeConfig.default()
+    assert config == CascadeConfig.named("planner")
+    assert config.corridor is not None and config.stages
+    g = config.guarantee
+    assert {"miss_rate", "confidence", "unit", "units", "statement"} <= set(g)
+    assert "--reference planner" in config.provenance

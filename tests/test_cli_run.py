@@ -43,7 +43,8 @@ def invoke(*args: str):
 
 def test_run_writes_the_recording_beside_the_scene_and_a_table(scene, tmp_path):
     table = tmp_path / "out.parquet"
-    result = invoke("run", scene, "--table", table, "--no-progress")
+    # (the paper's cascade by name: its three stages are checked below)
+    result = invoke("run", scene, "--table", table, "--no-progress", "--cascade", "survival")
     assert result.exit_code == 0, result.output
     rrd = scene.with_suffix(".rrd")
     assert rrd.is_file() and rrd.stat().st_size > 0
@@ -119,7 +120,7 @@ def test_unknown_ego_is_a_one_line_error_and_writes_nothing(scene, tmp_path):
 def test_invalid_cascade_file_names_the_key(scene, tmp_path, edit, message):
     import tomli_w
 
-    data = CascadeConfig.default().to_dict()
+    data = CascadeConfig.named("survival").to_dict()
     data["stages"][1].update(edit)
     bad = tmp_path / "bad.toml"
     bad.write_text(tomli_w.dumps(data))

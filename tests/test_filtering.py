@@ -113,8 +113,9 @@ def test_cascade_answer_matches_run_cascade() -> None:
 @pytest.mark.parametrize(
     ("spec", "name"),
     [("none", "none"), ("cascade", "cascade"), ("nearest:32", "nearest:32"),
-     ("radius:50", "radius:50"), ("model:path_distance", "model:path_distance"),
-     ("model:survival:1e-25", "model:survival")],
+     ("radius:50", "radius:50"), ("model:gaussian", "model:gaussian"),
+     ("model:survival:1e-25", "model:survival"), ("cascade:survival", "cascade:survival"),
+     ("cascade:planner", "cascade:planner")],
 )  # fmt: skip
 def test_parse_filter_forms(spec: str, name: str) -> None:
     assert parse_filter(spec).name == name

@@ -11,7 +11,7 @@ from typing import Any
 
 import click
 
-from risk.cascade import CascadeConfig
+from risk.cascade import NAMED_CASCADES, CascadeConfig
 
 SET_HELP = (
     "Set a model or baseline choice, KEY=VALUE (repeatable), on top of the cascade file's "
@@ -33,3 +33,22 @@ def load_cascade(cascade_file: pathlib.Path | None, sets: Sequence[str] = ()) ->
     on top. A bad key or value raises :class:`risk.settings.SettingsError` (one line)."""
     cascade = CascadeConfig.from_toml(cascade_file) if cascade_file else CascadeConfig.default()
     return cascade.with_settings(list(sets)) if sets else cascade
+
+
+class CascadeFile(click.Path):
+    """``--cascade``: a cascade TOML file, or the name of a shipped one (``planner``,
+    ``survival``: :data:`risk.cascade.NAMED_CASCADES`), as the path of that file."""
+
+    name = "cascade"
+
+    def __init__(self) -> None:
+        super().__init__(exists=True, dir_okay=False, path_type=pathlib.Path)
+
+    def convert(self, value: Any, param: Any, ctx: Any) -> Any:
+        if isinstance(value, str) and value in NAMED_CASCADES:
+            return NAMED_CASCADES[value]
+        return super().convert(value, param, ctx)
+
+
+#: The help text's note on shipped names.
+CASCADE_NAMES_HELP = f"A shipped cascade by name: {', '.join(NAMED_CASCADES)}."

@@ -10,7 +10,7 @@ dataset statistics (:mod:`replay.analysis.stats`) and plots (:mod:`replay.analys
 It also measures what the paper only proposed (Sec. VI): the cascade's false negatives
 against the baseline and its compute against survival analysis on all agents, for
 
-- the **default cascade** (``risk/default_cascade.toml``), calibrated on other synthetic
+- the **default cascade** (``risk/survival_cascade.toml``), calibrated on other synthetic
   scenes (a held-out check: the situation seeds here never equal its calibration seeds);
 - a cascade **calibrated on the first half** of the situations (``replay calibrate``'s
   maths, no false negative allowed) and run on the second half.

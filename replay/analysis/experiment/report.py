@@ -367,7 +367,7 @@ def _cascade_md(result: ExperimentResult, files: dict[str, pathlib.Path]) -> str
     parts = [
         _template("cascade_intro"),
         _cascade_block(
-            "**Default cascade** (`risk/default_cascade.toml`), all situations", s["cascade"]
+            "**Default cascade** (`risk/survival_cascade.toml`), all situations", s["cascade"]
         ),
         _paper_funnel_note(s["cascade"]),
         _img(files, "cascade_funnel.png", "cascade funnel, default cascade"),

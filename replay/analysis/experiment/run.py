@@ -214,7 +214,7 @@ def run_experiment(
     """Generate, replay and analyse the situations (no files written)."""
     if settings.situations < 2:
         raise ReplayError(f"the experiment needs at least 2 situations, got {settings.situations}")
-    cascade = cascade or CascadeConfig.default()
+    cascade = cascade or CascadeConfig.named("survival")  # (the paper's cascade)
     n, workers = settings.situations, max(1, settings.workers)
     load_before = load_average()
     half_n = n // 2 if settings.calibrate_half else n

@@ -32,7 +32,14 @@ import numpy as np
 from replay.core.egos import load_scene
 from replay.core.engine import Stride, seen_from
 from replay.errors import ReplayError
-from replay.planning.compare import compare_plans
+from replay.planning.compare import (
+    EXECUTED_S,
+    changed_within,
+    compare_plans,
+    conflicts,
+    max_shift_m,
+    safety_verdict,
+)
 from replay.planning.errors import NoReferencePath
 from replay.planning.inputs import ego_kind, plan_request, plans_for
 from replay.planning.registry import make_planner
@@ -96,6 +103,7 @@ PLAN_COLUMNS = (
     "n_agents", "filter_ms", "plan_ms", "plan_ok", "changed", "max_shift_m", "why",
     "stops", "lane", "blocking_id", "blocking_dropped", "reason", "target_speed_mps",
     "ego_kind",
+    "ego_speed_mps", "changed_1s", "max_shift_1s_m", "unsafe", "unsafe_agent_id",
 )  # fmt: skip
 
 #: Column types of the tables (columns that may be all null need theirs stated).
@@ -107,6 +115,8 @@ SCHEMA: dict[str, str] = {
     "target_speed_mps": "float", "distance_m": "float", "planner_shift_m": "float",
     "plan_ok": "bool", "changed": "bool", "stops": "bool", "blocking_dropped": "bool",
     "planner_label": "bool", "planner_skipped": "bool", "kept_by_cascade": "bool",
+    "ego_speed_mps": "float", "changed_1s": "bool", "max_shift_1s_m": "float",
+    "unsafe": "bool", "unsafe_agent_id": "int",
 }  # fmt: skip
 
 TRUTH_COLUMNS = (
@@ -213,6 +223,7 @@ def plan_scene(
             "ego_id": ego_id, "frame": index, "t_s": float(frame.t),
             "n_others": int(frame.others.sum()), "target_speed_mps": target,
             "ego_kind": kind,
+            "ego_speed_mps": speed_now,
         }  # fmt: skip
         try:
             request = plan_request(
@@ -226,11 +237,14 @@ def plan_scene(
                     **common, filter=name, n_agents=0, filter_ms=0.0, plan_ms=0.0,
                     plan_ok=False, changed=None, max_shift_m=math.nan, why="",
                     stops=False, lane=0, blocking_id=-1, blocking_dropped=None,
-                    reason=str(exc),
+                    reason=str(exc), changed_1s=None, max_shift_1s_m=math.nan, unsafe=None,
+                    unsafe_agent_id=-1,
                 )  # fmt: skip
             continue
         reference = cold(planner).plan(request)
         _add_plan(plans, common, ALL_AGENTS, request.agents.n, 0.0, reference, reference, None)
+        # the all-agents plan's own conflicts, once for every filter's safety verdict
+        reference_conflicts = conflicts(reference, request.agents, request.ego)
         kept_by: dict[str, np.ndarray] = {}
         for flt in filters:
             answer = flt.apply(frame)
@@ -238,9 +252,13 @@ def plan_scene(
             keep = np.isin(request.agents.ids, answer.kept_ids)
             plan = cold(planner).plan(request.with_agents(request.agents.subset(keep)))
             change = compare_plans(reference, plan, tolerance_m=settings.tolerance_m)
+            verdict = safety_verdict(
+                plan, request.agents, keep, request.ego, reference_conflicts=reference_conflicts
+            )
             _add_plan(
                 plans, common, flt.name, int(keep.sum()), answer.time_ms, plan, reference,
                 change, kept_ids=answer.kept_ids, tolerance=settings.tolerance_m,
+                verdict=verdict,
             )  # fmt: skip
         if truth is not None:
             assert cascade is not None
@@ -273,11 +291,17 @@ def _add_plan(
     *,
     kept_ids: np.ndarray | None = None,
     tolerance: float = 0.0,
+    verdict: Any = None,
 ) -> None:
     if change is None:  # the reference itself: unchanged when it exists, else unknown
         changed, shift, why = (False if plan.ok else None), (0.0 if plan.ok else math.nan), ""
+        changed_1s, shift_1s = changed, shift
+        unsafe, unsafe_agent = (False if plan.ok else None), -1
     else:
         changed, shift, why = change.changed, change.max_shift_m, change.why
+        changed_1s = changed_within(reference, plan, until_s=EXECUTED_S, tolerance_m=tolerance)
+        shift_1s = max_shift_m(reference, plan, until_s=EXECUTED_S) if plan.ok else math.nan
+        unsafe, unsafe_agent = (None, -1) if verdict is None else (verdict.unsafe, verdict.agent_id)
     blocking_dropped = None
     if kept_ids is not None and reference.ok and reference.blocking_id >= 0:
         blocking_dropped = bool(not np.isin(reference.blocking_id, kept_ids))
@@ -285,7 +309,8 @@ def _add_plan(
         **common, filter=name, n_agents=n_agents, filter_ms=filter_ms, plan_ms=plan.plan_ms,
         plan_ok=plan.ok, changed=changed, max_shift_m=float(shift), why=why,
         stops=plan.stops, lane=plan.lane, blocking_id=plan.blocking_id,
-        blocking_dropped=blocking_dropped, reason=plan.reason,
+        blocking_dropped=blocking_dropped, reason=plan.reason, changed_1s=changed_1s,
+        max_shift_1s_m=float(shift_1s), unsafe=unsafe, unsafe_agent_id=unsafe_agent,
     )  # fmt: skip
 
 

@@ -80,6 +80,7 @@ def _open_loop(name: str, entry: dict[str, Any], plots: dict[str, str]) -> list[
             f"- {filt}: the changed frames by the first rule that caught them: {parts}; "
             f"shifts of {_m(shift.get('median'))} m median, {_m(shift.get('p95'))} m p95."
         )
+    lines += _safety_table(entry)
     lines += [
         "",
         "*Blocking agent dropped*: of the frames where the all-agents plan named the agent "
@@ -143,6 +144,34 @@ def _mean_ci(d: dict[str, Any] | None, *, signed: bool = True, digits: int = 3) 
     if ci[0] is not None and ci[1] is not None and math.isfinite(ci[0]):
         text += f" [{ci[0]:{form}}, {ci[1]:{form}}]"
     return text
+
+
+def _safety_table(entry: dict[str, Any]) -> list[str]:
+    """Changed at 0.5, 1 and 2 m and speed-scaled, changed in the first second, unsafe
+    (docs/planners.md, "Is the filtered plan safe?"), with 95 % scene-bootstrap intervals."""
+    rows = {k: f for k, f in entry["filters"].items() if "unsafe" in f}
+    if not rows:
+        return []
+    lines = [
+        "",
+        "Changed at other tolerances, in the executed first second, and unsafe (the filtered "
+        "plan collides with, or comes within 1 s time-to-collision of, an agent the filter "
+        "dropped, where the all-agents plan does not), with 95 % scene-bootstrap intervals:",
+        "",
+        "| filter | changed > 0.5 m | > 1 m | > 2 m | speed-scaled | changed in 1 s | unsafe |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for filt, f in rows.items():
+        at = f["changed_at"]
+        cells = [at["0.5"], at["1"], at["2"], at["speed_scaled"], f["changed_1s"], f["unsafe"]]
+        lines.append(
+            f"| {filt} | " + " | ".join(f"{_pct(c['share'])}{_ci(c['ci95'])}" for c in cells) + " |"
+        )
+    unsafe_counts = ", ".join(
+        f"{k} {f['unsafe']['count']} of {f['unsafe']['n']}" for k, f in rows.items()
+    )
+    lines += ["", f"Unsafe filtered plans: {unsafe_counts}."]
+    return lines
 
 
 def _closed_loop(name: str, closed: dict[str, Any]) -> list[str]:

@@ -50,6 +50,12 @@ from risk.filtering import CascadeFilter
 
 #: Agent-count bins of the timing table (others in the frame).
 COUNT_BINS = (0, 10, 25, 50, 100, 10**9)
+#: The changed share is also reported at these tolerances (m) ...
+SHIFT_TOLERANCES_M = (0.5, 1.0, 2.0)
+#: ... and at a speed-scaled one: the distance the ego travels in this time (one
+#: re-planning period at 10 Hz), at least the run's tolerance. A plan shifted by less is
+#: the same plan executed a re-planning period earlier or later.
+SPEED_SCALED_S = 0.1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -302,6 +308,7 @@ def summarize(tables: PlanTables, *, n_boot: int = 1000, seed: int = 0) -> dict[
                 n_boot=n_boot,
                 seed=seed,
             ),
+            **_safety_shares(rows, comparable, n_boot=n_boot, seed=seed),
             "changed_scenes": comparable.filter(pl.col("changed"))["scene"].n_unique(),
             "changed_why": _why_counts(comparable.filter(pl.col("changed"))),
             "changed_shift_m": _quantiles(
@@ -344,6 +351,39 @@ def summarize(tables: PlanTables, *, n_boot: int = 1000, seed: int = 0) -> dict[
             .iter_rows(named=True)
         }
     return out
+
+
+def _safety_shares(
+    rows: pl.DataFrame, comparable: pl.DataFrame, *, n_boot: int, seed: int
+) -> dict[str, Any]:
+    """The changed share at other tolerances (``changed_at``: 0.5, 1, 2 m and
+    ``speed_scaled``), ``changed_1s`` and ``unsafe``, each with a scene-bootstrap 95 %
+    interval; empty for tables without those columns (runs before issue 37)."""
+    if "unsafe" not in rows.columns or comparable.is_empty():
+        return {}
+    scenes = comparable["scene"].to_numpy()
+    changed = comparable["changed"].to_numpy().astype(bool)
+    decision = ~comparable["why"].fill_null("").str.starts_with("shift").to_numpy()
+    shift = np.nan_to_num(comparable["max_shift_m"].to_numpy().astype(np.float64), nan=np.inf)
+    tolerance = SHIFT_TOLERANCES_M[0]
+    speed = comparable["ego_speed_mps"].to_numpy().astype(np.float64)
+    scaled = np.maximum(tolerance, SPEED_SCALED_S * np.nan_to_num(speed))
+
+    def share(hits: np.ndarray, where: np.ndarray) -> dict[str, Any]:
+        return _share_with_interval(hits, where, n_boot=n_boot, seed=seed)
+
+    at = {
+        f"{tol:g}": share(changed & (decision | (shift > tol)), scenes)
+        for tol in SHIFT_TOLERANCES_M
+    }
+    at["speed_scaled"] = share(changed & (decision | (shift > scaled)), scenes)
+    first = rows.filter(pl.col("changed_1s").is_not_null())
+    judged = rows.filter(pl.col("unsafe").is_not_null())
+    return {
+        "changed_at": at,
+        "changed_1s": share(first["changed_1s"].to_numpy().astype(bool), first["scene"].to_numpy()),
+        "unsafe": share(judged["unsafe"].to_numpy().astype(bool), judged["scene"].to_numpy()),
+    }
 
 
 def _why_counts(changed: pl.DataFrame) -> dict[str, int]:

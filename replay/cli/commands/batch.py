@@ -12,7 +12,7 @@ from replay.batch.engines import check_engine
 from replay.cli.convert_options import time_step_option
 from replay.cli.ego_options import ego_option, every_option
 from replay.cli.limits import WORKERS
-from replay.cli.settings_option import load_cascade, set_option
+from replay.cli.settings_option import CASCADE_NAMES_HELP, CascadeFile, load_cascade, set_option
 from replay.core.egos import ALL_EGOS
 from replay.core.engine import Stride
 from replay.errors import ReplayError
@@ -70,9 +70,9 @@ _FAILURES_SHOWN = 5
 )
 @click.option(
     "--cascade", "cascade_file",
-    type=click.Path(exists=True, dir_okay=False, path_type=pathlib.Path),
+    type=CascadeFile(),
     help="Cascade TOML (stages, thresholds, tiers), e.g. from 'replay calibrate'. "
-    "Default: the calibrated cascade shipped with riskreplay.",
+    "Default: the calibrated cascade shipped with riskreplay. " + CASCADE_NAMES_HELP,
 )  # fmt: skip
 @ego_option("Default: each scene's recorded ego. 'all' cannot go with --rrd.")
 @every_option

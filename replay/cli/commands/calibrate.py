@@ -7,6 +7,7 @@ the report.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import pathlib
 
@@ -34,6 +35,10 @@ from risk.calibration import (
 from risk.cascade import CascadeConfig
 from risk.registry import resolve_models
 
+#: The stages of a planner-calibrated cascade when --stages is not given (after the
+#: corridor stage; docs/cascade.md says why these).
+DEFAULT_PLANNER_STAGES = ("gaussian",)
+
 
 def _parse_list(value: str, what: str) -> list[str]:
     items = [v.strip() for v in value.split(",") if v.strip()]
@@ -57,8 +62,10 @@ def _parse_list(value: str, what: str) -> list[str]:
     "may drop. 0: no stage drops any important agent of the calibration data.",
 )  # fmt: skip
 @click.option(
-    "--stages", default=",".join(DEFAULT_STAGES), show_default=True,
-    help="The filter stages in order, comma-separated model names (see 'replay models').",
+    "--stages", default=None,
+    help="The filter stages in order, comma-separated model names (see 'replay models'). "
+    f"Default: {','.join(DEFAULT_STAGES)}; with --reference planner "
+    f"{','.join(DEFAULT_PLANNER_STAGES)} (after the corridor stage).",
 )  # fmt: skip
 @click.option(
     "--tier-counts", default=",".join(map(str, DEFAULT_TIER_COUNTS)), show_default=True,
@@ -74,25 +81,127 @@ def _parse_list(value: str, what: str) -> list[str]:
     "--note", default="",
     help="A line to keep in the file's provenance, e.g. how the scenes were made.",
 )  # fmt: skip
+@click.option(
+    "--reference", type=click.Choice(["survival", "planner"]), default="survival",
+    show_default=True,
+    help="What the cascade must not drop: agents survival analysis deems important "
+    "(R_S >= 1e-25), or agents a planner reacts to (removing one alone changes its plan).",
+)  # fmt: skip
+@click.option(
+    "--planner", "planners", multiple=True,
+    help="With --reference planner: a planner whose truth counts (repeat for several: "
+    "the cascade keeps what any of them reacts to). See 'replay plan --help'.",
+)  # fmt: skip
+@click.option(
+    "--miss-rate", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.01,
+    show_default=True,
+    help="With --reference planner: the guaranteed bound A on the chance that a new scene "
+    "has a planner-important agent dropped.",
+)  # fmt: skip
+@click.option(
+    "--confidence", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.95,
+    show_default=True, help="With --reference planner: the probability C of that bound.",
+)  # fmt: skip
+@click.option(
+    "--unit", type=click.Choice(["scene", "ego"]), default="scene", show_default=True,
+    help="With --reference planner: the independent unit of the guarantee.",
+)  # fmt: skip
+@click.option(
+    "--corridor/--no-corridor", default=True, show_default=True,
+    help="With --reference planner: lead with the corridor stage (leaders along the "
+    "ego's route and crossing agents; docs/cascade.md).",
+)  # fmt: skip
+@click.option(
+    "--every", "every_s", type=click.FloatRange(0, min_open=True), default=1.0,
+    show_default=True, help="With --reference planner: one ego-frame per this many seconds.",
+)  # fmt: skip
+@click.option(
+    "--holdout", default=None, metavar="auto|SITE,...",
+    help="With --reference planner: calibrate without these recording sites and report on "
+    "them ('auto': the smallest site of every dataset with two or more).",
+)  # fmt: skip
+@click.option(
+    "--leave-one-dataset-out", is_flag=True,
+    help="With --reference planner: also calibrate without each dataset and report on it.",
+)  # fmt: skip
+@click.option(
+    "--scores-cache", type=click.Path(file_okay=False, path_type=pathlib.Path),
+    help="With --reference planner: keep each scene's scores and planner truth here and "
+    "reuse them (a rerun with other --miss-rate, --stages or --holdout plans nothing).",
+)  # fmt: skip
+@click.option(
+    "--report", "report_path", type=click.Path(dir_okay=False, path_type=pathlib.Path),
+    help="With --reference planner: write the guarantee and the held-out figures as JSON.",
+)  # fmt: skip
+@click.option(
+    "--ego", default=None, metavar="ID|all",
+    help="With --reference planner: the ego of every scene (default: the recording's; "
+    "'all': every moving agent, which gives more planner-important agents per scene, not "
+    "more units).",
+)  # fmt: skip
+@click.option(
+    "--preliminary", is_flag=True,
+    help="With --reference planner: mark the file's guarantee as preliminary (status).",
+)  # fmt: skip
+@click.option("--workers", type=click.IntRange(1, 64), default=1, show_default=True,
+              help="Processes for the planner truth.")  # fmt: skip
 @click.option("--progress/--no-progress", default=True, help="Progress bar on stderr.")
 def calibrate(
     scenes: tuple[pathlib.Path, ...],
     output: pathlib.Path,
     max_fn_rate: float,
-    stages: str,
+    stages: str | None,
     tier_counts: str,
     base: pathlib.Path | None,
     note: str,
+    reference: str,
+    planners: tuple[str, ...],
+    miss_rate: float,
+    confidence: float,
+    unit: str,
+    corridor: bool,
+    every_s: float,
+    holdout: str | None,
+    leave_one_dataset_out: bool,
+    scores_cache: pathlib.Path | None,
+    report_path: pathlib.Path | None,
+    ego: str | None,
+    preliminary: bool,
+    workers: int,
     progress: bool,
 ) -> None:
-    """Choose the cascade's thresholds on SCENES so that no stage drops (more than
-    --max-fn-rate of) the agents survival analysis deems important.
+    """Choose the cascade's thresholds on SCENES.
 
-    Over every frame of the scenes, stage 1 gets the highest threshold whose dropped
-    share of baseline-important agents is <= the rate, then stage 2 on what stage 1
-    kept, and so on, as the cascade runs. Prints each stage's threshold and how many
-    agents it removes, and records how the file was made inside it.
+    --reference survival (the default): no stage drops (more than --max-fn-rate of) the
+    agents survival analysis deems important. Over every frame of the scenes, stage 1
+    gets the highest threshold whose dropped share of baseline-important agents is <=
+    the rate, then stage 2 on what stage 1 kept, and so on, as the cascade runs.
+
+    --reference planner: with probability >= --confidence, a new scene like these has
+    a planner-important agent dropped with probability <= --miss-rate (order-statistic
+    rule on scene-level units, Bonferroni over the stages; the guarantee goes into the
+    file). Too few scenes with a planner-important agent is an error saying how many are
+    needed (299 for 1 % at 95 % with one stage). Planner truth comes from 'replay plan
+    --truth's rule: removing the agent alone changes the plan.
+
+    Prints each stage's threshold and how many agents it removes, and records how the
+    file was made inside it.
+
+    \b
+    Example (the shipped planner cascade, recalibrated for your own scenes):
+      replay calibrate scenes/*.mcap --reference planner --planner idm --planner fop \\
+          --miss-rate 0.01 --confidence 0.95 -o my_cascade.toml
     """
+    if reference == "planner":
+        _calibrate_planner(
+            scenes, output, stages, base, note, planners, miss_rate, confidence, unit,
+            corridor, every_s, holdout, leave_one_dataset_out, scores_cache, report_path,
+            workers, progress, ego, preliminary,
+        )  # fmt: skip
+        return
+    if planners:
+        raise click.BadParameter("needs --reference planner", param_hint="--planner")
+    stages = stages or ",".join(DEFAULT_STAGES)
     models = _parse_list(stages, "stage model")
     resolve_models(models)  # an unknown name is an error listing the valid ones
     if len(set(models)) != len(models):
@@ -170,3 +279,116 @@ def _report(config: CascadeConfig, cal: Calibration, data: CalibrationData, mean
         )
     )
     return "\n".join(lines)
+
+
+def _calibrate_planner(
+    scenes: tuple[pathlib.Path, ...],
+    output: pathlib.Path,
+    stages: str | None,
+    base: pathlib.Path | None,
+    note: str,
+    planners: tuple[str, ...],
+    miss_rate: float,
+    confidence: float,
+    unit: str,
+    corridor: bool,
+    every_s: float,
+    holdout: str | None,
+    leave_one_dataset_out: bool,
+    scores_cache: pathlib.Path | None,
+    report_path: pathlib.Path | None,
+    workers: int,
+    progress: bool,
+    ego: str | None = None,
+    preliminary: bool = False,
+) -> None:
+    """``--reference planner``: the guarantee of :mod:`replay.analysis.planner_calibration`."""
+    import json
+
+    from replay.analysis.planner_calibration import (
+        ScoreSettings,
+        cached_scores,
+        collect_scores,
+        format_report,
+        planner_calibration,
+    )
+    from replay.analysis.planner_eval.study import json_safe
+    from replay.planning.registry import available_planners, make_planner
+    from risk.cascade import CorridorSettings
+
+    if not planners:
+        raise click.BadParameter("give at least one --planner NAME", param_hint="--planner")
+    for name in planners:
+        make_planner(name)  # an unknown name is an error listing the valid ones
+        if name not in available_planners():
+            raise ReplayError(f"planner {name!r} needs an optional extra: see 'replay plan --help'")
+    models = _parse_list(stages or ",".join(DEFAULT_PLANNER_STAGES), "stage model")
+    resolve_models(models)
+    if len(set(models)) != len(models):
+        raise click.BadParameter("a model may appear in only one stage", param_hint="--stages")
+    split: list[str] | str | None = None
+    if holdout is not None:
+        split = "auto" if holdout.strip() == "auto" else _parse_list(holdout, "site")
+    for path in (output, report_path):
+        if path is not None and not path.parent.is_dir():
+            raise ReplayError(f"{path}: the folder {path.parent} does not exist")
+    tiers = (CascadeConfig.from_toml(base) if base else CascadeConfig.named("survival")).tiers
+    settings = ScoreSettings(
+        planners=tuple(dict.fromkeys(planners)),
+        corridor=CorridorSettings() if corridor else None,
+        every_s=every_s,
+        ego=_ego_choice(ego),
+    )
+    files = (output,) if report_path is None else (output, report_path)
+    with OutputGuard(inputs=(*scenes, base), files=files):  # before any work
+        if scores_cache is not None:
+            df = cached_scores(scenes, settings, scores_cache, workers=workers, progress=progress)
+        else:
+            df = collect_scores(scenes, settings, workers=workers, progress=progress)
+        result = planner_calibration(
+            df, models, planners=settings.planners, miss_rate=miss_rate, confidence=confidence,
+            unit=unit, corridor=settings.corridor, tiers=tiers, holdout=split,
+            lodo=leave_one_dataset_out,
+        )  # fmt: skip
+        text = format_report(result, settings.planners)
+        command = " ".join(
+            ["replay calibrate", " ".join(p.name for p in scenes[:3])
+             + (f" ... ({len(scenes)} files)" if len(scenes) > 3 else ""),
+             "--reference planner", *(f"--planner {p}" for p in settings.planners),
+             f"--miss-rate {miss_rate:g}", f"--confidence {confidence:g}", f"--unit {unit}",
+             f"--stages {','.join(models)}", f"--every {every_s:g}",
+             *(["--no-corridor"] if not corridor else []),
+             *([f"--holdout {holdout}"] if holdout else []),
+             *([f"--ego {ego}"] if ego else []), *(["--preliminary"] if preliminary else []),
+             f"-o {output.name}"]
+        )  # fmt: skip
+        provenance = "\n".join(
+            [f"Made by: {command}", *([f"Note: {note.strip()}"] if note.strip() else []),
+             f"Model parameters: {model_parameters()}", text]
+        ) + "\n"  # fmt: skip
+        guarantee = dict(result.config.guarantee)
+        if preliminary:
+            guarantee["status"] = "preliminary"
+        config = dataclasses.replace(result.config, provenance=provenance, guarantee=guarantee)
+        write_text(output, config.to_toml_string())
+        if report_path is not None:
+            payload = {
+                "guarantee": result.config.guarantee,
+                "thresholds": {s.model: s.threshold for s in result.config.stages},
+                "calibrated_on": result.calibrated_on,
+                "held_out_sites": list(result.held_out_sites),
+                "held_out": result.held_out,
+                "leave_one_dataset_out": result.leave_one_dataset_out,
+            }
+            write_text(report_path, json.dumps(json_safe(payload), indent=2) + "\n")
+    click.echo(text)
+    click.echo(f"Wrote {output}")
+
+
+def _ego_choice(ego: str | None) -> int | str | None:
+    if ego is None or ego == "all":
+        return ego
+    try:
+        return int(ego)
+    except ValueError:
+        raise click.BadParameter("expected an agent id or 'all'", param_hint="--ego") from None

@@ -22,7 +22,7 @@ from replay.analysis.corpus_evaluation import (
 from replay.analysis.evaluation_run import SensitivityRequest, run_evaluation
 from replay.cli.ego_options import StrideParam, ego_option, every_option
 from replay.cli.limits import RISK_THRESHOLDS, FiniteRange, model_names, refuse_idle
-from replay.cli.settings_option import load_cascade, set_option
+from replay.cli.settings_option import CASCADE_NAMES_HELP, CascadeFile, load_cascade, set_option
 from replay.core.engine import Stride
 from risk.hindsight import HindsightSettings
 
@@ -42,8 +42,9 @@ def _names(text: str | None) -> list[str]:
 )  # fmt: skip
 @click.option("--models", default=None, help="Models to evaluate, comma-separated. Default: all.")
 @click.option(
-    "--cascade", "cascade_file", type=click.Path(exists=True, dir_okay=False, path_type=pathlib.Path),
-    help="Cascade TOML for the scenes. Default: the calibrated cascade shipped with riskreplay.",
+    "--cascade", "cascade_file", type=CascadeFile(),
+    help="Cascade TOML for the scenes. Default: the calibrated cascade shipped with riskreplay. "
+    + CASCADE_NAMES_HELP,
 )  # fmt: skip
 @click.option(
     "--baseline-threshold", type=RISK_THRESHOLDS, default=None,

@@ -65,7 +65,8 @@ from risk.registry import resolve_models
     "--cascade",
     "cascade_file",
     type=click.Path(exists=True, dir_okay=False, path_type=pathlib.Path),
-    help="Cascade TOML to evaluate. Default: the calibrated cascade shipped with riskreplay.",
+    help="Cascade TOML to evaluate. Default: the survival-calibrated cascade shipped with "
+    "riskreplay (the paper's).",
 )
 @click.option(
     "--calibrate-half/--no-calibrate-half",
@@ -111,7 +112,10 @@ def experiment(
       summary.json, roc / errors / funnel / per_frame / per_scene (.parquet and .csv)
     """
     resolve_models([errors_model])
-    cascade = CascadeConfig.from_toml(cascade_file) if cascade_file else CascadeConfig.default()
+    # the paper's experiment: the survival-calibrated cascade unless another is given
+    cascade = (
+        CascadeConfig.from_toml(cascade_file) if cascade_file else CascadeConfig.named("survival")
+    )
     settings = ExperimentSettings(
         situations=situations,
         seed=seed,

@@ -26,7 +26,7 @@ from replay.analysis.planner_eval.study import (
 )
 from replay.cli.ego_options import ego_option, every_option
 from replay.cli.limits import FiniteRange, refuse_idle
-from replay.cli.settings_option import load_cascade, set_option
+from replay.cli.settings_option import CASCADE_NAMES_HELP, CascadeFile, load_cascade, set_option
 from replay.core.engine import Stride
 from replay.core.pool import default_workers
 from replay.errors import ReplayError
@@ -71,8 +71,9 @@ from risk.filtering import FILTER_FORMS
 )  # fmt: skip
 @click.option(
     "--cascade", "cascade_file",
-    type=click.Path(exists=True, dir_okay=False, path_type=pathlib.Path),
-    help="Cascade TOML for the cascade filter (default: the shipped calibrated cascade).",
+    type=CascadeFile(),
+    help="Cascade TOML for the cascade filter (default: the shipped calibrated cascade). "
+    + CASCADE_NAMES_HELP,
 )  # fmt: skip
 @click.option(
     "--truth", is_flag=True,

@@ -8,7 +8,7 @@ from typing import cast
 import click
 
 from replay.cli.ego_options import ego_option, every_option
-from replay.cli.settings_option import load_cascade, set_option
+from replay.cli.settings_option import CASCADE_NAMES_HELP, CascadeFile, load_cascade, set_option
 from replay.core.egos import ALL_EGOS
 from replay.core.engine import Stride
 from replay.core.scene_run import (
@@ -35,9 +35,9 @@ from replay.planning.registry import PLANNERS, make_planner
 )
 @every_option
 @click.option(
-    "--cascade", "cascade_file", type=click.Path(exists=True, dir_okay=False, path_type=pathlib.Path),
+    "--cascade", "cascade_file", type=CascadeFile(),
     help="Cascade TOML (stages, thresholds, tiers), e.g. from 'replay calibrate'. "
-    "Default: the calibrated cascade shipped with riskreplay.",
+    "Default: the calibrated cascade shipped with riskreplay. " + CASCADE_NAMES_HELP,
 )  # fmt: skip
 @click.option(
     "--table", type=click.Path(dir_okay=False, path_type=pathlib.Path),
