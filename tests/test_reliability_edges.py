@@ -374,7 +374,7 @@ def test_time_line_names_what_was_written_not_classes(tmp_path):
 def test_sensitivity_plot_takes_an_interval_that_misses_its_estimate(tmp_path):
     """Issue 31: on two recorded scenes a bootstrap interval lay above its AUC and
     matplotlib raised "'yerr' must not contain negative values"."""
-    from replay.analysis.evaluation_plots import plot_sensitivity
+    from replay.analysis.evaluation.plots import plot_sensitivity
 
     rows = pl.DataFrame({
         "group": ["defaults", "tau"], "variant": ["-", "0.8"],
