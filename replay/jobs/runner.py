@@ -18,7 +18,8 @@ everything that decides a scene's output). The runner (:func:`run_jobs`):
    into the marker and back to the driver;
 3. **lists** every scene that failed in ``OUT/failures.csv`` (input, scene key, stage,
    error type, one line; a header only when none did). Failures never stop the run; a
-   rerun tries them again.
+   rerun tries them again. When no scene is complete the command fails (one line
+   with the first reason) and no ``failures.csv`` is written.
 
 The driver never receives a scene's rows: it reads the part files back (lazily,
 :meth:`JobReport.scan`) in key order, so the result does not depend on the engine or on
@@ -315,7 +316,8 @@ def run_jobs(
     )
     done.sort(key=lambda d: d.ref.key)
     failures.sort(key=lambda f: (f.scene, f.input, f.stage))
-    write_failures_now(out / "failures.csv", failures)
+    if done:  # when nothing is complete the command fails and leaves no file behind
+        write_failures_now(out / "failures.csv", failures)
     return JobReport(out, name, n_workers, done, failures, recomputed, time.perf_counter() - start)
 
 

@@ -124,7 +124,8 @@ def run_evaluation(
             job, scene_refs(found), out_dir, engine=engine.name, workers=engine.workers,
             ray_address=engine.address, progress=progress, desc="evaluate: scenes",
         )  # fmt: skip
-        show(report.describe())
+        if report.failures and report.done:  # at once: the evaluation may yet fail
+            show(report.describe())
         parts = collected_parts(report, cascade)
         agents = evaluation_agents(parts.agents)
         datasets = parts.datasets

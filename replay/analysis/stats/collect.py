@@ -118,7 +118,9 @@ def collected_parts(report: JobReport, cascade: CascadeConfig) -> Collected:
     """The agents and frames of every complete scene of ``report``, read lazily; checks
     that tables given as inputs have the scenes' cascade stages."""
     if not report.done:
-        raise ReplayError(f"every input failed ({len(report.failures)}); see {report.failures_csv}")
+        first = report.failures[0] if report.failures else None
+        why = f": {first.reason}" if first is not None else ""
+        raise ReplayError(f"every input failed ({len(report.failures)}){why}")
     stages, tiers = _names([d.partial for d in report.done], cascade)
     datasets = {s: str(d.partial["dataset"]) for d in report.done for s in d.partial["scenes"]}
     return Collected(report.scan("agents"), report.scan("frames"), stages, tiers, datasets)

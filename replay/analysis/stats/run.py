@@ -108,7 +108,7 @@ def stats_of_inputs(
             job, scene_refs(found), out_dir, engine=engine, workers=workers,
             ray_address=ray_address, progress=progress, desc="stats: scenes",
         )  # fmt: skip
-        if show is not None:
+        if show is not None and report.failures and report.done:  # the stats may yet fail
             show(report.describe())
         parts = collected_parts(report, cascade)
         # The statistics (per-situation sweeps, funnel, per-scene tables) take the

@@ -229,6 +229,8 @@ def evaluate(
         extra_inputs=(cascade_file,), show=click.echo,
     )  # fmt: skip
     click.echo("Time: " + ", ".join(f"{k} {v:.1f} s" for k, v in run.summary["time_s"].items()))
+    if run.jobs is not None:
+        click.echo(f"Scenes: {run.jobs.describe()}")
     click.echo("Wrote:")
     for path in run.files.values():
         click.echo(f"  {path}")

@@ -103,6 +103,8 @@ def stats(
         extra_inputs=(cascade_file,), engine=engine, ray_address=ray_address, show=click.echo,
     )  # fmt: skip
     click.echo(format_stats(result.stats, times))
+    if result.jobs is not None:
+        click.echo(f"Scenes: {result.jobs.describe()}")
     click.echo("Wrote:")
     for path in result.files.values():
         click.echo(f"  {path}")

@@ -1,0 +1,152 @@
+"""The job runner (replay.jobs) under replay evaluate and replay stats: scene identity,
+failures listed while the other scenes complete, reruns that skip complete scenes, and
+the same answers from local processes and from Ray."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import pathlib
+
+import polars as pl
+import pytest
+from click.testing import CliRunner
+from test_cli_evaluate import straight_scene
+
+from converters.scene.writer import write_scene
+from replay.cli.app import main
+from replay.jobs import Inputs, read_failures, resolve_inputs, scene_refs
+
+HAS_RAY = importlib.util.find_spec("ray") is not None
+
+
+def invoke(*args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory):
+    """Three scenes in two datasets (two of them with an agent that comes close)."""
+    root = tmp_path_factory.mktemp("jobs")
+    (root / "setA").mkdir()
+    (root / "setB").mkdir()
+    write_scene(root / "setA" / "S_SiteA-1_1.mcap", straight_scene(crossing=True))
+    write_scene(root / "setA" / "S_SiteA-1_2.mcap", straight_scene())
+    write_scene(root / "setB" / "S_SiteB-2_1.mcap", straight_scene(crossing=True))
+    return root
+
+
+# ---------------------------------------------------------------------- identity
+def test_same_relative_name_under_two_roots_is_two_scenes(tmp_path):
+    for d in ("d1", "d2"):
+        (tmp_path / d / "a").mkdir(parents=True)
+        (tmp_path / d / "a" / "x.mcap").write_bytes(d.encode())
+    refs = scene_refs(resolve_inputs([tmp_path / "d1", tmp_path / "d2"]))
+    assert [r.key for r in refs] == ["d1/a/x", "d2/a/x"]
+
+
+def test_one_folder_keeps_file_names_and_a_scene_beside_a_table_keeps_suffixes(tmp_path):
+    (tmp_path / "x.mcap").write_bytes(b"1")
+    (tmp_path / "y.mcap").write_bytes(b"2")
+    assert [r.key for r in scene_refs(resolve_inputs([tmp_path]))] == ["x", "y"]
+    refs = scene_refs(Inputs((tmp_path / "x.mcap",), (tmp_path / "x.parquet",)))
+    assert [r.key for r in refs] == ["x.mcap", "x.parquet"]
+
+
+def test_the_same_file_given_twice_or_through_a_link_is_read_once(tmp_path):
+    (tmp_path / "data").mkdir()
+    scene = tmp_path / "data" / "x.mcap"
+    scene.write_bytes(b"1")
+    (tmp_path / "link.mcap").symlink_to(scene)
+    os.link(scene, tmp_path / "hard.mcap")
+    found = resolve_inputs(
+        [tmp_path / "data", scene, tmp_path / "link.mcap", tmp_path / "hard.mcap"]
+    )
+    assert found.scenes == (scene,)
+
+
+# ---------------------------------------------------------------------- failures, resume
+def _summary(out: pathlib.Path) -> dict:
+    data = json.loads((out / "summary.json").read_text())
+    data.pop("time_s", None)
+    return data
+
+
+def test_a_failing_scene_is_listed_and_the_others_complete_then_a_rerun_skips(corpus, tmp_path):
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    for f in corpus.rglob("*.mcap"):
+        (scenes / f.name).symlink_to(f)
+    (scenes / "broken.mcap").write_bytes(b"not an mcap file")
+    out = tmp_path / "out"
+    args = ("evaluate", scenes, "-o", out, "--bootstrap", "20", "--no-plots", "--no-progress")
+    first = invoke(*args, "--workers", "2")
+    assert first.exit_code == 0, first.output
+    assert "3 scene(s) computed" in first.output and "1 failed" in first.output
+    [failure] = read_failures(out / "failures.csv")
+    assert failure.scene == "broken" and failure.stage == "read"
+    assert sorted(p.stem for p in (out / "parts" / "agents").glob("*.parquet")) == [
+        "S_SiteA-1_1", "S_SiteA-1_2", "S_SiteB-2_1",
+    ]  # fmt: skip
+    summary = _summary(out)
+    assert summary["scenes"] == 3 and summary["failed_scenes"] == ["broken"]
+    again = invoke(*args, "--workers", "2")
+    assert again.exit_code == 0, again.output
+    assert "0 scene(s) computed, 3 skipped" in again.output
+    assert _summary(out) == summary
+    # Other replay settings: the scenes are recomputed, and the run says so.
+    other = invoke(*args, "--workers", "1", "--every", "2")
+    assert "3 recomputed" in other.output
+
+
+def test_every_scene_failing_is_an_error(tmp_path):
+    (tmp_path / "a.mcap").write_bytes(b"junk")
+    r = invoke("stats", tmp_path / "a.mcap", "-o", tmp_path / "out", "--no-progress")
+    assert r.exit_code == 1 and r.output.startswith("Error: every input failed (1): ")
+    assert r.output.count("\n") == 1 and "a.mcap" in r.output
+    assert not (tmp_path / "out").exists()  # nothing half-written
+
+
+# ---------------------------------------------------------------------- local against Ray
+def _tables(out: pathlib.Path, names: list[str], drop_prefix: str = "") -> dict:
+    tables = {}
+    for name in names:
+        df = pl.read_parquet(out / f"{name}.parquet")
+        tables[name] = df.select([c for c in df.columns if not (drop_prefix and drop_prefix in c)])
+    return tables
+
+
+def _untimed(value):
+    """``value`` without the keys that hold wall-clock times."""
+    if isinstance(value, dict):
+        return {k: _untimed(v) for k, v in value.items() if "time" not in k and k != "compute"}
+    if isinstance(value, list):
+        return [_untimed(v) for v in value]
+    return value
+
+
+@pytest.mark.skipif(not HAS_RAY, reason="ray is not installed (pip install 'riskreplay[ray]')")
+def test_ray_gives_the_local_answers_for_evaluate_and_stats(corpus, tmp_path):
+    runs = {}
+    for engine in ("local", "ray"):
+        ev, st = tmp_path / f"ev-{engine}", tmp_path / f"st-{engine}"
+        common = ("--engine", engine, "--workers", "2", "--no-plots", "--no-progress")
+        r = invoke("evaluate", corpus, "-o", ev, "--bootstrap", "50", *common)
+        assert r.exit_code == 0, r.output
+        assert f"{engine} engine" in r.output
+        r = invoke("stats", corpus, "-o", st, *common)
+        assert r.exit_code == 0, r.output
+        runs[engine] = (ev, st)
+    (ev_l, st_l), (ev_r, st_r) = runs["local"], runs["ray"]
+    assert _summary(ev_l) == _summary(ev_r)
+    names = ["roc", "miss_rates", "budgets", "positives"]
+    for name, df in _tables(ev_l, names).items():
+        assert df.equals(_tables(ev_r, names)[name]), name
+    # Stats: timing fields and columns aside (compute times differ from run to run).
+    stats_l = _untimed(json.loads((st_l / "summary.json").read_text()))
+    assert stats_l == _untimed(json.loads((st_r / "summary.json").read_text()))
+    assert stats_l["cascade"]["stages"]  # the comparison kept the substance
+    for name in ("roc", "errors", "per_scene"):
+        a, b = _tables(st_l, [name], "time")[name], _tables(st_r, [name], "time")[name]
+        assert a.equals(b), name
