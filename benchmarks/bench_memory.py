@@ -13,7 +13,7 @@ computing the summary.
 Usage::
 
     python benchmarks/bench_memory.py --scenes DIR --work DIR [--factors 1,4]
-        [--workers 2] [--bootstrap 200] [--repeat 1]
+        [--workers 2] [--bootstrap 200] [--repeat 1] [--keep-parts]
 """
 
 from __future__ import annotations
@@ -83,6 +83,11 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--bootstrap", type=int, default=200)
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument(
+        "--keep-parts", action="store_true",
+        help="Evaluate into the folders of an earlier run: its scenes are complete, so only "
+        "reading the parts back and the evaluation are measured.",
+    )  # fmt: skip
     args = ap.parse_args()
     scenes = sorted(args.scenes.glob("*.mcap"))
     factors = [int(f) for f in args.factors.split(",")]
@@ -92,8 +97,9 @@ def main() -> None:
     for rep in range(args.repeat):
         for factor in factors:  # the factors take turns in every repeat
             folder = replica(scenes, args.work, factor)
-            out = args.work / f"out-x{factor}-{rep}"
-            shutil.rmtree(out, ignore_errors=True)
+            out = args.work / f"out-x{factor}-{0 if args.keep_parts else rep}"
+            if not args.keep_parts:
+                shutil.rmtree(out, ignore_errors=True)
             cmd = [
                 sys.executable, "-m", "replay", "evaluate", str(folder), "-o", str(out),
                 "--bootstrap", str(args.bootstrap), "--no-plots", "--no-progress",

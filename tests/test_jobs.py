@@ -8,13 +8,16 @@ import importlib.util
 import json
 import os
 import pathlib
+import pickle
 
 import polars as pl
 import pytest
 from click.testing import CliRunner
 from test_cli_evaluate import straight_scene
 
+from converters.scenarionet import MAPPING_FILE, scenario_files
 from converters.scene.writer import write_scene
+from replay.batch import discover
 from replay.cli.app import main
 from replay.jobs import Inputs, read_failures, resolve_inputs, scene_refs
 
@@ -150,3 +153,20 @@ def test_ray_gives_the_local_answers_for_evaluate_and_stats(corpus, tmp_path):
     for name in ("roc", "errors", "per_scene"):
         a, b = _tables(st_l, [name], "time")[name], _tables(st_r, [name], "time")[name]
         assert a.equals(b), name
+
+
+def test_batch_reads_a_file_found_through_a_link_once(tmp_path):
+    (tmp_path / "data").mkdir()
+    scene = tmp_path / "data" / "x.mcap"
+    write_scene(scene, straight_scene(duration_s=1.0))
+    (tmp_path / "link.mcap").symlink_to(scene)
+    found = discover([tmp_path / "data", tmp_path / "link.mcap"])
+    assert [f.path for f in found] == [tmp_path / "data" / "x.mcap"]
+
+
+def test_a_scenarionet_mapping_naming_one_file_twice_converts_it_once(tmp_path):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "a.pkl").write_bytes(b"scenario")
+    (tmp_path / "b.pkl").symlink_to(tmp_path / "sub" / "a.pkl")
+    (tmp_path / MAPPING_FILE).write_bytes(pickle.dumps({"a.pkl": "sub", "b.pkl": ""}))
+    assert scenario_files(tmp_path) == [tmp_path / "b.pkl"]

@@ -40,6 +40,7 @@ from replay.jobs.failures import (
     worker_failure,
     write_failures,
 )
+from replay.jobs.scenes import file_identity
 from risk.cascade import CascadeConfig
 from risk.registry import MODELS
 
@@ -217,8 +218,15 @@ def discover(
         shown = ", ".join(str(i) for i in inputs[:3]) + (", ..." if len(inputs) > 3 else "")
         bad = f"; {len(found.unreadable)} file(s) no converter reads" if found.unreadable else ""
         raise ReplayError(f"no input files ({', '.join(patterns)}) found in {shown}{bad}")
-    # A file found through two inputs (a folder and its sub-folder) is one input.
+    # A file found through two inputs (a folder and its sub-folder, a link) is one input.
     items = sorted({f.path: f for f in reversed(items)}.values(), key=lambda f: f.path)
+    identities: set[tuple[int, int] | str] = set()
+    kept = []
+    for f in items:
+        if file_identity(f.path) not in identities:
+            identities.add(file_identity(f.path))
+            kept.append(f)
+    items = kept
     roots = [pathlib.Path(i).expanduser().absolute() for i in inputs]
     names = _unique_names([f.path for f in items], [r for r in roots if r.is_dir()])
     return [dataclasses.replace(f, name=n.name) for f, n in zip(items, names, strict=True)]

@@ -99,20 +99,26 @@ def resolve_inputs(
             found = [p]
         for f in found:
             (scenes if _kind(f) == "scene" else tables).append(f)
-    return Inputs(tuple(_distinct(scenes)), tuple(_distinct(tables)))
+    return Inputs(tuple(distinct_files(scenes)), tuple(distinct_files(tables)))
 
 
-def _distinct(files: Sequence[pathlib.Path]) -> list[pathlib.Path]:
-    """``files`` without repeats of one file (same device and inode: a symlink, a hard
+def file_identity(path: str | os.PathLike[str]) -> tuple[int, int] | str:
+    """What tells files apart: device and inode (a symlink, a hard link and the file are
+    one), or the absolute path of a path that cannot be read (reported when read)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return os.path.abspath(path)
+    return (st.st_dev, st.st_ino)
+
+
+def distinct_files(files: Sequence[pathlib.Path]) -> list[pathlib.Path]:
+    """``files`` without repeats of one file (:func:`file_identity`: a symlink, a hard
     link, a file given itself and inside its folder); the first path given is kept."""
     seen: set[tuple[int, int] | str] = set()
     out = []
     for f in files:
-        try:
-            st = os.stat(f)
-            identity: tuple[int, int] | str = (st.st_dev, st.st_ino)
-        except OSError:  # reported when read, under its own path
-            identity = str(f.absolute())
+        identity = file_identity(f)
         if identity not in seen:
             seen.add(identity)
             out.append(f)

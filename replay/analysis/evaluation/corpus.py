@@ -253,7 +253,7 @@ def evaluate_table(
             f"unknown calibration site {unknown_sites[0]!r}; the sites are: "
             f"{', '.join(sorted(set(site)))}"
         )
-    scores = {m: df[f"risk_{m}"].to_numpy().astype(np.float64) for m in models}
+    scores = {m: df[f"risk_{m}"].to_numpy().astype(np.float64, copy=False) for m in models}
     situations = (
         df.select(pl.struct("scene", "ego_id", "frame").rank("dense")).to_series().to_numpy()
     )
@@ -281,7 +281,9 @@ def evaluate_table(
         else None
     )
     distance = (
-        df["distance_m"].to_numpy().astype(np.float64) if "distance_m" in df.columns else None
+        df["distance_m"].to_numpy().astype(np.float64, copy=False)
+        if "distance_m" in df.columns
+        else None
     )
     budgets = {
         name: budget_recall(
@@ -329,12 +331,17 @@ def evaluate_table(
     }
 
 
+#: The states of an agent-frame under a reference, as :func:`_state` codes them.
+STATES = {"positive": 1, "negative": 0, "unknown": -1}
+
+
 def _state(reference: np.ndarray) -> np.ndarray:
-    """``(A,)`` 'positive' / 'negative' / 'unknown' of label codes or booleans."""
+    """``(A,)`` int8 state codes (:data:`STATES`) of label codes or booleans (one byte a
+    row: the names as strings took 32 bytes a row per reference)."""
     r = np.asarray(reference)
     if r.dtype == bool:
-        return np.where(r, "positive", "negative")
-    return np.where(r == 1, "positive", np.where(r == 0, "negative", "unknown"))
+        return r.astype(np.int8)
+    return np.where(r == 1, 1, np.where(r == 0, 0, -1)).astype(np.int8)
 
 
 def _count(mask: np.ndarray, agent_key: np.ndarray) -> dict[str, int]:
@@ -357,7 +364,7 @@ def agreement(
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
             table = {
-                f"{sa}/{sb}": int(((states[a] == sa) & (states[b] == sb)).sum())
+                f"{sa}/{sb}": int(((states[a] == STATES[sa]) & (states[b] == STATES[sb])).sum())
                 for sa in ("positive", "negative", "unknown")
                 for sb in ("positive", "negative", "unknown")
             }
@@ -384,18 +391,18 @@ def agreement(
     out["yielded"] = {
         "all": _count(yielded, agent_key),
         **{
-            h: {st: _count(yielded & (states[h] == st), agent_key) for st in
+            h: {st: _count(yielded & (states[h] == STATES[st]), agent_key) for st in
                 ("positive", "negative", "unknown")}
             for h in hind
         },
     }  # fmt: skip
     if "planner" in refs:
-        important = states["planner"] == "positive"
+        important = states["planner"] == STATES["positive"]
         block: dict[str, Any] = {"important": _count(important, agent_key)}
         for h in hind:
-            pos = important & (states[h] == "positive")
-            neg = important & (states[h] == "negative")
-            unk = important & (states[h] == "unknown")
+            pos = important & (states[h] == STATES["positive"])
+            neg = important & (states[h] == STATES["negative"])
+            unk = important & (states[h] == STATES["unknown"])
             block[h] = {
                 "positive": _count(pos, agent_key),
                 "negative": _count(neg, agent_key),
@@ -422,7 +429,7 @@ def composition(df: pl.DataFrame, refs: Mapping[str, np.ndarray]) -> dict[str, A
         st = _state(r)
         out[name] = {}
         for label in ("positive", "negative"):
-            m = st == label
+            m = st == STATES[label]
             block: dict[str, Any] = {"agent_frames": int(m.sum())}
             if m.any():
                 block["median_time_in_scene_s"] = float(np.median(t0[m]))
