@@ -214,11 +214,15 @@ def evaluate_table(
     if "risk_survival" not in agents.columns and "baseline" not in agents.columns:
         raise EvaluationError("the table has neither risk_survival nor baseline")
     df = agents if presorted else agents.sort("scene", "frame", "ego_id", maintain_order=True)
-    scenes = df["scene"].cast(pl.String).to_numpy()
+    # Scene codes follow the sorted names (as np.unique numbers them): the bootstrap's
+    # clusters. Labels are object arrays of shared strings (8 bytes a row; numpy's
+    # fixed-width strings took 4 bytes a character a row).
+    unique_scenes, scene_index = _codes_of(df["scene"].cast(pl.String))
+    scenes = scene_index
     dataset = _datasets(df, datasets)
-    unique_scenes, scene_index = np.unique(scenes, return_inverse=True)
-    site = np.array([site_of(s) for s in unique_scenes], dtype=str)[scene_index]
-    kind = df["kind"].cast(pl.String).fill_null("other").to_numpy().astype(str)
+    site_names = [site_of(s) for s in unique_scenes]
+    site = np.array(site_names, dtype=object)[scene_index]
+    kind = _labels(df["kind"].cast(pl.String).fill_null("other"))
     agent_key = (
         df.select(pl.struct("scene", "ego_id", "agent_id").rank("dense").cast(pl.Int64))
         .to_series()
@@ -245,13 +249,13 @@ def evaluate_table(
     calibration = (
         list(settings.calibration_sites)
         if settings.calibration_sites is not None
-        else default_calibration_sites(list(site))
+        else default_calibration_sites(site_names)
     )
-    unknown_sites = sorted(set(calibration) - set(site))
+    unknown_sites = sorted(set(calibration) - set(site_names))
     if unknown_sites:
         raise EvaluationError(
             f"unknown calibration site {unknown_sites[0]!r}; the sites are: "
-            f"{', '.join(sorted(set(site)))}"
+            f"{', '.join(sorted(set(site_names)))}"
         )
     scores = {m: df[f"risk_{m}"].to_numpy().astype(np.float64, copy=False) for m in models}
     situations = (
@@ -310,7 +314,7 @@ def evaluate_table(
         },
         "hindsight": asdict(hindsight) if hindsight is not None else None,
         "baseline": {"model": "survival", "threshold": settings.baseline_threshold},
-        "scenes": int(np.unique(scenes).size),
+        "scenes": len(unique_scenes),
         "egos": int(df.select(pl.struct("scene", "ego_id").n_unique()).item()),
         "situations": int(df.select(pl.struct("scene", "ego_id", "frame").n_unique()).item()),
         "scenes_shorter_than_horizon": short,
@@ -466,14 +470,26 @@ def _track_flags(df: pl.DataFrame, dataset: np.ndarray) -> dict[str, Any]:
     }
 
 
+def _codes_of(column: pl.Series) -> tuple[list[str], np.ndarray]:
+    """The sorted distinct strings of ``column`` and each row's index among them."""
+    names = sorted(column.unique().to_list())
+    codes = column.replace_strict(names, list(range(len(names))), return_dtype=pl.Int64)
+    return names, codes.to_numpy()
+
+
+def _labels(column: pl.Series) -> np.ndarray:
+    """``column`` (strings, no nulls) as an object array of one string per distinct value."""
+    names, codes = _codes_of(column)
+    return np.array(names, dtype=object)[codes]
+
+
 def _datasets(df: pl.DataFrame, datasets: Mapping[str, str] | None) -> np.ndarray:
     if datasets:
-        return (
-            df["scene"].cast(pl.String).replace_strict(dict(datasets), default="unknown").to_numpy()
-        ).astype(str)
+        scene = df["scene"].cast(pl.String)
+        return _labels(scene.replace_strict(dict(datasets), default="unknown"))
     if "dataset" in df.columns:
-        return df["dataset"].cast(pl.String).fill_null("unknown").to_numpy().astype(str)
-    return np.full(df.height, "unknown")
+        return _labels(df["dataset"].cast(pl.String).fill_null("unknown"))
+    return np.full(df.height, "unknown", dtype=object)
 
 
 def _no_positive_message(df: pl.DataFrame, truth: np.ndarray, hs: HindsightSettings | None) -> str:
