@@ -152,7 +152,7 @@ def run_evaluation(
                 subset, default_agents=agents if same else None,
                 datasets=datasets if same else None, cascade=cascade, hindsight=hs,
                 settings=replace(settings, n_boot=sensitivity.bootstrap),
-                workers=engine.workers or 1, progress=progress, ego=ego,
+                workers=workers, progress=progress, ego=ego,
                 every=sensitivity.every or every,
             )  # fmt: skip
             summary["sensitivity"] = {
