@@ -6,9 +6,9 @@ A :class:`Job` is what a corpus command hands the runner: a module-level functio
 everything that decides a scene's output). The runner (:func:`run_jobs`):
 
 1. **plans**: a scene is *complete*, and skipped, when its marker
-   ``OUT/parts/.done/<key>.json`` is readable, has the job's name and fingerprint, names
+   ``OUT/parts/.done/<job>/<key>.json`` is readable, has the job's name and fingerprint, names
    the same input file with the same size and modification time, and every part file it
-   lists exists with its recorded size. A marker with another fingerprint (the settings
+   lists exists with its recorded size (two jobs can share ``OUT``). A marker with another fingerprint (the settings
    changed) is not an error: that scene is **recomputed**, and the report counts it;
 2. **runs** the other scenes on an engine (:mod:`replay.jobs.engines`: local processes or
    Ray), a few tasks per worker in flight, with a progress bar on a terminal (none into
@@ -172,8 +172,10 @@ def part_path(parts: pathlib.Path, table: str, key: str) -> pathlib.Path:
     return parts / table / f"{_file_key(key)}.parquet"
 
 
-def marker_path(parts: pathlib.Path, key: str) -> pathlib.Path:
-    return parts / ".done" / f"{_file_key(key)}.json"
+def marker_path(parts: pathlib.Path, job: str, key: str) -> pathlib.Path:
+    """A scene's marker, per job: two jobs (a study's open and closed loop) may share an
+    output folder (their tables need distinct names)."""
+    return parts / ".done" / safe_name(job) / f"{_file_key(key)}.json"
 
 
 def _file_key(key: str) -> str:
@@ -193,13 +195,20 @@ def run_task(task: _Task) -> _Outcome:
         tables = {}
         for name, df in output.tables.items():
             path = part_path(parts, name, ref.key)
-            _write_durable(path, lambda tmp, df=df: df.write_parquet(tmp, compression="zstd"))
+            _write_durable(path, _parquet_writer(df))
             tables[name] = str(path)
         done = SceneDone(ref, tables, dict(output.partial), time.perf_counter() - start)
         _write_marker(task, done)
         return _Outcome(done, None)
     except Exception as exc:
         return _Outcome(None, failure_from(str(ref.path), ref.key, stage, exc))
+
+
+def _parquet_writer(df: pl.DataFrame) -> Callable[[str], None]:
+    def write(tmp: str) -> None:
+        df.write_parquet(tmp, compression="zstd")
+
+    return write
 
 
 def _write_durable(path: pathlib.Path, write: Callable[[str], Any]) -> None:
@@ -232,7 +241,7 @@ def _write_marker(task: _Task, done: SceneDone) -> None:
         "seconds": round(done.seconds, 4),
     }
     text = json.dumps(data, indent=1, sort_keys=True, default=str) + "\n"
-    path = marker_path(pathlib.Path(task.parts), task.ref.key)
+    path = marker_path(pathlib.Path(task.parts), task.job, task.ref.key)
     _write_durable(path, lambda tmp: pathlib.Path(tmp).write_text(text, encoding="utf-8"))
 
 
@@ -250,7 +259,7 @@ def completed(job: Job, ref: SceneRef, parts: pathlib.Path) -> SceneDone | str |
     """The scene's result when its parts are complete; ``"stale"`` when they were made
     with other settings; None otherwise (missing, damaged, input changed)."""
     try:
-        data = json.loads(marker_path(parts, ref.key).read_text(encoding="utf-8"))
+        data = json.loads(marker_path(parts, job.name, ref.key).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
     if not isinstance(data, dict) or data.get("format") != MARKER_FORMAT:
@@ -353,7 +362,11 @@ def _execute(
             return "local", 1
         own = isinstance(engine, str)
         n = None if workers is None else min(workers, len(todo))
-        eng = make_engine(engine, workers=n, address=ray_address) if own else engine  # type: ignore[arg-type]
+        eng: Engine = (
+            make_engine(engine, workers=n, address=ray_address)
+            if isinstance(engine, str)
+            else engine
+        )
         try:
             _drive(eng, todo, done, failures, bar)
         except BaseException:
