@@ -19,7 +19,17 @@ from converters.scenarionet import MAPPING_FILE, scenario_files
 from converters.scene.writer import write_scene
 from replay.batch import discover
 from replay.cli.app import main
-from replay.jobs import Inputs, read_failures, resolve_inputs, scene_refs
+from replay.jobs import (
+    Inputs,
+    Job,
+    SceneOutput,
+    SceneRef,
+    fingerprint,
+    read_failures,
+    resolve_inputs,
+    run_jobs,
+    scene_refs,
+)
 
 HAS_RAY = importlib.util.find_spec("ray") is not None
 
@@ -170,3 +180,31 @@ def test_a_scenarionet_mapping_naming_one_file_twice_converts_it_once(tmp_path):
     (tmp_path / "b.pkl").symlink_to(tmp_path / "sub" / "a.pkl")
     (tmp_path / MAPPING_FILE).write_bytes(pickle.dumps({"a.pkl": "sub", "b.pkl": ""}))
     assert scenario_files(tmp_path) == [tmp_path / "b.pkl"]
+
+
+# ---------------------------------------------------------------------- the runner alone
+def killing_job(ref: SceneRef, settings: str) -> SceneOutput:
+    """A job whose worker process dies on the scene named ``settings`` (module-level, so
+    that spawned workers can import it)."""
+    if ref.key == settings:
+        os._exit(3)  # a crash in native code, the out-of-memory killer
+    return SceneOutput(
+        {"rows": pl.DataFrame({"scene": [ref.key], "size": [ref.path.stat().st_size]})}
+    )
+
+
+def test_a_worker_that_dies_is_listed_and_the_others_complete(tmp_path):
+    for name in ("a", "b", "c", "d"):
+        (tmp_path / f"{name}.mcap").write_bytes(name.encode() * 3)
+    refs = scene_refs(resolve_inputs([tmp_path]))
+    job = Job("test", killing_job, "c", fingerprint("test", {"kill": "c"}))
+    report = run_jobs(job, refs, tmp_path / "out", workers=2, progress=False)
+    assert [d.ref.key for d in report.done] == ["a", "b", "d"]
+    [failure] = report.failures
+    assert (failure.scene, failure.stage, failure.error_type) == ("c", "worker", "WorkerDied")
+    assert read_failures(tmp_path / "out" / "failures.csv") == [failure]
+    rows = report.scan("rows").collect()
+    assert rows["scene"].to_list() == ["a", "b", "d"] and rows["size"].to_list() == [3, 3, 3]
+    # The rerun skips the three complete scenes and tries the failed one again.
+    again = run_jobs(job, refs, tmp_path / "out", workers=2, progress=False)
+    assert (again.skipped, again.computed, len(again.failures)) == (3, 0, 1)

@@ -25,7 +25,8 @@ The driver never receives a scene's rows: it reads the part files back (lazily,
 :meth:`JobReport.scan`) in key order, so the result does not depend on the engine or on
 the order in which scenes finished.
 
-With ``engine="local"`` and one worker the scenes run in this process (no spawn).
+With ``engine="local"`` and ``workers=1`` the scenes run in this process (no spawn, no
+pickling; a scene that crashes the interpreter then ends the command, as before).
 """
 
 from __future__ import annotations
@@ -355,7 +356,7 @@ def _execute(
         disable=None if progress else True, dynamic_ncols=True, leave=False,
     )  # fmt: skip
     with bar:
-        if engine == "local" and (workers == 1 or len(todo) == 1) and not ray_address:
+        if engine == "local" and workers == 1 and not ray_address:
             for task in todo:  # one worker: this process (no spawn, no pickling)
                 _collect(task, run_task(task), done, failures)
                 bar.update()
