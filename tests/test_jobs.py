@@ -30,6 +30,7 @@ from replay.jobs import (
     run_jobs,
     scene_refs,
 )
+from replay.jobs.runner import part_path
 
 HAS_RAY = importlib.util.find_spec("ray") is not None
 
@@ -51,6 +52,12 @@ def corpus(tmp_path_factory):
 
 
 # ---------------------------------------------------------------------- identity
+def test_keys_that_differ_only_in_unsafe_characters_get_their_own_part_files(tmp_path):
+    parts = tmp_path / "parts"
+    assert part_path(parts, "t", "a b") != part_path(parts, "t", "a_b")
+    assert part_path(parts, "t", "d1/x") == parts / "t" / "d1" / "x.parquet"
+
+
 def test_same_relative_name_under_two_roots_is_two_scenes(tmp_path):
     for d in ("d1", "d2"):
         (tmp_path / d / "a").mkdir(parents=True)

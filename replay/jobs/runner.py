@@ -180,7 +180,13 @@ def marker_path(parts: pathlib.Path, job: str, key: str) -> pathlib.Path:
 
 
 def _file_key(key: str) -> str:
-    return "/".join(safe_name(p) for p in key.split("/"))
+    """The key as a relative file path: each part :func:`outputs.atomic.safe_name`d; a key
+    that this changes gets 8 hex digits of its hash, so that two keys never share a file
+    (``a b`` and ``a_b``)."""
+    safe = "/".join(safe_name(p) for p in key.split("/"))
+    if safe == key:
+        return safe
+    return f"{safe}-{hashlib.sha256(key.encode()).hexdigest()[:8]}"
 
 
 def run_task(task: _Task) -> _Outcome:
