@@ -5,6 +5,7 @@ an engine, :mod:`replay.jobs`, its tables streamed to ``OUT/parts/``)."""
 
 from __future__ import annotations
 
+import os
 import pathlib
 import time
 from collections.abc import Callable, Sequence
@@ -116,7 +117,10 @@ def stats_of_inputs(
         agents = parts.agents.collect(engine="streaming")
         frames = parts.frames.collect(engine="streaming")
         times["replay / read"] = time.perf_counter() - start
-        done = [str(d.ref.path) for d in report.done]
+        # the inputs as given (scenes first), without those that failed
+        given = {pathlib.Path(os.path.abspath(p)): p for p in (*found.scenes, *found.tables)}
+        complete = {d.ref.path for d in report.done}
+        done = [str(p) for a, p in given.items() if a in complete]
         result = run_stats(
             agents, frames, out_dir, models=models, errors_model=errors_model,
             stage_names=parts.stage_names, tier_names=parts.tier_names, cascade=cascade,
