@@ -212,6 +212,10 @@ def test_a_worker_that_dies_is_listed_and_the_others_complete(tmp_path):
     assert read_failures(tmp_path / "out" / "failures.csv") == [failure]
     rows = report.scan("rows").collect()
     assert rows["scene"].to_list() == ["a", "b", "d"] and rows["size"].to_list() == [3, 3, 3]
-    # The rerun skips the three complete scenes and tries the failed one again.
+    # The rerun skips the three complete scenes and tries the failed one again; a worker
+    # killed mid-write left a temporary file: it goes.
+    stale = tmp_path / "out" / "parts" / "rows" / ".c.parquet.0123456789ab.tmp"
+    stale.write_bytes(b"half")
     again = run_jobs(job, refs, tmp_path / "out", workers=2, progress=False)
+    assert not stale.exists()
     assert (again.skipped, again.computed, len(again.failures)) == (3, 0, 1)

@@ -35,6 +35,7 @@ import hashlib
 import json
 import os
 import pathlib
+import re
 import sys
 import time
 from collections import deque
@@ -316,6 +317,7 @@ def run_jobs(
     keys = [r.key for r in refs]
     if len(set(keys)) != len(keys):
         raise ReplayError("two inputs have the same scene key")  # scene_refs prevents it
+    _remove_stale_temps(parts)
     done: list[SceneDone] = []
     todo: list[_Task] = []
     recomputed = 0
@@ -335,6 +337,19 @@ def run_jobs(
     if done:  # when nothing is complete the command fails and leaves no file behind
         write_failures_now(out / "failures.csv", failures)
     return JobReport(out, name, n_workers, done, failures, recomputed, time.perf_counter() - start)
+
+
+#: The temporary files of outputs.atomic: ``.NAME.<12 hex>.tmp``.
+_TEMP = re.compile(r"^\..+\.[0-9a-f]{12}\.tmp$")
+
+
+def _remove_stale_temps(parts: pathlib.Path) -> None:
+    """Temporary part files of workers killed mid-write in an earlier run (the command's
+    output lock says no other run writes here now)."""
+    if parts.is_dir():
+        for f in parts.rglob(".*.tmp"):
+            if _TEMP.match(f.name):
+                f.unlink(missing_ok=True)
 
 
 def write_failures_now(path: pathlib.Path, failures: Sequence[Failure]) -> None:

@@ -72,6 +72,19 @@ def _quiet(text: str) -> None:
     pass
 
 
+def _check_report_path(report_path: pathlib.Path | None, out_dir: pathlib.Path) -> None:
+    """Refuse a report that would be one of the evaluation's own files, before any scene
+    runs (found at the end, it cost the whole run; issue 36)."""
+    if report_path is None or report_path.absolute().parent != out_dir.absolute():
+        return
+    ours = {"summary.json"} | {f"{t}{s}" for t in EVALUATION_TABLES for s in (".parquet", ".csv")}
+    if report_path.name in ours or report_path.suffix.lower() == ".png":
+        raise EvaluationError(
+            f"{report_path}: two outputs of this command would be written to this one file;"
+            " give each output its own path"
+        )
+
+
 def run_evaluation(
     inputs: Sequence[pathlib.Path],
     out_dir: pathlib.Path,
@@ -108,6 +121,7 @@ def run_evaluation(
             "--sensitivity replays the scenes with other settings; give .mcap scenes, not tables"
         )
     report_dir = None if report_path is None else report_path.with_suffix("")
+    _check_report_path(report_path, out_dir)
     # One guard for every input (the files inside folders too) and every output, the
     # report included: a report given a scene's path replaced that scene (issue 31).
     guard = OutputGuard(
