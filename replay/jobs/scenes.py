@@ -112,6 +112,21 @@ def file_identity(path: str | os.PathLike[str]) -> tuple[int, int] | str:
     return (st.st_dev, st.st_ino)
 
 
+def check_not_outputs(
+    inputs: Inputs, output_dir: pathlib.Path, output_names: Sequence[str]
+) -> None:
+    """Refuse an input that the command would write over (a file named as one of its
+    outputs, ``output_names``, directly in ``output_dir``), before any scene runs: found
+    when the outputs are committed, it came after the parts were written."""
+    out = output_dir.absolute()
+    for f in (*inputs.scenes, *inputs.tables):
+        if f.absolute().parent == out and f.name in output_names:
+            raise ReplayError(
+                f"{out / f.name}: is also an input ({f}); refusing to write over it. Give "
+                "another output folder (-o) or move the input"
+            )
+
+
 def distinct_files(files: Sequence[pathlib.Path]) -> list[pathlib.Path]:
     """``files`` without repeats of one file (:func:`file_identity`: a symlink, a hard
     link, a file given itself and inside its folder); the first path given is kept."""

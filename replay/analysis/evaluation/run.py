@@ -36,6 +36,7 @@ from replay.analysis.evaluation.sensitivity import (
 from replay.analysis.stats.collect import TablesSettings, collected_parts, tables_job
 from replay.core.engine import EVERY_FRAME, Stride
 from replay.jobs import JobReport, resolve_inputs, run_jobs, scene_refs
+from replay.jobs.scenes import check_not_outputs
 from risk.cascade import CascadeConfig
 from risk.hindsight import HindsightSettings
 
@@ -72,13 +73,19 @@ def _quiet(text: str) -> None:
     pass
 
 
+#: The files an evaluation writes into its output folder (besides its plots).
+_OUTPUT_NAMES = (
+    "summary.json",
+    *(f"{t}{x}" for t in EVALUATION_TABLES for x in (".parquet", ".csv")),
+)
+
+
 def _check_report_path(report_path: pathlib.Path | None, out_dir: pathlib.Path) -> None:
     """Refuse a report that would be one of the evaluation's own files, before any scene
     runs (found at the end, it cost the whole run; issue 36)."""
     if report_path is None or report_path.absolute().parent != out_dir.absolute():
         return
-    ours = {"summary.json"} | {f"{t}{s}" for t in EVALUATION_TABLES for s in (".parquet", ".csv")}
-    if report_path.name in ours or report_path.suffix.lower() == ".png":
+    if report_path.name in _OUTPUT_NAMES or report_path.suffix.lower() == ".png":
         raise EvaluationError(
             f"{report_path}: two outputs of this command would be written to this one file;"
             " give each output its own path"
@@ -122,6 +129,7 @@ def run_evaluation(
         )
     report_dir = None if report_path is None else report_path.with_suffix("")
     _check_report_path(report_path, out_dir)
+    check_not_outputs(found, out_dir, _OUTPUT_NAMES)
     # One guard for every input (the files inside folders too) and every output, the
     # report included: a report given a scene's path replaced that scene (issue 31).
     guard = OutputGuard(

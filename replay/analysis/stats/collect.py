@@ -171,7 +171,7 @@ def collect(
     if not refs:
         raise ReplayError("no input")
     outputs = parallel_map(
-        functools.partial(job.run, settings=settings), refs,
+        functools.partial(scene_tables, settings=job.settings), refs,
         workers=min(workers, len(refs)), progress=progress, desc="replaying scenes", unit="scene",
     )  # fmt: skip
     stages, tiers = _names([o.partial for o in outputs], cascade)

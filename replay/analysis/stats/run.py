@@ -20,6 +20,7 @@ from replay.analysis.stats.files import OUTPUT_TABLES, write_stats
 from replay.analysis.stats.plots import plot_all
 from replay.core.engine import Stride
 from replay.jobs import JobReport, resolve_inputs, run_jobs, scene_refs
+from replay.jobs.scenes import check_not_outputs
 from risk.cascade import CascadeConfig
 
 
@@ -95,6 +96,8 @@ def stats_of_inputs(
     found = resolve_inputs(
         list(inputs), output_dir=pathlib.Path(out_dir), output_stems=OUTPUT_TABLES
     )
+    names = ["summary.json", *(f"{t}{x}" for t in OUTPUT_TABLES for x in (".parquet", ".csv"))]
+    check_not_outputs(found, pathlib.Path(out_dir), names)
     guard = OutputGuard(inputs=(*found.scenes, *found.tables, *extra_inputs), folders=(out_dir,))
     with guard:  # checked and locked before the replays; all files appear together
         engine_models = None
