@@ -30,7 +30,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from replay.analysis.inputs import planner_annotators
+from replay.analysis.stats.collect import planner_annotators
 from replay.core.engine import Stride
 from replay.core.pool import parallel_map
 from replay.core.worker import SceneJob, replay_job

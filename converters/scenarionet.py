@@ -156,7 +156,20 @@ def scenario_files(path: str | os.PathLike) -> list[pathlib.Path]:
             f"{path / index}: names {os.path.relpath(missing[0], path)}, which does not exist"
             f"{more}; copy the whole database or rebuild its index"
         )
-    return sorted(set(files))
+    return _distinct(files)
+
+
+def _distinct(files: list[pathlib.Path]) -> list[pathlib.Path]:
+    """Sorted, each file once: an index naming one file twice (through ``..`` or a link)
+    converts it once (the first path in sorted order is kept)."""
+    seen: set[tuple[int, int]] = set()
+    out = []
+    for f in sorted(set(files)):
+        st = f.stat()
+        if (st.st_dev, st.st_ino) not in seen:
+            seen.add((st.st_dev, st.st_ino))
+            out.append(f)
+    return out
 
 
 def _holds_scenarios(folder: pathlib.Path) -> bool:

@@ -43,7 +43,7 @@ ALLOWED_INNER_IMPORTS = {
     # matplotlib (about 1 s to import) only when replay plan writes its plots
     ("replay/analysis/planner_eval/study.py", "replay.analysis.planner_eval"),
     # optional dependency, installed with the 'ray' extra
-    ("replay/batch/engines.py", "ray"),
+    ("replay/jobs/engines.py", "ray"),
     # optional dependency, installed with the 'planner' extra (fiss-planner's Frenet
     # planners); a missing extra is a one-line error naming it
     ("replay/planning/frenet.py", "fiss_planner"),
@@ -58,7 +58,7 @@ ALLOWED_INNER_IMPORTS = {
     ("replay/core/worker.py", "recordings"),
     ("replay/core/scene_run.py", "replay.core.tables"),
     ("replay/core/scene_run.py", "recordings"),
-    ("replay/batch/tasks.py", "recordings.errors"),
+    ("replay/jobs/failures.py", "recordings.errors"),
     # matplotlib (about 1 s) only in the driver, not in every spawned worker
     ("replay/batch/driver.py", "replay.analysis.stats.run"),
     ("replay/analysis/experiment/report.py", "replay.analysis.stats.plots"),

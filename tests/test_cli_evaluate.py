@@ -11,12 +11,8 @@ import pytest
 from click.testing import CliRunner
 
 from converters.scene.writer import write_scene
-from replay.analysis.corpus_evaluation import (
-    EvaluationSettings,
-    collect_agents,
-    evaluate_inputs,
-    site_of,
-)
+from replay.analysis.evaluation.collect import collect_agents, evaluate_inputs
+from replay.analysis.evaluation.corpus import EvaluationSettings, site_of
 from replay.cli.app import main
 from risk.frame import Frame, LaneMap, Scene
 

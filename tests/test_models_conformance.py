@@ -104,7 +104,7 @@ def test_the_registry_drives_colours_titles_and_ranges():
     of names in replay/ (so a new model needs no edit there)."""
     import matplotlib.colors
 
-    from replay.analysis.evaluation_report import TITLES
+    from replay.analysis.evaluation.report import TITLES
     from replay.analysis.stats.plots import MODEL_COLORS
     from replay.core.tablecheck import RANGES
 

@@ -1,4 +1,4 @@
-"""The sensitivity sweep (``replay.analysis.sensitivity``) on a small synthetic corpus, the
+"""The sensitivity sweep (``replay.analysis.evaluation.sensitivity``) on a small synthetic corpus, the
 ``--set`` option of every command, and ``replay evaluate --sensitivity --report``."""
 
 from __future__ import annotations
@@ -12,8 +12,9 @@ import pytest
 from click.testing import CliRunner
 
 from converters.scene.writer import write_scene
-from replay.analysis.corpus_evaluation import EvaluationSettings, collect_agents, evaluate_inputs
-from replay.analysis.sensitivity import (
+from replay.analysis.evaluation.collect import collect_agents, evaluate_inputs
+from replay.analysis.evaluation.corpus import EvaluationSettings
+from replay.analysis.evaluation.sensitivity import (
     Variant,
     affected_models,
     default_variants,

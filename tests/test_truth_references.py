@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from planner_scenes import BEHIND, PARKED_OFF_ROAD, STOPPED, road_map, yielding_road_scene
 
-from replay.analysis.corpus_evaluation import EvaluationSettings, evaluate_table
+from replay.analysis.evaluation.corpus import EvaluationSettings, evaluate_table
 from replay.cli.app import main
 from replay.core.engine import run_scene
 from replay.core.tables import TableSink
@@ -342,7 +342,7 @@ def test_idm_sole_constraints_on_the_road_label_the_standing_car_with_one_plan()
 
 
 def test_dataset_labels_are_references_and_path_source_lists_are_not(yield_table):
-    from replay.analysis.corpus_evaluation import reference_arrays
+    from replay.analysis.evaluation.corpus import reference_arrays
 
     n = yield_table.height
     table = yield_table.with_columns(

@@ -62,7 +62,6 @@ transient (``OSError``, ``MemoryError``) leaves no marker, so the file is conver
 """
 
 from replay.batch.driver import (
-    FAILURE_COLUMNS,
     SCENE_COLUMNS,
     BatchReport,
     BatchSettings,
@@ -70,12 +69,9 @@ from replay.batch.driver import (
     Layout,
     dataset_stats,
     discover,
-    read_failures,
     run_batch,
-    write_failures,
     write_scenes,
 )
-from replay.batch.engines import ENGINES, RAY_MISSING, Engine, RayEngine, make_engine
 from replay.batch.markers import MARKER_FORMAT, completed_conversion, completed_scene
 from replay.batch.records import (
     STAGES,
@@ -88,6 +84,8 @@ from replay.batch.records import (
 )
 from replay.batch.tasks import CONVERT_KINDS, convert_one, replay_one
 from replay.core.pool import LocalEngine, WorkerDied, default_workers
+from replay.jobs.engines import ENGINES, RAY_MISSING, Engine, RayEngine, make_engine
+from replay.jobs.failures import FAILURE_COLUMNS, read_failures, write_failures
 
 __all__ = [
     "CONVERT_KINDS",

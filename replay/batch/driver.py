@@ -3,10 +3,8 @@ the run's tables and the dataset statistics."""
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import hashlib
-import io
 import json
 import os
 import pathlib
@@ -15,7 +13,7 @@ import sys
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import astuple, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any
 
 import polars as pl
@@ -26,7 +24,6 @@ from converters.clock import TimeStep
 from outputs.atomic import safe_name, write_text
 from replay import __version__
 from replay.analysis.stats import DEFAULT_ERRORS_MODEL, concat_agents
-from replay.batch.engines import Engine, make_engine
 from replay.batch.markers import (
     MARKER_FORMAT,
     completed_conversion,
@@ -34,13 +31,20 @@ from replay.batch.markers import (
     fingerprint,
 )
 from replay.batch.records import ConvertTask, Failure, ReplayTask, SceneDone
-from replay.batch.tasks import convert_one, one_line, replay_one
+from replay.batch.tasks import convert_one, replay_one
 from replay.core.engine import EVERY_FRAME, Stride
 from replay.errors import ReplayError
+from replay.jobs.engines import Engine, make_engine
+from replay.jobs.failures import (
+    csv_text,
+    one_line,
+    worker_failure,
+    write_failures,
+)
+from replay.jobs.scenes import file_identity
 from risk.cascade import CascadeConfig
 from risk.registry import MODELS
 
-FAILURE_COLUMNS: tuple[str, ...] = ("input", "scene", "stage", "error_type", "reason")
 SCENE_COLUMNS: tuple[str, ...] = (
     "scene", "input", "status", "frames", "skipped_frames", "agents", "seconds", "table",
     "recording",
@@ -218,8 +222,15 @@ def discover(
         shown = ", ".join(str(i) for i in inputs[:3]) + (", ..." if len(inputs) > 3 else "")
         bad = f"; {len(found.unreadable)} file(s) no converter reads" if found.unreadable else ""
         raise ReplayError(f"no input files ({', '.join(patterns)}) found in {shown}{bad}")
-    # A file found through two inputs (a folder and its sub-folder) is one input.
+    # A file found through two inputs (a folder and its sub-folder, a link) is one input.
     items = sorted({f.path: f for f in reversed(items)}.values(), key=lambda f: f.path)
+    identities: set[tuple[int, int] | str] = set()
+    kept = []
+    for f in items:
+        if file_identity(f.path) not in identities:
+            identities.add(file_identity(f.path))
+            kept.append(f)
+    items = kept
     roots = [pathlib.Path(i).expanduser().absolute() for i in inputs]
     names = _unique_names([f.path for f in items], [r for r in roots if r.is_dir()])
     return [dataclasses.replace(f, name=n.name) for f, n in zip(items, names, strict=True)]
@@ -514,7 +525,7 @@ def _postfix(bar: Any, run: _Run, converting: int) -> None:
 def _converted(run: _Run, task: ConvertTask, outcome: Any) -> list[ReplayTask]:
     """Record a conversion's outcome; the replay tasks of the scenes it wrote."""
     if isinstance(outcome, BaseException):
-        run.failures.append(_worker_failure(task.input, "", outcome))
+        run.failures.append(worker_failure(task.input, "", outcome))
         return []
     run.failures += outcome.failures
     return [run.replay_task(name, task.input, pathlib.Path(p)) for name, p in outcome.scenes]
@@ -522,23 +533,11 @@ def _converted(run: _Run, task: ConvertTask, outcome: Any) -> list[ReplayTask]:
 
 def _replayed(run: _Run, task: ReplayTask, outcome: Any) -> None:
     if isinstance(outcome, BaseException):
-        run.failures.append(_worker_failure(task.input, task.name, outcome))
+        run.failures.append(worker_failure(task.input, task.name, outcome))
     elif outcome.failure is not None:
         run.failures.append(outcome.failure)
     else:
         run.done.append(outcome.done)
-
-
-def _worker_failure(input_: str, scene: str, exc: BaseException) -> Failure:
-    reason = one_line(str(exc)) or type(exc).__name__
-    return Failure(input_, scene, "worker", type(exc).__name__, reason)
-
-
-def write_failures(path: pathlib.Path, failures: Iterable[Failure]) -> None:
-    """``failures.csv``: one row per failure (a header only when nothing failed)."""
-    rows = [astuple(f) for f in failures]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_text(path, _csv_text(FAILURE_COLUMNS, rows))
 
 
 def write_scenes(
@@ -554,21 +553,7 @@ def write_scenes(
     rows += [(f.scene, f.input, "failed", "", "", "", "", "", "") for f in failures if f.scene]
     rows.sort(key=lambda r: r[0])
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_text(path, _csv_text(SCENE_COLUMNS, rows))
-
-
-def _csv_text(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(header)
-    writer.writerows(rows)
-    return buf.getvalue()
-
-
-def read_failures(path: str | os.PathLike[str]) -> list[Failure]:
-    """The rows of a ``failures.csv``."""
-    with open(path, newline="", encoding="utf-8") as fh:
-        return [Failure(**row) for row in csv.DictReader(fh)]
+    write_text(path, csv_text(SCENE_COLUMNS, rows))
 
 
 def dataset_stats(

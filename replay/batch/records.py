@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from replay.core.engine import EVERY_FRAME, Stride
+from replay.jobs.failures import Failure
 from risk.cascade import CascadeConfig
 
 STAGES: tuple[str, ...] = ("setup", "convert", "read", "replay", "record", "write", "worker")
@@ -13,16 +14,15 @@ STAGES: tuple[str, ...] = ("setup", "convert", "read", "replay", "record", "writ
 package), converting, reading the MCAP, replaying (models, cascade, missing ego), writing
 the recording, writing the tables or marker, and the worker process itself dying."""
 
-
-@dataclass(frozen=True)
-class Failure:
-    """One failed scene (or input): a row of ``failures.csv``."""
-
-    input: str  # the file the user's inputs named
-    scene: str  # the scene's name; "" when the whole input failed before naming scenes
-    stage: str  # one of STAGES
-    error_type: str  # exception class name
-    reason: str  # one line
+__all__ = [
+    "STAGES",
+    "ConvertOutcome",
+    "ConvertTask",
+    "Failure",
+    "ReplayOutcome",
+    "ReplayTask",
+    "SceneDone",
+]
 
 
 @dataclass(frozen=True)

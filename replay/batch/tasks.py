@@ -11,11 +11,9 @@ import contextlib
 import pathlib
 import sys
 import time
-import traceback
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING
 
-from converters.scene.errors import SceneFormatError
 from converters.scene.reader import open_scene
 from converters.sources import SOURCES, ReadOptions, SourceInput, SourceSpec
 from converters.tracks import Skipped
@@ -31,7 +29,7 @@ from replay.batch.records import (
 )
 from replay.core.egos import ALL_EGOS
 from replay.core.worker import replay_scene
-from risk.errors import RiskReplayError
+from replay.jobs.failures import failure_from, one_line
 
 if TYPE_CHECKING:
     from risk.frame import Scene
@@ -172,35 +170,3 @@ def _scene_name(task: ConvertTask, scene: Scene, label: str, used: set[str]) -> 
         name = f"{name}-{label.rsplit('-', 1)[-1]}"
     used.add(name)
     return name
-
-
-def failure_from(input_: str, scene: str, stage: str, exc: BaseException) -> Failure:
-    """A Failure from an exception; the stage follows the exception type where it says
-    more than the step we were in (a damaged MCAP found mid-replay is a read error)."""
-    # Imported on a failure only: the recordings package loads rerun (about 1 s with
-    # ``python -X importtime``), which a worker that writes no recording need not pay.
-    from recordings.errors import RecordingError
-
-    if isinstance(exc, SceneFormatError):
-        stage = "read"
-    elif isinstance(exc, RecordingError):
-        stage = "record"
-    reason = one_line(str(exc)) or type(exc).__name__
-    if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in reason:
-        reason = f"{reason}: {exc.filename}"
-    if not isinstance(exc, (RiskReplayError, OSError)):
-        reason += _where(exc)  # an unexpected error: say where, for a bug report
-    return Failure(input_, scene, stage, type(exc).__name__, reason)
-
-
-def one_line(text: str, limit: int = 400) -> str:
-    line = " ".join(text.split())
-    return line if len(line) <= limit else line[: limit - 3] + "..."
-
-
-def _where(exc: BaseException) -> str:
-    frames = traceback.extract_tb(exc.__traceback__)
-    if not frames:
-        return ""
-    last = frames[-1]
-    return f" (at {pathlib.Path(last.filename).name}:{last.lineno} in {last.name})"

@@ -1,22 +1,26 @@
 """Compute, write and plot the statistics of collected tables: the shared tail of
 ``replay stats``, ``replay batch`` and (for its tables) ``replay experiment``; and
-``replay stats``' workflow from its inputs (:func:`stats_of_inputs`)."""
+``replay stats``' workflow from its inputs (:func:`stats_of_inputs`: every scene a job on
+an engine, :mod:`replay.jobs`, its tables streamed to ``OUT/parts/``)."""
 
 from __future__ import annotations
 
+import os
 import pathlib
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import polars as pl
 
 from outputs.transaction import OutputGuard
-from replay.analysis.inputs import collect, resolve_inputs
+from replay.analysis.stats.collect import TablesSettings, collected_parts, tables_job
 from replay.analysis.stats.compute import DatasetStats, compute_stats
 from replay.analysis.stats.files import OUTPUT_TABLES, write_stats
 from replay.analysis.stats.plots import plot_all
 from replay.core.engine import Stride
+from replay.jobs import JobReport, resolve_inputs, run_jobs, scene_refs
+from replay.jobs.scenes import check_not_outputs
 from risk.cascade import CascadeConfig
 
 
@@ -24,6 +28,7 @@ from risk.cascade import CascadeConfig
 class StatsRun:
     stats: DatasetStats
     files: dict[str, pathlib.Path]
+    jobs: JobReport | None = None
 
 
 def run_stats(
@@ -71,38 +76,60 @@ def stats_of_inputs(
     cascade: CascadeConfig,
     models: Sequence[str] | None,
     errors_model: str,
-    workers: int,
+    workers: int | None,
     progress: bool,
     ego: int | str | None = None,
     every: int | Stride = 1,
     plots: bool = True,
     extra_inputs: Sequence[pathlib.Path | None] = (),
+    engine: str = "local",
+    ray_address: str | None = None,
+    show: Callable[[str], None] | None = None,
 ) -> tuple[StatsRun, dict[str, float]]:
-    """``replay stats``: replay the scenes (in parallel) and read the tables of ``inputs``,
-    then compute, write and plot their statistics into ``out_dir``, all or nothing
-    (:class:`outputs.transaction.OutputGuard`; ``extra_inputs``, a cascade file, are
-    refused as outputs too). Returns the run and each step's wall time."""
+    """``replay stats``: replay the scenes and read the tables of ``inputs`` as jobs on
+    ``engine`` (their tables go to ``OUT/parts/`` as they finish; complete scenes of an
+    earlier run are skipped; failures are listed in ``OUT/failures.csv`` and left out),
+    then compute, write and plot their statistics into ``out_dir``
+    (:class:`outputs.transaction.OutputGuard`: these files appear together;
+    ``extra_inputs``, a cascade file, are refused as outputs too). Returns the run and
+    each step's wall time."""
     found = resolve_inputs(
         list(inputs), output_dir=pathlib.Path(out_dir), output_stems=OUTPUT_TABLES
     )
+    names = ["summary.json", *(f"{t}{x}" for t in OUTPUT_TABLES for x in (".parquet", ".csv"))]
+    check_not_outputs(found, pathlib.Path(out_dir), names)
     guard = OutputGuard(inputs=(*found.scenes, *found.tables, *extra_inputs), folders=(out_dir,))
     with guard:  # checked and locked before the replays; all files appear together
         engine_models = None
         if models is not None:
-            engine_models = list(dict.fromkeys([*models, errors_model, "survival"]))
+            engine_models = tuple(dict.fromkeys([*models, errors_model, "survival"]))
         times: dict[str, float] = {}
         start = time.perf_counter()
-        agents, frames, stage_names, tier_names = collect(
-            found, cascade, models=engine_models, workers=workers, progress=progress,
-            ego=ego, every=Stride.of(every),
+        job = tables_job(
+            TablesSettings(cascade=cascade, models=engine_models, ego=ego, every=Stride.of(every))
+        )
+        report = run_jobs(
+            job, scene_refs(found), out_dir, engine=engine, workers=workers,
+            ray_address=ray_address, progress=progress, desc="stats: scenes",
         )  # fmt: skip
+        if show is not None and report.failures and report.done:  # the stats may yet fail
+            show(report.describe())
+        parts = collected_parts(report, cascade)
+        # The statistics (per-situation sweeps, funnel, per-scene tables) take the
+        # tables whole; the evaluation reads only its columns (evaluation_agents).
+        agents = parts.agents.collect(engine="streaming")
+        frames = parts.frames.collect(engine="streaming")
         times["replay / read"] = time.perf_counter() - start
+        # the inputs as given (scenes first), without those that failed
+        given = {pathlib.Path(os.path.abspath(p)): p for p in (*found.scenes, *found.tables)}
+        complete = {d.ref.path for d in report.done}
+        done = [str(p) for a, p in given.items() if a in complete]
         result = run_stats(
             agents, frames, out_dir, models=models, errors_model=errors_model,
-            stage_names=stage_names, tier_names=tier_names, cascade=cascade,
-            inputs=[str(p) for p in (*found.scenes, *found.tables)], plots=plots, times=times,
+            stage_names=parts.stage_names, tier_names=parts.tier_names, cascade=cascade,
+            inputs=done, plots=plots, times=times,
         )  # fmt: skip
-    return result, times
+    return StatsRun(result.stats, result.files, report), times
 
 
 #: How this AUC is computed, and why ``replay evaluate``'s differs (0.615 against 0.771

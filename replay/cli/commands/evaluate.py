@@ -1,10 +1,10 @@
 """``replay evaluate``: every model against the survival baseline and against what really
 happened (the hindsight truth), over scenes or tables, with scene-bootstrap intervals.
 
-The workflow is :func:`replay.analysis.evaluation_run.run_evaluation`; the corpus steps
-(including :func:`replay.analysis.corpus_evaluation.evaluate_inputs`, the evaluation
-without writing files) are :mod:`replay.analysis.corpus_evaluation`; the sensitivity
-sweep is :mod:`replay.analysis.sensitivity`."""
+The workflow is :func:`replay.analysis.evaluation.run.run_evaluation` (the scenes as jobs
+on :mod:`replay.jobs`); the corpus steps are :mod:`replay.analysis.evaluation.corpus`
+(:func:`replay.analysis.evaluation.collect.evaluate_inputs`: the evaluation without
+writing files); the sensitivity sweep is :mod:`replay.analysis.evaluation.sensitivity`."""
 
 from __future__ import annotations
 
@@ -13,14 +13,16 @@ import sys
 
 import click
 
-from replay.analysis.corpus_evaluation import (
+from replay.analysis.evaluation.corpus import (
     DEFAULT_GROUPINGS,
     GROUPINGS,
     HINDSIGHT_WINDOWS,
     EvaluationSettings,
+    check_groupings,
 )
-from replay.analysis.evaluation_run import SensitivityRequest, run_evaluation
+from replay.analysis.evaluation.run import EngineChoice, SensitivityRequest, run_evaluation
 from replay.cli.ego_options import StrideParam, ego_option, every_option
+from replay.cli.engine_options import check_engine_options, engine_options
 from replay.cli.limits import RISK_THRESHOLDS, FiniteRange, model_names, refuse_idle
 from replay.cli.settings_option import CASCADE_NAMES_HELP, CascadeFile, load_cascade, set_option
 from replay.core.engine import Stride
@@ -96,8 +98,7 @@ def _names(text: str | None) -> list[str]:
 @ego_option("Default: each scene's recorded ego. Applies to scenes, not to tables.")
 @every_option
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the bootstrap.")
-@click.option("--workers", type=click.IntRange(min=1), default=None,
-              help="Processes replaying scenes in parallel. Default: the number of CPUs.")  # fmt: skip
+@engine_options
 @click.option(
     "--sensitivity/--no-sensitivity", default=False, show_default=True,
     help="Also run the sensitivity sweep over the baseline's choices (survival threshold, "
@@ -149,6 +150,8 @@ def evaluate(
     workers: int | None,
     plots: bool,
     progress: bool,
+    engine: str = "local",
+    ray_address: str | None = None,
     sensitivity: bool = False,
     sensitivity_bootstrap: int = 200,
     sensitivity_every: Stride | None = None,
@@ -182,9 +185,13 @@ def evaluate(
       positives.parquet/.csv    every agent that really came close, and what dropped it
       roc_hindsight.png, miss_rate_by_<grouping>.png, budget_<reference>.png
 
-    Exits non-zero when no reference has a positive.
+      failures.csv              the scenes that failed (one line each; left out)
+      parts/                    every scene's tables and its done-marker: a rerun into
+                                OUTPUT skips complete scenes (see docs/batch.md)
+
+    Exits non-zero when no reference has a positive or every scene failed; scenes that
+    fail while others succeed are listed (and in failures.csv), with exit code 0.
     """
-    from replay.analysis.corpus_evaluation import check_groupings
     from replay.core.pool import default_workers
     from risk.registry import resolve_models
 
@@ -193,6 +200,8 @@ def evaluate(
         "sensitivity_scenes",
     )  # fmt: skip
     refuse_idle("--report", report_path is not None, "report_note")
+    check_engine_options(engine, ray_address)
+
     names = model_names(models)
     chosen = tuple(resolve_models(names)) if names is not None else None
     by = check_groupings(_names(groupings))
@@ -223,11 +232,13 @@ def evaluate(
         hindsight=HindsightSettings(**custom) if custom else None,
         workers=workers or default_workers(), progress=progress, ego=ego, every=every,
         plots=plots, sensitivity=sweep, report_path=report_path, planner=planner,
-        report_note=report_note,
+        report_note=report_note, engine=EngineChoice(engine, workers, ray_address),
         command=" ".join(["replay", "evaluate", *sys.argv[2:]]) if len(sys.argv) > 1 else "",
         extra_inputs=(cascade_file,), show=click.echo,
     )  # fmt: skip
     click.echo("Time: " + ", ".join(f"{k} {v:.1f} s" for k, v in run.summary["time_s"].items()))
+    if run.jobs is not None:
+        click.echo(f"Scenes: {run.jobs.describe()}")
     click.echo("Wrote:")
     for path in run.files.values():
         click.echo(f"  {path}")

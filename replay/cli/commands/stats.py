@@ -10,10 +10,10 @@ import click
 from replay.analysis.stats import DEFAULT_ERRORS_MODEL
 from replay.analysis.stats.run import format_stats, stats_of_inputs
 from replay.cli.ego_options import ego_option, every_option
-from replay.cli.limits import WORKERS, model_names
+from replay.cli.engine_options import check_engine_options, engine_options
+from replay.cli.limits import model_names
 from replay.cli.settings_option import load_cascade, set_option
 from replay.core.engine import Stride
-from replay.core.pool import default_workers
 from risk.registry import resolve_models
 
 
@@ -48,12 +48,7 @@ from risk.registry import resolve_models
     help="Cascade TOML for the scenes (and the tier order of CSV tables). "
     "Default: the calibrated cascade shipped with riskreplay.",
 )
-@click.option(
-    "--workers",
-    type=WORKERS,
-    default=None,
-    help="Processes replaying scenes in parallel. Default: the number of CPUs.",
-)
+@engine_options
 @ego_option("Default: each scene's recorded ego. Applies to scenes, not to tables.")
 @every_option
 @click.option("--plots/--no-plots", default=True, show_default=True, help="Write the PNG plots.")
@@ -72,6 +67,8 @@ def stats(
     every: Stride,
     plots: bool,
     progress: bool,
+    engine: str = "local",
+    ray_address: str | None = None,
     sets: tuple[str, ...] = (),
 ) -> None:
     """How well each risk model filters against the survival baseline, over a dataset.
@@ -89,17 +86,25 @@ def stats(
       per_frame, per_scene    one row per situation / scene (.parquet and .csv)
       summary.json            AUC, std of TPR at TPR 0.95 and 1, kept agents, counts
       roc.png, errors.png, cascade_funnel.png
+      failures.csv            the inputs that failed (one line each; left out)
+      parts/                  every scene's tables and done-marker: a rerun skips
+                              complete scenes (see docs/batch.md)
+
+    Exits non-zero when every input failed.
     """
+    check_engine_options(engine, ray_address)
     names = model_names(models)
     chosen = resolve_models(names) if names is not None else None
     resolve_models([errors_model])
     cascade = load_cascade(cascade_file, sets)
     result, times = stats_of_inputs(
         inputs, out_dir, cascade=cascade, models=chosen, errors_model=errors_model,
-        workers=workers or default_workers(), progress=progress, ego=ego, every=every,
-        plots=plots, extra_inputs=(cascade_file,),
+        workers=workers, progress=progress, ego=ego, every=every, plots=plots,
+        extra_inputs=(cascade_file,), engine=engine, ray_address=ray_address, show=click.echo,
     )  # fmt: skip
     click.echo(format_stats(result.stats, times))
+    if result.jobs is not None:
+        click.echo(f"Scenes: {result.jobs.describe()}")
     click.echo("Wrote:")
     for path in result.files.values():
         click.echo(f"  {path}")

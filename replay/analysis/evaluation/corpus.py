@@ -1,21 +1,15 @@
 """Outcome evaluation of a corpus: every model against the survival baseline and against
 what really happened (the hindsight truth), with scene-bootstrap intervals.
 
-The input is an agents table (the columns of ``replay run --table`` plus ``scene``, as
-``replay stats`` collects them, see :func:`replay.analysis.inputs.collect`);
+The input is an agents table (the columns of ``replay run --table`` plus ``scene``, one
+scene's part after another, see :mod:`replay.analysis.evaluation.collect`);
 :func:`evaluate_table` turns it into arrays and calls the pure
-:func:`risk.evaluation.evaluate_references`; :func:`write_evaluation` writes
-``summary.json``, tables and plots. ``docs/evaluation.md`` describes every field.
-
-Replaying scenes or reading tables first (``replay stats``' input collection,
-:mod:`replay.analysis.inputs`) is :func:`evaluate_inputs`.
+:func:`risk.evaluation.evaluate_references`; :mod:`replay.analysis.evaluation.files`
+writes ``summary.json``, tables and plots. ``docs/evaluation.md`` describes every field.
 """
 
 from __future__ import annotations
 
-import json
-import math
-import os
 import pathlib
 import re
 from collections.abc import Mapping, Sequence
@@ -26,23 +20,16 @@ import numpy as np
 import polars as pl
 
 from converters.tracks import PATH_SOURCE_LABELS
-from outputs.atomic import atomic_output
-from replay.analysis.evaluation_plots import plot_budgets, plot_evaluation
-from replay.analysis.inputs import collect, resolve_inputs, scene_names
-from replay.core.engine import Stride
 from replay.errors import ReplayError
 from risk.budgets import budget_recall
-from risk.cascade import CascadeConfig
 from risk.evaluation import (
     FPR_POINTS,
     TPR_TARGETS,
     bootstrap_weights,
     evaluate_references,
-    pooled_roc,
     reference_counts,
 )
 from risk.hindsight import HindsightSettings
-from risk.prediction import PredictionSettings
 from risk.registry import BASELINE_THRESHOLD, MODELS
 
 #: Groupings the evaluation can break results down by.
@@ -190,8 +177,13 @@ def evaluate_table(
     datasets: Mapping[str, str] | None = None,
     hindsight: HindsightSettings | None = None,
     inputs: Sequence[str] = (),
+    presorted: bool = False,
 ) -> dict[str, Any]:
     """The evaluation summary of an agents table (one row per scene, frame, ego, agent).
+
+    ``presorted``: the rows are sorted by scene, frame and ego already (stable), as
+    :func:`replay.analysis.evaluation.collect.evaluation_agents` reads them: no second
+    copy is made.
 
     ``datasets``: scene name -> dataset (default: the ``dataset`` column, else
     ``unknown``); ``hindsight``: the settings the truth columns were made with (recorded
@@ -221,12 +213,16 @@ def evaluate_table(
             )
     if "risk_survival" not in agents.columns and "baseline" not in agents.columns:
         raise EvaluationError("the table has neither risk_survival nor baseline")
-    df = agents.sort("scene", "frame", "ego_id", maintain_order=True)
-    scenes = df["scene"].cast(pl.String).to_numpy()
+    df = agents if presorted else agents.sort("scene", "frame", "ego_id", maintain_order=True)
+    # Scene codes follow the sorted names (as np.unique numbers them): the bootstrap's
+    # clusters. Labels are object arrays of shared strings (8 bytes a row; numpy's
+    # fixed-width strings took 4 bytes a character a row).
+    unique_scenes, scene_index = _codes_of(df["scene"].cast(pl.String))
+    scenes = scene_index
     dataset = _datasets(df, datasets)
-    unique_scenes, scene_index = np.unique(scenes, return_inverse=True)
-    site = np.array([site_of(s) for s in unique_scenes], dtype=str)[scene_index]
-    kind = df["kind"].cast(pl.String).fill_null("other").to_numpy().astype(str)
+    site_names = [site_of(s) for s in unique_scenes]
+    site = np.array(site_names, dtype=object)[scene_index]
+    kind = _labels(df["kind"].cast(pl.String).fill_null("other"))
     agent_key = (
         df.select(pl.struct("scene", "ego_id", "agent_id").rank("dense").cast(pl.Int64))
         .to_series()
@@ -253,15 +249,15 @@ def evaluate_table(
     calibration = (
         list(settings.calibration_sites)
         if settings.calibration_sites is not None
-        else default_calibration_sites(list(site))
+        else default_calibration_sites(site_names)
     )
-    unknown_sites = sorted(set(calibration) - set(site))
+    unknown_sites = sorted(set(calibration) - set(site_names))
     if unknown_sites:
         raise EvaluationError(
             f"unknown calibration site {unknown_sites[0]!r}; the sites are: "
-            f"{', '.join(sorted(set(site)))}"
+            f"{', '.join(sorted(set(site_names)))}"
         )
-    scores = {m: df[f"risk_{m}"].to_numpy().astype(np.float64) for m in models}
+    scores = {m: df[f"risk_{m}"].to_numpy().astype(np.float64, copy=False) for m in models}
     situations = (
         df.select(pl.struct("scene", "ego_id", "frame").rank("dense")).to_series().to_numpy()
     )
@@ -289,7 +285,9 @@ def evaluate_table(
         else None
     )
     distance = (
-        df["distance_m"].to_numpy().astype(np.float64) if "distance_m" in df.columns else None
+        df["distance_m"].to_numpy().astype(np.float64, copy=False)
+        if "distance_m" in df.columns
+        else None
     )
     budgets = {
         name: budget_recall(
@@ -316,7 +314,7 @@ def evaluate_table(
         },
         "hindsight": asdict(hindsight) if hindsight is not None else None,
         "baseline": {"model": "survival", "threshold": settings.baseline_threshold},
-        "scenes": int(np.unique(scenes).size),
+        "scenes": len(unique_scenes),
         "egos": int(df.select(pl.struct("scene", "ego_id").n_unique()).item()),
         "situations": int(df.select(pl.struct("scene", "ego_id", "frame").n_unique()).item()),
         "scenes_shorter_than_horizon": short,
@@ -337,12 +335,17 @@ def evaluate_table(
     }
 
 
+#: The states of an agent-frame under a reference, as :func:`_state` codes them.
+STATES = {"positive": 1, "negative": 0, "unknown": -1}
+
+
 def _state(reference: np.ndarray) -> np.ndarray:
-    """``(A,)`` 'positive' / 'negative' / 'unknown' of label codes or booleans."""
+    """``(A,)`` int8 state codes (:data:`STATES`) of label codes or booleans (one byte a
+    row: the names as strings took 32 bytes a row per reference)."""
     r = np.asarray(reference)
     if r.dtype == bool:
-        return np.where(r, "positive", "negative")
-    return np.where(r == 1, "positive", np.where(r == 0, "negative", "unknown"))
+        return r.astype(np.int8)
+    return np.where(r == 1, 1, np.where(r == 0, 0, -1)).astype(np.int8)
 
 
 def _count(mask: np.ndarray, agent_key: np.ndarray) -> dict[str, int]:
@@ -365,7 +368,7 @@ def agreement(
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
             table = {
-                f"{sa}/{sb}": int(((states[a] == sa) & (states[b] == sb)).sum())
+                f"{sa}/{sb}": int(((states[a] == STATES[sa]) & (states[b] == STATES[sb])).sum())
                 for sa in ("positive", "negative", "unknown")
                 for sb in ("positive", "negative", "unknown")
             }
@@ -392,18 +395,18 @@ def agreement(
     out["yielded"] = {
         "all": _count(yielded, agent_key),
         **{
-            h: {st: _count(yielded & (states[h] == st), agent_key) for st in
+            h: {st: _count(yielded & (states[h] == STATES[st]), agent_key) for st in
                 ("positive", "negative", "unknown")}
             for h in hind
         },
     }  # fmt: skip
     if "planner" in refs:
-        important = states["planner"] == "positive"
+        important = states["planner"] == STATES["positive"]
         block: dict[str, Any] = {"important": _count(important, agent_key)}
         for h in hind:
-            pos = important & (states[h] == "positive")
-            neg = important & (states[h] == "negative")
-            unk = important & (states[h] == "unknown")
+            pos = important & (states[h] == STATES["positive"])
+            neg = important & (states[h] == STATES["negative"])
+            unk = important & (states[h] == STATES["unknown"])
             block[h] = {
                 "positive": _count(pos, agent_key),
                 "negative": _count(neg, agent_key),
@@ -430,7 +433,7 @@ def composition(df: pl.DataFrame, refs: Mapping[str, np.ndarray]) -> dict[str, A
         st = _state(r)
         out[name] = {}
         for label in ("positive", "negative"):
-            m = st == label
+            m = st == STATES[label]
             block: dict[str, Any] = {"agent_frames": int(m.sum())}
             if m.any():
                 block["median_time_in_scene_s"] = float(np.median(t0[m]))
@@ -467,14 +470,26 @@ def _track_flags(df: pl.DataFrame, dataset: np.ndarray) -> dict[str, Any]:
     }
 
 
+def _codes_of(column: pl.Series) -> tuple[list[str], np.ndarray]:
+    """The sorted distinct strings of ``column`` and each row's index among them."""
+    names = sorted(column.unique().to_list())
+    codes = column.replace_strict(names, list(range(len(names))), return_dtype=pl.Int64)
+    return names, codes.to_numpy()
+
+
+def _labels(column: pl.Series) -> np.ndarray:
+    """``column`` (strings, no nulls) as an object array of one string per distinct value."""
+    names, codes = _codes_of(column)
+    return np.array(names, dtype=object)[codes]
+
+
 def _datasets(df: pl.DataFrame, datasets: Mapping[str, str] | None) -> np.ndarray:
     if datasets:
-        return (
-            df["scene"].cast(pl.String).replace_strict(dict(datasets), default="unknown").to_numpy()
-        ).astype(str)
+        scene = df["scene"].cast(pl.String)
+        return _labels(scene.replace_strict(dict(datasets), default="unknown"))
     if "dataset" in df.columns:
-        return df["dataset"].cast(pl.String).fill_null("unknown").to_numpy().astype(str)
-    return np.full(df.height, "unknown")
+        return _labels(df["dataset"].cast(pl.String).fill_null("unknown"))
+    return np.full(df.height, "unknown", dtype=object)
 
 
 def _no_positive_message(df: pl.DataFrame, truth: np.ndarray, hs: HindsightSettings | None) -> str:
@@ -491,370 +506,3 @@ def _short_scenes(df: pl.DataFrame, hs: HindsightSettings) -> list[str]:
     """Scenes whose recorded span is shorter than the horizon (every window censored)."""
     span = df.group_by("scene").agg((pl.col("t_s").max() - pl.col("t_s").min()).alias("span"))
     return sorted(span.filter(pl.col("span") < hs.horizon_s - 1e-9)["scene"].to_list())
-
-
-# ---------------------------------------------------------------------- output
-def positives_table(
-    agents: pl.DataFrame, datasets: Mapping[str, str] | None = None
-) -> pl.DataFrame:
-    """One row per distinct agent that really came close (scene, ego, agent): its kind,
-    dataset, first and last frame labelled positive, least gap and PET, and the cascade
-    stage that dropped it at a positive frame (null: kept at every positive frame)."""
-    pos = agents.filter(pl.col("truth_label").fill_null(False))
-    if pos.height == 0:
-        return pl.DataFrame()
-    dropped = (
-        pl.col("dropped_by").cast(pl.String).drop_nulls().first()
-        if "dropped_by" in pos.columns
-        else pl.lit(None, dtype=pl.String)
-    )
-    out = (
-        pos.group_by("scene", "ego_id", "agent_id", maintain_order=True)
-        .agg(
-            pl.col("kind").cast(pl.String).first(),
-            pl.col("frame").min().alias("first_frame"),
-            pl.col("frame").max().alias("last_frame"),
-            pl.len().alias("positive_frames"),
-            pl.col("truth_gap_m").min().alias("min_gap_m"),
-            pl.col("truth_pet_s").min().alias("min_pet_s"),
-            dropped.alias("dropped_by"),
-        )
-        .sort("scene", "ego_id", "agent_id")
-    )
-    ds = dict(datasets or {})
-    return out.with_columns(
-        pl.col("scene")
-        .replace_strict(ds, default="unknown", return_dtype=pl.String)
-        .alias("dataset")
-    )
-
-
-def roc_table(
-    agents: pl.DataFrame, models: Sequence[str], summary: Mapping[str, Any]
-) -> pl.DataFrame:
-    """Pooled ROC points of every model against every reference with positives (at most
-    :data:`ROC_TABLE_POINTS` per curve, evenly spread; the ends are kept)."""
-    all_refs, _ = reference_arrays(
-        agents, baseline_threshold=summary["baseline"]["threshold"],
-        windows=summary["settings"].get("hindsight_windows", "complete"),
-    )  # fmt: skip
-    names = summary.get("reference_names", list(all_refs))
-    refs = {n: all_refs[n] for n in names if n in all_refs}
-    frames = []
-    for m in models:
-        s = agents[f"risk_{m}"].to_numpy().astype(np.float64)
-        for name, ref in refs.items():
-            roc = pooled_roc(s, ref)
-            k = roc.thresholds.size
-            idx = (
-                np.unique(np.linspace(0, k - 1, min(k, ROC_TABLE_POINTS)).round().astype(int))
-                if k
-                else np.empty(0, int)
-            )
-            frames.append(
-                pl.DataFrame(
-                    {
-                        "model": [m] * idx.size,
-                        "reference": [name] * idx.size,
-                        "threshold": roc.thresholds[idx],
-                        "tpr": roc.tpr[idx],
-                        "fpr": roc.fpr[idx],
-                    }
-                )
-            )
-    return pl.concat(frames) if frames else pl.DataFrame()
-
-
-def budget_table(summary: Mapping[str, Any]) -> pl.DataFrame:
-    """The budgets as rows: reference x rule x budget (K, radius or the cascade's fixed
-    set), with the mean kept agents per situation, the recall and its interval."""
-    rows = []
-    for ref, block in summary.get("budgets", {}).items():
-        for r in block:
-            ci = r.get("ci", [None, None])
-            rows.append(
-                {
-                    "reference": ref, "rule": r["rule"], "kind": r["kind"], "k": r["k"],
-                    "radius_m": r["radius_m"], "mean_kept": r["mean_kept"],
-                    "positives": r["positives"], "kept_positives": r["kept_positives"],
-                    "recall": r["value"], "ci_lo": ci[0], "ci_hi": ci[1],
-                }
-            )  # fmt: skip
-    schema = {
-        "reference": pl.String, "rule": pl.String, "kind": pl.String, "k": pl.Int64,
-        "radius_m": pl.Float64, "mean_kept": pl.Float64, "positives": pl.Int64,
-        "kept_positives": pl.Int64, "recall": pl.Float64, "ci_lo": pl.Float64,
-        "ci_hi": pl.Float64,
-    }  # fmt: skip
-    return pl.DataFrame(rows, schema=schema)
-
-
-def miss_table(summary: Mapping[str, Any]) -> pl.DataFrame:
-    """Miss rates as rows: group (``all`` or grouping=value) x model x reference x
-    threshold, with the interval, missed agent-frames and agents, kept share."""
-    rows = []
-
-    def add(group: str, block: Mapping[str, Any]) -> None:
-        for model, per_ref in block["models"].items():
-            for ref, ev in per_ref.items():
-                for thr, mr in ev["miss_rate"].items():
-                    ci = mr.get("ci", [None, None])
-                    rows.append(
-                        {
-                            "group": group, "model": model, "reference": ref,
-                            "operating_threshold": thr, "threshold": mr["threshold"],
-                            "positives": ev["positives"], "miss_rate": mr["value"],
-                            "ci_lo": ci[0], "ci_hi": ci[1],
-                            "missed_agent_frames": mr["missed_agent_frames"],
-                            "missed_agents": mr["missed_agents"], "kept_share": mr["kept_share"],
-                            "auc": ev["auc"]["value"],
-                        }
-                    )  # fmt: skip
-
-    add("all", summary)
-    for grouping, blocks in summary.get("by", {}).items():
-        for value, block in blocks.items():
-            add(f"{grouping}={value}", block)
-    return pl.DataFrame(rows, infer_schema_length=None)
-
-
-#: Tables that ``replay evaluate`` writes into its output folder (with the sweep's):
-#: never read back as inputs from there.
-EVALUATION_TABLES = (
-    "roc", "miss_rates", "positives", "sensitivity", "sensitivity_ranking",
-    "sensitivity_findings",
-)  # fmt: skip
-
-
-def write_evaluation(
-    summary: Mapping[str, Any],
-    agents: pl.DataFrame,
-    out_dir: str | os.PathLike[str],
-    *,
-    datasets: Mapping[str, str] | None = None,
-    plots: bool = True,
-) -> dict[str, pathlib.Path]:
-    """``summary.json``, the tables (``roc``, ``miss_rates``, ``positives``, Parquet and
-    CSV) and the plots into ``out_dir``, each file atomically. Returns name -> path."""
-    out = pathlib.Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    written: dict[str, pathlib.Path] = {}
-    models = summary["settings"]["models"]
-    tables = {
-        "roc": roc_table(agents, models, summary),
-        "miss_rates": miss_table(summary),
-        "positives": positives_table(agents, datasets),
-        "budgets": budget_table(summary),
-    }
-    for name, df in tables.items():
-        for suffix in (".parquet", ".csv"):
-            path = out / f"{name}{suffix}"
-            with atomic_output(path) as tmp:
-                if suffix == ".csv":
-                    df.write_csv(tmp)
-                else:
-                    df.write_parquet(tmp, compression="zstd")
-            written[path.name] = path
-    if plots:
-        written.update(plot_evaluation(summary, tables["roc"], out, threshold=HEADLINE_THRESHOLD))
-        written.update(plot_budgets(tables["budgets"], out))
-    path = out / "summary.json"
-    text = json.dumps(
-        _jsonable({**summary, "files": sorted([*written, "summary.json"])}),
-        indent=2,
-        allow_nan=False,
-    )
-    with atomic_output(path) as tmp:
-        pathlib.Path(tmp).write_text(text + "\n", encoding="utf-8")
-    written[path.name] = path
-    return written
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, Mapping):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.bool_):
-        return bool(value)
-    return value
-
-
-# ---------------------------------------------------------------------- text
-#: How these AUCs are computed, and why ``replay stats``' differ (issue 31).
-EVALUATION_AUC_NOTE = (
-    "AUC: one ROC curve pooled over every agent-frame of every scene; 'replay stats'"
-    " averages per-situation curves (the paper's measure), so its AUCs differ"
-)
-
-
-def format_evaluation(summary: Mapping[str, Any]) -> str:
-    """The end-of-run text: counts per reference, each model's AUC against every
-    reference with intervals, its miss rate against hindsight at the headline threshold,
-    the references missing or without positives, and the planner/hindsight agreement."""
-    ref = summary["references"]
-    names = list(summary.get("reference_names", [n for n in REFERENCES if n in ref]))
-    level = summary["bootstrap"]["level"]
-    h, s = ref["hindsight"], ref["survival"]
-    windows = summary["settings"].get("hindsight_windows", "any")
-    lines = [
-        f"{summary['scenes']} scenes, {summary['egos']} egos, {summary['situations']} "
-        f"situations, {h['agent_frames']} agent-frames",
-        f"Hindsight ({windows} windows): {h['positive_agent_frames']} positive agent-frames "
-        f"({h['positive_agents']} distinct agents, in {h['scenes_with_positive']} scenes), "
-        f"{h['negative_agent_frames']} negative, {h['unknown_agent_frames']} unknown (left out)",
-        f"Survival baseline: {s['positive_agent_frames']} important agent-frames "
-        f"({s['positive_agents']} distinct agents)",
-    ]
-    for name in names:
-        if name in ("hindsight", "survival"):
-            continue
-        c = ref[name]
-        lines.append(
-            f"{name}: {c['positive_agent_frames']} positive, {c['negative_agent_frames']} "
-            f"negative, {c['unknown_agent_frames']} unknown agent-frames"
-        )
-    for name, why in {
-        **summary.get("references_missing", {}),
-        **summary.get("references_without_positives", {}),
-    }.items():
-        lines.append(f"Reference {name}: {why}")
-    short = summary.get("scenes_shorter_than_horizon") or []
-    if short:
-        hz = (summary.get("hindsight") or {}).get("horizon_s", HindsightSettings().horizon_s)
-        shown = ", ".join(short[:5]) + (", ..." if len(short) > 5 else "")
-        lines.append(
-            f"Note: {len(short)} scene(s) shorter than the {hz:g} s horizon have no complete "
-            f"window: {shown}"
-        )
-    pct = f"{100 * level:g} %"
-    lines.append(EVALUATION_AUC_NOTE)
-    lines.append(f"AUC per reference [{pct} scene-bootstrap interval]:")
-    lines.append(f"  {'model':<22}" + "".join(f"{n:>30}" for n in names))
-    for model, per_ref in summary["models"].items():
-        cells = [
-            f"{_f(per_ref[n]['auc']['value'])} {_ci(per_ref[n]['auc'])}" if n in per_ref else "n/a"
-            for n in names
-        ]
-        lines.append(f"  {model:<22}" + "".join(f"{c:>30}" for c in cells))
-    planner = summary.get("agreement", {}).get("planner")
-    if planner and "hindsight" in planner:
-        b = planner["hindsight"]
-        lines.append(
-            f"Planner-important: {planner['important']['agent_frames']} agent-frames; against "
-            f"hindsight {b['positive']['agent_frames']} positive, {b['negative']['agent_frames']} "
-            f"negative ({b['negative_yielded']['agent_frames']} with the ego yielding), "
-            f"{b['unknown']['agent_frames']} unknown ({b['unknown_yielded']['agent_frames']} "
-            "with the ego yielding)"
-        )
-    cascade = summary.get("cascade", {}).get("hindsight")
-    if cascade:
-        parts = ", ".join(
-            f"{st['stage']} {st['missed_agent_frames']} ({st['missed_agents']} agents)"
-            for st in cascade
-        )
-        lines.append(f"Cascade misses against hindsight (cumulative agent-frames): {parts}")
-    return "\n".join(lines)
-
-
-def _f(value: Any) -> str:
-    return (
-        "n/a"
-        if value is None or (isinstance(value, float) and not math.isfinite(value))
-        else f"{value:.3f}"
-    )
-
-
-def _ci(block: Mapping[str, Any]) -> str:
-    ci = block.get("ci")
-    if not ci or ci[0] is None or not math.isfinite(ci[0]):
-        return ""
-    return f"[{ci[0]:.3f}, {ci[1]:.3f}]"
-
-
-# ---------------------------------------------------------------------- inputs
-def evaluate_inputs(
-    paths: Sequence[str | os.PathLike[str]],
-    *,
-    cascade: CascadeConfig | None = None,
-    params: Mapping[str, Any] | None = None,
-    prediction: PredictionSettings | None = None,
-    hindsight: HindsightSettings | None = None,
-    settings: EvaluationSettings | None = None,
-    workers: int = 1,
-    progress: bool = False,
-    ego: int | str | None = None,
-    every: int | Stride = 1,
-) -> dict[str, Any]:
-    """Replay (scenes) or read (tables) the inputs and evaluate them; the summary dict.
-
-    ``params`` (model name -> parameters) and ``prediction`` go to every model evaluation
-    of the replayed scenes; tables are read as they were written. This is what
-    ``replay evaluate`` runs, without writing files."""
-    agents, datasets, hs = collect_agents(
-        paths, cascade=cascade, params=params, prediction=prediction, hindsight=hindsight,
-        workers=workers, progress=progress, ego=ego, every=every,
-    )  # fmt: skip
-    return evaluate_table(
-        agents, settings=settings, datasets=datasets, hindsight=hs,
-        inputs=[str(p) for p in paths],
-    )  # fmt: skip
-
-
-def collect_agents(
-    paths: Sequence[str | os.PathLike[str]],
-    *,
-    cascade: CascadeConfig | None = None,
-    params: Mapping[str, Any] | None = None,
-    prediction: PredictionSettings | None = None,
-    hindsight: HindsightSettings | None = None,
-    workers: int = 1,
-    progress: bool = False,
-    ego: int | str | None = None,
-    every: int | Stride = 1,
-    models: Sequence[str] | None = None,
-    planner: str | None = None,
-    output_dir: str | os.PathLike[str] | None = None,
-) -> tuple[pl.DataFrame, dict[str, str], HindsightSettings]:
-    """The agents table of scenes, tables or folders (as ``replay stats`` reads them),
-    the dataset of each scene (the name of the folder its file is in) and the hindsight
-    settings of its truth columns. ``models``: the risk columns to compute (default: all).
-    ``planner``: replay the scenes with that planner's truth beside the engine (tables are
-    used as they are). ``output_dir``: the command's output folder, never read back."""
-    found = resolve_inputs(
-        [pathlib.Path(p) for p in paths],
-        output_dir=None if output_dir is None else pathlib.Path(output_dir),
-        output_stems=EVALUATION_TABLES,
-    )
-    if found.tables and hindsight is not None and hindsight != HindsightSettings():
-        raise EvaluationError(
-            "tables carry the hindsight truth they were written with; to evaluate other "
-            "--truth-* settings give the .mcap scenes"
-        )
-    hs = hindsight or HindsightSettings()
-    agents, _, _, _ = collect(
-        found,
-        cascade or CascadeConfig.default(),
-        models=models,
-        workers=workers,
-        progress=progress,
-        params=params,
-        prediction=prediction,
-        hindsight=hs,
-        ego=ego,
-        every=Stride.of(every),
-        planner=planner,
-    )
-    files = [*found.scenes, *found.tables]
-    names = scene_names(files)
-    datasets = {n: p.absolute().parent.name for n, p in zip(names, files, strict=True)}
-    if "scene" in agents.columns:  # merged tables name their scenes themselves
-        table_dirs = {p.absolute().parent.name for p in found.tables}
-        for s in agents["scene"].unique().to_list():
-            if s not in datasets and len(table_dirs) == 1:
-                datasets[s] = next(iter(table_dirs))
-    return agents, datasets, hs

@@ -23,14 +23,14 @@ import polars as pl
 from scipy import stats as scipy_stats
 
 from outputs.atomic import atomic_output
-from replay.analysis.corpus_evaluation import (
+from replay.analysis.evaluation.collect import collect_agents
+from replay.analysis.evaluation.corpus import (
     REFERENCES,
     EvaluationError,
     EvaluationSettings,
-    collect_agents,
     evaluate_table,
 )
-from replay.analysis.evaluation_plots import plot_sensitivity
+from replay.analysis.evaluation.plots import plot_sensitivity
 from replay.core.engine import Stride
 from risk.cascade import CascadeConfig
 from risk.hindsight import HindsightSettings

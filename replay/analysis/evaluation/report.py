@@ -22,8 +22,9 @@ from typing import Any
 import polars as pl
 
 from outputs.atomic import atomic_output
-from replay.analysis.corpus_evaluation import HEADLINE_THRESHOLD, positives_table
-from replay.analysis.sensitivity import RANKED, SweepResult
+from replay.analysis.evaluation.corpus import HEADLINE_THRESHOLD
+from replay.analysis.evaluation.files import positives_table
+from replay.analysis.evaluation.sensitivity import RANKED, SweepResult
 from risk.registry import MODELS
 
 TEMPLATE = pathlib.Path(__file__).with_name("report_templates") / "recorded_evaluation.md"

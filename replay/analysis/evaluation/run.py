@@ -1,10 +1,12 @@
-"""``replay evaluate``'s workflow as one library function: collect the agents of scenes or
-tables, evaluate every model against both references, optionally sweep the baseline's
-settings (:mod:`replay.analysis.sensitivity`), and write the files and the report.
+"""``replay evaluate``'s workflow as one library function: every scene replayed (or table
+read) as a job on an engine (:mod:`replay.jobs`) into ``OUT/parts/``, the parts read
+back lazily, every model evaluated against every reference, optionally the sensitivity
+sweep (:mod:`replay.analysis.evaluation.sensitivity`), and the files and the report.
 
 The maths is :mod:`risk.evaluation`; the corpus-level steps are
-:mod:`replay.analysis.corpus_evaluation`; this module only puts them in order, inside one
-all-or-nothing output transaction (:class:`outputs.transaction.OutputGuard`).
+:mod:`replay.analysis.evaluation.corpus`; this module only puts them in order. The
+outputs appear together at the end (:class:`outputs.transaction.OutputGuard`); the parts
+and ``failures.csv`` are written as scenes finish, so that a rerun resumes.
 """
 
 from __future__ import annotations
@@ -16,25 +18,25 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from outputs.transaction import OutputGuard
-from replay.analysis.corpus_evaluation import (
+from replay.analysis.evaluation.collect import (
     EVALUATION_TABLES,
-    EvaluationError,
-    EvaluationSettings,
-    collect_agents,
-    evaluate_table,
-    format_evaluation,
-    write_evaluation,
+    check_tables_hindsight,
+    evaluation_agents,
 )
-from replay.analysis.evaluation_report import write_report
-from replay.analysis.inputs import resolve_inputs
-from replay.analysis.sensitivity import (
+from replay.analysis.evaluation.corpus import EvaluationError, EvaluationSettings, evaluate_table
+from replay.analysis.evaluation.files import format_evaluation, write_evaluation
+from replay.analysis.evaluation.report import write_report
+from replay.analysis.evaluation.sensitivity import (
     SweepResult,
     format_sweep,
     run_sweep,
     sweep_subset,
     write_sweep,
 )
+from replay.analysis.stats.collect import TablesSettings, collected_parts, tables_job
 from replay.core.engine import EVERY_FRAME, Stride
+from replay.jobs import JobReport, resolve_inputs, run_jobs, scene_refs
+from replay.jobs.scenes import check_not_outputs
 from risk.cascade import CascadeConfig
 from risk.hindsight import HindsightSettings
 
@@ -48,6 +50,15 @@ class SensitivityRequest:
     scenes: int = 1  # every K-th scene of each folder (1: all)
 
 
+@dataclass(frozen=True)
+class EngineChoice:
+    """Where the per-scene jobs run (``--engine``, ``--workers``, ``--ray-address``)."""
+
+    name: str = "local"
+    workers: int | None = None
+    address: str | None = None
+
+
 @dataclass
 class EvaluationRun:
     """What :func:`run_evaluation` computed and wrote."""
@@ -55,10 +66,18 @@ class EvaluationRun:
     summary: dict[str, Any]
     sweep: SweepResult | None = None
     files: dict[str, pathlib.Path] = field(default_factory=dict)
+    jobs: JobReport | None = None
 
 
 def _quiet(text: str) -> None:
     pass
+
+
+#: The files an evaluation writes into its output folder (besides its plots).
+_OUTPUT_NAMES = (
+    "summary.json",
+    *(f"{t}{x}" for t in EVALUATION_TABLES for x in (".parquet", ".csv")),
+)
 
 
 def check_report_path(report_path: pathlib.Path | None, out_dir: pathlib.Path) -> None:
@@ -93,51 +112,71 @@ def run_evaluation(
     show: Callable[[str], None] = _quiet,
     planner: str | None = None,
     report_note: str = "",
+    engine: EngineChoice | None = None,
 ) -> EvaluationRun:
     """Evaluate the scenes or tables ``inputs`` into ``out_dir`` (and the Markdown report
     ``report_path``, made by ``command``). ``show`` receives the evaluation's and the
     sweep's text as soon as each is computed. ``extra_inputs`` (a cascade file) are
     refused as outputs like ``inputs``. ``planner``: replay the scenes with that planner's
-    truth beside the engine."""
+    truth beside the engine. ``engine``: where the scenes run (default: ``workers``
+    local processes). Scenes that fail are listed in ``OUT/failures.csv`` and left out;
+    raises EvaluationError when every scene failed."""
     check_report_path(report_path, out_dir)  # before anything runs (issue 36)
+    engine = engine or EngineChoice("local", workers)
     found = resolve_inputs(list(inputs), output_dir=out_dir, output_stems=EVALUATION_TABLES)
+    check_tables_hindsight(bool(found.tables), hindsight)
+    if sensitivity is not None and found.tables:
+        raise EvaluationError(
+            "--sensitivity replays the scenes with other settings; give .mcap scenes, not tables"
+        )
     report_dir = None if report_path is None else report_path.with_suffix("")
+    check_not_outputs(found, out_dir, _OUTPUT_NAMES)
     # One guard for every input (the files inside folders too) and every output, the
     # report included: a report given a scene's path replaced that scene (issue 31).
     guard = OutputGuard(
         inputs=[*inputs, *found.scenes, *found.tables, *extra_inputs],
         folders=(out_dir, report_dir), files=(report_path,),
     )  # fmt: skip
+    hs = hindsight or HindsightSettings()
     with guard:  # checked and locked at once; every file appears together
         start = time.perf_counter()
-        agents, datasets, hs = collect_agents(
-            inputs, cascade=cascade, hindsight=hindsight, workers=workers,
-            progress=progress, ego=ego, every=every, planner=planner, output_dir=out_dir,
+        job = tables_job(
+            TablesSettings(cascade=cascade, ego=ego, every=every, hindsight=hs, planner=planner)
+        )
+        report = run_jobs(
+            job, scene_refs(found), out_dir, engine=engine.name, workers=engine.workers,
+            ray_address=engine.address, progress=progress, desc="evaluate: scenes",
         )  # fmt: skip
+        if report.failures and report.done:  # at once: the evaluation may yet fail
+            show(report.describe())
+        parts = collected_parts(report, cascade)
+        agents = evaluation_agents(parts.agents)
+        datasets = parts.datasets
         read_s = time.perf_counter() - start
         start = time.perf_counter()
         summary = evaluate_table(
             agents, settings=settings, datasets=datasets, hindsight=hs,
-            inputs=[str(p) for p in inputs],
+            inputs=[str(p) for p in inputs], presorted=True,
         )  # fmt: skip
         summary["settings"]["planner"] = planner
+        summary["failed_scenes"] = [f.scene for f in report.failures]
         summary["time_s"] = {"replay / read": read_s, "evaluation": time.perf_counter() - start}
         show(format_evaluation(summary))
-        run = EvaluationRun(summary)
+        run = EvaluationRun(summary, jobs=report)
         if sensitivity is not None:
             start = time.perf_counter()
-            if found.tables:
-                raise EvaluationError(
-                    "--sensitivity replays the scenes with other settings; give .mcap scenes, "
-                    "not tables"
-                )
             subset = sweep_subset(found.scenes, sensitivity.scenes)
-            same = sensitivity.scenes == 1 and sensitivity.every in (None, every)
+            same = (
+                sensitivity.scenes == 1
+                and sensitivity.every in (None, every)
+                and not report.failures
+            )
             run.sweep = run_sweep(
                 subset, default_agents=agents if same else None,
                 datasets=datasets if same else None, cascade=cascade, hindsight=hs,
-                settings=replace(settings, n_boot=sensitivity.bootstrap), workers=workers,
-                progress=progress, ego=ego, every=sensitivity.every or every,
+                settings=replace(settings, n_boot=sensitivity.bootstrap),
+                workers=workers, progress=progress, ego=ego,
+                every=sensitivity.every or every,
             )  # fmt: skip
             summary["sensitivity"] = {
                 "scenes": len(subset), "every": str(sensitivity.every or every),

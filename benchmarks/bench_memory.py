@@ -1,0 +1,129 @@
+"""Benchmark: the driver's peak memory of ``replay evaluate`` on a corpus and on the same
+corpus replicated K times (issue 38: at 4x, no more than 1.3x the peak of 1x).
+
+The corpus is a folder of MCAP scenes. Replica ``K`` is a folder with K sub-folders
+``r0 .. r{K-1}``, each holding a *copy* of every scene (copies, not links: the same file
+given twice is one scene), so replica K has K times the scenes and rows. Each run is
+``python -m replay evaluate REPLICA -o OUT`` in a fresh process; a sampler reads the
+resident set size of the driver process (and, apart, of the driver with its worker
+processes) every 20 ms. The scenes are replayed by ``--workers`` worker processes, so
+the driver's figure is the evaluation's own memory: reading the parts back and
+computing the summary.
+
+Usage::
+
+    python benchmarks/bench_memory.py --scenes DIR --work DIR [--factors 1,4]
+        [--workers 2] [--bootstrap 200] [--repeat 1] [--keep-parts]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import pathlib
+import shutil
+import subprocess
+import sys
+import threading
+import time
+
+import psutil
+
+
+def replica(scenes: list[pathlib.Path], work: pathlib.Path, factor: int) -> pathlib.Path:
+    folder = work / f"x{factor}"
+    if folder.exists():
+        return folder
+    for k in range(factor):
+        (folder / f"r{k}").mkdir(parents=True)
+        for s in scenes:
+            shutil.copyfile(s, folder / f"r{k}" / s.name)  # follows links: real copies
+    return folder
+
+
+def peak_rss(cmd: list[str], env: dict[str, str]) -> tuple[int, int, float, int]:
+    """(driver peak bytes, driver + workers peak bytes, seconds, exit code)."""
+    start = time.perf_counter()
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    driver = psutil.Process(proc.pid)
+    peaks = [0, 0]
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.is_set():
+            try:
+                own = driver.memory_info().rss
+                tree = own
+                for child in driver.children(recursive=True):
+                    with contextlib.suppress(psutil.Error):
+                        tree += child.memory_info().rss
+            except psutil.Error:
+                break
+            peaks[0] = max(peaks[0], own)
+            peaks[1] = max(peaks[1], tree)
+            time.sleep(0.02)
+
+    thread = threading.Thread(target=sample, daemon=True)
+    thread.start()
+    _, err = proc.communicate()
+    done.set()
+    thread.join()
+    if proc.returncode:
+        sys.stderr.write(err.decode(errors="replace")[-2000:])
+    return peaks[0], peaks[1], time.perf_counter() - start, proc.returncode
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", type=pathlib.Path, required=True)
+    ap.add_argument("--work", type=pathlib.Path, required=True)
+    ap.add_argument("--factors", default="1,4")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--bootstrap", type=int, default=200)
+    ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument(
+        "--keep-parts", action="store_true",
+        help="Evaluate into the folders of an earlier run: its scenes are complete, so only "
+        "reading the parts back and the evaluation are measured.",
+    )  # fmt: skip
+    args = ap.parse_args()
+    scenes = sorted(args.scenes.glob("*.mcap"))
+    factors = [int(f) for f in args.factors.split(",")]
+    args.work.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "PYTHONPATH": str(pathlib.Path(__file__).resolve().parents[1])}
+    rows = []
+    for rep in range(args.repeat):
+        for factor in factors:  # the factors take turns in every repeat
+            folder = replica(scenes, args.work, factor)
+            out = args.work / f"out-x{factor}-{0 if args.keep_parts else rep}"
+            if not args.keep_parts:
+                shutil.rmtree(out, ignore_errors=True)
+            cmd = [
+                sys.executable, "-m", "replay", "evaluate", str(folder), "-o", str(out),
+                "--bootstrap", str(args.bootstrap), "--no-plots", "--no-progress",
+                "--workers", str(args.workers),
+            ]  # fmt: skip
+            own, tree, seconds, code = peak_rss(cmd, env)
+            summary = json.loads((out / "summary.json").read_text()) if code == 0 else {}
+            frames = summary.get("references", {}).get("hindsight", {}).get("agent_frames")
+            rows.append((factor, rep, len(scenes) * factor, frames, own, tree, seconds, code))
+            print(
+                f"x{factor} run {rep}: {len(scenes) * factor} scenes, {frames} agent-frames, "
+                f"driver peak {own / 2**20:.0f} MiB (with workers {tree / 2**20:.0f} MiB), "
+                f"{seconds:.0f} s, exit {code}",
+                flush=True,
+            )
+    base = [r[4] for r in rows if r[0] == factors[0]]
+    if base:
+        ref = sorted(base)[len(base) // 2]
+        for factor in factors[1:]:
+            peaks = sorted(r[4] for r in rows if r[0] == factor)
+            print(
+                f"x{factor} / x{factors[0]} driver peak (medians): {peaks[len(peaks) // 2] / ref:.2f}"
+            )
+
+
+if __name__ == "__main__":
+    main()

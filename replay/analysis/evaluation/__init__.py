@@ -1,0 +1,15 @@
+"""``replay evaluate``: every model against the survival baseline and what really happened.
+
+- :mod:`~replay.analysis.evaluation.corpus`: an agents table to the summary
+  (:func:`evaluate_table`): references, bootstrap, budgets, agreement, composition;
+- :mod:`~replay.analysis.evaluation.collect`: the agents an evaluation reads (the parts
+  of a run, lazily; or in memory: :func:`collect_agents`, :func:`evaluate_inputs`);
+- :mod:`~replay.analysis.evaluation.files`: ``summary.json``, tables, plots, the text;
+- :mod:`~replay.analysis.evaluation.plots`, :mod:`~replay.analysis.evaluation.report`
+  (the Markdown report), :mod:`~replay.analysis.evaluation.sensitivity` (the sweep);
+- :mod:`~replay.analysis.evaluation.run`: the workflow (:func:`run_evaluation`).
+
+The modules are imported by name (``from replay.analysis.evaluation.corpus import
+...``): this package imports none of them, so a worker that replays scenes does not load
+matplotlib or scipy.
+"""
