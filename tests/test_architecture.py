@@ -24,7 +24,7 @@ PACKAGES = ("risk", "outputs", "converters", "replay", "recordings")
 #: need a reason too: add them here with it.
 ALLOWED_INNER_IMPORTS = {
     # tomli_w only to write a cascade file
-    ("risk/cascade.py", "tomli_w"),
+    ("risk/cascade_config.py", "tomli_w"),
     # numba's BLAS probe answered before numba's own import of arraymath (0.3-0.6 s saved
     # per process; risk/kernel_jit.py explains)
     ("risk/kernel_jit.py", "numba.np"),

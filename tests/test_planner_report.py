@@ -10,9 +10,9 @@ import pytest
 from replay.analysis.planner_eval.open_loop import PlanSettings
 from replay.analysis.planner_eval.report import verdict
 from replay.analysis.planner_eval.study import (
-    _share_with_interval,
     closed_loop_sample,
     resolve_matched,
+    share_with_interval,
 )
 
 
@@ -55,10 +55,10 @@ def test_changed_share_interval_resamples_whole_scenes():
     # whole scenes can only give 0, 0.5 or 1 (frames of a scene move together).
     hits = np.r_[np.zeros(50, bool), np.ones(50, bool)]
     scenes = np.r_[np.full(50, "a"), np.full(50, "b")]
-    out = _share_with_interval(hits, scenes, n_boot=400, seed=1)
+    out = share_with_interval(hits, scenes, n_boot=400, seed=1)
     assert out["share"] == 0.5 and out["n"] == 100 and out["count"] == 50
     assert out["ci95"] == [0.0, 1.0]
-    assert _share_with_interval(np.zeros(0, bool), np.zeros(0), n_boot=10, seed=0)["share"] is None
+    assert share_with_interval(np.zeros(0, bool), np.zeros(0), n_boot=10, seed=0)["share"] is None
 
 
 def test_closed_loop_sample_spreads_over_datasets_then_scenes():

@@ -29,6 +29,7 @@ import polars as pl
 
 from outputs.atomic import atomic_write
 from replay.analysis.planner_eval.open_loop import _egos, ego_frames, scene_key
+from replay.analysis.planner_eval.study import share_with_interval
 from replay.core.egos import load_scene
 from replay.core.engine import Stride, seen_from
 from replay.core.pool import parallel_map
@@ -412,9 +413,8 @@ def site_split(
 
 
 def _share(hits: np.ndarray, clusters: np.ndarray, n_boot: int, seed: int) -> dict[str, Any]:
-    from replay.analysis.planner_eval.study import _share_with_interval
 
-    return _share_with_interval(hits, clusters, n_boot=n_boot, seed=seed)
+    return share_with_interval(hits, clusters, n_boot=n_boot, seed=seed)
 
 
 def held_out_report(

@@ -223,7 +223,7 @@ def wants_matching(settings: PlanSettings) -> bool:
 
 
 # ---------------------------------------------------------------------- summary
-def _share_with_interval(
+def share_with_interval(
     hits: np.ndarray, scenes: np.ndarray, *, n_boot: int, seed: int
 ) -> dict[str, Any]:
     """Share of True in ``hits`` with a 95 % scene-bootstrap interval."""
@@ -302,7 +302,7 @@ def summarize(tables: PlanTables, *, n_boot: int = 1000, seed: int = 0) -> dict[
             "mean_kept": _float(rows["n_agents"].mean() or 0.0),
             "plan_ok_share": _float(rows["plan_ok"].mean() or 0.0),
             "not_comparable": rows.height - comparable.height,
-            "changed": _share_with_interval(
+            "changed": share_with_interval(
                 comparable["changed"].to_numpy().astype(bool),
                 comparable["scene"].to_numpy(),
                 n_boot=n_boot,
@@ -320,7 +320,7 @@ def summarize(tables: PlanTables, *, n_boot: int = 1000, seed: int = 0) -> dict[
             .select(["scene", "ego_id"])
             .unique()
             .height,
-            "blocking_agent_dropped": _share_with_interval(
+            "blocking_agent_dropped": share_with_interval(
                 blocking["blocking_dropped"].to_numpy().astype(bool),
                 blocking["scene"].to_numpy(),
                 n_boot=n_boot,
@@ -370,7 +370,7 @@ def _safety_shares(
     scaled = np.maximum(tolerance, SPEED_SCALED_S * np.nan_to_num(speed))
 
     def share(hits: np.ndarray, where: np.ndarray) -> dict[str, Any]:
-        return _share_with_interval(hits, where, n_boot=n_boot, seed=seed)
+        return share_with_interval(hits, where, n_boot=n_boot, seed=seed)
 
     at = {
         f"{tol:g}": share(changed & (decision | (shift > tol)), scenes)
@@ -621,7 +621,7 @@ def summarize_closed_loop(df: pl.DataFrame, *, n_boot: int = 1000, seed: int = 0
             },
             "at_fault_collisions": int(rows["at_fault_collisions"].sum()),
             "runs_with_collision": int((rows["collisions"] > 0).sum()),
-            "runs_at_fault": _share_with_interval(
+            "runs_at_fault": share_with_interval(
                 (rows["at_fault_collisions"] > 0).to_numpy(), scenes, n_boot=n_boot, seed=seed
             ),
             "score": _mean_with_interval(
