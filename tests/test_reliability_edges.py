@@ -410,8 +410,8 @@ def test_ctrl_c_while_batch_workers_start_prints_no_traceback(tmp_path, long_sce
     the signal has been sent, so it always lands while they start."""
     scenes = tmp_path / "scenes"
     scenes.mkdir()
-    for k in range(3):
-        os.link(long_scene, scenes / f"s{k}.mcap")
+    for k in range(3):  # copies: links of one file are one scene (read once)
+        shutil.copyfile(long_scene, scenes / f"s{k}.mcap")
     hook, gate = tmp_path / "hook", tmp_path / "gate"
     hook.mkdir()
     gate.mkdir()

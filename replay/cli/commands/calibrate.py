@@ -93,13 +93,13 @@ def _parse_list(value: str, what: str) -> list[str]:
     "the cascade keeps what any of them reacts to). See 'replay plan --help'.",
 )  # fmt: skip
 @click.option(
-    "--miss-rate", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.01,
+    "--miss-rate", type=FiniteRange(0, 1, min_open=True, max_open=True), default=0.01,
     show_default=True,
     help="With --reference planner: the guaranteed bound A on the chance that a new scene "
     "has a planner-important agent dropped.",
 )  # fmt: skip
 @click.option(
-    "--confidence", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.95,
+    "--confidence", type=FiniteRange(0, 1, min_open=True, max_open=True), default=0.95,
     show_default=True, help="With --reference planner: the probability C of that bound.",
 )  # fmt: skip
 @click.option(
@@ -112,7 +112,7 @@ def _parse_list(value: str, what: str) -> list[str]:
     "ego's route and crossing agents; docs/cascade.md).",
 )  # fmt: skip
 @click.option(
-    "--every", "every_s", type=click.FloatRange(0, min_open=True), default=1.0,
+    "--every", "every_s", type=FiniteRange(0, min_open=True), default=1.0,
     show_default=True, help="With --reference planner: one ego-frame per this many seconds.",
 )  # fmt: skip
 @click.option(
