@@ -5,6 +5,7 @@ build leaves the just-in-time kernel in charge."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pathlib
 import shutil
@@ -163,10 +164,8 @@ def test_background_build_starts_once_and_not_after_a_failure(tmp_path, monkeypa
 def _copy_if_still_there(src: str, dst: str) -> None:
     """copytree's copy, skipping a file that another test process replaced meanwhile
     (numba writes its cache files under temporary names and renames them)."""
-    try:
+    with contextlib.suppress(FileNotFoundError):
         shutil.copy2(src, dst)
-    except FileNotFoundError:
-        pass
 
 
 def test_a_failed_build_is_remembered_and_reported(tmp_path, monkeypatch):
