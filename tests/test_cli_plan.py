@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib
 import json
 import pathlib
+import shutil
 import sys
 
 import numpy as np
@@ -237,3 +238,21 @@ def test_two_planners_run_the_same_frames(road, tmp_path):
     assert set(summary["planners"]) == {"idm", "fiss_plus"}
     assert (out / "plan_time_idm.png").exists() and (out / "plan_time_fiss_plus.png").exists()
     assert "Planner idm:" in result.output and "Planner fiss_plus:" in result.output
+
+
+def test_scenes_of_two_roots_with_one_name_stay_two_and_one_file_twice_is_read_once(road, tmp_path):
+    """Issue 36: d1/a/x.mcap and d2/a/x.mcap were merged into one scene (rows
+    cross-matched, egos and frames miscounted); a scene given twice was planned twice."""
+    for root in ("d1", "d2"):
+        (tmp_path / root / "a").mkdir(parents=True)
+        shutil.copyfile(road, tmp_path / root / "a" / "x.mcap")
+    out = tmp_path / "out"
+    result = plan(tmp_path / "d1", tmp_path / "d2", tmp_path / "d1" / "a" / "x.mcap",
+                   "-o", out, "--filter", "radius:10", "--no-plots")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    plans = pl.read_parquet(out / "plans.parquet")
+    assert sorted(plans["scene"].unique().to_list()) == ["d1/a/x", "d2/a/x"]
+    one = plans.filter(pl.col("scene") == "d1/a/x")
+    # each scene's ego-frames once per filter (the all-agents plan and radius:10)
+    assert one.group_by("filter").len()["len"].to_list() == [one.height // 2] * 2
+    assert one.select("ego_id", "frame", "filter").is_duplicated().sum() == 0

@@ -39,11 +39,11 @@ from replay.analysis.planner_eval.open_loop import (
     _egos,
     ego_frames,
     plan_scene,
-    scene_key,
 )
 from replay.core.egos import load_scene
 from replay.core.engine import Stride
 from replay.core.pool import parallel_map
+from replay.jobs.scenes import Inputs, distinct_files, scene_refs
 from replay.planning.inputs import plans_for
 from risk.evaluation import bootstrap_weights, percentile_interval
 from risk.filtering import CascadeFilter
@@ -83,10 +83,27 @@ def _dataset_of(path: pathlib.Path) -> str:
     return path.parent.name or "."
 
 
+def scene_keys(scenes: Sequence[pathlib.Path]) -> dict[str, str]:
+    """Scene path (as given) -> its unique key among ``scenes``, the ``scene`` column of
+    every table (:func:`replay.jobs.scenes.scene_refs`: the path below the scenes' common
+    folder, so that ``d1/a/x.mcap`` and ``d2/a/x.mcap`` stay two scenes)."""
+    refs = scene_refs(Inputs(tuple(pathlib.Path(p) for p in scenes), ()))
+    return {str(p): ref.key for p, ref in zip(scenes, refs, strict=True)}
+
+
 def _datasets(scenes: Sequence[pathlib.Path]) -> dict[str, str]:
-    """Scene name -> dataset: the scene's folder, as in replay evaluate (a scene's own
+    """Scene key -> dataset: the scene's folder, as in replay evaluate (a scene's own
     word, e.g. "commonroad", names a format rather than a recording site)."""
-    return {scene_key(p): _dataset_of(p) for p in scenes}
+    keys = scene_keys(scenes)
+    return {keys[str(p)]: _dataset_of(p) for p in scenes}
+
+
+def _keyed(columns: dict[str, list[Any]] | None, key: str) -> dict[str, list[Any]] | None:
+    """A scene's table columns with its unique key in the ``scene`` column (the worker
+    named it by its file alone)."""
+    if columns is None or not columns.get("scene"):
+        return columns
+    return {**columns, "scene": [key] * len(columns["scene"])}
 
 
 def _with_datasets(df: pl.DataFrame, datasets: dict[str, str]) -> pl.DataFrame:
@@ -110,8 +127,16 @@ def run_open_loop(
         desc=f"plan ({settings.planner})", unit="scene",
     )  # fmt: skip
     datasets = _datasets(scenes)
-    plans = _frame([r.plans for r in results], datasets)
-    truth = _frame([r.truth for r in results if r.truth is not None], datasets)
+    keys = [scene_keys(scenes)[str(p)] for p in scenes]
+    plans = _frame([_keyed(r.plans, k) or {} for r, k in zip(results, keys, strict=True)], datasets)
+    truth = _frame(
+        [
+            _keyed(r.truth, k) or {}
+            for r, k in zip(results, keys, strict=True)
+            if r.truth is not None
+        ],
+        datasets,
+    )
     return PlanTables(
         plans=plans,
         truth=truth if settings.truth else None,
@@ -565,7 +590,12 @@ def run_closed_loop(
         _closed_task, tasks, workers=min(workers, len(tasks)), progress=progress,
         desc=f"closed loop ({settings.planner}, {agents} agents)", unit="ego",
     )  # fmt: skip
-    rows = [row for ego_rows in results for row in ego_rows]
+    keys = scene_keys(scenes)
+    rows = [
+        {**row, "scene": keys[task[0]]}
+        for task, ego_rows in zip(tasks, results, strict=True)
+        for row in ego_rows
+    ]
     df = pl.DataFrame()
     if rows:
         df = _with_datasets(pl.DataFrame(rows, infer_schema_length=None), _datasets(scenes))
@@ -878,14 +908,15 @@ def json_safe(value: Any) -> Any:
 
 
 def scene_files(paths: Sequence[os.PathLike[str] | str]) -> list[pathlib.Path]:
-    """The ``.mcap`` scenes among ``paths`` (folders searched recursively)."""
+    """The ``.mcap`` scenes among ``paths`` (folders searched recursively); one file given
+    twice, through a folder, a symlink or a hard link, once (by device and inode)."""
     found: list[pathlib.Path] = []
     for p in map(pathlib.Path, paths):
         if p.is_dir():
             found += sorted(f for f in p.rglob("*.mcap") if f.is_file())
         else:
             found.append(p)
-    return list(dict.fromkeys(found))
+    return distinct_files(found)
 
 
 def _float(value: Any) -> float:
