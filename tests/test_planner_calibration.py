@@ -4,6 +4,7 @@ never leaks, and the command end to end on a prepared score cache."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import pathlib
 
@@ -179,3 +180,21 @@ def test_the_corridor_column_is_computed_afresh(tmp_path):
     again = with_corridor(df, path, CorridorSettings())
     assert again.filter(pl.col("agent_id") == STOPPED)["corridor"].all()
     assert not with_corridor(df, path, None)["corridor"].any()
+
+
+def test_two_roots_are_two_scene_units_and_their_caches_apart(tmp_path):
+    """The guarantee counts scenes: d1/road/x.mcap and d2/road/x.mcap are two units (they
+    were one, keyed by folder and file name) and never share a cached table."""
+    from replay.analysis.planner_calibration import cached_scores, collect_scores
+
+    paths = []
+    for root in ("d1", "d2"):
+        (tmp_path / root / "road").mkdir(parents=True)
+        paths.append(write_road_scene(tmp_path / root / "road" / "x.mcap"))
+    settings = ScoreSettings(planners=("idm",))
+    df = collect_scores(paths, settings, progress=False)
+    assert sorted(df["scene"].unique().to_list()) == ["d1/road/x", "d2/road/x"]
+    plain = dataclasses.replace(settings, corridor=None)
+    assert cache_file(tmp_path, paths[0], plain) != cache_file(tmp_path, paths[1], plain)
+    cached = cached_scores(paths, settings, tmp_path / "cache", progress=False)
+    assert cached["scene"].n_unique() == 2 and cached.height == df.height

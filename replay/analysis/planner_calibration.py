@@ -29,7 +29,7 @@ import polars as pl
 
 from outputs.atomic import atomic_write
 from replay.analysis.planner_eval.open_loop import _egos, ego_frames, scene_key
-from replay.analysis.planner_eval.study import share_with_interval
+from replay.analysis.planner_eval.study import scene_keys, share_with_interval
 from replay.core.egos import load_scene
 from replay.core.engine import Stride, seen_from
 from replay.core.pool import parallel_map
@@ -205,7 +205,7 @@ def collect_scores(
         _scores_task, tasks, workers=min(workers, max(len(tasks), 1)), progress=progress,
         desc="planner truth", unit="scene",
     )  # fmt: skip
-    parts = [p for p in parts if not p.is_empty()]
+    parts = [p for p in _keyed(parts, paths) if not p.is_empty()]
     if not parts:
         raise ReplayError("no ego-frame with another agent in the given scenes")
     return pl.concat(parts, how="diagonal_relaxed")
@@ -217,7 +217,21 @@ def settings_key(settings: ScoreSettings) -> str:
 
 
 def cache_file(cache: pathlib.Path, path: pathlib.Path, settings: ScoreSettings) -> pathlib.Path:
-    return cache / (path.parent.name or "_") / f"{path.stem}.{settings_key(settings)}.parquet"
+    """The cached table of one scene file: named by its folder and file name, a hash of
+    its absolute path (two roots' ``a/x.mcap`` are two files) and the settings."""
+    where = hashlib.sha256(os.path.abspath(path).encode()).hexdigest()[:8]
+    name = f"{path.stem}.{where}.{settings_key(settings)}.parquet"
+    return cache / (path.parent.name or "_") / name
+
+
+def _keyed(parts: Sequence[pl.DataFrame], paths: Sequence[pathlib.Path]) -> list[pl.DataFrame]:
+    """Each scene's table with the scene's unique key among ``paths`` in its ``scene``
+    column (the scene-level unit of the guarantee: two files must never share one)."""
+    keys = scene_keys(paths)
+    return [
+        part.with_columns(pl.lit(keys[str(p)]).alias("scene")) if part.height else part
+        for part, p in zip(parts, paths, strict=True)
+    ]
 
 
 def _cached_task(item: tuple[str, ScoreSettings, str]) -> str:
@@ -256,7 +270,7 @@ def cached_scores(
     parts = [
         with_corridor(pl.read_parquet(t), p, corridor) for p, t in zip(paths, targets, strict=True)
     ]
-    parts = [p for p in parts if not p.is_empty()]
+    parts = [p for p in _keyed(parts, paths) if not p.is_empty()]
     if not parts:
         raise ReplayError("no ego-frame with another agent in the given scenes")
     return pl.concat(parts, how="diagonal_relaxed")

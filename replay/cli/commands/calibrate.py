@@ -313,6 +313,7 @@ def _calibrate_planner(
         planner_calibration,
     )
     from replay.analysis.planner_eval.study import json_safe
+    from replay.jobs.scenes import distinct_files
     from replay.planning.registry import available_planners, make_planner
     from risk.cascade import CorridorSettings
 
@@ -340,6 +341,8 @@ def _calibrate_planner(
         ego=_ego_choice(ego),
     )
     files = (output,) if report_path is None else (output, report_path)
+    # one file given twice (or through a link) is one scene unit of the guarantee, not two
+    scenes = tuple(distinct_files(scenes))
     with OutputGuard(inputs=(*scenes, base), files=files):  # before any work
         if scores_cache is not None:
             df = cached_scores(scenes, settings, scores_cache, workers=workers, progress=progress)
