@@ -34,7 +34,7 @@ from replay.core.egos import load_scene
 from replay.core.engine import Stride, seen_from
 from replay.errors import ReplayError
 from replay.jobs import Inputs, Job, JobReport, SceneOutput, SceneRef, fingerprint, scene_refs
-from replay.jobs.place import JobPlace, every_done, run_job, shared_engine
+from replay.jobs.place import JobPlace, every_done, run_job, shared_engine, write_all_failures
 from replay.jobs.runner import PARTS, part_path
 from replay.planning.errors import NoReferencePath
 from replay.planning.inputs import plan_request
@@ -275,6 +275,7 @@ def collect_scores(
             }
         if reports is not None:
             reports += found
+        write_all_failures(place.out_dir, found)  # each pass wrote only its own
         frames = []
         for d in report.done:
             if SCORES not in d.tables:

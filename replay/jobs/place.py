@@ -13,7 +13,8 @@ from collections.abc import Iterator, Sequence
 from replay.core.pool import default_workers
 from replay.errors import ReplayError
 from replay.jobs.engines import Engine, make_engine
-from replay.jobs.runner import Job, JobReport, run_jobs
+from replay.jobs.failures import Failure
+from replay.jobs.runner import Job, JobReport, run_jobs, write_failures_now
 from replay.jobs.scenes import SceneRef
 
 
@@ -67,3 +68,20 @@ def every_done(report: JobReport) -> None:
         first = report.failures[0] if report.failures else None
         why = f": {first.scene}: {first.reason}" if first is not None else ""
         raise ReplayError(f"every scene failed ({len(report.failures)}){why}")
+
+
+def all_failures(reports: Sequence[JobReport]) -> list[Failure]:
+    """Every job's failures, each once (a scene that cannot be read fails every job with
+    the same line), in scene order."""
+    unique = {
+        (f.input, f.scene, f.stage, f.error_type, f.reason): f for r in reports for f in r.failures
+    }
+    return [unique[k] for k in sorted(unique, key=lambda k: (k[1], k[0], k[2], k[4]))]
+
+
+def write_all_failures(out_dir: pathlib.Path, reports: Sequence[JobReport]) -> list[Failure]:
+    """``out_dir/failures.csv`` listing :func:`all_failures` of ``reports`` (several jobs
+    into one folder: each wrote only its own). Returns them."""
+    failures = all_failures(reports)
+    write_failures_now(out_dir.absolute() / "failures.csv", failures)
+    return failures

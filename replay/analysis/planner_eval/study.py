@@ -48,8 +48,14 @@ from replay.analysis.planner_eval.jobs import (
 from replay.analysis.planner_eval.open_loop import ALL_AGENTS, PlanSettings
 from replay.core.engine import Stride
 from replay.jobs import Failure, JobReport, SceneRef
-from replay.jobs.place import JobPlace, every_done, run_job, shared_engine
-from replay.jobs.runner import write_failures_now
+from replay.jobs.place import (
+    JobPlace,
+    all_failures,
+    every_done,
+    run_job,
+    shared_engine,
+    write_all_failures,
+)
 from replay.jobs.scenes import Inputs, distinct_files, scene_refs
 from risk.evaluation import bootstrap_weights, percentile_interval
 
@@ -813,9 +819,9 @@ def run_study(
                 summary["time_s"][f"closed_loop:{name}"] = time.perf_counter() - start
                 closed.append(runs.runs)
             summary["planners"][name] = entry
-        failures = study_failures(reports)
+        failures = all_failures(reports)
         if place is not None:  # every pass wrote its own; the study's lists them all
-            write_failures_now(place.out_dir.absolute() / "failures.csv", failures)
+            write_all_failures(place.out_dir, reports)
     if closed_loop:
         summary["closed_loop_selection"] = (
             f"{closed_loop_sample} vehicle egos in all, spread evenly over the datasets, "
@@ -839,15 +845,6 @@ def run_study(
         jobs=tuple(reports),
         failures=tuple(failures),
     )
-
-
-def study_failures(reports: Sequence[JobReport]) -> list[Failure]:
-    """Every pass's failures, each once (a scene that cannot be read fails every pass
-    with the same line), in scene order."""
-    unique = {
-        (f.input, f.scene, f.stage, f.error_type, f.reason): f for r in reports for f in r.failures
-    }
-    return [unique[k] for k in sorted(unique, key=lambda k: (k[1], k[0], k[2]))]
 
 
 def describe_jobs(result: StudyResult) -> str:
