@@ -92,13 +92,6 @@ def _refs(scenes: Sequence[pathlib.Path]) -> list[SceneRef]:
     return scene_refs(Inputs(tuple(pathlib.Path(p) for p in scenes), ()))
 
 
-def scene_keys(scenes: Sequence[pathlib.Path]) -> dict[str, str]:
-    """Scene path (as given) -> its unique key among ``scenes``, the ``scene`` column of
-    every table (:func:`replay.jobs.scenes.scene_refs`: the path below the scenes' common
-    folder, so that ``d1/a/x.mcap`` and ``d2/a/x.mcap`` stay two scenes)."""
-    return {str(p): ref.key for p, ref in zip(scenes, _refs(scenes), strict=True)}
-
-
 @contextlib.contextmanager
 def _place_or_temp(place: JobPlace | None, workers: int, progress: bool) -> Iterator[JobPlace]:
     """``place``, or local processes writing their parts into a temporary folder (a
