@@ -7,9 +7,11 @@ the report.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import pathlib
+import tempfile
 
 import click
 
@@ -207,17 +209,41 @@ def calibrate(
           --miss-rate 0.01 --confidence 0.95 -o my_cascade.toml
     """
     check_engine_options(engine, ray_address)
-    place = JobPlace(
-        scores_cache or output.with_name(output.name + ".parts"), engine, workers, ray_address,
-        progress,
-    )  # fmt: skip
-    if reference == "planner":
-        _calibrate_planner(
-            scenes, output, stages, base, note, planners, miss_rate, confidence, unit,
-            corridor, every_s, holdout, leave_one_dataset_out, place, report_path, ego,
-            preliminary,
-        )  # fmt: skip
-        return
+    with contextlib.ExitStack() as stack:
+        parts = scores_cache or _default_parts(output, stack)
+        place = JobPlace(parts, engine, workers, ray_address, progress)
+        if reference == "planner":
+            _calibrate_planner(
+                scenes, output, stages, base, note, planners, miss_rate, confidence, unit,
+                corridor, every_s, holdout, leave_one_dataset_out, place, report_path, ego,
+                preliminary,
+            )  # fmt: skip
+        else:
+            _calibrate_survival(
+                scenes, output, max_fn_rate, stages, tier_counts, base, note, planners, place
+            )
+
+
+def _default_parts(output: pathlib.Path, stack: contextlib.ExitStack) -> pathlib.Path:
+    """``OUTPUT.parts/`` beside the TOML; a temporary folder when the output is no
+    regular file's path (``-o /dev/null``: nothing to keep beside it)."""
+    if output.exists() and not output.is_file():
+        return pathlib.Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="calibrate-")))
+    return output.with_name(output.name + ".parts")
+
+
+def _calibrate_survival(
+    scenes: tuple[pathlib.Path, ...],
+    output: pathlib.Path,
+    max_fn_rate: float,
+    stages: str | None,
+    tier_counts: str,
+    base: pathlib.Path | None,
+    note: str,
+    planners: tuple[str, ...],
+    place: JobPlace,
+) -> None:
+    """``--reference survival``: the FN-budget thresholds of :mod:`risk.calibration`."""
     if planners:
         raise click.BadParameter("needs --reference planner", param_hint="--planner")
     stages = stages or ",".join(DEFAULT_STAGES)
