@@ -8,7 +8,7 @@ from __future__ import annotations
 import pathlib
 
 import pytest
-from click.testing import CliRunner
+from click.testing import CliRunner, Result
 from jobs_fixtures import ray_instance, road_corpus  # noqa: F401
 
 from replay.cli.app import main
@@ -24,7 +24,7 @@ REFERENCES = {
 }  # fmt: skip
 
 
-def calibrate(*args: object) -> object:
+def calibrate(*args: object) -> Result:
     return CliRunner().invoke(main, ["calibrate", *map(str, args), "--no-progress"])
 
 

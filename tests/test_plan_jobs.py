@@ -9,7 +9,7 @@ import pathlib
 
 import polars as pl
 import pytest
-from click.testing import CliRunner
+from click.testing import CliRunner, Result
 from jobs_fixtures import ray_instance, road_corpus, summary, timing_key  # noqa: F401
 
 from replay.cli.app import main
@@ -24,7 +24,7 @@ STUDY = (
 )  # fmt: skip
 
 
-def plan(*args: object) -> object:
+def plan(*args: object) -> Result:
     return CliRunner().invoke(main, ["plan", *map(str, args)])
 
 
