@@ -38,6 +38,7 @@ def main() -> None:
     ap.add_argument("--every", default="1s")
     ap.add_argument("--ego", default="all")
     ap.add_argument("--planner", default="idm")
+    ap.add_argument("--warmup", type=int, default=1, help="untimed local runs first")
     args = ap.parse_args()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     n = len(list(args.scenes.rglob("*.mcap")))
@@ -50,19 +51,24 @@ def main() -> None:
         f"replay plan {args.scenes} ({n} scenes) {' '.join(study)}; engines in turns, "
         f"{args.repeat} repeats"
     )
+
+    def run(engine: str, out: pathlib.Path) -> float:
+        shutil.rmtree(out, ignore_errors=True)
+        cmd = [sys.executable, "-m", "replay", "plan", str(args.scenes), "-o", str(out),
+               "--engine", engine, *study]  # fmt: skip
+        start = time.perf_counter()
+        done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+        if done.returncode:
+            sys.exit(done.stderr[-2000:] + done.stdout[-2000:])
+        return time.perf_counter() - start
+
+    for k in range(args.warmup):
+        print(f"warm-up local: {run('local', args.work / f'warmup-{k}'):6.1f} s (not counted)")
     times: dict[str, list[float]] = {"local": [], "ray": []}
     for rep in range(args.repeat):
         for engine in ("local", "ray"):
-            out = args.work / f"{engine}-{rep}"
-            shutil.rmtree(out, ignore_errors=True)
-            cmd = [sys.executable, "-m", "replay", "plan", str(args.scenes), "-o", str(out),
-                   "--engine", engine, *study]  # fmt: skip
             load = os.getloadavg()[0]
-            start = time.perf_counter()
-            done = subprocess.run(cmd, env=env, capture_output=True, text=True)
-            whole = time.perf_counter() - start
-            if done.returncode:
-                sys.exit(done.stderr[-2000:] + done.stdout[-2000:])
+            whole = run(engine, args.work / f"{engine}-{rep}")
             times[engine].append(whole)
             print(f"run {rep} {engine:5}: {whole:6.1f} s (1-min load before: {load:.1f})")
     med = {e: statistics.median(t) for e, t in times.items()}
