@@ -15,16 +15,18 @@ from click.testing import CliRunner
 from planner_scenes import STOPPED, write_road_scene
 
 from replay.analysis.planner_calibration import (
+    SCORES,
     ScoreSettings,
-    cache_file,
     cascade_keeps,
     planner_calibration,
     scene_scores,
+    scores_job,
     site_of,
     site_split,
     with_corridor,
 )
 from replay.cli.app import main
+from replay.jobs import Inputs, SceneOutput, run_jobs, scene_refs
 from risk import MODELS
 from risk.cascade import CascadeConfig, CorridorSettings
 
@@ -108,17 +110,25 @@ def test_the_union_of_planners_and_the_corridor_in_the_thresholds():
 
 
 def _populate_cache(tmp_path: pathlib.Path, n: int, settings: ScoreSettings) -> list[pathlib.Path]:
+    """The cache (the scores job's parts and markers) filled with fake scores, as a run
+    with ``settings`` would leave it."""
     df = fake_scores(n)
-    scenes = []
+    parts = {}
     for name, part in df.group_by("scene"):
         path = tmp_path / "scenes" / str(name[0])
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(b"not read: the cache has its scores")
-        target = cache_file(tmp_path / "cache", path, settings)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        part.write_parquet(target)
-        scenes.append(path)
-    return sorted(scenes)
+        parts[path] = part
+    scenes = sorted(parts)
+    refs = scene_refs(Inputs(tuple(scenes), ()))
+
+    def fake(ref, _settings):  # in this process (one worker): no pickling
+        part = parts[ref.path]
+        return SceneOutput({SCORES: part.with_columns(pl.lit(ref.key).alias("scene"))})
+
+    job = dataclasses.replace(scores_job(settings), run=fake)
+    run_jobs(job, refs, tmp_path / "cache", workers=1, progress=False)
+    return scenes
 
 
 def test_cli_end_to_end_on_a_cache(tmp_path):
@@ -194,7 +204,9 @@ def test_two_roots_are_two_scene_units_and_their_caches_apart(tmp_path):
     settings = ScoreSettings(planners=("idm",))
     df = collect_scores(paths, settings, progress=False)
     assert sorted(df["scene"].unique().to_list()) == ["d1/road/x", "d2/road/x"]
-    plain = dataclasses.replace(settings, corridor=None)
-    assert cache_file(tmp_path, paths[0], plain) != cache_file(tmp_path, paths[1], plain)
     cached = cached_scores(paths, settings, tmp_path / "cache", progress=False)
-    assert cached["scene"].n_unique() == 2 and cached.height == df.height
+    assert cached["scene"].n_unique() == 2 and cached.equals(df)
+    parts = sorted((tmp_path / "cache" / "parts" / SCORES).rglob("*.parquet"))
+    assert [p.relative_to(tmp_path / "cache" / "parts" / SCORES) for p in parts] == [
+        pathlib.Path("d1/road/x.parquet"), pathlib.Path("d2/road/x.parquet"),
+    ]  # fmt: skip

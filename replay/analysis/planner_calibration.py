@@ -16,24 +16,26 @@ Three parts, each usable alone:
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
-import hashlib
 import os
 import pathlib
 import re
+import tempfile
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import polars as pl
 
-from outputs.atomic import atomic_write
 from replay.analysis.planner_eval.open_loop import _egos, ego_frames, scene_key
-from replay.analysis.planner_eval.study import scene_keys, share_with_interval
+from replay.analysis.planner_eval.study import share_with_interval
 from replay.core.egos import load_scene
 from replay.core.engine import Stride, seen_from
-from replay.core.pool import parallel_map
 from replay.errors import ReplayError
+from replay.jobs import Inputs, Job, JobReport, SceneOutput, SceneRef, fingerprint, scene_refs
+from replay.jobs.place import JobPlace, every_done, run_job, shared_engine, write_all_failures
+from replay.jobs.runner import PARTS, part_path
 from replay.planning.errors import NoReferencePath
 from replay.planning.inputs import plan_request
 from replay.planning.registry import make_planner
@@ -54,6 +56,9 @@ from risk.registry import BASELINE_THRESHOLD
 #: ego of one scene (several egos of a scene share its traffic: use only with one ego per
 #: scene, or knowingly).
 UNITS = ("scene", "ego")
+#: The tables of the calibration's jobs (``OUT/parts/<table>/``).
+SCORES = "scores"
+CORRIDOR = "corridor"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -188,8 +193,42 @@ def _planner_labels(
     return out
 
 
-def _scores_task(item: tuple[str, ScoreSettings]) -> pl.DataFrame:
-    return scene_scores(*item)
+def scores_scene(ref: SceneRef, settings: ScoreSettings) -> SceneOutput:
+    """The scores job of one scene: :func:`scene_scores` keyed by the scene's unique key
+    (the scene-level unit of the guarantee: two files never share one); no table when
+    the scene has no ego-frame with another agent."""
+    df = scene_scores(ref.path, settings)
+    if df.is_empty():
+        return SceneOutput({})
+    return SceneOutput({SCORES: df.with_columns(pl.lit(ref.key).alias("scene"))})
+
+
+def scores_job(settings: ScoreSettings) -> Job:
+    """The scores job (:func:`scores_scene`) for ``settings`` without the corridor (its
+    columns are :func:`corridor_scene`'s)."""
+    plain = dataclasses.replace(settings, corridor=None)
+    return Job("calibrate-scores", scores_scene, plain, _key("calibrate-scores", plain))
+
+
+@dataclasses.dataclass(frozen=True)
+class CorridorJobSettings:
+    """The corridor pass: the corridor stage's settings and the folder of the scores'
+    parts (it reads each scene's keys from there)."""
+
+    corridor: CorridorSettings
+    parts: str
+
+
+def corridor_scene(ref: SceneRef, settings: CorridorJobSettings) -> SceneOutput:
+    """The corridor job of one scene: :func:`with_corridor`'s two columns for the rows
+    of the scene's scores part, in their order."""
+    source = part_path(pathlib.Path(settings.parts), SCORES, ref.key)
+    if not source.is_file():
+        return SceneOutput({})
+    keys = pl.read_parquet(source, columns=["ego_id", "frame", "agent_id"])
+    return SceneOutput(
+        {CORRIDOR: with_corridor(keys, ref.path, settings.corridor).select("corridor", "behind")}
+    )
 
 
 def collect_scores(
@@ -198,49 +237,59 @@ def collect_scores(
     *,
     workers: int = 1,
     progress: bool = True,
+    place: JobPlace | None = None,
+    reports: list[JobReport] | None = None,
 ) -> pl.DataFrame:
-    """:func:`scene_scores` of every scene (on ``workers`` processes), concatenated."""
-    tasks = [(str(p), settings) for p in paths]
-    parts = parallel_map(
-        _scores_task, tasks, workers=min(workers, max(len(tasks), 1)), progress=progress,
-        desc="planner truth", unit="scene",
-    )  # fmt: skip
-    parts = [p for p in _keyed(parts, paths) if not p.is_empty()]
-    if not parts:
+    """:func:`scene_scores` of every scene, concatenated in scene-key order: one job per
+    scene on the engine of ``place`` (default: ``workers`` local processes writing into a
+    temporary folder). Its parts are the cache: a rerun into the same folder with the
+    same settings reads the complete scenes. The scores do not depend on the corridor
+    settings: its columns are a second, cheap job (:func:`corridor_scene`), so that the
+    corridor can be tuned without planning again. ``reports`` receives both jobs'
+    reports (their failures: scenes left out)."""
+    corridor = settings.corridor
+    plain = dataclasses.replace(settings, corridor=None)
+    refs = scene_refs(Inputs(tuple(pathlib.Path(p) for p in paths), ()))
+    job = scores_job(plain)
+    with contextlib.ExitStack() as stack:
+        if place is None:
+            tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="replay-calibrate-"))
+            place = JobPlace(pathlib.Path(tmp), "local", workers, None, progress)
+        where = stack.enter_context(shared_engine(place, len(refs)))
+        report = run_job(job, refs, where, "planner truth")
+        found = [report]
+        every_done(report)
+        with_columns: dict[str, pathlib.Path] = {}
+        if corridor is not None:
+            parts = str(report.out_dir / PARTS)
+            job_settings = CorridorJobSettings(corridor, parts)
+            essential = (corridor, plain)  # the scores' settings decide the rows
+            second = Job("calibrate-corridor", corridor_scene, job_settings,
+                         _key("calibrate-corridor", essential))  # fmt: skip
+            done = [d.ref for d in report.done]
+            found.append(run_job(second, done, where, "corridor stage"))
+            with_columns = {
+                d.ref.key: pathlib.Path(d.tables[CORRIDOR])
+                for d in found[-1].done
+                if CORRIDOR in d.tables
+            }
+        if reports is not None:
+            reports += found
+        write_all_failures(place.out_dir, found)  # each pass wrote only its own
+        frames = []
+        for d in report.done:
+            if SCORES not in d.tables:
+                continue
+            df = pl.read_parquet(d.tables[SCORES])
+            if corridor is not None:
+                if d.ref.key not in with_columns:
+                    continue  # its corridor pass failed: listed, left out
+                extra = pl.read_parquet(with_columns[d.ref.key])
+                df = df.with_columns(extra["corridor"], extra["behind"])
+            frames.append(df)
+    if not frames:
         raise ReplayError("no ego-frame with another agent in the given scenes")
-    return pl.concat(parts, how="diagonal_relaxed")
-
-
-def settings_key(settings: ScoreSettings) -> str:
-    """A short hash of the settings (the cache's file names carry it)."""
-    return hashlib.sha256(repr(settings).encode()).hexdigest()[:10]
-
-
-def cache_file(cache: pathlib.Path, path: pathlib.Path, settings: ScoreSettings) -> pathlib.Path:
-    """The cached table of one scene file: named by its folder and file name, a hash of
-    its absolute path (two roots' ``a/x.mcap`` are two files) and the settings."""
-    where = hashlib.sha256(os.path.abspath(path).encode()).hexdigest()[:8]
-    name = f"{path.stem}.{where}.{settings_key(settings)}.parquet"
-    return cache / (path.parent.name or "_") / name
-
-
-def _keyed(parts: Sequence[pl.DataFrame], paths: Sequence[pathlib.Path]) -> list[pl.DataFrame]:
-    """Each scene's table with the scene's unique key among ``paths`` in its ``scene``
-    column (the scene-level unit of the guarantee: two files must never share one)."""
-    keys = scene_keys(paths)
-    return [
-        part.with_columns(pl.lit(keys[str(p)]).alias("scene")) if part.height else part
-        for part, p in zip(parts, paths, strict=True)
-    ]
-
-
-def _cached_task(item: tuple[str, ScoreSettings, str]) -> str:
-    source, settings, target = item
-    df = scene_scores(source, settings)
-    out = pathlib.Path(target)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(out, df.write_parquet)
-    return target
+    return pl.concat(frames, how="diagonal_relaxed")
 
 
 def cached_scores(
@@ -251,29 +300,14 @@ def cached_scores(
     workers: int = 1,
     progress: bool = True,
 ) -> pl.DataFrame:
-    """:func:`collect_scores` through a folder of per-scene tables: scenes already there
-    (same settings) are read, the others computed and written (atomically: a run stopped
-    half-way resumes). The cached tables do not depend on the corridor settings: its
-    column is computed afresh (:func:`with_corridor`, cheap beside the planner truth), so
-    that the corridor can be tuned without planning again."""
-    corridor = settings.corridor
-    settings = dataclasses.replace(settings, corridor=None)
-    targets = [cache_file(cache, pathlib.Path(p), settings) for p in paths]
-    todo = [
-        (str(p), settings, str(t)) for p, t in zip(paths, targets, strict=True) if not t.is_file()
-    ]
-    if todo:
-        parallel_map(
-            _cached_task, todo, workers=min(workers, len(todo)), progress=progress,
-            desc="planner truth", unit="scene",
-        )  # fmt: skip
-    parts = [
-        with_corridor(pl.read_parquet(t), p, corridor) for p, t in zip(paths, targets, strict=True)
-    ]
-    parts = [p for p in _keyed(parts, paths) if not p.is_empty()]
-    if not parts:
-        raise ReplayError("no ego-frame with another agent in the given scenes")
-    return pl.concat(parts, how="diagonal_relaxed")
+    """:func:`collect_scores` with its parts kept in ``cache`` (local processes): scenes
+    complete there (same settings) are read, the others computed."""
+    place = JobPlace(cache, "local", workers, None, progress)
+    return collect_scores(paths, settings, place=place)
+
+
+def _key(name: str, settings: object) -> str:
+    return fingerprint(name, {"settings": repr(settings)})
 
 
 def with_corridor(

@@ -8,19 +8,22 @@ of :mod:`risk.calibration`; :func:`provenance` records how (kept in the TOML).
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import importlib.metadata
 import itertools
 import pathlib
-import sys
+import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from tqdm import tqdm
+import polars as pl
 
 from converters.scene.reader import open_scene
 from replay.errors import ReplayError
+from replay.jobs import Inputs, Job, JobReport, SceneOutput, SceneRef, fingerprint, scene_refs
+from replay.jobs.place import JobPlace, every_done, run_job
 from risk import MODELS, PredictionSettings, evaluate
 from risk.calibration import (
     Calibration,
@@ -58,49 +61,108 @@ class CalibrationData:
     seeds: tuple[int, ...] = ()  # metadata "seed" of synthetic scenes
 
 
-def collect(
-    paths: Sequence[pathlib.Path], models: Sequence[str], *, progress: bool = True
-) -> CalibrationData:
-    """Evaluate ``models`` and survival analysis on every agent of every frame."""
-    readers = [open_scene(p) for p in paths]
-    names = [*models, SURVIVAL_MODEL]
+@dataclass(frozen=True)
+class RiskSettings:
+    """The survival calibration's job: the stage models (the survival model is added)."""
+
+    models: tuple[str, ...]
+
+
+#: The table of the survival calibration's job (``OUT/parts/risks/``).
+RISKS = "risks"
+
+
+def risks_scene(ref: SceneRef, settings: RiskSettings) -> SceneOutput:
+    """One scene's agent-frames: every stage model's risk (``stage_<k>``) and survival
+    analysis's (``survival``) for every valid non-ego agent of every frame with its ego,
+    and the frame's number among those (``frame``); the counts and the metadata's source
+    and seed in the partial."""
+    reader = open_scene(ref.path)
+    meta = dict(reader.metadata)
+    names = [*settings.models, SURVIVAL_MODEL]
     risks: list[list[np.ndarray]] = [[] for _ in names]
     frame_index: list[np.ndarray] = []
     frames = skipped = 0
-    sources: set[str] = set()
-    seeds: set[int] = set()
-    total = sum(r.n_frames for r in readers)
-    with tqdm(total=total, disable=None if progress else True, file=sys.stderr, unit="frame",
-              desc="calibrate", leave=False) as bar:  # fmt: skip
-        for reader in readers:
-            meta = dict(reader.metadata)
-            sources.add(meta.get("dataset") or meta.get("source") or meta.get("converter", "?"))
-            if meta.get("seed", "").lstrip("-").isdigit():
-                seeds.add(int(meta["seed"]))
-            for entry in reader.entries():
-                bar.update()
-                if entry.frame is None:
-                    skipped += 1
-                    continue
-                frame = entry.frame
-                values = evaluate(frame, models=names)
-                others = frame.others
-                for k, name in enumerate(names):
-                    risks[k].append(np.asarray(values[name], dtype=np.float64)[others])
-                frame_index.append(np.full(int(others.sum()), frames, dtype=np.int64))
-                frames += 1
+    for entry in reader.entries():
+        if entry.frame is None:
+            skipped += 1
+            continue
+        frame = entry.frame
+        values = evaluate(frame, models=names)
+        others = frame.others
+        for k, name in enumerate(names):
+            risks[k].append(np.asarray(values[name], dtype=np.float64)[others])
+        frame_index.append(np.full(int(others.sum()), frames, dtype=np.int64))
+        frames += 1
+    seed = meta.get("seed", "")
+    partial = {
+        "frames": frames,
+        "skipped_frames": skipped,
+        "source": meta.get("dataset") or meta.get("source") or meta.get("converter", "?"),
+        "seed": int(seed) if seed.lstrip("-").isdigit() else None,
+    }
+    if not frames:
+        return SceneOutput({}, partial)
+    columns = {"frame": np.concatenate(frame_index)}
+    for k in range(len(names)):
+        label = "survival" if k == len(names) - 1 else f"stage_{k}"
+        columns[label] = np.concatenate(risks[k])
+    return SceneOutput({RISKS: pl.DataFrame(columns)}, partial)
+
+
+def collect(
+    paths: Sequence[pathlib.Path],
+    models: Sequence[str],
+    *,
+    progress: bool = True,
+    place: JobPlace | None = None,
+    reports: list[JobReport] | None = None,
+) -> CalibrationData:
+    """Evaluate ``models`` and survival analysis on every agent of every frame: one job
+    per scene (:func:`risks_scene`) on the engine of ``place`` (default: this process,
+    into a temporary folder), read back in scene-key order (frames numbered across the
+    scenes in that order). Its parts are a cache: a rerun into the same folder with the
+    same models reads the complete scenes. ``reports`` receives the job's report (its
+    failures: scenes left out)."""
+    settings = RiskSettings(tuple(models))
+    job = Job("calibrate-risks", risks_scene, settings,
+              fingerprint("calibrate-risks", {"settings": repr(settings)}))  # fmt: skip
+    refs = scene_refs(Inputs(tuple(pathlib.Path(p) for p in paths), ()))
+    with contextlib.ExitStack() as stack:
+        if place is None:
+            tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="replay-calibrate-"))
+            place = JobPlace(pathlib.Path(tmp), "local", 1, None, progress)
+        report = run_job(job, refs, place, "calibrate")
+        if reports is not None:
+            reports.append(report)
+        every_done(report)
+        stage_risks: list[np.ndarray] = []
+        survival: list[np.ndarray] = []
+        frame_index: list[np.ndarray] = []
+        frames = 0
+        for done in report.done:  # key order: the frames' numbers do not depend on the engine
+            if RISKS in done.tables:
+                df = pl.read_parquet(done.tables[RISKS])
+                stage_risks.append(
+                    np.stack([df[f"stage_{k}"].to_numpy() for k in range(len(models))])
+                    if models
+                    else np.empty((0, df.height))
+                )
+                survival.append(df["survival"].to_numpy())
+                frame_index.append(df["frame"].to_numpy() + frames)
+            frames += int(done.partial["frames"])
     if frames == 0:
         raise ReplayError("no usable frame in the given scenes (every frame lacks its ego)")
-    stacked = [np.concatenate(r) for r in risks]
+    partials = [d.partial for d in report.done]
     return CalibrationData(
-        stage_risks=np.stack(stacked[:-1]) if models else np.empty((0, 0)),
-        survival=stacked[-1],
+        stage_risks=np.concatenate(stage_risks, axis=1) if models else np.empty((0, 0)),
+        survival=np.concatenate(survival),
         frame_index=np.concatenate(frame_index),
         frames=frames,
-        scenes=len(paths),
-        skipped_frames=skipped,
-        sources=tuple(sorted(sources)),
-        seeds=tuple(sorted(seeds)),
+        scenes=len(report.done),
+        skipped_frames=sum(int(p["skipped_frames"]) for p in partials),
+        sources=tuple(sorted({str(p["source"]) for p in partials})),
+        seeds=tuple(sorted({int(p["seed"]) for p in partials if p["seed"] is not None})),
     )
 
 

@@ -117,6 +117,7 @@ class JobReport:
     failures: list[Failure]
     recomputed: int = 0  # scenes whose parts were made with other settings
     seconds: float = 0.0
+    job: str = ""  # the job's name
 
     @property
     def computed(self) -> int:
@@ -336,7 +337,8 @@ def run_jobs(
     failures.sort(key=lambda f: (f.scene, f.input, f.stage))
     if done:  # when nothing is complete the command fails and leaves no file behind
         write_failures_now(out / "failures.csv", failures)
-    return JobReport(out, name, n_workers, done, failures, recomputed, time.perf_counter() - start)
+    seconds = time.perf_counter() - start
+    return JobReport(out, name, n_workers, done, failures, recomputed, seconds, job.name)
 
 
 #: The temporary files of outputs.atomic: ``.NAME.<12 hex>.tmp``.

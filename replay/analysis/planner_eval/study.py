@@ -9,14 +9,16 @@ are not independent, so scenes are resampled whole).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import itertools
 import json
 import math
 import os
 import pathlib
+import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -28,25 +30,34 @@ from replay.analysis.planner_eval.closed_loop import (
     DEFAULT_AGENTS,
     DEFAULT_TRACKER,
     ClosedLoopSettings,
-    run_ego,
-    vehicle_egos,
 )
-from replay.analysis.planner_eval.open_loop import (
-    ALL_AGENTS,
-    SCHEMA,
-    PlanSettings,
-    ScenePlans,
-    _egos,
-    ego_frames,
-    plan_scene,
+from replay.analysis.planner_eval.jobs import (
+    ClosedLoopJobSettings,
+    EgosSettings,
+    MatchSettings,
+    OpenLoopSettings,
+    closed_loop_job,
+    closed_loop_table,
+    dataset_of,
+    egos_job,
+    match_job,
+    open_loop_job,
+    plans_table,
+    truth_table,
 )
-from replay.core.egos import load_scene
+from replay.analysis.planner_eval.open_loop import ALL_AGENTS, PlanSettings
 from replay.core.engine import Stride
-from replay.core.pool import parallel_map
+from replay.jobs import Failure, JobReport, SceneRef
+from replay.jobs.place import (
+    JobPlace,
+    all_failures,
+    every_done,
+    run_job,
+    shared_engine,
+    write_all_failures,
+)
 from replay.jobs.scenes import Inputs, distinct_files, scene_refs
-from replay.planning.inputs import plans_for
 from risk.evaluation import bootstrap_weights, percentile_interval
-from risk.filtering import CascadeFilter
 
 #: Agent-count bins of the timing table (others in the frame).
 COUNT_BINS = (0, 10, 25, 50, 100, 10**9)
@@ -72,42 +83,31 @@ class PlanTables:
     skipped_ego_frames: dict[str, int] = dataclasses.field(default_factory=dict)
     skipped_egos: dict[str, int] = dataclasses.field(default_factory=dict)
     ego_kinds: str = "vehicles"
+    jobs: JobReport | None = None  # where the scenes ran, what failed
 
 
-def _task(item: tuple[str, PlanSettings, Any, Any]) -> ScenePlans:
-    path, settings, ego, every = item
-    return plan_scene(path, settings, ego=ego, every=every)
+def _refs(scenes: Sequence[pathlib.Path]) -> list[SceneRef]:
+    """The scenes with their unique keys (:func:`replay.jobs.scenes.scene_refs`), in the
+    order given."""
+    return scene_refs(Inputs(tuple(pathlib.Path(p) for p in scenes), ()))
 
 
-def _dataset_of(path: pathlib.Path) -> str:
-    return path.parent.name or "."
+@contextlib.contextmanager
+def _place_or_temp(place: JobPlace | None, workers: int, progress: bool) -> Iterator[JobPlace]:
+    """``place``, or local processes writing their parts into a temporary folder (a
+    library caller without an output folder: the rows are read back before it goes)."""
+    if place is not None:
+        yield place
+        return
+    with tempfile.TemporaryDirectory(prefix="replay-plan-") as tmp:
+        yield JobPlace(pathlib.Path(tmp), "local", workers, None, progress)
 
 
-def scene_keys(scenes: Sequence[pathlib.Path]) -> dict[str, str]:
-    """Scene path (as given) -> its unique key among ``scenes``, the ``scene`` column of
-    every table (:func:`replay.jobs.scenes.scene_refs`: the path below the scenes' common
-    folder, so that ``d1/a/x.mcap`` and ``d2/a/x.mcap`` stay two scenes)."""
-    refs = scene_refs(Inputs(tuple(pathlib.Path(p) for p in scenes), ()))
-    return {str(p): ref.key for p, ref in zip(scenes, refs, strict=True)}
-
-
-def _datasets(scenes: Sequence[pathlib.Path]) -> dict[str, str]:
-    """Scene key -> dataset: the scene's folder, as in replay evaluate (a scene's own
-    word, e.g. "commonroad", names a format rather than a recording site)."""
-    keys = scene_keys(scenes)
-    return {keys[str(p)]: _dataset_of(p) for p in scenes}
-
-
-def _keyed(columns: dict[str, list[Any]] | None, key: str) -> dict[str, list[Any]] | None:
-    """A scene's table columns with its unique key in the ``scene`` column (the worker
-    named it by its file alone)."""
-    if columns is None or not columns.get("scene"):
-        return columns
-    return {**columns, "scene": [key] * len(columns["scene"])}
-
-
-def _with_datasets(df: pl.DataFrame, datasets: dict[str, str]) -> pl.DataFrame:
-    return df.with_columns(df["scene"].replace_strict(datasets, default="").alias("dataset"))
+def read_table(report: JobReport, table: str) -> pl.DataFrame:
+    """Every complete scene's ``table``, in key order (empty when no scene has rows)."""
+    if not report.parts(table):
+        return pl.DataFrame()
+    return report.scan(table).collect()
 
 
 def run_open_loop(
@@ -118,35 +118,30 @@ def run_open_loop(
     every: Stride | int = 1,
     workers: int = 1,
     progress: bool = True,
+    place: JobPlace | None = None,
 ) -> PlanTables:
-    """Every scene in open loop (:func:`plan_scene`), on ``workers`` processes."""
+    """Every scene in open loop (:func:`plan_scene`), one job per scene on the engine of
+    ``place`` (default: ``workers`` local processes). Scenes that fail are listed in
+    ``PlanTables.jobs``' failures and left out."""
     settings.make_filters()  # a bad spec fails here, before any worker starts
-    tasks = [(str(p), settings, ego, every) for p in scenes]
-    results: list[ScenePlans] = parallel_map(
-        _task, tasks, workers=min(workers, len(tasks)), progress=progress,
-        desc=f"plan ({settings.planner})", unit="scene",
-    )  # fmt: skip
-    datasets = _datasets(scenes)
-    keys = [scene_keys(scenes)[str(p)] for p in scenes]
-    plans = _frame([_keyed(r.plans, k) or {} for r, k in zip(results, keys, strict=True)], datasets)
-    truth = _frame(
-        [
-            _keyed(r.truth, k) or {}
-            for r, k in zip(results, keys, strict=True)
-            if r.truth is not None
-        ],
-        datasets,
-    )
+    job = open_loop_job(OpenLoopSettings(settings, ego, Stride.of(every)))
+    with _place_or_temp(place, workers, progress) as where:
+        report = run_job(job, _refs(scenes), where, f"plan ({settings.planner})")
+        every_done(report)
+        plans = read_table(report, plans_table(settings.planner))
+        truth = read_table(report, truth_table(settings.planner)) if settings.truth else None
+    partials = [d.partial for d in report.done]
     return PlanTables(
         plans=plans,
-        truth=truth if settings.truth else None,
-        scenes=tuple(scenes),
-        ego_frames=sum(r.ego_frames for r in results),
-        no_path=sum(r.no_path for r in results),
-        datasets=datasets,
-        skipped_ego_frames=_add_counts(r.skipped_ego_frames for r in results),
-        skipped_egos=_add_counts(r.skipped_egos for r in results),
+        truth=truth,
+        scenes=tuple(d.ref.path for d in report.done),
+        ego_frames=sum(int(p["ego_frames"]) for p in partials),
+        no_path=sum(int(p["no_path"]) for p in partials),
+        datasets={d.ref.key: dataset_of(d.ref.path) for d in report.done},
+        skipped_ego_frames=_add_counts(p["skipped_ego_frames"] for p in partials),
+        skipped_egos=_add_counts(p["skipped_egos"] for p in partials),
         ego_kinds=settings.ego_kinds,
+        jobs=report,
     )
 
 
@@ -158,40 +153,9 @@ def _add_counts(parts: Any) -> dict[str, int]:
     return dict(sorted(total.items()))
 
 
-_POLARS_TYPES = {"str": pl.String, "int": pl.Int64, "float": pl.Float64, "bool": pl.Boolean}
-
-
-def _frame(parts: list[dict[str, list[Any]]], datasets: dict[str, str]) -> pl.DataFrame:
-    frames = [
-        pl.DataFrame(p, schema={k: _POLARS_TYPES[SCHEMA[k]] for k in p})
-        for p in parts
-        if p and p["scene"]
-    ]
-    if not frames:
-        return pl.DataFrame()
-    return _with_datasets(pl.concat(frames, how="diagonal_relaxed"), datasets)
-
-
 # ---------------------------------------------------------------------- matched cuts
 #: The spec suffix that asks for a nearest-K or radius cut matched to the cascade.
 MATCH = "match"
-
-
-def _kept_and_distances(item: tuple[str, PlanSettings, Any, Any]) -> tuple[list[int], np.ndarray]:
-    """Per ego-frame of one scene: the cascade's kept count, and every other agent's
-    centre distance to the ego (all frames concatenated, with the frame's number)."""
-    path, settings, ego, every = item
-    scene = load_scene(path)
-    cascade = CascadeFilter(settings.cascade)
-    kept: list[int] = []
-    distances: list[np.ndarray] = []
-    seen = ego_frames(scene, _egos(scene, ego), Stride.of(every))
-    planned = (f for _, _, f in seen if plans_for(f, settings.ego_kinds))  # as the open loop
-    for n, frame in enumerate(planned):
-        kept.append(cascade.apply(frame).n_kept)
-        d = frame.xy[frame.others] - frame.xy[frame.ego]
-        distances.append(np.stack([np.full(d.shape[0], n), np.hypot(d[:, 0], d[:, 1])], axis=1))
-    return kept, (np.concatenate(distances) if distances else np.zeros((0, 2)))
 
 
 def matched_cuts(
@@ -202,25 +166,33 @@ def matched_cuts(
     every: Stride | int = 1,
     workers: int = 1,
     progress: bool = True,
+    place: JobPlace | None = None,
+    reports: list[JobReport] | None = None,
 ) -> dict[str, Any]:
     """The nearest-K and radius cuts that keep as many agents per ego-frame, on average,
     as the cascade: K the rounded mean, R from the ego-frames' sorted distances (the mean
     count within R is a step function of R; R is the smallest radius reaching
-    the cascade's mean)."""
-    tasks = [(str(p), settings, ego, every) for p in scenes]
-    parts = parallel_map(
-        _kept_and_distances, tasks, workers=min(workers, len(tasks)), progress=progress,
-        desc="cascade (matching the cuts)", unit="scene",
-    )  # fmt: skip
-    kept = np.concatenate([np.asarray(k, dtype=np.float64) for k, _ in parts] or [np.zeros(0)])
-    distances = np.concatenate([d[:, 1] for _, d in parts] or [np.zeros(0)])
-    frames = kept.size
-    mean_kept = float(kept.mean()) if frames else 0.0
-    # The mean count within R is (number of distances <= R) / frames: the smallest R with
-    # at least mean_kept * frames distances at or below it.
-    need = math.ceil(mean_kept * frames - 1e-9)
-    ordered = np.sort(distances)
-    radius = float(ordered[need - 1]) if 0 < need <= ordered.size else 0.0
+    the cascade's mean). One job per scene (:func:`~replay.analysis.planner_eval.jobs.match_scene`); the driver sums the
+    scenes' counts and reads the distances back lazily. ``reports`` receives the job's
+    report."""
+    job = match_job(MatchSettings(settings, ego, Stride.of(every)))
+    with _place_or_temp(place, workers, progress) as where:
+        report = run_job(job, _refs(scenes), where, "cascade (matching the cuts)")
+        if reports is not None:
+            reports.append(report)
+        every_done(report)
+        frames = sum(int(d.partial["ego_frames"]) for d in report.done)
+        kept = sum(int(d.partial["kept"]) for d in report.done)
+        mean_kept = kept / frames if frames else 0.0
+        # The mean count within R is (number of distances <= R) / frames: the smallest R
+        # with at least mean_kept * frames distances at or below it.
+        need = math.ceil(mean_kept * frames - 1e-9)
+        radius = 0.0
+        if need > 0 and report.parts("match_distances"):
+            column = report.scan("match_distances").select("distance_m")
+            if column.select(pl.len()).collect().item() >= need:
+                nearest = column.select(pl.col("distance_m").bottom_k(need).max())
+                radius = float(nearest.collect().item())
     return {
         "ego_frames": frames,
         "cascade_mean_kept": mean_kept,
@@ -486,13 +458,6 @@ def _ms(value: float | None) -> str:
 
 
 # ---------------------------------------------------------------------- closed loop
-def _vehicle_egos_task(item: tuple[str, Any]) -> tuple[tuple[int, ...], int]:
-    """A scene's vehicle egos of ``--ego`` and how many egos ``--ego`` names in all."""
-    path, ego = item
-    scene = load_scene(path)
-    return vehicle_egos(scene, ego), len(_egos(scene, ego))
-
-
 @dataclasses.dataclass(frozen=True)
 class ClosedLoopRuns:
     """The closed-loop rows and the egos they came from: ``vehicle_egos`` found in the
@@ -503,11 +468,7 @@ class ClosedLoopRuns:
     vehicle_egos: int
     skipped_egos: int
     sampled: int
-
-
-def _closed_task(item: tuple[str, int, ClosedLoopSettings]) -> list[dict[str, Any]]:
-    path, ego_id, settings = item
-    return run_ego(path, ego_id, settings)
+    jobs: tuple[JobReport, ...] = ()  # the vehicle-egos pass and the runs
 
 
 def _spread(n: int, k: int) -> list[int]:
@@ -531,7 +492,7 @@ def closed_loop_sample(
         return [(p, e) for p, egos in usable for e in egos]
     by_dataset: dict[str, list[tuple[pathlib.Path, tuple[int, ...]]]] = {}
     for p, egos in usable:
-        by_dataset.setdefault(_dataset_of(p), []).append((p, egos))
+        by_dataset.setdefault(dataset_of(p), []).append((p, egos))
     capacity = {d: sum(len(e) for _, e in rows) for d, rows in by_dataset.items()}
     quota = dict.fromkeys(by_dataset, 0)
     left = sample
@@ -569,37 +530,42 @@ def run_closed_loop(
     sample: int | None = None,
     agents: str = DEFAULT_AGENTS,
     tracker: str = DEFAULT_TRACKER,
+    place: JobPlace | None = None,
 ) -> ClosedLoopRuns:
     """Closed-loop runs (:func:`run_ego`): one row per (scene, ego, filter), vehicle
     egos only. ``sample``: that many egos in all (:func:`closed_loop_sample`);
-    ``egos_per_scene``: at most that many per scene, those present longest."""
+    ``egos_per_scene``: at most that many per scene, those present longest. The
+    vehicle egos are found by one job per scene, the sample is drawn here, then one job
+    per scene drives that scene's sampled egos."""
     settings.make_filters()
     closed = ClosedLoopSettings(plan=settings, agents=agents, tracker=tracker)
-    found = parallel_map(
-        _vehicle_egos_task, [(str(p), ego) for p in scenes], workers=min(workers, len(scenes)),
-        progress=progress, desc="closed loop (vehicle egos)", unit="scene",
+    refs = _refs(scenes)
+    with _place_or_temp(place, workers, progress) as where:
+        found = run_job(egos_job(EgosSettings(ego)), refs, where, "closed loop (vehicle egos)")
+        every_done(found)
+        partial = {d.ref.key: d.partial for d in found.done}
+        candidates = [
+            (r.path, tuple(int(e) for e in partial[r.key]["vehicle_egos"])[:egos_per_scene])
+            for r in refs
+            if r.key in partial
+        ]
+        vehicles = sum(len(p["vehicle_egos"]) for p in partial.values())
+        skipped = sum(int(p["egos"]) - len(p["vehicle_egos"]) for p in partial.values())
+        picks = closed_loop_sample(candidates, sample)
+        key_of = {r.path: r.key for r in refs}
+        chosen: dict[str, list[int]] = {}
+        for path, ego_id in picks:
+            chosen.setdefault(key_of[path], []).append(ego_id)
+        job = closed_loop_job(
+            ClosedLoopJobSettings(closed, tuple((k, tuple(chosen[k])) for k in sorted(chosen)))
+        )
+        desc = f"closed loop ({settings.planner}, {agents} agents)"
+        report = run_job(job, [r for r in refs if r.key in chosen], where, desc)
+        runs = read_table(report, closed_loop_table(settings.planner))
+    return ClosedLoopRuns(
+        runs=runs, vehicle_egos=vehicles, skipped_egos=skipped, sampled=len(picks),
+        jobs=(found, report),
     )  # fmt: skip
-    candidates = [
-        (p, egos if egos_per_scene is None else egos[:egos_per_scene])
-        for p, (egos, _) in zip(scenes, found, strict=True)
-    ]
-    vehicles = sum(len(egos) for egos, _ in found)
-    skipped = sum(total - len(egos) for egos, total in found)
-    tasks = [(str(p), e, closed) for p, e in closed_loop_sample(candidates, sample)]
-    results = parallel_map(
-        _closed_task, tasks, workers=min(workers, len(tasks)), progress=progress,
-        desc=f"closed loop ({settings.planner}, {agents} agents)", unit="ego",
-    )  # fmt: skip
-    keys = scene_keys(scenes)
-    rows = [
-        {**row, "scene": keys[task[0]]}
-        for task, ego_rows in zip(tasks, results, strict=True)
-        for row in ego_rows
-    ]
-    df = pl.DataFrame()
-    if rows:
-        df = _with_datasets(pl.DataFrame(rows, infer_schema_length=None), _datasets(scenes))
-    return ClosedLoopRuns(runs=df, vehicle_egos=vehicles, skipped_egos=skipped, sampled=len(tasks))
 
 
 def _mean_with_interval(
@@ -772,6 +738,8 @@ class StudyResult:
     truth: pl.DataFrame | None
     closed_loop: pl.DataFrame | None
     summary: dict[str, Any]
+    jobs: tuple[JobReport, ...] = ()  # every pass's report
+    failures: tuple[Failure, ...] = ()  # the scenes that failed in any pass
 
 
 def run_study(
@@ -789,51 +757,64 @@ def run_study(
     agents: str = DEFAULT_AGENTS,
     tracker: str = DEFAULT_TRACKER,
     notify: Any = None,
+    place: JobPlace | None = None,
 ) -> StudyResult:
     """``replay plan``: the matched cuts (when asked for), then per planner the open loop
-    and, with ``closed_loop``, the closed loop; one summary for all."""
+    and, with ``closed_loop``, the closed loop; one summary for all. Every pass runs one
+    job per scene on the engine of ``place`` (one engine for them all; default:
+    ``workers`` local processes and a temporary folder), its parts in
+    ``place.out_dir/parts`` (a rerun skips complete scenes); the scenes that failed in
+    any pass go to ``place.out_dir/failures.csv`` and ``summary["failed_scenes"]``."""
     summary: dict[str, Any] = {"planners": {}, "time_s": {}}
-    if wants_matching(settings):
-        start = time.perf_counter()
-        matched = matched_cuts(
-            scenes, settings, ego=ego, every=every, workers=workers, progress=progress
-        )
-        settings = resolve_matched(settings, matched)
-        summary["matched_cuts"] = matched
-        summary["time_s"]["matching"] = time.perf_counter() - start
-        if notify is not None:
-            notify(
-                f"Matched to the cascade's {matched['cascade_mean_kept']:.1f} agents per "
-                f"ego-frame: nearest:{matched['nearest_k']}, radius:{matched['radius_m']:g}"
-            )
+    reports: list[JobReport] = []
     plans, truths, closed = [], [], []
-    for name in planners:
-        own = dataclasses.replace(settings, planner=name)
-        start = time.perf_counter()
-        tables = run_open_loop(
-            scenes, own, ego=ego, every=every, workers=workers, progress=progress
-        )
-        entry = summarize(tables)
-        summary["time_s"][f"open_loop:{name}"] = time.perf_counter() - start
-        plans.append(tables.plans)
-        if tables.truth is not None:
-            truths.append(tables.truth)
-        if closed_loop:
+    with (
+        _place_or_temp(place, workers, progress) as given,
+        shared_engine(given, len(scenes)) as where,
+    ):
+        if wants_matching(settings):
             start = time.perf_counter()
-            runs = run_closed_loop(
-                scenes, own, ego=ego, workers=workers, progress=progress,
-                egos_per_scene=closed_loop_egos, sample=closed_loop_sample, agents=agents,
-                tracker=tracker,
-            )  # fmt: skip
-            entry["closed_loop"] = summarize_closed_loop(runs.runs)
-            entry["closed_loop"]["egos"] = {
-                "vehicle_egos": runs.vehicle_egos,
-                "skipped_not_vehicles": runs.skipped_egos,
-                "sampled": runs.sampled,
-            }
-            summary["time_s"][f"closed_loop:{name}"] = time.perf_counter() - start
-            closed.append(runs.runs)
-        summary["planners"][name] = entry
+            matched = matched_cuts(
+                scenes, settings, ego=ego, every=every, place=where, reports=reports
+            )
+            settings = resolve_matched(settings, matched)
+            summary["matched_cuts"] = matched
+            summary["time_s"]["matching"] = time.perf_counter() - start
+            if notify is not None:
+                notify(
+                    f"Matched to the cascade's {matched['cascade_mean_kept']:.1f} agents per "
+                    f"ego-frame: nearest:{matched['nearest_k']}, radius:{matched['radius_m']:g}"
+                )
+        for name in planners:
+            own = dataclasses.replace(settings, planner=name)
+            start = time.perf_counter()
+            tables = run_open_loop(scenes, own, ego=ego, every=every, place=where)
+            assert tables.jobs is not None
+            reports.append(tables.jobs)
+            entry = summarize(tables)
+            summary["time_s"][f"open_loop:{name}"] = time.perf_counter() - start
+            plans.append(tables.plans)
+            if tables.truth is not None:
+                truths.append(tables.truth)
+            if closed_loop:
+                start = time.perf_counter()
+                runs = run_closed_loop(
+                    scenes, own, ego=ego, egos_per_scene=closed_loop_egos,
+                    sample=closed_loop_sample, agents=agents, tracker=tracker, place=where,
+                )  # fmt: skip
+                reports += runs.jobs
+                entry["closed_loop"] = summarize_closed_loop(runs.runs)
+                entry["closed_loop"]["egos"] = {
+                    "vehicle_egos": runs.vehicle_egos,
+                    "skipped_not_vehicles": runs.skipped_egos,
+                    "sampled": runs.sampled,
+                }
+                summary["time_s"][f"closed_loop:{name}"] = time.perf_counter() - start
+                closed.append(runs.runs)
+            summary["planners"][name] = entry
+        failures = all_failures(reports)
+        if place is not None:  # every pass wrote its own; the study's lists them all
+            write_all_failures(place.out_dir, reports)
     if closed_loop:
         summary["closed_loop_selection"] = (
             f"{closed_loop_sample} vehicle egos in all, spread evenly over the datasets, "
@@ -848,12 +829,21 @@ def run_study(
     summary["filters"] = list(settings.filters)
     summary["tolerance_m"] = settings.tolerance_m
     summary["horizon_s"] = settings.horizon_s
+    summary["failed_scenes"] = sorted({f.scene for f in failures})
     return StudyResult(
         plans=_concat(plans),
         truth=_concat(truths) if settings.truth else None,
         closed_loop=_concat(closed) if closed_loop else None,
         summary=summary,
+        jobs=tuple(reports),
+        failures=tuple(failures),
     )
+
+
+def describe_jobs(result: StudyResult) -> str:
+    """The end-of-run lines on the scenes: per pass, what was computed, skipped and
+    failed; where the failures are listed."""
+    return "\n".join(f"  {r.job}: {r.describe()}" for r in result.jobs)
 
 
 def _concat(frames: list[pl.DataFrame]) -> pl.DataFrame:

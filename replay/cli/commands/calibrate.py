@@ -7,9 +7,11 @@ the report.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import pathlib
+import tempfile
 
 import click
 
@@ -27,8 +29,12 @@ from replay.analysis.scene_calibration import (
     seed_ranges,
     tier_means,
 )
+from replay.cli.engine_options import check_engine_options, engine_options
 from replay.cli.limits import FiniteRange
 from replay.errors import ReplayError
+from replay.jobs import JobReport
+from replay.jobs.place import JobPlace, shared_engine
+from replay.jobs.scenes import distinct_files
 from risk.calibration import (
     Calibration,
 )
@@ -126,8 +132,12 @@ def _parse_list(value: str, what: str) -> list[str]:
 )  # fmt: skip
 @click.option(
     "--scores-cache", type=click.Path(file_okay=False, path_type=pathlib.Path),
-    help="With --reference planner: keep each scene's scores and planner truth here and "
-    "reuse them (a rerun with other --miss-rate, --stages or --holdout plans nothing).",
+    metavar="DIR",
+    help="The folder of the per-scene jobs (docs/batch.md): each scene's scores (and, with "
+    "--reference planner, its planner truth) in DIR/parts/, the scenes that failed in "
+    "DIR/failures.csv. A rerun with the same scoring settings reads the complete scenes "
+    "(other --miss-rate, --stages or --holdout plan nothing). Default: OUTPUT.parts/ "
+    "beside the TOML.",
 )  # fmt: skip
 @click.option(
     "--report", "report_path", type=click.Path(dir_okay=False, path_type=pathlib.Path),
@@ -143,8 +153,7 @@ def _parse_list(value: str, what: str) -> list[str]:
     "--preliminary", is_flag=True,
     help="With --reference planner: mark the file's guarantee as preliminary (status).",
 )  # fmt: skip
-@click.option("--workers", type=click.IntRange(1, 64), default=1, show_default=True,
-              help="Processes for the planner truth.")  # fmt: skip
+@engine_options
 @click.option("--progress/--no-progress", default=True, help="Progress bar on stderr.")
 def calibrate(
     scenes: tuple[pathlib.Path, ...],
@@ -167,8 +176,10 @@ def calibrate(
     report_path: pathlib.Path | None,
     ego: str | None,
     preliminary: bool,
-    workers: int,
+    workers: int | None,
     progress: bool,
+    engine: str = "local",
+    ray_address: str | None = None,
 ) -> None:
     """Choose the cascade's thresholds on SCENES.
 
@@ -187,18 +198,52 @@ def calibrate(
     Prints each stage's threshold and how many agents it removes, and records how the
     file was made inside it.
 
+    The scenes run as jobs on --engine (local processes or Ray; docs/batch.md), their
+    parts in --scores-cache (default: OUTPUT.parts/). Scenes that fail are listed in
+    its failures.csv and left out, and the command says so; it exits non-zero when
+    every scene failed.
+
     \b
     Example (the shipped planner cascade, recalibrated for your own scenes):
       replay calibrate scenes/*.mcap --reference planner --planner idm --planner fop \\
           --miss-rate 0.01 --confidence 0.95 -o my_cascade.toml
     """
-    if reference == "planner":
-        _calibrate_planner(
-            scenes, output, stages, base, note, planners, miss_rate, confidence, unit,
-            corridor, every_s, holdout, leave_one_dataset_out, scores_cache, report_path,
-            workers, progress, ego, preliminary,
-        )  # fmt: skip
-        return
+    check_engine_options(engine, ray_address)
+    with contextlib.ExitStack() as stack:
+        parts = scores_cache or _default_parts(output, stack)
+        place = JobPlace(parts, engine, workers, ray_address, progress)
+        if reference == "planner":
+            _calibrate_planner(
+                scenes, output, stages, base, note, planners, miss_rate, confidence, unit,
+                corridor, every_s, holdout, leave_one_dataset_out, place, report_path, ego,
+                preliminary,
+            )  # fmt: skip
+        else:
+            _calibrate_survival(
+                scenes, output, max_fn_rate, stages, tier_counts, base, note, planners, place
+            )
+
+
+def _default_parts(output: pathlib.Path, stack: contextlib.ExitStack) -> pathlib.Path:
+    """``OUTPUT.parts/`` beside the TOML; a temporary folder when the output is no
+    regular file's path (``-o /dev/null``: nothing to keep beside it)."""
+    if output.exists() and not output.is_file():
+        return pathlib.Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="calibrate-")))
+    return output.with_name(output.name + ".parts")
+
+
+def _calibrate_survival(
+    scenes: tuple[pathlib.Path, ...],
+    output: pathlib.Path,
+    max_fn_rate: float,
+    stages: str | None,
+    tier_counts: str,
+    base: pathlib.Path | None,
+    note: str,
+    planners: tuple[str, ...],
+    place: JobPlace,
+) -> None:
+    """``--reference survival``: the FN-budget thresholds of :mod:`risk.calibration`."""
     if planners:
         raise click.BadParameter("needs --reference planner", param_hint="--planner")
     stages = stages or ",".join(DEFAULT_STAGES)
@@ -223,8 +268,11 @@ def calibrate(
     if not output.parent.is_dir():
         raise ReplayError(f"{output}: the folder {output.parent} does not exist")
 
-    with OutputGuard(inputs=(*scenes, base), files=(output,)):  # before any work
-        data = collect(scenes, models, progress=progress)
+    reports: list[JobReport] = []
+    scenes = tuple(distinct_files(scenes))
+    with OutputGuard(inputs=(*scenes, base), files=(output,), folders=(place.out_dir,)):
+        with shared_engine(place, len(scenes)) as where:
+            data = collect(scenes, models, place=where, reports=reports)
         config, cal = calibrated_config(data, models, max_fn_rate=max_fn_rate, tiers=tiers,
                                         tier_counts=counts)  # fmt: skip
         means = tier_means(config, data)
@@ -236,6 +284,7 @@ def calibrate(
         )  # fmt: skip
         write_text(output, config.to_toml_string())
     click.echo(_report(config, cal, data, means))
+    _scenes_line(reports)
     click.echo(f"Wrote {output}")
 
 
@@ -295,10 +344,8 @@ def _calibrate_planner(
     every_s: float,
     holdout: str | None,
     leave_one_dataset_out: bool,
-    scores_cache: pathlib.Path | None,
+    place: JobPlace,
     report_path: pathlib.Path | None,
-    workers: int,
-    progress: bool,
     ego: str | None = None,
     preliminary: bool = False,
 ) -> None:
@@ -307,13 +354,11 @@ def _calibrate_planner(
 
     from replay.analysis.planner_calibration import (
         ScoreSettings,
-        cached_scores,
         collect_scores,
         format_report,
         planner_calibration,
     )
     from replay.analysis.planner_eval.study import json_safe
-    from replay.jobs.scenes import distinct_files
     from replay.planning.registry import available_planners, make_planner
     from risk.cascade import CorridorSettings
 
@@ -343,11 +388,9 @@ def _calibrate_planner(
     files = (output,) if report_path is None else (output, report_path)
     # one file given twice (or through a link) is one scene unit of the guarantee, not two
     scenes = tuple(distinct_files(scenes))
-    with OutputGuard(inputs=(*scenes, base), files=files):  # before any work
-        if scores_cache is not None:
-            df = cached_scores(scenes, settings, scores_cache, workers=workers, progress=progress)
-        else:
-            df = collect_scores(scenes, settings, workers=workers, progress=progress)
+    reports: list[JobReport] = []
+    with OutputGuard(inputs=(*scenes, base), files=files, folders=(place.out_dir,)):
+        df = collect_scores(scenes, settings, place=place, reports=reports)
         result = planner_calibration(
             df, models, planners=settings.planners, miss_rate=miss_rate, confidence=confidence,
             unit=unit, corridor=settings.corridor, tiers=tiers, holdout=split,
@@ -385,7 +428,14 @@ def _calibrate_planner(
             }
             write_text(report_path, json.dumps(json_safe(payload), indent=2) + "\n")
     click.echo(text)
+    _scenes_line(reports)
     click.echo(f"Wrote {output}")
+
+
+def _scenes_line(reports: list[JobReport]) -> None:
+    """What the jobs did: computed, skipped (complete from an earlier run), failed."""
+    for report in reports:
+        click.echo(f"Scenes ({report.job}): {report.describe()}")
 
 
 def _ego_choice(ego: str | None) -> int | str | None:

@@ -18,6 +18,7 @@ from replay.analysis.planner_eval.closed_loop import (
 from replay.analysis.planner_eval.open_loop import PlanSettings
 from replay.analysis.planner_eval.report import write_report
 from replay.analysis.planner_eval.study import (
+    describe_jobs,
     format_study,
     resolve_matched,
     run_study,
@@ -25,11 +26,12 @@ from replay.analysis.planner_eval.study import (
     write_study,
 )
 from replay.cli.ego_options import ego_option, every_option
+from replay.cli.engine_options import check_engine_options, engine_options
 from replay.cli.limits import FiniteRange, refuse_idle
 from replay.cli.settings_option import CASCADE_NAMES_HELP, CascadeFile, load_cascade, set_option
 from replay.core.engine import Stride
-from replay.core.pool import default_workers
 from replay.errors import ReplayError
+from replay.jobs.place import JobPlace
 from replay.planning.registry import PLANNERS, make_planner
 from replay.planning.tracking import TRACKERS
 from risk.filtering import FILTER_FORMS
@@ -124,8 +126,7 @@ from risk.filtering import FILTER_FORMS
     help="Also write a Markdown report of the run (e.g. docs/planner-evaluation.md), its "
     "plots into the folder of the same name without .md.",
 )  # fmt: skip
-@click.option("--workers", type=click.IntRange(min=1), default=None,
-              help="Worker processes (default: one per core).")  # fmt: skip
+@engine_options
 @click.option("--plots/--no-plots", default=True, show_default=True, help="Write the PNG plots.")
 @click.option(
     "--progress/--no-progress", default=True, show_default=True, help="Progress bar on stderr."
@@ -152,6 +153,8 @@ def plan(
     report_path: pathlib.Path | None,
     plots: bool,
     progress: bool,
+    engine: str = "local",
+    ray_address: str | None = None,
     sets: tuple[str, ...] = (),
 ) -> None:
     """Plan every frame of SCENES with all agents and with each filter's agents.
@@ -175,6 +178,14 @@ def plan(
                        and dataset; the closed loop's paired differences
       plan_time.png    (plan_time_<planner>.png with several planners),
       plan_changed.png
+      failures.csv     the scenes that failed (one line each; left out)
+      parts/           every scene's rows and its done-marker, per pass (matching,
+                       open loop and closed loop per planner): a rerun into OUTPUT
+                       skips complete scenes (see docs/batch.md)
+
+    Scenes run as jobs on --engine (local processes or Ray; docs/batch.md). Exits
+    non-zero when every scene failed; scenes that fail while others succeed are listed
+    (and in failures.csv), with exit code 0.
 
     Example, the corpus study of docs/planner-evaluation.md:
 
@@ -185,6 +196,7 @@ def plan(
           -o plan-out/ --report docs/planner-evaluation.md
     """
     refuse_idle("--closed-loop", closed_loop, "closed_loop_egos", "closed_loop_sample")
+    check_engine_options(engine, ray_address)
     cascade = load_cascade(cascade_file, sets)
     planners = tuple(dict.fromkeys(planners))
     settings = PlanSettings(
@@ -204,8 +216,8 @@ def plan(
         inputs=[*found, cascade_file], folders=(out_dir, report_folder), files=(report_path,)
     ):
         result = run_study(
-            found, settings, planners=planners, ego=ego, every=every,
-            workers=workers or default_workers(), progress=progress,
+            found, settings, planners=planners, ego=ego, every=every, progress=progress,
+            place=JobPlace(out_dir, engine, workers, ray_address, progress),
             closed_loop=closed_loop, closed_loop_egos=closed_loop_egos,
             closed_loop_sample=closed_loop_sample, agents=agents, tracker=tracker,
             notify=lambda message: click.echo(message, err=True),
@@ -217,6 +229,7 @@ def plan(
                 write_report(report_path, result.summary, result.plans, command=shlex.join(words))
             )
     click.echo(format_study(result.summary))
+    click.echo("Scenes:\n" + describe_jobs(result))
     click.echo("Wrote:")
     for path in files.values():
         click.echo(f"  {path}")
