@@ -7,7 +7,9 @@ One call (:meth:`PdmPlanner.plan`), every stage vectorised over proposals ``P``,
    ends so that no projection is clamped at its ends (the phantom of issue 35).
 2. **Proposals**: IDM along the centreline shifted by each lateral offset (0, +1, -1 m;
    merged in from the ego's own offset, :func:`merge`), at each target speed (0.2 ... 1.0
-   of the request's target speed): ``P = 15``. One
+   of the request's target speed): 15, and braking proposals to a stop along the
+   centreline (4.05 and 8 m/s^2), counted only when every IDM proposal collides at
+   fault: ``P = 17``. One
    state array ``(P, T, N_PROPOSAL)`` with the columns of :class:`ProposalColumn`. Every
    2 steps (held in between, as PDM) each proposal's leader is the nearest forecast agent
    ahead whose box reaches into the proposal's corridor (the shifted path widened by the
@@ -21,8 +23,9 @@ One call (:meth:`PdmPlanner.plan`), every stage vectorised over proposals ``P``,
    driving direction; weighted progress (5), time to collision (5), comfort (2);
    ``score = product * weighted mean``.
 5. **Decision**: the best proposal (its IDM trajectory, as PDM: the simulation is for the
-   scores), or an emergency brake when it collides at fault within 2 s while the ego
-   drives at 5 m/s or less.
+   scores; among proposals that all score 0, the one that collides at fault latest), or
+   an emergency brake when it collides at fault within 2 s while the ego drives at 5 m/s
+   or less.
 
 Where it departs from the paper and why: ``docs/planners.md``, section "pdm".
 
