@@ -110,7 +110,7 @@ def stages(pdm: PdmPlanner, request: PlanRequest) -> dict[str, float]:
     out["relevance + IDM + simulation"] = (time.process_time() - t) * 1e3
     t = time.process_time()
     pdm._simulate(request, proposals.states, request.dt_s)
-    out["  of which the simulation (LQR + bicycle, 15 x 50 steps)"] = (
+    out["  of which the simulation (LQR + bicycle, 17 x 50 steps)"] = (
         time.process_time() - t
     ) * 1e3
     sim = proposals.simulated
@@ -179,7 +179,7 @@ def main() -> int:
         f"agents pdm may read (`may_matter`): median {np.median(relevant):.0f}; "
         f"{rounds} rounds in turns with idm; emergency brakes: {brakes}",
         f"- pdm settings: {len(pdm.settings.target_fractions) * len(pdm.settings.lateral_offsets_m)} "
-        f"proposals, horizon 5 s at 0.1 s, LQR look-ahead {lqr.TrackerSettings().horizon_steps} steps",
+        f"IDM and {len(pdm.settings.brake_proposals_mps2)} braking proposals, horizon 5 s at 0.1 s, LQR look-ahead {lqr.TrackerSettings().horizon_steps} steps",
         "",
         "| | median ms | p95 ms |",
         "|---|---:|---:|",

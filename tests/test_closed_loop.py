@@ -119,7 +119,8 @@ CASES = [
 
 
 def _twice(ego: metrics.EgoHistory, track: metrics.OthersHistory):
-    """Two steps: the track absent, then present (a first overlap after the start)."""
+    """Two steps: the track 100 m away, then where it is (a first overlap after the start
+    and after the track's own first step, either of which is never at fault)."""
     e = metrics.EgoHistory(
         times_s=np.array([0.0, 0.1]), xy=np.repeat(ego.xy, 2, 0),
         heading_rad=np.repeat(ego.heading_rad, 2), speed_mps=np.repeat(ego.speed_mps, 2),
@@ -127,7 +128,7 @@ def _twice(ego: metrics.EgoHistory, track: metrics.OthersHistory):
     )  # fmt: skip
     rep = {f.name: np.repeat(getattr(track, f.name), 2, 0) for f in dataclasses.fields(track)}
     rep["ids"], rep["kinds"] = track.ids, track.kinds
-    rep["valid"] = np.array([[False], [True]])
+    rep["xy"] = rep["xy"] + np.array([[[100.0, 0.0]], [[0.0, 0.0]]])
     return e, metrics.OthersHistory(**rep)
 
 

@@ -371,7 +371,9 @@ def test_contacts_match_a_per_pair_loop(seed):
 
 # ---------------------------------------------------------------------- settings, CLI
 def test_fewer_proposals_by_settings():
-    planner = PdmPlanner(PdmSettings(target_fractions=(1.0,), lateral_offsets_m=(0.0,)))
+    planner = PdmPlanner(
+        PdmSettings(target_fractions=(1.0,), lateral_offsets_m=(0.0,), brake_proposals_mps2=())
+    )
     plan = planner.plan(road_request())
     assert plan.extras["proposals"] == 1.0 and not ego_hits(plan, road_request(), ps.STOPPED)
 

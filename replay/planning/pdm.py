@@ -7,7 +7,9 @@ One call (:meth:`PdmPlanner.plan`), every stage vectorised over proposals ``P``,
    ends so that no projection is clamped at its ends (the phantom of issue 35).
 2. **Proposals**: IDM along the centreline shifted by each lateral offset (0, +1, -1 m;
    merged in from the ego's own offset, :func:`merge`), at each target speed (0.2 ... 1.0
-   of the request's target speed): ``P = 15``. One
+   of the request's target speed): 15, and braking proposals to a stop along the
+   centreline (4.05 and 8 m/s^2), counted only when every IDM proposal collides at
+   fault: ``P = 17``. One
    state array ``(P, T, N_PROPOSAL)`` with the columns of :class:`ProposalColumn`. Every
    2 steps (held in between, as PDM) each proposal's leader is the nearest forecast agent
    ahead whose box reaches into the proposal's corridor (the shifted path widened by the
@@ -21,8 +23,9 @@ One call (:meth:`PdmPlanner.plan`), every stage vectorised over proposals ``P``,
    driving direction; weighted progress (5), time to collision (5), comfort (2);
    ``score = product * weighted mean``.
 5. **Decision**: the best proposal (its IDM trajectory, as PDM: the simulation is for the
-   scores), or an emergency brake when it collides at fault within 2 s while the ego
-   drives at 5 m/s or less.
+   scores; among proposals that all score 0, the one that collides at fault latest), or
+   an emergency brake when it collides at fault within 2 s while the ego drives at 5 m/s
+   or less.
 
 Where it departs from the paper and why: ``docs/planners.md``, section "pdm".
 
@@ -100,6 +103,14 @@ class PdmSettings:
     starts at the ego's lateral offset from the reference and merges into its own offset
     over this much travel at the ego's speed (at least ``merge_min_m``), a smoothstep
     (PDM's paths start at their offset: nuPlan's tracker closes the gap).
+    ``brake_proposals_mps2``: braking proposals (our addition): along the centreline at
+    each of these decelerations to a stop (nuPlan's comfort bound 4.05 m/s^2; 8 m/s^2, a
+    car's hard braking and the tracker's limit), scored like the others and eligible only
+    when every IDM proposal collides at fault; among proposals that all score 0 the one
+    whose first at-fault collision comes latest (none: never) wins. PDM's IDM brakes at
+    most at 3 m/s^2 and its emergency brake acts only up to 5 m/s, so above that, with
+    every proposal colliding, it kept the slowest IDM proposal and drove into a car
+    turning across its lane at 3 m/s^2 (issue 35's closed loop).
     ``score_tie``: proposals scoring within this of the best tie; among them the one
     nearest the centreline wins, then the higher score. PDM takes the exact argmax, and a
     sideways proposal then wins by trifles: 1e-6 more progress on a straight road, or, in
@@ -130,6 +141,7 @@ class PdmSettings:
     brake_within_s: float = 2.0
     brake_max_speed_mps: float = 5.0
     brake_decel_mps2: float = 4.05
+    brake_proposals_mps2: tuple[float, ...] = (4.05, 8.0)
     blocking_margin_mps2: float = 0.1
     leader_update_steps: int = 2
     merge_time_s: float = 2.0
@@ -379,7 +391,7 @@ class PdmPlanner:
         sim_xy = _centres(sim, proposals.wheelbase_m)
         scores = self._score(request, line, agents, sim, sim_xy, candidates)
         total = scores.total
-        best = _best(total, proposals.offset_m, p.score_tie)
+        best = _choose(scores, proposals.fraction > 0.0, proposals.offset_m, p.score_tie)
         ego = request.ego
         brake = bool(
             scores.collision_step[best] * request.dt_s <= p.brake_within_s
@@ -412,6 +424,7 @@ class PdmPlanner:
                 "offset_m": float(proposals.offset_m[best]),
                 "target_fraction": float(proposals.fraction[best]),
                 "emergency_brake": float(brake),
+                "brake_proposal": float(proposals.fraction[best] == 0.0),
                 "proposals": float(total.size),
             },
         )
@@ -599,11 +612,21 @@ class PdmPlanner:
         # without a leader has a_lead = a_free = 0 here)
         limited = a_lead_t < a_free_t - p.blocking_margin_mps2
         leader = np.where(limited, lead_t, -1).T  # (P, T)
+        if p.brake_proposals_mps2:  # braking to a stop on the centreline (fraction 0)
+            brake_s, brake_v = _braking(
+                np.asarray(p.brake_proposals_mps2, dtype=np.float64), times - times[0],
+                s0, max(ego.speed_mps, 0.0),
+            )  # fmt: skip
+            n_b = brake_s.shape[0]
+            s, v = np.vstack([s, brake_s]), np.vstack([v, brake_v])
+            offsets = np.r_[offsets, np.zeros(n_b)]
+            fractions = np.r_[fractions, np.zeros(n_b)]
+            leader = np.vstack([leader, np.full((n_b, n_t), -1, dtype=leader.dtype)])
 
         offset_pt, slope = merge(s, offsets[:, None], s0, d0, merge_m)
         xy, heading = line.pose(s, offset_pt)
         heading = heading + np.arctan(slope)
-        states = np.empty((n_p, n_t, N_PROPOSAL))
+        states = np.empty((offsets.size, n_t, N_PROPOSAL))
         states[..., ProposalColumn.X] = xy[..., 0]
         states[..., ProposalColumn.Y] = xy[..., 1]
         states[..., ProposalColumn.HEADING] = heading
@@ -831,6 +854,30 @@ def _best(total: np.ndarray, offset_m: np.ndarray, tie: float) -> int:
     near = np.flatnonzero(total >= total.max() - tie)
     order = np.lexsort((-total[near], np.abs(offset_m[near])))
     return int(near[order[0]])
+
+
+def _choose(scores: ProposalScores, idm: np.ndarray, offset_m: np.ndarray, tie: float) -> int:
+    """The chosen proposal. Braking proposals (``idm`` False) are eligible only when every
+    IDM proposal collides at fault. Among the eligible, the best score (:func:`_best`);
+    when they all score 0, those whose first at-fault collision comes latest (inf: none)
+    first, then :func:`_best` among them."""
+    collides = scores.multi[MultiMetric.NO_AT_FAULT_COLLISION] < 1.0
+    eligible = idm | bool(collides[idm].all())
+    total = np.where(eligible, scores.total, -np.inf)
+    if total.max() <= 0.0:
+        latest = np.where(eligible, scores.collision_step, -np.inf)
+        total = np.where(latest == latest.max(), total, -np.inf)
+    return _best(total, offset_m, tie)
+
+
+def _braking(
+    decel_mps2: np.ndarray, t_s: np.ndarray, s0: float, v0: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Arc length and speed ``(B, T)`` braking from ``v0`` at ``s0`` at each deceleration
+    ``(B,)`` to a stop and holding it, at times ``t_s`` ``(T,)`` from now."""
+    d = decel_mps2[:, None]
+    moving = np.minimum(t_s[None, :], v0 / d)
+    return s0 + v0 * moving - 0.5 * d * moving * moving, np.maximum(v0 - d * t_s[None, :], 0.0)
 
 
 def _centres(sim: np.ndarray, wheelbase: float) -> np.ndarray:

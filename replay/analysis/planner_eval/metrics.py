@@ -181,6 +181,67 @@ def box_overlaps(ego: EgoHistory, others: OthersHistory) -> np.ndarray:
     return hit & others.valid
 
 
+#: nuPlan simulates and judges at 0.1 s; a history sampled more coarsely (SinD's logs at
+#: 2 Hz, inD's at 5 Hz) is interpolated at this step between the samples around a first
+#: overlap, to classify the contact where nuPlan would first see it.
+CONTACT_STEP_S = 0.1
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def _first_contact(
+    ego: EgoHistory, others: OthersHistory, first: np.ndarray, cols: np.ndarray
+) -> dict[str, np.ndarray]:
+    """The ego's and each track's states ``(C,)`` at the track's first contact: at its
+    first overlapping step ``first`` ``(C,)`` (> 0), or, where the steps are longer than
+    CONTACT_STEP_S and the track was present the step before, at the first CONTACT_STEP_S
+    sub-step between the two at which the boxes, both interpolated linearly (positions,
+    headings the short way round, speeds), overlap. nuPlan samples every 0.1 s: a coarse
+    history first sees a contact deeper in, where a side contact already looks like one
+    of the ego's front edge."""
+    t1 = first
+    t0 = np.maximum(first - 1, 0)
+    dt = ego.times_s[t1] - ego.times_s[t0] if ego.times_s.size > 1 else np.zeros(first.size)
+    n_sub = np.where((first > 0) & others.valid[t0, cols], np.ceil(dt / CONTACT_STEP_S - 1e-6), 1)
+    n_sub = np.maximum(n_sub, 1).astype(np.int64)
+    n_max = int(n_sub.max(initial=1))
+    # sub-step fractions (C, S): 1/n, 2/n, ..., 1 then held at 1
+    u = np.minimum(np.arange(1, n_max + 1)[None, :] / n_sub[:, None], 1.0)
+
+    def lerp(a0: np.ndarray, a1: np.ndarray) -> np.ndarray:  # (C, 2) -> (C, S, 2)
+        return np.asarray(a0[:, None] + u[..., None] * (a1 - a0)[:, None])
+
+    e_xy = lerp(ego.xy[t0], ego.xy[t1])
+    e_h = (
+        ego.heading_rad[t0][:, None] + u * _wrap(ego.heading_rad[t1] - ego.heading_rad[t0])[:, None]
+    )
+    o_xy = lerp(others.xy[t0, cols], others.xy[t1, cols])
+    o_h = (
+        others.heading_rad[t0, cols][:, None]
+        + u * _wrap(others.heading_rad[t1, cols] - others.heading_rad[t0, cols])[:, None]
+    )
+    length, width = ego.size()
+    hit = boxes_overlap(
+        e_xy[..., 0], e_xy[..., 1], e_h, length, width, o_xy[..., 0], o_xy[..., 1], o_h,
+        others.length_m[t1, cols][:, None], others.width_m[t1, cols][:, None],
+    )  # fmt: skip
+    hit[:, -1] = True  # the step itself overlaps
+    j = np.argmax(hit, axis=1)
+    rows = np.arange(first.size)
+    w = u[rows, j]
+    return {
+        "ego_xy": e_xy[rows, j], "ego_heading": e_h[rows, j],
+        "ego_speed": ego.speed_mps[t0] + w * (ego.speed_mps[t1] - ego.speed_mps[t0]),
+        "xy": o_xy[rows, j], "heading": o_h[rows, j],
+        "speed": others.speed_mps[t0, cols] + w * (
+            others.speed_mps[t1, cols] - others.speed_mps[t0, cols]
+        ),
+        "step": np.where(w < 0.5, t0, t1),
+    }  # fmt: skip
+
+
 def classify_collisions(
     ego: EgoHistory, others: OthersHistory, ego_in_lane: np.ndarray
 ) -> Collisions:
@@ -190,27 +251,27 @@ def classify_collisions(
     touches the track (at fault); else lateral, at fault only when the ego was not in its
     lane (``ego_in_lane`` (T,); nuPlan: the ego's corners not on common or connected
     lanes, a lane change). A track that already overlaps the ego at the first step (the
-    logged start: overlapping boxes in the recording itself) is counted but never at
-    fault: the planner had no say in it."""
+    logged start: overlapping boxes in the recording itself), or at its own first step
+    (a track that begins inside the ego's box: a recording's track starts where the
+    sensor first saw it, a MONA car 0.3 m ahead of the ego's bumper), is counted but never
+    at fault: the planner had no say in it. With steps longer than nuPlan's 0.1 s the
+    contact is classified at its first 0.1 s sub-step (:func:`_first_contact`)."""
     overlap = box_overlaps(ego, others)
     k = overlap.shape[1]
     any_hit = overlap.any(axis=0)
     first = np.where(any_hit, np.argmax(overlap, axis=0), -1)
     t = np.maximum(first, 0)
     cols = np.arange(k)
-    ego_stopped = ego.speed_mps[t] <= STOPPED_MPS
-    track_stopped = others.speed_mps[t, cols] <= STOPPED_MPS
-    behind = (
-        angle_from_heading(ego.rear_axle_xy[t], ego.heading_rad[t], others.xy[t, cols][:, None, :])[
-            :, 0
-        ]
-        > BEHIND_RAD
-    )
-    h = ego.heading_rad[t]
-    front_centre = ego.xy[t] + 0.5 * ego.length_m * _heading_unit(h)
+    at = _first_contact(ego, others, t, cols)
+    h = at["ego_heading"]
+    ego_stopped = at["ego_speed"] <= STOPPED_MPS
+    track_stopped = at["speed"] <= STOPPED_MPS
+    rear_axle = at["ego_xy"] - REAR_AXLE_SHARE * ego.length_m * _heading_unit(h)
+    behind = angle_from_heading(rear_axle, h, at["xy"][:, None, :])[:, 0] > BEHIND_RAD
+    front_centre = at["ego_xy"] + 0.5 * ego.length_m * _heading_unit(h)
     front = boxes_overlap(
         front_centre[:, 0], front_centre[:, 1], h, np.zeros(1), ego.size()[1],
-        others.xy[t, cols, 0], others.xy[t, cols, 1], others.heading_rad[t, cols],
+        at["xy"][:, 0], at["xy"][:, 1], at["heading"],
         others.length_m[t, cols], others.width_m[t, cols],
     )  # fmt: skip
     kind = np.select(
@@ -223,8 +284,8 @@ def classify_collisions(
     at_fault = (
         (kind == CollisionType.STOPPED_TRACK)
         | (kind == CollisionType.ACTIVE_FRONT)
-        | ((kind == CollisionType.ACTIVE_LATERAL) & ~np.asarray(ego_in_lane, bool)[t])
-    ) & (first > 0)
+        | ((kind == CollisionType.ACTIVE_LATERAL) & ~np.asarray(ego_in_lane, bool)[at["step"]])
+    ) & (first > np.argmax(others.valid, axis=0))  # not at the track's own first step
     return Collisions(overlap=overlap, first_step=first, kind=kind, at_fault=at_fault)
 
 
