@@ -6,7 +6,8 @@ The Intelligent Driver Model (Treiber, Hennecke, Helbing, Phys. Rev. E 62, 2000)
     s*(v, dv) = s0 + max(0, v * T + v * dv / (2 * sqrt(a0 * b)))
 
 with ``v`` the ego's speed, ``v0`` the target speed, ``s`` the bumper-to-bumper gap to the
-leader and ``dv = v - v_leader``. The ego is simulated forward along its reference path at
+leader and ``dv = v - v_leader`` (:mod:`replay.planning.idm_law`, shared with the
+reactive agents). The ego is simulated forward along its reference path at
 the request's ``dt_s`` over the horizon (a ballistic update that never reverses).
 
 The ego's path: the reference (its lane's centre line) with the ego's lateral offset

@@ -2,7 +2,8 @@
 
 Each reactive agent moves along its *rail*, its own recorded positions over the scene (as
 Waymax's ``IDMRoutePolicy`` does), with one state: its progress along the rail (m) and its
-speed (m/s). Its acceleration is the IDM's (Treiber, Hennecke, Helbing 2000)::
+speed (m/s). Its acceleration is the IDM's (Treiber, Hennecke, Helbing 2000;
+:mod:`replay.planning.idm_law`, shared with the IDM planner)::
 
     a = a0 * (1 - (v / v0)^delta - (s* / s)^2),   s* = s0 + max(0, v T + v (v - v_l) / (2 sqrt(a0 b)))
 

@@ -22,7 +22,11 @@ and at fault, drivable area, driving direction, progress against the recorded ro
 least time-to-collision, comfort, a score; docs/planners.md).
 
 :func:`run_ego` is the unit of work: a pure function of (scene file, ego id, settings)
-to result rows, so that any engine can run it.
+to result rows, so that any engine can run it. What does not change while runs go (a
+scene's tracks, logged speeds, lanes, its vehicles' rails) is computed once per scene and
+process (:func:`_scene` keeps the last two); an ego's filters run stepped together
+(:func:`drive_all`) and share all the work but the filter and the planner while their
+plans agree. Each row is what the run alone gives (tests/test_closed_loop_identity.py).
 """
 
 from __future__ import annotations
