@@ -85,13 +85,17 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--tree", action="append", default=[], metavar="NAME=PATH")
+    parser.add_argument(
+        "--no-warm-up", dest="warm_up", action="store_false",
+        help="Skip the untimed one-ego runs (the trees' numba caches are already built).",
+    )  # fmt: skip
     args = parser.parse_args()
     trees = [(t.split("=", 1)[0], pathlib.Path(t.split("=", 1)[1]).resolve()) for t in args.tree]
     if not trees:
         trees = [("this", pathlib.Path(__file__).resolve().parents[1])]
     with tempfile.TemporaryDirectory() as tmp:
         work = pathlib.Path(tmp)
-        for name, tree in trees:  # numba's kernels compiled once per tree, untimed
+        for name, tree in trees if args.warm_up else []:  # numba compiles once per tree
             run_once(tree, args.corpus, 1, 1, work / f"warm-{name}")
         walls: dict[str, list[float]] = {name: [] for name, _ in trees}
         loads: list[str] = []
