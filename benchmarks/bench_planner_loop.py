@@ -40,13 +40,11 @@ import polars as pl
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
-from replay.analysis.planner_eval.closed_loop import drive
+from replay.analysis.planner_eval.closed_loop import ClosedLoopSettings, run_ego
 from replay.analysis.planner_eval.open_loop import PlanSettings
 from replay.analysis.planner_eval.study import run_open_loop, scene_files
 from replay.core.egos import load_scene
 from replay.core.engine import Stride
-from replay.planning.registry import make_planner
-from risk.filtering import KeepAll
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
@@ -105,14 +103,12 @@ def dense_ratio(scenes: list[pathlib.Path], planner: str) -> dict[str, object]:
 
 
 def closed_loop_time(scene: pathlib.Path, planner: str, repeats: int) -> dict[str, object]:
-    loaded = load_scene(scene)
-    ego = int(loaded.metadata["ego_id"])
-    plan = make_planner(planner)
-    settings = PlanSettings(planner=planner)
+    ego = int(load_scene(scene).metadata["ego_id"])
+    settings = ClosedLoopSettings(plan=PlanSettings(planner=planner, filters=()))
     times, row = [], {}
     for _ in range(repeats):
         start = time.perf_counter()
-        row = drive(loaded, ego, plan, KeepAll(), settings)
+        (row,) = run_ego(scene, ego, settings)  # all agents only
         times.append(time.perf_counter() - start)
     return {
         "planner": planner,

@@ -6,7 +6,8 @@ The Intelligent Driver Model (Treiber, Hennecke, Helbing, Phys. Rev. E 62, 2000)
     s*(v, dv) = s0 + max(0, v * T + v * dv / (2 * sqrt(a0 * b)))
 
 with ``v`` the ego's speed, ``v0`` the target speed, ``s`` the bumper-to-bumper gap to the
-leader and ``dv = v - v_leader``. The ego is simulated forward along its reference path at
+leader and ``dv = v - v_leader`` (:mod:`replay.planning.idm_law`, shared with the
+reactive agents). The ego is simulated forward along its reference path at
 the request's ``dt_s`` over the horizon (a ballistic update that never reverses).
 
 The ego's path: the reference (its lane's centre line) with the ego's lateral offset
@@ -39,13 +40,13 @@ more than ``blocking_margin_mps2`` below the free-road acceleration.
 from __future__ import annotations
 
 import functools
-import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from converters.lanegraph import simplify
+from replay.planning.idm_law import IdmLaw, free_road_acceleration, idm_acceleration
 from replay.planning.path_coords import CoordsCache, PathCoords, project
 from replay.planning.types import STOP_SPEED_MPS, Plan, PlanRequest
 from risk import geometry
@@ -82,6 +83,14 @@ class IdmSettings:
     lane_return_s: float = 3.0
     lane_return_min_m: float = 15.0
     reference_tolerance_m: float = 0.02
+
+    @property
+    def law(self) -> IdmLaw:
+        """The IDM's parameters for :mod:`replay.planning.idm_law`."""
+        return IdmLaw(
+            accel_mps2=self.a0_mps2, decel_mps2=self.b_mps2, headway_s=self.headway_s,
+            min_gap_m=self.s0_m, exponent=self.delta,
+        )  # fmt: skip
 
 
 class IdmPlanner:
@@ -159,7 +168,7 @@ class IdmPlanner:
         ego = request.ego
         half_ego = ego.length_m / 2.0
         v0 = max(request.target_speed_mps, 0.1)
-        sqrt_ab = 2.0 * math.sqrt(p.a0_mps2 * p.b_mps2)
+        law = p.law
         lane = _EgoLane.of(request, ref, p)
 
         agents = request.agents.on_times(times)  # the plan's steps
@@ -184,18 +193,14 @@ class IdmPlanner:
         # ones whose removal can change this plan.
         sole = np.zeros(ids.size, dtype=bool)
         for k in range(n_steps - 1):
-            a_free = p.a0_mps2 * (1.0 - (v[k] / v0) ** p.delta)
+            a_free = float(free_road_acceleration(v[k], v0, law))
             accel = a_free
             if ids.size:
                 gap, v_lead = self._constraints(
                     coords, inside, crossing if any_crossing else None, t_out, k, times,
                     s[k], v[k], half_ego, v0,
                 )  # fmt: skip
-                s_star = p.s0_m + np.maximum(
-                    0.0, v[k] * p.headway_s + v[k] * (v[k] - v_lead) / sqrt_ab
-                )
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    a_agent = a_free - p.a0_mps2 * (s_star / gap) ** 2
+                a_agent = idm_acceleration(v[k], v0, gap, v_lead, law)
                 a_agent = np.where(gap > 0.0, a_agent, -np.inf)  # overlap: full braking
                 a_agent = np.where(np.isnan(gap), np.inf, a_agent)  # no constraint
                 worst = int(np.argmin(a_agent))

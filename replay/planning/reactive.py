@@ -2,7 +2,8 @@
 
 Each reactive agent moves along its *rail*, its own recorded positions over the scene (as
 Waymax's ``IDMRoutePolicy`` does), with one state: its progress along the rail (m) and its
-speed (m/s). Its acceleration is the IDM's (Treiber, Hennecke, Helbing 2000)::
+speed (m/s). Its acceleration is the IDM's (Treiber, Hennecke, Helbing 2000;
+:mod:`replay.planning.idm_law`, shared with the IDM planner)::
 
     a = a0 * (1 - (v / v0)^delta - (s* / s)^2),   s* = s0 + max(0, v T + v (v - v_l) / (2 sqrt(a0 b)))
 
@@ -27,10 +28,12 @@ Pure numpy; no scene I/O (the closed loop builds the rails from a scene's tracks
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
+from replay.planning import idm_law
 from risk import geometry
 from risk.hindsight import box_corners, boxes_overlap
 
@@ -57,8 +60,16 @@ class ReactiveSettings:
     #: A gap below this (m) counts as this (the IDM's s is a divisor).
     least_gap_m: float = 0.1
 
+    @property
+    def law(self) -> idm_law.IdmLaw:
+        """The IDM's parameters for :mod:`replay.planning.idm_law`."""
+        return idm_law.IdmLaw(
+            accel_mps2=self.accel_mps2, decel_mps2=self.decel_mps2, headway_s=self.headway_s,
+            min_gap_m=self.min_gap_m, exponent=self.exponent,
+        )  # fmt: skip
 
-@dataclass(frozen=True, eq=False)
+
+@dataclass(frozen=True, eq=False)  # not slotted: the search index is cached on it
 class Rails:
     """The logged paths of ``K`` agents: ``xy`` (K, P, 2) m, ``heading_rad`` (K, P)
     (unwrapped along each rail), ``arc_m`` (K, P) arc length from the rail's start. Each
@@ -91,14 +102,56 @@ class Rails:
         """The rails of the agents ``which`` (an index array)."""
         return Rails(self.xy[which], self.heading_rad[which], self.arc_m[which])
 
-    def poses(self, arc_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Points ``(K, L, 2)`` and headings ``(K, L)`` at arc lengths ``arc_m`` (K, L)."""
-        x, y, _ = geometry.interpolate_components(
-            np.ascontiguousarray(self.xy[..., 0]), np.ascontiguousarray(self.xy[..., 1]),
-            self.arc_m, arc_m,
-        )  # fmt: skip
-        heading, _, _ = geometry.interpolate_components(
-            self.heading_rad, self.heading_rad, self.arc_m, arc_m
+    @functools.cached_property
+    def _columns(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x, y and heading ``(K, P)`` flattened, contiguous: read at every step."""
+        return (
+            np.ascontiguousarray(self.xy[..., 0]).ravel(),
+            np.ascontiguousarray(self.xy[..., 1]).ravel(),
+            np.ascontiguousarray(self.heading_rad).ravel(),
+        )
+
+    @functools.cached_property
+    def _search(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every rail's arc lengths shifted by a per-rail offset and flattened (sorted
+        as a whole), and the offsets ``(K,)``: one ``searchsorted`` finds the segments of
+        any rails' queries (as :func:`risk.geometry.locate` does, which builds these
+        ``(K, P)`` keys anew at each call; rails are read at every step of a run)."""
+        span = 2.0 * float(self.arc_m.max(initial=0.0)) + 1.0
+        offset = np.arange(self.n, dtype=np.float64) * span
+        return (self.arc_m + offset[:, None]).ravel(), offset
+
+    def poses(
+        self, arc_m: np.ndarray, rows: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Points ``(R, L, 2)`` and headings ``(R, L)`` at arc lengths ``arc_m`` (R, L) of
+        the rails ``rows`` (an index array; all ``K`` rails when None), linearly
+        interpolated as :func:`risk.geometry.interpolate_components` (the same values)."""
+        cum = self.arc_m
+        p = cum.shape[1]
+        which = np.arange(self.n) if rows is None else np.asarray(rows, dtype=np.int64)
+        s = np.clip(arc_m, 0.0, cum[which, -1:])
+        keys, offset = self._search
+        base = (which * p)[:, None]
+        found = np.searchsorted(keys, s + offset[which, None], side="right")
+        idx = np.clip(found - 1 - base, 0, p - 1)
+        # The offset's rounding can put a query within ~1e-10 m of a breakpoint on the
+        # wrong side: then the exact per-row search (rare; the same answer either way).
+        flat_cum = cum.ravel()
+        too_high = (idx > 0) & (np.take(flat_cum, idx + base) > s)
+        too_low = (idx < p - 1) & (np.take(flat_cum, np.minimum(idx + 1, p - 1) + base) <= s)
+        if too_high.any() or too_low.any():
+            idx = geometry.locate(cum[which], s)
+        g = np.minimum(idx, p - 2) + base
+        c0 = np.take(flat_cum, g)
+        seg_len = np.take(flat_cum, g + 1) - c0
+        ok = seg_len > 0
+        frac = np.where(ok, (s - c0) / np.where(ok, seg_len, 1.0), 0.0)
+        np.clip(frac, 0.0, 1.0, out=frac)
+        x, y, heading = (
+            (np.take(comp, g + 1) - a) * frac + a
+            for comp in self._columns
+            for a in (np.take(comp, g),)
         )
         return np.stack([x, y], axis=-1), heading
 
@@ -172,7 +225,7 @@ def find_leaders(
         return gap, lead_speed, leader
     # Probe poses only for the agents with a candidate (rows of ``probing``).
     probing, ki = np.unique(ki, return_inverse=True)
-    probe_xy, probe_heading = rails.rows(probing).poses(arc_m[probing, None] + offsets[probing])
+    probe_xy, probe_heading = rails.poses(arc_m[probing, None] + offsets[probing], probing)
     agent = probing[ki]  # (C,) the agent of each pair
     hit = boxes_overlap(
         probe_xy[ki, :, 0], probe_xy[ki, :, 1], probe_heading[ki],
@@ -227,19 +280,15 @@ def idm_acceleration(
     lead_speed_mps: np.ndarray,
     settings: ReactiveSettings,
 ) -> np.ndarray:
-    """The IDM acceleration (K,) m/s², clipped to ``[-decel, accel]``; an infinite gap is
-    the free road."""
-    v = np.asarray(speed_mps, dtype=np.float64)
+    """The IDM acceleration (K,) m/s² (:func:`replay.planning.idm_law.idm_acceleration`),
+    clipped to ``[-decel, accel]``; an infinite gap is the free road, a gap below
+    ``least_gap_m`` counts as that (the gap is a divisor)."""
     v0 = np.maximum(np.asarray(desired_mps, dtype=np.float64), 0.1)
-    a0, b = settings.accel_mps2, settings.decel_mps2
-    free = a0 * (1.0 - (v / v0) ** settings.exponent)
-    s_star = settings.min_gap_m + np.maximum(
-        0.0, v * settings.headway_s + v * (v - lead_speed_mps) / (2.0 * np.sqrt(a0 * b))
+    gap = np.maximum(np.asarray(gap_m, dtype=np.float64), settings.least_gap_m)
+    accel = idm_law.idm_acceleration(
+        np.asarray(speed_mps, dtype=np.float64), v0, gap, lead_speed_mps, settings.law
     )
-    has_leader = np.isfinite(gap_m)
-    s = np.maximum(np.where(has_leader, gap_m, 1.0), settings.least_gap_m)
-    interaction = np.where(has_leader, a0 * (s_star / s) ** 2, 0.0)
-    return np.clip(free - interaction, -b, a0)
+    return np.clip(accel, -settings.decel_mps2, settings.accel_mps2)
 
 
 def advance(

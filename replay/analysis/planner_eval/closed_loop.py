@@ -22,11 +22,16 @@ and at fault, drivable area, driving direction, progress against the recorded ro
 least time-to-collision, comfort, a score; docs/planners.md).
 
 :func:`run_ego` is the unit of work: a pure function of (scene file, ego id, settings)
-to result rows, so that any engine can run it.
+to result rows, so that any engine can run it. What does not change while runs go (a
+scene's tracks, logged speeds, lanes, its vehicles' rails) is computed once per scene and
+process (:func:`_scene` keeps the last two); an ego's filters run stepped together
+(:func:`drive_all`) and share all the work but the filter and the planner while their
+plans agree. Each row is what the run alone gives (tests/test_closed_loop_identity.py).
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import math
@@ -127,41 +132,81 @@ def logged_speeds(scene: Any, tracks: Any) -> np.ndarray:
     return speeds
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Traffic:
+    """What the reactive agents of a run need that does not change while it runs, over
+    the tracks' columns ``cols``: their rails, logged progress and speed (K, T), desired
+    speed, length and width (K,). Each column's values depend on that column alone, so a
+    scene's vehicles are prepared once and each ego's runs take the rows without it."""
+
+    cols: np.ndarray
+    rails: reactive.Rails
+    log_arc: np.ndarray
+    log_speed: np.ndarray
+    desired: np.ndarray
+    length: np.ndarray
+    width: np.ndarray
+
+    @classmethod
+    def of(cls, tracks: Any, speeds: np.ndarray, cols: np.ndarray) -> _Traffic:
+        rows = _filled(tracks.valid[:, cols])  # (T, K)
+        at = cols[None, :]
+        xy = tracks.xy[rows, at].transpose(1, 0, 2)  # (K, T, 2)
+        heading = tracks.heading[rows, at].T
+        rails = reactive.Rails.from_positions(xy, heading)
+        t = tracks.valid.shape[0]
+        log_speed = np.where(tracks.valid[:, cols], speeds[:, cols], 0.0).T
+        first = np.argmax(tracks.valid[:, cols], axis=0)  # the size at a recorded row
+        return cls(
+            cols=cols,
+            rails=rails,
+            log_arc=rails.arc_m[:, :t],  # (K, T): the logged progress at each row
+            log_speed=log_speed,
+            desired=log_speed.max(axis=1, initial=0.0),
+            length=tracks.length[first, cols],
+            width=tracks.width[first, cols],
+        )
+
+    def rows(self, which: np.ndarray) -> _Traffic:
+        """The agents ``which`` (an index array or a boolean mask over ``cols``)."""
+        return _Traffic(
+            cols=self.cols[which], rails=self.rails.rows(which), log_arc=self.log_arc[which],
+            log_speed=self.log_speed[which], desired=self.desired[which],
+            length=self.length[which], width=self.width[which],
+        )  # fmt: skip
+
+
 class _Others:
     """The other agents of one run, over the tracks' columns: logged, or reactive
     vehicles on their rails (state: progress along the rail and speed)."""
 
     def __init__(
-        self, tracks: Any, speeds: np.ndarray, ego_column: int, mode: str,
+        self, tracks: Any, speeds: np.ndarray, ego_column: int, traffic: _Traffic,
         settings: reactive.ReactiveSettings,
     ) -> None:  # fmt: skip
+        """``traffic``: the reactive agents (none for ``log``; never the ego)."""
         self.tracks = tracks
         self.speeds = speeds
         self.settings = settings
         n = tracks.valid.shape[1]
         self.others = np.ones(n, dtype=bool)
         self.others[ego_column] = False
-        is_vehicle = tracks.kinds == Kind.VEHICLE
-        self.cols = (
-            np.flatnonzero(is_vehicle & self.others)
-            if mode == "reactive"
-            else np.zeros(0, np.int64)
-        )
-        rows = _filled(tracks.valid[:, self.cols])  # (T, K)
-        cols = self.cols[None, :]
-        xy = tracks.xy[rows, cols].transpose(1, 0, 2)  # (K, T, 2)
-        heading = tracks.heading[rows, cols].T
-        self.rails = reactive.Rails.from_positions(xy, heading)
-        t = tracks.valid.shape[0]
-        self.log_arc = self.rails.arc_m[:, :t]  # (K, T): the logged progress at each row
-        self.log_speed = np.where(tracks.valid[:, self.cols], speeds[:, self.cols], 0.0).T
-        self.desired = self.log_speed.max(axis=1, initial=0.0)
-        first = np.argmax(tracks.valid[:, self.cols], axis=0)  # the size at a recorded row
-        self.length = tracks.length[first, self.cols]
-        self.width = tracks.width[first, self.cols]
+        self.cols = traffic.cols
+        self.rails = traffic.rails
+        self.log_arc = traffic.log_arc
+        self.log_speed = traffic.log_speed
+        self.desired = traffic.desired
+        self.length = traffic.length
+        self.width = traffic.width
         self.arc = np.zeros(self.cols.size)
         self.speed = np.zeros(self.cols.size)
         self.entered = np.zeros(self.cols.size, dtype=bool)
+
+    def fork(self) -> _Others:
+        """An independent copy (its own state; the static arrays shared)."""
+        twin = copy.copy(self)
+        twin.arc, twin.speed, twin.entered = self.arc.copy(), self.speed.copy(), self.entered.copy()
+        return twin
 
     def at(self, row: int) -> dict[str, np.ndarray]:
         """Everyone's state at ``row`` over the tracks' columns (the ego's column is
@@ -182,16 +227,16 @@ class _Others:
             self.arc[new] = self.log_arc[new, row]
             self.speed[new] = self.log_speed[new, row]
             self.entered |= here
-            xy, heading = self.rails.poses(self.arc[:, None])
-            world["xy"][self.cols[here]] = xy[here, 0]
-            world["heading"][self.cols[here]] = heading[here, 0]
-            world["speed"][self.cols[here]] = self.speed[here]
-            # The path from where each agent is to where its log has it (for prediction).
+            # Where each agent is, then the path from there to where its log has it
+            # (for prediction): one lookup on the rails.
             share = np.linspace(0.0, 1.0, LAG_POINTS)[None, :]
             lag_arc = self.arc[:, None] + (self.log_arc[:, row] - self.arc)[:, None] * share
-            lag_xy, _ = self.rails.poses(lag_arc)
+            poses_xy, poses_heading = self.rails.poses(np.hstack([self.arc[:, None], lag_arc]))
+            world["xy"][self.cols[here]] = poses_xy[here, 0]
+            world["heading"][self.cols[here]] = poses_heading[here, 0]
+            world["speed"][self.cols[here]] = self.speed[here]
             lag = np.repeat(tr.xy[row][:, None, :], LAG_POINTS, axis=1)
-            lag[self.cols[here]] = lag_xy[here]
+            lag[self.cols[here]] = poses_xy[here, 1:]
             world["lag"] = lag
         return world
 
@@ -305,6 +350,7 @@ class _Run:
     scene: Any
     tracks: Any
     speeds: np.ndarray
+    shared: _SceneRuns
     ego_id: int
     column: int
     schedule: list[tuple[int, Frame]]
@@ -321,7 +367,53 @@ class _Run:
     expert_excursion_m: float  # the logged ego's worst corner outside the drivable corridor
 
 
+@dataclasses.dataclass(frozen=True, eq=False)  # not slotted: caches on the instance
+class _SceneRuns:
+    """What every ego's runs in one scene share, computed once per scene: the tracks,
+    everyone's logged speeds, each frame's track columns, the drivable lanes and the
+    reactive agents' static data for all of the scene's vehicles."""
+
+    scene: Any
+
+    @functools.cached_property
+    def tracks(self) -> Any:
+        return self.scene.tracks()
+
+    @functools.cached_property
+    def speeds(self) -> np.ndarray:
+        return logged_speeds(self.scene, self.tracks)
+
+    @functools.cached_property
+    def columns(self) -> dict[int, np.ndarray]:
+        """Per frame index: the tracks' column of each of its agents."""
+        return {i: self.tracks.index_of(f.ids) for i, f in self.scene.indexed}
+
+    @functools.cached_property
+    def lanes(self) -> list[np.ndarray]:
+        return [
+            np.asarray(lane.centerline, dtype=np.float64)
+            for lane in self.scene.map.lanes
+            if lane.kind in DRIVABLE_LANE_KINDS and len(lane.centerline) >= 2
+        ]
+
+    @functools.cached_property
+    def vehicles(self) -> _Traffic:
+        tracks = self.tracks
+        return _Traffic.of(tracks, self.speeds, np.flatnonzero(tracks.kinds == Kind.VEHICLE))
+
+    def traffic(self, mode: str, ego_column: int) -> _Traffic:
+        """The reactive agents of an ego's run: every vehicle but the ego (``reactive``),
+        none (``log``)."""
+        vehicles = self.vehicles
+        if mode != "reactive":
+            return vehicles.rows(np.zeros(0, np.int64))
+        return vehicles.rows(np.flatnonzero(vehicles.cols != ego_column))
+
+
 def _prepare(scene: Any, ego_id: int, settings: PlanSettings) -> _Run:
+    """The ego's runs prepared; ``scene``: a loaded scene or its :class:`_SceneRuns`."""
+    shared = scene if isinstance(scene, _SceneRuns) else _SceneRuns(scene)
+    scene = shared.scene
     indexed = scene.indexed
     period = float(scene.frame_period_s)
     stride = max(1, round(1.0 / (REPLAN_HZ * period)))
@@ -332,7 +424,7 @@ def _prepare(scene: Any, ego_id: int, settings: PlanSettings) -> _Run:
     schedule = [(i, f) for i, f in indexed if i >= first_index and (i - first_index) % stride == 0]
     start = first.with_ego(int(np.flatnonzero(first.ids == ego_id)[0]))
     e = start.ego
-    tracks = scene.tracks()
+    tracks = shared.tracks
     column = int(np.flatnonzero(tracks.ids == ego_id)[0])
     duration = (schedule[-1][0] - first_index) * period
     whole_s = tracks.valid.shape[0] * tracks.dt_s
@@ -365,20 +457,17 @@ def _prepare(scene: Any, ego_id: int, settings: PlanSettings) -> _Run:
     route = _distinct(route_ext[0, : route_points[0]])
     route_cum = cumulative_lengths(route[None])[0]
     _, expert_arc = project_points(logged_xy[[0, -1]], route, route_cum)
-    lanes = [
-        np.asarray(lane.centerline, dtype=np.float64)
-        for lane in scene.map.lanes
-        if lane.kind in DRIVABLE_LANE_KINDS and len(lane.centerline) >= 2
-    ]
+    lanes = shared.lanes
     excursion = metrics.corridor_excursion_m(expert, lanes, LANE_WIDTH_M) if lanes else np.zeros(1)
     return _Run(
         scene=scene,
         tracks=tracks,
-        speeds=logged_speeds(scene, tracks),
+        speeds=shared.speeds,
+        shared=shared,
         ego_id=ego_id,
         column=column,
         schedule=schedule,
-        columns=[tracks.index_of(f.ids) for _, f in schedule],
+        columns=[shared.columns[i] for i, _ in schedule],
         first_index=first_index,
         stride=stride,
         start=VehicleState(
@@ -422,77 +511,192 @@ def drive(
     settings: ClosedLoopSettings,
 ) -> dict[str, Any]:
     """One closed-loop run of the prepared ego with the agents ``flt`` keeps; one row."""
+    return drive_all(run, planner, [flt], tracker, settings)[0]
+
+
+@dataclasses.dataclass
+class _Timeline:
+    """What one or more runs that have not parted yet share: the others, the ego's
+    state and its plan to fall back on, and their history so far."""
+
+    others: _Others
+    state: VehicleState
+    previous: Plan | None
+    ego_xy: np.ndarray
+    ego_heading: np.ndarray
+    ego_speed: np.ndarray
+    hist: dict[str, np.ndarray]
+    failures: int = 0
+
+    def fork(self) -> _Timeline:
+        return dataclasses.replace(
+            self, others=self.others.fork(), ego_xy=self.ego_xy.copy(),
+            ego_heading=self.ego_heading.copy(), ego_speed=self.ego_speed.copy(),
+            hist={name: values.copy() for name, values in self.hist.items()},
+        )  # fmt: skip
+
+
+@dataclasses.dataclass
+class _Lane:
+    """One filter's run: its timeline (shared with the runs it has not parted from) and
+    its own timings."""
+
+    flt: Filter
+    timeline: _Timeline
+    plan_ms: list[float] = dataclasses.field(default_factory=list)
+    filter_ms: list[float] = dataclasses.field(default_factory=list)
+    kept: list[int] = dataclasses.field(default_factory=list)
+
+
+def _same_course(a: Plan | None, b: Plan | None) -> bool:
+    """Whether the ego moves alike under plans ``a`` and ``b``: both unusable, or both
+    usable with the same trajectory (all the tracker and the fallback read)."""
+    usable_a = a is not None and a.ok and a.times_s.size >= 2
+    usable_b = b is not None and b.ok and b.times_s.size >= 2
+    if not (usable_a and usable_b):
+        return usable_a == usable_b
+    assert a is not None and b is not None
+    return all(
+        np.array_equal(x, y)
+        for x, y in (
+            (a.times_s, b.times_s), (a.xy, b.xy), (a.heading_rad, b.heading_rad),
+            (a.speed_mps, b.speed_mps),
+        )
+    )  # fmt: skip
+
+
+def drive_all(
+    run: _Run,
+    planner: Planner,
+    filters: list[Filter],
+    tracker: Tracker,
+    settings: ClosedLoopSettings,
+) -> list[dict[str, Any]]:
+    """The closed-loop runs of the prepared ego, one per filter, one row each, stepped
+    together: while runs have moved alike (their plans gave the same trajectories) they
+    share one timeline (the others, the ego, the planner's frame and request), and only
+    the filter and the planner run per filter; a run whose plan differs parts with a
+    copy. Each row is what a run on its own gives."""
     scene, tracks = run.scene, run.tracks
     period = float(scene.frame_period_s)
     step_dt = run.stride * period
     cum = cumulative_lengths(run.reference[None])[0]
-    others = _Others(tracks, run.speeds, run.column, settings.agents, settings.reactive)
-    state = run.start
-    plan_ms: list[float] = []
-    filter_ms: list[float] = []
-    kept: list[int] = []
-    failures = 0
-    previous: Plan | None = None
+    traffic = run.shared.traffic(settings.agents, run.column)
     n_steps = len(run.schedule)
-    ego_xy = np.zeros((n_steps, 2))
-    ego_heading = np.zeros(n_steps)
-    ego_speed = np.zeros(n_steps)
     shape = (n_steps, tracks.valid.shape[1])
-    hist = {
-        "xy": np.zeros((*shape, 2)), "heading": np.zeros(shape), "speed": np.zeros(shape),
-        "length": np.zeros(shape), "width": np.zeros(shape), "valid": np.zeros(shape, bool),
-    }  # fmt: skip
+    start = _Timeline(
+        others=_Others(tracks, run.speeds, run.column, traffic, settings.reactive),
+        state=run.start, previous=None, ego_xy=np.zeros((n_steps, 2)),
+        ego_heading=np.zeros(n_steps), ego_speed=np.zeros(n_steps),
+        hist={
+            "xy": np.zeros((*shape, 2)), "heading": np.zeros(shape), "speed": np.zeros(shape),
+            "length": np.zeros(shape), "width": np.zeros(shape),
+            "valid": np.zeros(shape, bool),
+        },
+    )  # fmt: skip
+    lanes = [_Lane(flt, start) for flt in filters]
     times = np.zeros(n_steps)
     for k, (_index, log) in enumerate(run.schedule):
         row = round((log.t - tracks.t0_s) / tracks.dt_s)
-        world = others.at(row)
-        for name in hist:
-            hist[name][k] = world[name]
-        ego_xy[k], ego_heading[k], ego_speed[k] = state.xy, state.heading_rad, state.speed_mps
         times[k] = log.t
-        if k == n_steps - 1:
-            break
-        path = _ego_path(state, run.reference, cum)
-        frame = _planner_frame(log, run.columns[k], world, run.ego_id, run.kind, state, path)
-        target = max(run.top_speed, state.speed_mps)
-        try:
-            request = plan_request(
-                frame, scene.map, target_speed_mps=target, horizon_s=settings.plan.horizon_s,
-                dt_s=settings.plan.dt_s,
+        for line in list({id(lane.timeline): lane.timeline for lane in lanes}.values()):
+            sharing = [lane for lane in lanes if lane.timeline is line]
+            state = line.state
+            world = line.others.at(row)
+            for name in line.hist:
+                line.hist[name][k] = world[name]
+            line.ego_xy[k], line.ego_heading[k] = state.xy, state.heading_rad
+            line.ego_speed[k] = state.speed_mps
+            if k == n_steps - 1:
+                continue
+            path = _ego_path(state, run.reference, cum)
+            frame = _planner_frame(log, run.columns[k], world, run.ego_id, run.kind, state, path)
+            target = max(run.top_speed, state.speed_mps)
+            try:
+                request = plan_request(
+                    frame, scene.map, target_speed_mps=target,
+                    horizon_s=settings.plan.horizon_s, dt_s=settings.plan.dt_s,
+                )  # fmt: skip
+            except NoReferencePath:
+                request = None
+            plans: list[Plan | None] = []
+            for lane in sharing:
+                plan: Plan | None = None
+                if request is not None:
+                    answer = lane.flt.apply(frame)
+                    lane.filter_ms.append(answer.time_ms)
+                    keep = np.isin(request.agents.ids, answer.kept_ids)
+                    lane.kept.append(int(keep.sum()))
+                    plan = planner.plan(request.with_agents(request.agents.subset(keep)))
+                    lane.plan_ms.append(plan.plan_ms)
+                plans.append(plan)
+            next_row = round((run.schedule[k + 1][1].t - tracks.t0_s) / tracks.dt_s)
+            line.others.advance(row, next_row, world, state, step_dt)  # the ego's state now
+            # The runs that planned alike move on together; the others part.
+            courses: list[tuple[Plan | None, list[_Lane]]] = []
+            for lane, plan in zip(sharing, plans, strict=True):
+                for course, members in courses:
+                    if _same_course(course, plan):
+                        members.append(lane)
+                        break
+                else:
+                    courses.append((plan, [lane]))
+            for i, (plan, members) in enumerate(courses):
+                own = line if i == 0 else line.fork()
+                _move(own, plan, state, tracker, step_dt)
+                for lane in members:
+                    lane.timeline = own
+    rows: list[dict[str, Any]] = []
+    scored: dict[int, tuple[dict[str, Any], float]] = {}
+    for lane in lanes:
+        line = lane.timeline
+        if id(line) not in scored:  # runs that never parted share their scores
+            ego = metrics.EgoHistory(
+                times_s=times, xy=line.ego_xy, heading_rad=line.ego_heading,
+                speed_mps=line.ego_speed, length_m=run.start.length_m,
+                width_m=run.start.width_m,
             )  # fmt: skip
-        except NoReferencePath:
-            request = None
-        plan: Plan | None = None
-        if request is not None:
-            answer = flt.apply(frame)
-            filter_ms.append(answer.time_ms)
-            keep = np.isin(request.agents.ids, answer.kept_ids)
-            kept.append(int(keep.sum()))
-            plan = planner.plan(request.with_agents(request.agents.subset(keep)))
-            plan_ms.append(plan.plan_ms)
-        next_row = round((run.schedule[k + 1][1].t - tracks.t0_s) / tracks.dt_s)
-        others.advance(row, next_row, world, state, step_dt)  # against the ego's state now
-        if plan is not None and plan.ok and plan.times_s.size >= 2:
-            state, previous = tracker.follow(state, plan, step_dt), _shifted(plan, step_dt)
-        else:
-            failures += 1
-            if previous is not None and previous.times_s[-1] >= step_dt:
-                state, previous = (
-                    tracker.follow(state, previous, step_dt),
-                    _shifted(previous, step_dt),
-                )
-            else:
-                state, previous = _brake(state, step_dt), None
-    ego = metrics.EgoHistory(
-        times_s=times, xy=ego_xy, heading_rad=ego_heading, speed_mps=ego_speed,
-        length_m=run.start.length_m, width_m=run.start.width_m,
-    )  # fmt: skip
-    seen = metrics.OthersHistory(
-        ids=tracks.ids, kinds=tracks.kinds, xy=hist["xy"], heading_rad=hist["heading"],
-        speed_mps=hist["speed"], length_m=hist["length"], width_m=hist["width"],
-        valid=hist["valid"],
-    )  # fmt: skip
-    row = _scores(ego, seen, run)
+            hist = line.hist
+            seen = metrics.OthersHistory(
+                ids=tracks.ids, kinds=tracks.kinds, xy=hist["xy"], heading_rad=hist["heading"],
+                speed_mps=hist["speed"], length_m=hist["length"], width_m=hist["width"],
+                valid=hist["valid"],
+            )  # fmt: skip
+            scored[id(line)] = (
+                _scores(ego, seen, run),
+                _close_following_s(ego, seen, run.reference, cum, step_dt),
+            )
+        row, headway = scored[id(line)]
+        rows.append(_row(run, planner, lane, tracker, settings, row, headway, line.failures))
+    return rows
+
+
+def _move(
+    line: _Timeline, plan: Plan | None, state: VehicleState, tracker: Tracker, step_dt: float
+) -> None:
+    """The ego of ``line`` from ``state`` over one step: along ``plan`` when usable, else
+    along its previous plan while it lasts, else braking (a failure)."""
+    if plan is not None and plan.ok and plan.times_s.size >= 2:
+        line.state, line.previous = tracker.follow(state, plan, step_dt), _shifted(plan, step_dt)
+        return
+    line.failures += 1
+    previous = line.previous
+    if previous is not None and previous.times_s[-1] >= step_dt:
+        line.state, line.previous = (
+            tracker.follow(state, previous, step_dt),
+            _shifted(previous, step_dt),
+        )
+    else:
+        line.state, line.previous = _brake(state, step_dt), None
+
+
+def _row(
+    run: _Run, planner: Planner, lane: _Lane, tracker: Tracker, settings: ClosedLoopSettings,
+    scores: dict[str, Any], headway_s: float, failures: int,
+) -> dict[str, Any]:  # fmt: skip
+    """One run's row (:data:`CLOSED_LOOP_COLUMNS`)."""
+    scene = run.scene
+    plan_ms = lane.plan_ms
     durations = np.asarray(plan_ms) if plan_ms else np.array([math.nan])
     return {
         "scene": scene_key(pathlib.Path(str(scene.path))),
@@ -502,16 +706,16 @@ def drive(
         "ego_kind": KIND_NAMES[run.kind],
         "agents": settings.agents,
         "tracker": tracker.name,
-        "filter": flt.name,
-        "steps": n_steps,
-        "duration_s": (run.schedule[-1][0] - run.first_index) * period,
-        **row,
-        "time_headway_below_1s_s": _close_following_s(ego, seen, run.reference, cum, step_dt),
+        "filter": lane.flt.name,
+        "steps": len(run.schedule),
+        "duration_s": (run.schedule[-1][0] - run.first_index) * float(scene.frame_period_s),
+        **scores,
+        "time_headway_below_1s_s": headway_s,
         "plan_ms_median": float(np.nanmedian(durations)) if plan_ms else math.nan,
         "plan_ms_p95": float(np.nanquantile(durations, 0.95)) if plan_ms else math.nan,
-        "filter_ms_median": float(np.median(filter_ms)) if filter_ms else math.nan,
+        "filter_ms_median": float(np.median(lane.filter_ms)) if lane.filter_ms else math.nan,
         "plan_failures": failures,
-        "mean_agents": float(np.mean(kept)) if kept else math.nan,
+        "mean_agents": float(np.mean(lane.kept)) if lane.kept else math.nan,
     }
 
 
@@ -589,9 +793,9 @@ def load_tracker(name: str) -> Tracker:
 
 
 @functools.lru_cache(maxsize=2)
-def _scene(path: str) -> Any:
-    """A scene read once per process for the runs of its egos."""
-    return load_scene(path)
+def _scene(path: str) -> _SceneRuns:
+    """A scene read once per process for the runs of its egos, with what they share."""
+    return _SceneRuns(load_scene(path))
 
 
 def run_ego(
@@ -599,14 +803,14 @@ def run_ego(
 ) -> list[dict[str, Any]]:
     """Every closed-loop run of one ego: once with all agents and once per filter; one
     row each (:data:`CLOSED_LOOP_COLUMNS`). Depends on nothing but its arguments."""
-    scene = _scene(str(pathlib.Path(source)))
-    if not scene.indexed:
+    shared = _scene(str(pathlib.Path(source)))
+    if not shared.scene.indexed:
         raise ReplayError(f"{source}: the scene has no frames")
     planner = make_planner(settings.plan.planner)
     tracker = load_tracker(settings.tracker)
-    run = _prepare(scene, int(ego_id), settings.plan)
+    run = _prepare(shared, int(ego_id), settings.plan)
     filters = [KeepAll(name=ALL_AGENTS), *settings.plan.make_filters()]
-    return [drive(run, planner, flt, tracker, settings) for flt in filters]
+    return drive_all(run, planner, filters, tracker, settings)
 
 
 def vehicle_egos(scene: Any, ego: int | str | None) -> tuple[int, ...]:
