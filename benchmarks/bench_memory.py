@@ -10,10 +10,15 @@ processes) every 20 ms. The scenes are replayed by ``--workers`` worker processe
 the driver's figure is the evaluation's own memory: reading the parts back and
 computing the summary.
 
+``--streamed`` also measures, after each evaluation, a separate process that computes the
+pooled ROC, AUC, TPR at fixed FPRs and their bootstrap from the same part files one scene
+at a time (:mod:`replay.analysis.evaluation.streaming`), and compares its AUCs with the
+evaluation's (the difference must lie within the stated bound).
+
 Usage::
 
     python benchmarks/bench_memory.py --scenes DIR --work DIR [--factors 1,4]
-        [--workers 2] [--bootstrap 200] [--repeat 1] [--keep-parts]
+        [--workers 2] [--bootstrap 200] [--repeat 1] [--keep-parts] [--streamed]
 """
 
 from __future__ import annotations
@@ -75,7 +80,28 @@ def peak_rss(cmd: list[str], env: dict[str, str]) -> tuple[int, int, float, int]
     return peaks[0], peaks[1], time.perf_counter() - start, proc.returncode
 
 
+def streamed_pass(out: pathlib.Path, n_boot: int, result: pathlib.Path) -> None:
+    """The child process of ``--streamed``: the streamed ROC of ``out``'s parts."""
+    from replay.analysis.evaluation.streaming import (
+        StreamSettings,
+        max_difference,
+        run_parts,
+        streamed_roc,
+    )
+
+    start = time.perf_counter()
+    streamed = streamed_roc(run_parts(out), StreamSettings(n_boot=n_boot))
+    seconds = time.perf_counter() - start
+    summary = json.loads((out / "summary.json").read_text())
+    diff = max_difference(streamed, summary)
+    result.write_text(json.dumps({"seconds": seconds, "summary_bytes": streamed["summary_bytes"],
+                                  "scenes": streamed["scenes"], **diff}))  # fmt: skip
+
+
 def main() -> None:
+    if len(sys.argv) == 5 and sys.argv[1] == "--stream-child":
+        streamed_pass(pathlib.Path(sys.argv[2]), int(sys.argv[3]), pathlib.Path(sys.argv[4]))
+        return
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", type=pathlib.Path, required=True)
     ap.add_argument("--work", type=pathlib.Path, required=True)
@@ -88,12 +114,14 @@ def main() -> None:
         help="Evaluate into the folders of an earlier run: its scenes are complete, so only "
         "reading the parts back and the evaluation are measured.",
     )  # fmt: skip
+    ap.add_argument("--streamed", action="store_true")
     args = ap.parse_args()
     scenes = sorted(args.scenes.glob("*.mcap"))
     factors = [int(f) for f in args.factors.split(",")]
     args.work.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "PYTHONPATH": str(pathlib.Path(__file__).resolve().parents[1])}
     rows = []
+    streamed_rows: list[tuple[int, int]] = []
     for rep in range(args.repeat):
         for factor in factors:  # the factors take turns in every repeat
             folder = replica(scenes, args.work, factor)
@@ -115,6 +143,29 @@ def main() -> None:
                 f"{seconds:.0f} s, exit {code}",
                 flush=True,
             )
+            if args.streamed and code == 0:
+                res = args.work / f"streamed-x{factor}-{rep}.json"
+                child = [sys.executable, __file__, "--stream-child", str(out),
+                         str(args.bootstrap), str(res)]  # fmt: skip
+                s_own, _, s_sec, s_code = peak_rss(child, env)
+                info = json.loads(res.read_text()) if s_code == 0 else {}
+                streamed_rows.append((factor, s_own))
+                print(
+                    f"x{factor} run {rep} streamed ROC pass: peak {s_own / 2**20:.0f} MiB, "
+                    f"{s_sec:.0f} s, summaries {info.get('summary_bytes', 0) / 2**20:.1f} MiB, "
+                    f"max |AUC - evaluate's| {info.get('auc', float('nan')):.2e} "
+                    f"(max bound {info.get('auc_bound', float('nan')):.2e}), max CI end "
+                    f"difference {info.get('auc_ci', float('nan')):.2e}, curves beyond their bound "
+                    f"{info.get('beyond_bound', float('nan')):.0f}, exit {s_code}",
+                    flush=True,
+                )
+    for name, table in (("streamed ROC pass", streamed_rows),):
+        ref_rows = sorted(r[1] for r in table if r[0] == factors[0])
+        for factor in factors[1:]:
+            peaks = sorted(r[1] for r in table if r[0] == factor)
+            if ref_rows and peaks:
+                ratio = peaks[len(peaks) // 2] / ref_rows[len(ref_rows) // 2]
+                print(f"x{factor} / x{factors[0]} {name} peak (medians): {ratio:.2f}")
     base = [r[4] for r in rows if r[0] == factors[0]]
     if base:
         ref = sorted(base)[len(base) // 2]

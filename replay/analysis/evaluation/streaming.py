@@ -1,0 +1,321 @@
+"""The pooled ROC, AUC, TPR at fixed FPRs and their scene bootstrap from a run's part
+files, one scene at a time (issue 38): the driver's memory grows with the scenes'
+summaries (coarse bin counts per scene), not with the agent-frames.
+
+Two passes over ``OUT/parts/agents`` in key order, reading only the score and reference
+columns of one part at a time:
+
+1. every scene's :class:`risk.roc_counts.BinCounts` per model and reference, merged
+   into one running count per curve (bounded by the fixed score grid's occupied bins);
+2. every scene again, on the merged curve's coarse bootstrap bins: one ``(bins,)``
+   column per scene and curve, weighed by :func:`risk.evaluation.scene_draws` over the
+   key-ordered scenes (the draws do not depend on the engine or on the order in which
+   scenes finished).
+
+The AUC is exact up to the bound :func:`risk.roc_counts.binned_roc` states (pairs of a
+positive and a negative in one bin holding distinct scores). This covers the overall
+curves of :func:`replay.analysis.evaluation.corpus.evaluate_table` only (not the
+per-group blocks, thresholds, miss rates, budgets or agreement): see
+``benchmarks/results/memory.md``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import pathlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import polars as pl
+
+from replay.analysis.evaluation.corpus import EvaluationError, agreement, reference_arrays
+from risk.budgets import budget_recall
+from risk.evaluation import (
+    BOOT_BINS,
+    FPR_POINTS,
+    percentile_interval,
+    reference_counts,
+    scene_draws,
+)
+from risk.registry import BASELINE_THRESHOLD, MODELS
+from risk.roc_counts import (
+    BinCounts,
+    bin_counts,
+    binned_replicates,
+    binned_roc,
+    merge_counts,
+    scene_bin_matrix,
+)
+
+#: Scenes' counts merged into the running curve at once (fewer sorts of the running one).
+MERGE_BATCH = 32
+#: The columns a reference may come from (besides ``label_*``), and the others the exact
+#: per-scene pieces (counts, budgets, agreement) read.
+_REFERENCE_COLUMNS = ("baseline", "truth_label", "truth_complete", "planner_label")
+_OTHER_COLUMNS = ("frame", "ego_id", "agent_id", "distance_m", "truth_yielded", "track_ok")
+
+
+@dataclass(frozen=True)
+class StreamSettings:
+    models: tuple[str, ...] | None = None  # default: every risk_<model> column
+    baseline_threshold: float = BASELINE_THRESHOLD
+    hindsight_windows: str = "complete"
+    n_boot: int = 1000
+    level: float = 0.95
+    seed: int = 0
+    fpr_points: tuple[float, ...] = FPR_POINTS
+
+
+def run_parts(out_dir: str | os.PathLike[str], table: str = "agents") -> list[pathlib.Path]:
+    """The part files of ``table`` of a run's output folder, in scene-key order (from
+    the markers of ``OUT/parts/.done``)."""
+    done = pathlib.Path(out_dir) / "parts" / ".done"
+    entries = []
+    for marker in done.rglob("*.json"):
+        data = json.loads(marker.read_text(encoding="utf-8"))
+        path = data.get("tables", {}).get(table, {}).get("path")
+        if path:
+            entries.append((str(data["key"]), pathlib.Path(path)))
+    if not entries:
+        raise EvaluationError(f"{out_dir}: no complete scene with a {table} table")
+    return [p for _, p in sorted(entries)]
+
+
+def corpus_columns(parts: Sequence[pathlib.Path], models: Sequence[str] | None) -> pl.Schema:
+    """The columns the pass reads, over every part (from the files' schemas only): a
+    scene without one of them reads it as nulls, as the full evaluation's diagonal
+    concatenation does (e.g. a scene without planner truth is unknown under it)."""
+    union: dict[str, pl.DataType] = {}
+    for path in parts:
+        for name, dtype in pl.read_parquet_schema(path).items():
+            union.setdefault(name, dtype)
+    present = [m for m in MODELS if f"risk_{m}" in union]
+    wanted = {f"risk_{m}" for m in (present if models is None else models) if m in present}
+    return pl.Schema(
+        {
+            c: t
+            for c, t in union.items()
+            if c in wanted
+            or c == "risk_survival"
+            or c in _REFERENCE_COLUMNS
+            or c in _OTHER_COLUMNS
+            or c.startswith(("label_", "kept_"))
+        }
+    )
+
+
+@dataclass
+class SceneSummary:
+    """What one scene adds: its ROC counts per (model, reference) and the exact additive
+    pieces: reference counts, budget counts per rule, agreement counts."""
+
+    curves: dict[tuple[str, str], BinCounts]
+    counts: dict[str, dict[str, int]]
+    budgets: dict[str, list[dict[str, Any]]]
+    agreement: dict[str, Any]
+    situations: int
+
+
+def scene_summary(path: pathlib.Path, settings: StreamSettings, columns: pl.Schema) -> SceneSummary:
+    """One part's :class:`SceneSummary` over ``columns`` (:func:`corpus_columns`), its
+    rows in the evaluation's order (frame, ego; stable), as
+    :func:`replay.analysis.evaluation.collect.evaluation_agents` reads them."""
+    own = pl.read_parquet_schema(path)
+    df = pl.read_parquet(path, columns=[c for c in columns if c in own])
+    df = df.with_columns(
+        pl.lit(None, dtype=t).alias(c) for c, t in columns.items() if c not in own
+    ).sort("frame", "ego_id", maintain_order=True)
+    models = [c.removeprefix("risk_") for c in columns if c.startswith("risk_")]
+    if settings.models is not None:
+        models = [m for m in settings.models if m in models]
+    refs, _ = reference_arrays(
+        df, baseline_threshold=settings.baseline_threshold, windows=settings.hindsight_windows
+    )
+    scores = {m: df[f"risk_{m}"].to_numpy().astype(np.float64, copy=False) for m in models}
+    curves = {(m, name): bin_counts(s, r) for m, s in scores.items() for name, r in refs.items()}
+    agent_key = _rank(df, "ego_id", "agent_id")
+    situations = _rank(df, "ego_id", "frame")
+    one = np.zeros(df.height, dtype=np.int64)  # the scene, as a cluster code
+    counts = {name: reference_counts(r, agent_key, one) for name, r in refs.items()}
+    stages = [c for c in df.columns if c.startswith("kept_")]
+    distance = (
+        df["distance_m"].to_numpy().astype(np.float64, copy=False)
+        if "distance_m" in df.columns
+        else None
+    )
+    budgets = {
+        name: [
+            _budget_counts(row, int(np.unique(situations).size))
+            for row in budget_recall(
+                scores, r, situations=situations, codes=one, distance_m=distance,
+                kept_sets={"cascade": df[stages[-1]].to_numpy()} if stages else None,
+            )
+        ]
+        for name, r in refs.items()
+    }  # fmt: skip
+    return SceneSummary(curves, counts, budgets, agreement(refs, df, agent_key),
+                        int(np.unique(situations).size))  # fmt: skip
+
+
+def _rank(df: pl.DataFrame, *columns: str) -> np.ndarray:
+    return df.select(pl.struct(*columns).rank("dense").cast(pl.Int64)).to_series().to_numpy()
+
+
+def _budget_counts(row: dict[str, Any], n_situations: int) -> dict[str, Any]:
+    """A budget row of one scene as sums: its mean kept count times its situations."""
+    return {
+        "rule": row["rule"], "kind": row["kind"], "k": row["k"], "radius_m": row["radius_m"],
+        "positives": row["positives"], "kept_positives": row["kept_positives"],
+        "kept": round(row["mean_kept"] * n_situations),
+    }  # fmt: skip
+
+
+def add_counts(a: Any, b: Any) -> Any:
+    """The sum of two nested count structures of the same shape (dicts by key, lists by
+    position, numbers added, booleans or-ed, other leaves equal)."""
+    if isinstance(a, dict):
+        return {k: add_counts(a[k], b[k]) if k in a and k in b else a.get(k, b.get(k))
+                for k in {**a, **b}}  # fmt: skip
+    if isinstance(a, list):
+        return [add_counts(x, y) for x, y in zip(a, b, strict=True)]
+    if isinstance(a, bool):
+        return a or b
+    if isinstance(a, int | float) and not isinstance(a, bool):
+        return a + b
+    return a
+
+
+def streamed_roc(
+    parts: Sequence[pathlib.Path], settings: StreamSettings | None = None
+) -> dict[str, Any]:
+    """``models -> reference -> {auc: {value, ci, error_bound}, tpr_at_fpr, agent_frames,
+    positives, mixed_bins}`` over the scenes of ``parts`` (one part file per scene, in
+    key order), and the bytes of the per-scene summaries held."""
+    st = settings or StreamSettings()
+    columns = corpus_columns(parts, st.models)
+    merged: dict[tuple[str, str], BinCounts] = {}
+    pending: dict[tuple[str, str], list[BinCounts]] = {}
+    n_scenes = len(parts)
+    totals: dict[str, Any] = {}
+    budget_cols: dict[str, list[list[dict[str, Any]]]] = {}
+    situations = 0
+    for i, path in enumerate(parts):  # pass 1: the merged curves, the exact sums
+        scene = scene_summary(path, st, columns)
+        situations += scene.situations
+        exact = {"references": scene.counts, "agreement": scene.agreement}
+        totals = add_counts(totals, exact) if totals else exact
+        for name, rows in scene.budgets.items():
+            budget_cols.setdefault(name, [[] for _ in range(n_scenes)])[i] = rows
+        for curve, counts in scene.curves.items():
+            pending.setdefault(curve, []).append(counts)
+        if (i + 1) % MERGE_BATCH == 0 or i + 1 == len(parts):
+            for curve, batch in pending.items():
+                merged[curve] = merge_counts([merged.get(curve, BinCounts.empty()), *batch])
+            pending.clear()
+    pos_cols: dict[tuple[str, str], np.ndarray] = {}
+    neg_cols: dict[tuple[str, str], np.ndarray] = {}
+    if st.n_boot > 0:  # pass 2: every scene's column on the coarse bins
+        for j, path in enumerate(parts):
+            for curve, counts in scene_summary(path, st, columns).curves.items():
+                if curve not in pos_cols:
+                    n_bins = int(min(merged[curve].bins.size, BOOT_BINS))
+                    pos_cols[curve] = np.zeros((n_bins, n_scenes), dtype=np.int32)
+                    neg_cols[curve] = np.zeros((n_bins, n_scenes), dtype=np.int32)
+                p, n = scene_bin_matrix(merged[curve], [counts])
+                pos_cols[curve][:, j] = p[:, 0]
+                neg_cols[curve][:, j] = n[:, 0]
+    draws = scene_draws(n_scenes, n_boot=st.n_boot, seed=st.seed) if st.n_boot > 0 else None
+    models: dict[str, dict[str, Any]] = {}
+    for (m, name), counts in merged.items():
+        roc = binned_roc(counts)
+        block: dict[str, Any] = {
+            "agent_frames": roc.n_positive + roc.n_negative,
+            "positives": roc.n_positive,
+            "mixed_bins": roc.mixed_bins,
+            "auc": {"value": roc.auc, "error_bound": roc.auc_error_bound},
+            "tpr_at_fpr": {
+                f"{f:g}": {"value": roc.tpr_at(f), "error_bound": roc.tpr_error_bound}
+                for f in st.fpr_points
+            },
+        }
+        if draws is not None and roc.n_positive and roc.n_negative and (m, name) in pos_cols:
+            auc_r, tpr_r = binned_replicates(
+                pos_cols[m, name], neg_cols[m, name], draws, st.fpr_points
+            )
+            block["auc"]["ci"] = list(percentile_interval(auc_r, level=st.level))
+            for k, f in enumerate(st.fpr_points):
+                block["tpr_at_fpr"][f"{f:g}"]["ci"] = list(
+                    percentile_interval(tpr_r[:, k], level=st.level)
+                )
+        models.setdefault(m, {})[name] = block
+    held = sum(c.nbytes for c in merged.values()) + sum(
+        a.nbytes for a in (*pos_cols.values(), *neg_cols.values())
+    )
+    with_positives = [n for n, c in totals["references"].items() if c["positive_agent_frames"]]
+    budgets = {
+        name: _budget_rows(budget_cols[name], situations, draws, st.level)
+        for name in with_positives
+    }
+    return {"scenes": n_scenes, "models": models, "summary_bytes": int(held),
+            "references": totals["references"], "agreement": totals["agreement"],
+            "budgets": budgets,
+            "auc_method": "pooled ROC on a fixed score grid, summed over scenes"}  # fmt: skip
+
+
+def _budget_rows(
+    scenes: list[list[dict[str, Any]]], situations: int, draws: np.ndarray | None, level: float
+) -> list[dict[str, Any]]:
+    """The budget rows of the corpus from every scene's (``scenes[s]``: rows in one rule
+    order; empty for a scene without rows): recall and mean kept count from sums, the
+    interval from the scenes' columns weighed by the draws (exact, as
+    :func:`risk.budgets.budget_recall`)."""
+    template = next((rows for rows in scenes if rows), [])
+    out = []
+    for j, rule in enumerate(template):
+        pos = np.array([rows[j]["positives"] if rows else 0 for rows in scenes], np.float64)
+        kept = np.array([rows[j]["kept_positives"] if rows else 0 for rows in scenes], np.float64)
+        n_pos, n_kept = int(pos.sum()), int(kept.sum())
+        kept_total = sum(rows[j]["kept"] for rows in scenes if rows)
+        row: dict[str, Any] = {
+            "rule": rule["rule"], "kind": rule["kind"], "k": rule["k"], "radius_m": rule["radius_m"],
+            "mean_kept": kept_total / max(1, situations),
+            "positives": n_pos, "kept_positives": n_kept,
+            "value": n_kept / n_pos if n_pos else math.nan,
+        }  # fmt: skip
+        if draws is not None:
+            d = draws.astype(np.float64)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                reps = (d @ kept) / (d @ pos)
+            row["ci"] = list(percentile_interval(reps, level=level))
+        out.append(row)
+    return out
+
+
+def max_difference(streamed: dict[str, Any], summary: dict[str, Any]) -> dict[str, float]:
+    """The largest AUC difference against an evaluation summary's (``summary["models"]``),
+    the largest of the stated bounds, the largest difference of an interval's ends, and
+    how many curves differ by more than their own bound, over the curves both have."""
+    diff = bound = ci = 0.0
+    beyond = 0
+    for m, refs in streamed["models"].items():
+        for name, block in refs.items():
+            full = summary.get("models", {}).get(m, {}).get(name)
+            if full is None or math.isnan(block["auc"]["value"]):
+                continue
+            gap = abs(block["auc"]["value"] - full["auc"]["value"])
+            beyond += gap > block["auc"]["error_bound"] + 1e-12
+            diff = max(diff, gap)
+            bound = max(bound, block["auc"]["error_bound"])
+            if "ci" in block["auc"] and "ci" in full["auc"]:
+                ci = max(
+                    ci,
+                    *(
+                        abs(a - b)
+                        for a, b in zip(block["auc"]["ci"], full["auc"]["ci"], strict=True)
+                    ),
+                )
+    return {"auc": diff, "auc_bound": bound, "auc_ci": ci, "beyond_bound": float(beyond)}

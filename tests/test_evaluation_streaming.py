@@ -1,0 +1,131 @@
+"""replay.analysis.evaluation.streaming: the per-scene pass over part files against the
+full-rows evaluation (evaluate_table on every row at once, the slow obvious oracle)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import polars as pl
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from replay.analysis.evaluation.corpus import EvaluationSettings, evaluate_table
+from replay.analysis.evaluation.streaming import (
+    StreamSettings,
+    add_counts,
+    max_difference,
+    streamed_roc,
+)
+
+
+def corpus(seed: int, n_scenes: int = 4, integer_scores: bool = False) -> list[pl.DataFrame]:
+    """Random scenes: frames x egos x agents rows with scores, hindsight truth (censored
+    windows too), planner labels, cascade flags; rows shuffled inside each scene."""
+    rng = np.random.default_rng(seed)
+    scenes = []
+    for k in range(n_scenes):
+        frame, ego, agent = np.meshgrid(np.arange(4), np.arange(2), np.arange(5), indexing="ij")
+        n = frame.size
+        truth = rng.random(n) < 0.25
+        risk = rng.integers(0, 6, n).astype(float) if integer_scores else rng.random(n)
+        df = pl.DataFrame(
+            {
+                "scene": [f"s{k}"] * n,
+                "frame": frame.ravel(),
+                "ego_id": ego.ravel(),
+                "agent_id": agent.ravel(),
+                "kind": rng.choice(["vehicle", "pedestrian"], n),
+                "t_s": frame.ravel() * 0.1,
+                "risk_current_distance": risk + truth * rng.integers(0, 3, n),
+                "risk_survival": np.where(rng.random(n) < 0.5, 0.0, rng.random(n)),
+                "distance_m": rng.random(n) * 60,
+                "truth_label": truth,
+                "truth_gap_m": rng.random(n),
+                "truth_pet_s": rng.random(n),
+                "truth_complete": rng.random(n) < 0.8,
+                "truth_yielded": rng.random(n) < 0.2,
+                "track_ok": rng.random(n) < 0.9,
+                "planner_label": rng.random(n) < 0.3,
+                "kept_a": rng.random(n) < 0.7,
+            }
+        ).with_columns(
+            pl.col("kept_a").alias("kept_b") & (pl.col("distance_m") < 40),
+            pl.when(pl.col("track_ok")).then(pl.col("truth_label")).alias("truth_label"),
+        )  # fmt: skip
+        scenes.append(df.sample(fraction=1.0, shuffle=True, seed=seed + k))
+    return scenes
+
+
+def both(tmp_path, scenes, n_boot):
+    paths = []
+    for i, df in enumerate(scenes):
+        paths.append(tmp_path / f"s{i}.parquet")
+        df.write_parquet(paths[-1])
+    full = evaluate_table(
+        pl.concat(scenes, how="diagonal_relaxed"),
+        settings=EvaluationSettings(n_boot=n_boot, groupings=()),
+    )
+    return streamed_roc(paths, StreamSettings(n_boot=n_boot)), full
+
+
+@settings(
+    max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(st.integers(0, 10_000), st.booleans())
+def test_the_streamed_pass_agrees_with_the_full_rows_evaluation(tmp_path, seed, integer_scores):
+    streamed, full = both(tmp_path, corpus(seed, integer_scores=integer_scores), n_boot=30)
+    # Exact pieces: reference counts, agreement, budgets (with intervals).
+    for name, counts in streamed["references"].items():
+        assert {k: full["references"][name][k] for k in counts} == counts
+    assert streamed["agreement"] == full["agreement"]
+    assert set(streamed["budgets"]) == set(full["budgets"])
+    for name, rows in streamed["budgets"].items():
+        for got, want in zip(rows, full["budgets"][name], strict=True):
+            assert (got["rule"], got["k"], got["radius_m"]) == (
+                want["rule"],
+                want["k"],
+                want["radius_m"],
+            )
+            assert (got["positives"], got["kept_positives"]) == (
+                want["positives"],
+                want["kept_positives"],
+            )
+            assert got["mean_kept"] == pytest.approx(want["mean_kept"], rel=1e-12)
+            np.testing.assert_allclose(got["ci"], want["ci"], rtol=1e-12, equal_nan=True)
+    # The ROC: within the stated bound; exact when no bin mixes distinct scores.
+    diff = max_difference(streamed, full)
+    assert diff["beyond_bound"] == 0
+    for m, refs in streamed["models"].items():
+        for name, block in refs.items():
+            want = full["models"][m][name]
+            if block["mixed_bins"] == 0:
+                assert block["auc"]["value"] == pytest.approx(want["auc"]["value"], abs=1e-12)
+                for f, t in block["tpr_at_fpr"].items():
+                    assert t["value"] == pytest.approx(want["tpr_at_fpr"][f]["value"], abs=1e-12)
+            if integer_scores and m == "current_distance":  # few distinct scores: exact CI
+                np.testing.assert_allclose(block["auc"]["ci"], want["auc"]["ci"], atol=1e-12)
+
+
+def test_a_scene_without_rows_of_a_reference_adds_nothing(tmp_path):
+    scenes = corpus(7, n_scenes=3)
+    scenes[1] = scenes[1].drop("planner_label")  # that scene has no planner truth
+    streamed, full = both(tmp_path, scenes, n_boot=0)
+    assert streamed["references"]["planner"]["agent_frames"] == (
+        full["references"]["planner"]["agent_frames"]
+        - full["references"]["planner"]["unknown_agent_frames"]
+        + streamed["references"]["planner"]["unknown_agent_frames"]
+    )
+    assert streamed["references"]["hindsight"] == {
+        k: full["references"]["hindsight"][k] for k in streamed["references"]["hindsight"]
+    }
+    assert "ci" not in streamed["models"]["current_distance"]["hindsight"]["auc"]
+
+
+def test_add_counts_by_hand():
+    a = {"n": 1, "flag": False, "pairs": [{"a": "x", "c": 2}], "only_a": 5}
+    b = {"n": 2, "flag": True, "pairs": [{"a": "x", "c": 3}], "only_b": 1.5}
+    assert add_counts(a, b) == {"n": 3, "flag": True, "pairs": [{"a": "x", "c": 5}],
+                                "only_a": 5, "only_b": 1.5}  # fmt: skip
+    assert not math.isnan(add_counts(1.0, 2.0))

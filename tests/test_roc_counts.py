@@ -1,0 +1,193 @@
+"""risk.roc_counts: pooled ROC from per-scene bin counts, against the exact full-rows
+computation (risk.evaluation.pooled_roc, the bootstrap of evaluate_scores) and a plain
+pairwise oracle."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from risk.errors import RiskError
+from risk.evaluation import (
+    FPR_POINTS,
+    _replicates,
+    bootstrap_weights,
+    pooled_roc,
+    scene_draws,
+    tpr_at_fpr,
+)
+from risk.metrics import SortedScores
+from risk.roc_counts import (
+    BinCounts,
+    bin_counts,
+    binned_replicates,
+    binned_roc,
+    merge_counts,
+    scene_bin_matrix,
+    score_bins,
+)
+
+
+def pairwise_auc(scores: np.ndarray, reference: np.ndarray) -> float:
+    """Slow and obvious: the share of (positive, negative) pairs ordered right, ties 1/2."""
+    ok = (reference >= 0) & ~np.isnan(scores)
+    pos = [s for s, r in zip(scores[ok], reference[ok], strict=True) if r == 1]
+    neg = [s for s, r in zip(scores[ok], reference[ok], strict=True) if r == 0]
+    if not pos or not neg:
+        return math.nan
+    total = 0.0
+    for p in pos:
+        for n in neg:
+            total += 1.0 if p > n else 0.5 if p == n else 0.0
+    return total / (len(pos) * len(neg))
+
+
+# ---------------------------------------------------------------------- hand cases
+def test_distinct_scores_give_the_exact_curve():
+    scores = np.array([0.1, 0.2, 0.3, 0.4])
+    ref = np.array([0, 1, 0, 1], dtype=np.int8)
+    roc = binned_roc(bin_counts(scores, ref))
+    assert roc.auc == pytest.approx(0.75)  # 3 of 4 pairs ordered right
+    assert roc.auc_error_bound == 0.0 and roc.mixed_bins == 0
+    exact = pooled_roc(scores, ref)
+    np.testing.assert_array_equal(roc.thresholds, exact.thresholds)
+    np.testing.assert_allclose(roc.tpr, exact.tpr)
+    np.testing.assert_allclose(roc.fpr, exact.fpr)
+
+
+def test_unknown_and_nan_are_left_out():
+    scores = np.array([0.1, np.nan, 0.3, 0.4, 5.0])
+    ref = np.array([0, 1, 0, 1, -1], dtype=np.int8)
+    roc = binned_roc(bin_counts(scores, ref))
+    assert (roc.n_positive, roc.n_negative) == (1, 2)
+    assert roc.auc == pytest.approx(1.0)
+
+
+def test_a_mixed_bin_is_within_its_stated_bound():
+    # 1.0 and 1.0 + 1e-9 share a bin: the binned curve calls the pair a tie (1/2), the
+    # exact one orders it (1): the error is the whole bound.
+    scores = np.array([1.0, 1.0 + 1e-9])
+    ref = np.array([0, 1], dtype=np.int8)
+    assert score_bins(scores)[0] == score_bins(scores)[1]
+    roc = binned_roc(bin_counts(scores, ref))
+    assert pooled_roc(scores, ref).auc == pytest.approx(1.0)
+    assert roc.auc == pytest.approx(0.5)
+    assert roc.auc_error_bound == pytest.approx(0.5)
+    assert roc.mixed_bins == 1
+
+
+def test_exact_ties_cost_nothing():
+    scores = np.array([0.0, 0.0, 0.0, 2.0])
+    ref = np.array([1, 0, 0, 1], dtype=np.int8)
+    roc = binned_roc(bin_counts(scores, ref))
+    assert roc.auc_error_bound == 0.0
+    assert roc.auc == pytest.approx(pairwise_auc(scores, ref))  # (0.5 + 0.5 + 1 + 1) / 4
+
+
+def test_grid_orders_signs_zeros_and_infinities():
+    values = np.array([-np.inf, -1e300, -2.0, -1.0, -1e-300, -0.0, 0.0, 5e-324, 1.0, 1e300, np.inf])
+    bins = score_bins(values)
+    assert (np.diff(bins) >= 0).all()
+    assert bins[5] == bins[6]  # -0.0 and 0.0 are one score
+    assert bins[3] < bins[8]
+    with pytest.raises(RiskError):
+        score_bins(np.array([np.nan]))
+
+
+def test_no_positive_gives_nan():
+    roc = binned_roc(bin_counts(np.array([0.1, 0.2]), np.array([0, 0], dtype=np.int8)))
+    assert math.isnan(roc.auc) and roc.n_positive == 0
+
+
+def test_scene_draws_are_the_bootstrap_weights_draws():
+    names = np.array(["b", "a", "c", "a"])
+    codes, counts = bootstrap_weights(names, n_boot=7, seed=3)
+    np.testing.assert_array_equal(counts, scene_draws(3, n_boot=7, seed=3))
+    np.testing.assert_array_equal(codes, [1, 0, 2, 0])
+    assert (scene_draws(5, n_boot=4, seed=1).sum(axis=1) == 5).all()
+
+
+# ---------------------------------------------------------------------- properties
+score_values = st.one_of(
+    st.integers(-5, 5).map(float),  # many exact ties
+    st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False, width=32).map(float),
+    st.integers(0, 5).map(lambda k: 1.0 + k * 1e-6),  # distinct scores in one bin
+)
+rows = st.lists(st.tuples(score_values, st.sampled_from([-1, 0, 1]), st.integers(0, 4)),
+                min_size=1, max_size=60)  # fmt: skip
+
+
+def _arrays(data: list[tuple[float, int, int]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    s = np.array([d[0] for d in data], dtype=np.float64)
+    r = np.array([d[1] for d in data], dtype=np.int8)
+    c = np.array([d[2] for d in data], dtype=np.int64)
+    return s, r, c
+
+
+@settings(max_examples=150, deadline=None)
+@given(rows)
+def test_binned_auc_is_the_exact_auc_within_the_bound(data):
+    s, r, _ = _arrays(data)
+    roc = binned_roc(bin_counts(s, r))
+    exact = pooled_roc(s, r).auc
+    oracle = pairwise_auc(s, r)
+    if math.isnan(oracle):
+        assert math.isnan(roc.auc)
+        return
+    assert exact == pytest.approx(oracle, abs=1e-12)
+    assert abs(roc.auc - exact) <= roc.auc_error_bound + 1e-12
+    if roc.mixed_bins == 0:
+        assert roc.auc == pytest.approx(exact, abs=1e-12)
+    for f in FPR_POINTS:  # binned points are exact points: never above, within the bound
+        full = pooled_roc(s, r)
+        e = tpr_at_fpr(full.tpr[::-1], full.fpr[::-1], f)
+        b = roc.tpr_at(f)
+        assert b <= e + 1e-12
+        assert e - b <= roc.tpr_error_bound + 1e-12
+
+
+@settings(max_examples=100, deadline=None)
+@given(rows, st.randoms(use_true_random=False))
+def test_merging_scenes_in_any_order_is_counting_them_together(data, rnd):
+    s, r, c = _arrays(data)
+    whole = bin_counts(s, r)
+    parts = [bin_counts(s[c == k], r[c == k]) for k in range(5)]
+    rnd.shuffle(parts)
+    merged = merge_counts(parts)
+    for field in ("bins", "positives", "negatives", "low", "high"):
+        np.testing.assert_array_equal(getattr(merged, field), getattr(whole, field))
+
+
+@settings(max_examples=60, deadline=None)
+@given(rows, st.integers(0, 2**16))
+def test_bootstrap_from_scene_counts_equals_the_full_rows_bootstrap(data, seed):
+    # Integer scores: every distinct score is its own bin, so the coarse bins of the
+    # merged counts are the exact bootstrap's groups of distinct scores.
+    s, r, c = _arrays(data)
+    s = np.round(s) % 7
+    n_scenes = 5
+    draws = scene_draws(n_scenes, n_boot=20, seed=seed)
+    include = r >= 0
+    srt = SortedScores.build(np.where(include, s, np.nan), r == 1, c)
+    scenes = [bin_counts(s[c == k], r[c == k]) for k in range(n_scenes)]
+    merged = merge_counts(scenes)
+    if srt.scores.size == 0:
+        assert merged.bins.size == 0
+        return
+    auc_full, tpr_full, _ = _replicates(srt, draws, [], FPR_POINTS)
+    pos, neg = scene_bin_matrix(merged, scenes)
+    auc, tpr = binned_replicates(pos, neg, draws)
+    np.testing.assert_allclose(auc, auc_full, equal_nan=True, atol=1e-12)
+    np.testing.assert_allclose(tpr, tpr_full, equal_nan=True, atol=1e-12)
+
+
+def test_scene_bins_must_be_in_the_merge():
+    a = bin_counts(np.array([1.0]), np.array([1], dtype=np.int8))
+    b = bin_counts(np.array([2.0]), np.array([0], dtype=np.int8))
+    with pytest.raises(RiskError):
+        scene_bin_matrix(a, [b])
+    assert BinCounts.empty().nbytes == 0
