@@ -44,6 +44,7 @@ from risk.errors import RiskError
 from risk.evaluation import (
     BOOT_BINS,
     FPR_POINTS,
+    RATE_TOLERANCE,
     reference_mask,
     replicate_curves,
     tpr_at_fpr,
@@ -229,3 +230,37 @@ def binned_replicates(
     if draws.shape[1] != pos.shape[1]:
         raise RiskError(f"draws for {draws.shape[1]} scenes, counts for {pos.shape[1]}")
     return replicate_curves(pos, neg, draws, fpr_points)
+
+
+def recall_crossing(counts: BinCounts, target: float) -> tuple[int, int] | None:
+    """Where the highest threshold keeping ``target`` of the positives lies: ``(i, j)``,
+    the ``j``-th highest positive score (1 = the highest) in bin ``counts.bins[i]``;
+    None when there is no positive. The threshold is that score (as
+    :func:`risk.evaluation.threshold_for_recall` finds it on every row): the bin's
+    ``low`` when it holds one value, else the scores of its positives decide
+    (:func:`kth_highest`)."""
+    if not 0.0 < target <= 1.0:  # 0 keeps nothing: the highest score of any row
+        raise RiskError(f"target TPR must be in (0, 1], got {target}")
+    n_pos = int(counts.positives.sum())
+    if n_pos == 0:
+        return None
+    # The fewest positives n with n / P >= target, in the exact sweep's arithmetic.
+    goal = target - RATE_TOLERANCE
+    need = min(n_pos, max(1, math.ceil(n_pos * goal)))
+    while need > 1 and (need - 1) / n_pos >= goal:
+        need -= 1
+    while need < n_pos and need / n_pos < goal:
+        need += 1
+    from_top = np.cumsum(counts.positives[::-1])
+    k = int(np.searchsorted(from_top, need))  # first bin (from the top) reaching it
+    i = counts.bins.size - 1 - k
+    before = int(from_top[k - 1]) if k else 0
+    return i, need - before
+
+
+def kth_highest(values: np.ndarray, k: int) -> float:
+    """The ``k``-th highest of ``values`` (1 = the highest)."""
+    v = np.asarray(values, dtype=np.float64)
+    if not 1 <= k <= v.size:
+        raise RiskError(f"k = {k} outside 1 .. {v.size}")
+    return float(np.partition(v, v.size - k)[v.size - k])

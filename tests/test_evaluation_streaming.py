@@ -94,6 +94,16 @@ def test_the_streamed_pass_agrees_with_the_full_rows_evaluation(tmp_path, seed, 
             )
             assert got["mean_kept"] == pytest.approx(want["mean_kept"], rel=1e-12)
             np.testing.assert_allclose(got["ci"], want["ci"], rtol=1e-12, equal_nan=True)
+    # Operating thresholds and miss rates: exact (the crossing bins refined on a pass).
+    assert streamed["thresholds"] == full["thresholds"]
+    for m, refs in full["models"].items():
+        for name, block in refs.items():
+            for t, want in block["miss_rate"].items():
+                got = streamed["models"][m][name]["miss_rate"][t]
+                assert {k: got[k] for k in want if k != "ci"} == pytest.approx(
+                    {k: want[k] for k in want if k != "ci"}, nan_ok=True
+                )
+                np.testing.assert_allclose(got["ci"], want["ci"], rtol=1e-12, equal_nan=True)
     # The ROC: within the stated bound; exact when no bin mixes distinct scores.
     diff = max_difference(streamed, full)
     assert diff["beyond_bound"] == 0

@@ -18,6 +18,7 @@ from risk.evaluation import (
     bootstrap_weights,
     pooled_roc,
     scene_draws,
+    threshold_for_recall,
     tpr_at_fpr,
 )
 from risk.metrics import SortedScores
@@ -26,7 +27,9 @@ from risk.roc_counts import (
     bin_counts,
     binned_replicates,
     binned_roc,
+    kth_highest,
     merge_counts,
+    recall_crossing,
     scene_bin_matrix,
     score_bins,
 )
@@ -183,6 +186,39 @@ def test_bootstrap_from_scene_counts_equals_the_full_rows_bootstrap(data, seed):
     auc, tpr = binned_replicates(pos, neg, draws)
     np.testing.assert_allclose(auc, auc_full, equal_nan=True, atol=1e-12)
     np.testing.assert_allclose(tpr, tpr_full, equal_nan=True, atol=1e-12)
+
+
+@settings(max_examples=150, deadline=None)
+@given(rows, st.sampled_from([1e-9, 0.3, 0.5, 0.95, 1.0]))
+def test_the_recall_threshold_from_counts_is_the_exact_one(data, target):
+    s, r, _ = _arrays(data)
+    counts = bin_counts(s, r)
+    exact = threshold_for_recall(s, r, target)
+    crossing = recall_crossing(counts, target)
+    if crossing is None:
+        assert exact == -math.inf
+        return
+    i, j = crossing
+    b = counts.bins[i]
+    in_bin = s[(r == 1) & ~np.isnan(s)]
+    in_bin = in_bin[score_bins(in_bin) == b]
+    assert kth_highest(in_bin, j) == exact
+    if counts.low[i] == counts.high[i]:
+        assert counts.low[i] == exact
+
+
+def test_recall_crossing_by_hand():
+    # Positives 4, 3, 2, 1 (one per bin): 95 % of 4 needs all 4 -> the lowest, 1.0; 50 %
+    # needs 2 -> 3.0.
+    counts = bin_counts(np.array([1.0, 2.0, 3.0, 4.0, 0.5]), np.array([1, 1, 1, 1, 0], np.int8))
+    assert counts.low[recall_crossing(counts, 0.95)[0]] == 1.0
+    assert counts.low[recall_crossing(counts, 0.5)[0]] == 3.0
+    assert recall_crossing(bin_counts(np.array([1.0]), np.array([0], np.int8)), 0.5) is None
+    assert kth_highest(np.array([3.0, 1.0, 2.0]), 1) == 3.0
+    with pytest.raises(RiskError):
+        kth_highest(np.array([1.0]), 2)
+    with pytest.raises(RiskError):
+        recall_crossing(counts, 0.0)
 
 
 def test_scene_bins_must_be_in_the_merge():

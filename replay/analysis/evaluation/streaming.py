@@ -37,6 +37,7 @@ from risk.budgets import budget_recall
 from risk.evaluation import (
     BOOT_BINS,
     FPR_POINTS,
+    TPR_TARGETS,
     percentile_interval,
     reference_counts,
     scene_draws,
@@ -47,8 +48,11 @@ from risk.roc_counts import (
     bin_counts,
     binned_replicates,
     binned_roc,
+    kth_highest,
     merge_counts,
+    recall_crossing,
     scene_bin_matrix,
+    score_bins,
 )
 
 #: Scenes' counts merged into the running curve at once (fewer sorts of the running one).
@@ -120,9 +124,20 @@ class SceneSummary:
     situations: int
 
 
-def scene_summary(path: pathlib.Path, settings: StreamSettings, columns: pl.Schema) -> SceneSummary:
-    """One part's :class:`SceneSummary` over ``columns`` (:func:`corpus_columns`), its
-    rows in the evaluation's order (frame, ego; stable), as
+@dataclass(frozen=True)
+class SceneArrays:
+    """One part's rows in the evaluation's order: the table, model scores, references
+    and agent identities (dense within the scene)."""
+
+    df: pl.DataFrame
+    scores: dict[str, np.ndarray]
+    refs: dict[str, np.ndarray]
+    agent_key: np.ndarray
+
+
+def scene_arrays(path: pathlib.Path, settings: StreamSettings, columns: pl.Schema) -> SceneArrays:
+    """One part over ``columns`` (:func:`corpus_columns`), its rows in the evaluation's
+    order (frame, ego; stable), as
     :func:`replay.analysis.evaluation.collect.evaluation_agents` reads them."""
     own = pl.read_parquet_schema(path)
     df = pl.read_parquet(path, columns=[c for c in columns if c in own])
@@ -136,8 +151,14 @@ def scene_summary(path: pathlib.Path, settings: StreamSettings, columns: pl.Sche
         df, baseline_threshold=settings.baseline_threshold, windows=settings.hindsight_windows
     )
     scores = {m: df[f"risk_{m}"].to_numpy().astype(np.float64, copy=False) for m in models}
+    return SceneArrays(df, scores, refs, _rank(df, "ego_id", "agent_id"))
+
+
+def scene_summary(path: pathlib.Path, settings: StreamSettings, columns: pl.Schema) -> SceneSummary:
+    """One part's :class:`SceneSummary` (pass 1)."""
+    arrays = scene_arrays(path, settings, columns)
+    df, scores, refs, agent_key = arrays.df, arrays.scores, arrays.refs, arrays.agent_key
     curves = {(m, name): bin_counts(s, r) for m, s in scores.items() for name, r in refs.items()}
-    agent_key = _rank(df, "ego_id", "agent_id")
     situations = _rank(df, "ego_id", "frame")
     one = np.zeros(df.height, dtype=np.int64)  # the scene, as a cluster code
     counts = {name: reference_counts(r, agent_key, one) for name, r in refs.items()}
@@ -216,18 +237,51 @@ def streamed_roc(
             for curve, batch in pending.items():
                 merged[curve] = merge_counts([merged.get(curve, BinCounts.empty()), *batch])
             pending.clear()
+    with_positives = [n for n, c in totals["references"].items() if c["positive_agent_frames"]]
+    crossings = {
+        (m, name, t): recall_crossing(merged[m, name], t)
+        for (m, name) in merged
+        if name in with_positives
+        for t in TPR_TARGETS
+    }
+    # Crossing bins holding several values: the positives' scores there decide (pass 2).
+    open_bins = {
+        key: (merged[key[:2]].bins[c[0]], [])
+        for key, c in crossings.items()
+        if c is not None and merged[key[:2]].low[c[0]] < merged[key[:2]].high[c[0]]
+    }
     pos_cols: dict[tuple[str, str], np.ndarray] = {}
     neg_cols: dict[tuple[str, str], np.ndarray] = {}
-    if st.n_boot > 0:  # pass 2: every scene's column on the coarse bins
+    if st.n_boot > 0 or open_bins:  # pass 2: coarse bootstrap columns, crossing bins
         for j, path in enumerate(parts):
-            for curve, counts in scene_summary(path, st, columns).curves.items():
-                if curve not in pos_cols:
-                    n_bins = int(min(merged[curve].bins.size, BOOT_BINS))
-                    pos_cols[curve] = np.zeros((n_bins, n_scenes), dtype=np.int32)
-                    neg_cols[curve] = np.zeros((n_bins, n_scenes), dtype=np.int32)
-                p, n = scene_bin_matrix(merged[curve], [counts])
-                pos_cols[curve][:, j] = p[:, 0]
-                neg_cols[curve][:, j] = n[:, 0]
+            arrays = scene_arrays(path, st, columns)
+            for (m, name, _t), (b, found) in open_bins.items():
+                s, r = arrays.scores[m], arrays.refs[name]
+                pos = (np.asarray(r) == 1) & ~np.isnan(s)
+                hit = pos.copy()
+                hit[pos] = score_bins(s[pos]) == b
+                found.append(s[hit])
+            if st.n_boot <= 0:
+                continue
+            for (m, name), whole in merged.items():
+                if (m, name) not in pos_cols:
+                    n_bins = int(min(whole.bins.size, BOOT_BINS))
+                    pos_cols[m, name] = np.zeros((n_bins, n_scenes), dtype=np.int32)
+                    neg_cols[m, name] = np.zeros((n_bins, n_scenes), dtype=np.int32)
+                counts = bin_counts(arrays.scores[m], arrays.refs[name])
+                p, n = scene_bin_matrix(whole, [counts])
+                pos_cols[m, name][:, j] = p[:, 0]
+                neg_cols[m, name][:, j] = n[:, 0]
+    thresholds: dict[str, dict[str, float]] = {}
+    for (m, name, t), c in crossings.items():
+        if c is None:
+            value = -math.inf
+        elif (m, name, t) in open_bins:
+            value = kth_highest(np.concatenate(open_bins[m, name, t][1]), c[1])
+        else:
+            value = float(merged[m, name].low[c[0]])
+        thresholds.setdefault(m, {})[f"tpr{t:g}_{name}"] = value
+    misses = _miss_columns(parts, st, columns, thresholds, with_positives)  # pass 3
     draws = scene_draws(n_scenes, n_boot=st.n_boot, seed=st.seed) if st.n_boot > 0 else None
     models: dict[str, dict[str, Any]] = {}
     for (m, name), counts in merged.items():
@@ -251,19 +305,83 @@ def streamed_roc(
                 block["tpr_at_fpr"][f"{f:g}"]["ci"] = list(
                     percentile_interval(tpr_r[:, k], level=st.level)
                 )
+        if name in with_positives:
+            block["miss_rate"] = _miss_rates(misses[m, name], thresholds[m], draws, st.level)
         models.setdefault(m, {})[name] = block
     held = sum(c.nbytes for c in merged.values()) + sum(
         a.nbytes for a in (*pos_cols.values(), *neg_cols.values())
     )
-    with_positives = [n for n, c in totals["references"].items() if c["positive_agent_frames"]]
     budgets = {
         name: _budget_rows(budget_cols[name], situations, draws, st.level)
         for name in with_positives
     }
     return {"scenes": n_scenes, "models": models, "summary_bytes": int(held),
             "references": totals["references"], "agreement": totals["agreement"],
-            "budgets": budgets,
+            "budgets": budgets, "thresholds": thresholds,
             "auc_method": "pooled ROC on a fixed score grid, summed over scenes"}  # fmt: skip
+
+
+def _miss_columns(
+    parts: Sequence[pathlib.Path],
+    st: StreamSettings,
+    columns: pl.Schema,
+    thresholds: dict[str, dict[str, float]],
+    references: Sequence[str],
+) -> dict[tuple[str, str], dict[str, np.ndarray]]:
+    """Per (model, reference): per threshold and scene ``(T, S)`` the positives kept, the
+    positive and missed agent-frames, the distinct agents missed and the agent-frames
+    kept, and per scene the included agent-frames."""
+    n = len(parts)
+    out: dict[tuple[str, str], dict[str, np.ndarray]] = {}
+    for j, path in enumerate(parts):
+        arrays = scene_arrays(path, st, columns)
+        for m, s in arrays.scores.items():
+            named = thresholds.get(m, {})
+            for name in references:
+                r = np.asarray(arrays.refs[name])
+                scored = (r >= 0) & ~np.isnan(s)
+                pos = scored & (r == 1)
+                cols = out.setdefault((m, name), {
+                    k: np.zeros((len(named), n), dtype=np.int64)
+                    for k in ("kept_positives", "missed", "missed_agents", "kept")
+                } | {"scored": np.zeros(n, dtype=np.int64),
+                     "positives": np.zeros(n, dtype=np.int64)})  # fmt: skip
+                cols["scored"][j] = scored.sum()
+                cols["positives"][j] = pos.sum()
+                for i, thr in enumerate(named.values()):
+                    keep = s >= thr
+                    missed = pos & ~keep
+                    cols["kept_positives"][i, j] = (pos & keep).sum()
+                    cols["missed"][i, j] = missed.sum()
+                    cols["missed_agents"][i, j] = np.unique(arrays.agent_key[missed]).size
+                    cols["kept"][i, j] = (scored & keep).sum()
+    return out
+
+
+def _miss_rates(
+    cols: dict[str, np.ndarray], named: dict[str, float], draws: np.ndarray | None, level: float
+) -> dict[str, Any]:
+    """:func:`risk.evaluation.evaluate_scores`' miss rates from the scenes' columns."""
+    n_pos, n_scored = int(cols["positives"].sum()), int(cols["scored"].sum())
+    out: dict[str, Any] = {}
+    for i, (name, thr) in enumerate(named.items()):
+        missed = int(cols["missed"][i].sum())
+        out[name] = {
+            "threshold": float(thr),
+            "value": missed / n_pos if n_pos else math.nan,
+            "missed_agent_frames": missed,
+            "missed_agents": int(cols["missed_agents"][i].sum()),
+            "kept_share": int(cols["kept"][i].sum()) / n_scored if n_scored else math.nan,
+        }
+        if draws is not None and n_scored:
+            d = draws.astype(np.float64)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                tot = d @ cols["positives"].astype(np.float64)
+                reps = np.where(
+                    tot > 0, 1.0 - (d @ cols["kept_positives"][i].astype(np.float64)) / tot, np.nan
+                )
+            out[name]["ci"] = list(percentile_interval(reps, level=level))
+    return out
 
 
 def _budget_rows(
