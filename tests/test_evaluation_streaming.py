@@ -133,6 +133,17 @@ def test_a_scene_without_rows_of_a_reference_adds_nothing(tmp_path):
     assert "ci" not in streamed["models"]["current_distance"]["hindsight"]["auc"]
 
 
+def test_one_model_per_pass_gives_the_same_intervals(tmp_path, monkeypatch):
+    from replay.analysis.evaluation import streaming
+
+    scenes = corpus(11, n_scenes=5)
+    together, _ = both(tmp_path, scenes, n_boot=25)
+    monkeypatch.setattr(streaming, "MODELS_PER_PASS", 1)
+    apart, _ = both(tmp_path, scenes, n_boot=25)
+    assert apart["models"] == together["models"]
+    assert "ci" in apart["models"]["survival"]["hindsight"]["auc"]
+
+
 def test_add_counts_by_hand():
     a = {"n": 1, "flag": False, "pairs": [{"a": "x", "c": 2}], "only_a": 5}
     b = {"n": 2, "flag": True, "pairs": [{"a": "x", "c": 3}], "only_b": 1.5}

@@ -57,6 +57,9 @@ from risk.roc_counts import (
 
 #: Scenes' counts merged into the running curve at once (fewer sorts of the running one).
 MERGE_BATCH = 32
+#: Models whose bootstrap columns (coarse bins x scenes per curve) are held at once: one
+#: pass over the parts per chunk.
+MODELS_PER_PASS = 3
 #: The columns a reference may come from (besides ``label_*``), and the others the exact
 #: per-scene pieces (counts, budgets, agreement) read.
 _REFERENCE_COLUMNS = ("baseline", "truth_label", "truth_complete", "planner_label")
@@ -222,7 +225,8 @@ def streamed_roc(
     pending: dict[tuple[str, str], list[BinCounts]] = {}
     n_scenes = len(parts)
     totals: dict[str, Any] = {}
-    budget_cols: dict[str, list[list[dict[str, Any]]]] = {}
+    budget_rules: dict[str, list[dict[str, Any]]] = {}
+    budget_cols: dict[str, np.ndarray] = {}  # (rules, positives / kept ones / kept, S)
     situations = 0
     for i, path in enumerate(parts):  # pass 1: the merged curves, the exact sums
         scene = scene_summary(path, st, columns)
@@ -230,7 +234,13 @@ def streamed_roc(
         exact = {"references": scene.counts, "agreement": scene.agreement}
         totals = add_counts(totals, exact) if totals else exact
         for name, rows in scene.budgets.items():
-            budget_cols.setdefault(name, [[] for _ in range(n_scenes)])[i] = rows
+            if name not in budget_cols:
+                budget_rules[name] = [{k: r[k] for k in ("rule", "kind", "k", "radius_m")}
+                                      for r in rows]  # fmt: skip
+                budget_cols[name] = np.zeros((len(rows), 3, n_scenes), dtype=np.int64)
+            budget_cols[name][:, :, i] = [
+                [r["positives"], r["kept_positives"], r["kept"]] for r in rows
+            ]
         for curve, counts in scene.curves.items():
             pending.setdefault(curve, []).append(counts)
         if (i + 1) % MERGE_BATCH == 0 or i + 1 == len(parts):
@@ -245,33 +255,49 @@ def streamed_roc(
         for t in TPR_TARGETS
     }
     # Crossing bins holding several values: the positives' scores there decide (pass 2).
-    open_bins = {
-        key: (merged[key[:2]].bins[c[0]], [])
+    open_bins: dict[tuple[str, str, float], tuple[int, list[np.ndarray]]] = {
+        key: (int(merged[key[:2]].bins[c[0]]), [])
         for key, c in crossings.items()
         if c is not None and merged[key[:2]].low[c[0]] < merged[key[:2]].high[c[0]]
     }
-    pos_cols: dict[tuple[str, str], np.ndarray] = {}
-    neg_cols: dict[tuple[str, str], np.ndarray] = {}
-    if st.n_boot > 0 or open_bins:  # pass 2: coarse bootstrap columns, crossing bins
+    draws = scene_draws(n_scenes, n_boot=st.n_boot, seed=st.seed) if st.n_boot > 0 else None
+    model_names = list(dict.fromkeys(m for m, _ in merged))
+    chunks = [
+        model_names[i : i + MODELS_PER_PASS] for i in range(0, len(model_names), MODELS_PER_PASS)
+    ]
+    intervals: dict[tuple[str, str], dict[str, Any]] = {}
+    held = 0
+    for number, chunk in enumerate(chunks if draws is not None else [[]]):
+        if not chunk and not open_bins:
+            break
+        # pass 2 (one per chunk of models): the scenes' columns on each curve's coarse
+        # bootstrap bins; on the first, the positives in the crossing bins too
+        cols = {
+            curve: np.zeros((2, min(whole.bins.size, BOOT_BINS), n_scenes), dtype=np.int32)
+            for curve, whole in merged.items()
+            if curve[0] in chunk
+        }
         for j, path in enumerate(parts):
             arrays = scene_arrays(path, st, columns)
-            for (m, name, _t), (b, found) in open_bins.items():
-                s, r = arrays.scores[m], arrays.refs[name]
-                pos = (np.asarray(r) == 1) & ~np.isnan(s)
-                hit = pos.copy()
-                hit[pos] = score_bins(s[pos]) == b
-                found.append(s[hit])
-            if st.n_boot <= 0:
-                continue
-            for (m, name), whole in merged.items():
-                if (m, name) not in pos_cols:
-                    n_bins = int(min(whole.bins.size, BOOT_BINS))
-                    pos_cols[m, name] = np.zeros((n_bins, n_scenes), dtype=np.int32)
-                    neg_cols[m, name] = np.zeros((n_bins, n_scenes), dtype=np.int32)
+            if number == 0:
+                for (m, name, _t), (b, found) in open_bins.items():
+                    s, r = arrays.scores[m], arrays.refs[name]
+                    pos = (np.asarray(r) == 1) & ~np.isnan(s)
+                    pos[pos] = score_bins(s[pos]) == b
+                    found.append(s[pos])
+            for (m, name), col in cols.items():
                 counts = bin_counts(arrays.scores[m], arrays.refs[name])
-                p, n = scene_bin_matrix(whole, [counts])
-                pos_cols[m, name][:, j] = p[:, 0]
-                neg_cols[m, name][:, j] = n[:, 0]
+                p, n = scene_bin_matrix(merged[m, name], [counts])
+                col[0, :, j], col[1, :, j] = p[:, 0], n[:, 0]
+        held = max(held, sum(c.nbytes for c in cols.values()))
+        for curve, col in cols.items():
+            if draws is not None and col[0].any() and col[1].any():
+                auc_r, tpr_r = binned_replicates(col[0], col[1], draws, st.fpr_points)
+                intervals[curve] = {
+                    "auc": list(percentile_interval(auc_r, level=st.level)),
+                    **{f"{f:g}": list(percentile_interval(tpr_r[:, k], level=st.level))
+                       for k, f in enumerate(st.fpr_points)},
+                }  # fmt: skip
     thresholds: dict[str, dict[str, float]] = {}
     for (m, name, t), c in crossings.items():
         if c is None:
@@ -282,7 +308,6 @@ def streamed_roc(
             value = float(merged[m, name].low[c[0]])
         thresholds.setdefault(m, {})[f"tpr{t:g}_{name}"] = value
     misses = _miss_columns(parts, st, columns, thresholds, with_positives)  # pass 3
-    draws = scene_draws(n_scenes, n_boot=st.n_boot, seed=st.seed) if st.n_boot > 0 else None
     models: dict[str, dict[str, Any]] = {}
     for (m, name), counts in merged.items():
         roc = binned_roc(counts)
@@ -296,23 +321,16 @@ def streamed_roc(
                 for f in st.fpr_points
             },
         }
-        if draws is not None and roc.n_positive and roc.n_negative and (m, name) in pos_cols:
-            auc_r, tpr_r = binned_replicates(
-                pos_cols[m, name], neg_cols[m, name], draws, st.fpr_points
-            )
-            block["auc"]["ci"] = list(percentile_interval(auc_r, level=st.level))
-            for k, f in enumerate(st.fpr_points):
-                block["tpr_at_fpr"][f"{f:g}"]["ci"] = list(
-                    percentile_interval(tpr_r[:, k], level=st.level)
-                )
+        if (m, name) in intervals:
+            block["auc"]["ci"] = intervals[m, name]["auc"]
+            for f in st.fpr_points:
+                block["tpr_at_fpr"][f"{f:g}"]["ci"] = intervals[m, name][f"{f:g}"]
         if name in with_positives:
             block["miss_rate"] = _miss_rates(misses[m, name], thresholds[m], draws, st.level)
         models.setdefault(m, {})[name] = block
-    held = sum(c.nbytes for c in merged.values()) + sum(
-        a.nbytes for a in (*pos_cols.values(), *neg_cols.values())
-    )
+    held += sum(c.nbytes for c in merged.values())
     budgets = {
-        name: _budget_rows(budget_cols[name], situations, draws, st.level)
+        name: _budget_rows(budget_rules[name], budget_cols[name], situations, draws, st.level)
         for name in with_positives
     }
     return {"scenes": n_scenes, "models": models, "summary_bytes": int(held),
@@ -385,25 +403,27 @@ def _miss_rates(
 
 
 def _budget_rows(
-    scenes: list[list[dict[str, Any]]], situations: int, draws: np.ndarray | None, level: float
+    rules: list[dict[str, Any]],
+    cols: np.ndarray,
+    situations: int,
+    draws: np.ndarray | None,
+    level: float,
 ) -> list[dict[str, Any]]:
-    """The budget rows of the corpus from every scene's (``scenes[s]``: rows in one rule
-    order; empty for a scene without rows): recall and mean kept count from sums, the
-    interval from the scenes' columns weighed by the draws (exact, as
+    """The budget rows of the corpus from every scene's sums ``cols (rules, 3, S)``
+    (positives, kept positives, kept agents): recall and mean kept count from the sums,
+    the interval from the scenes' columns weighed by the draws (exact, as
     :func:`risk.budgets.budget_recall`)."""
-    template = next((rows for rows in scenes if rows), [])
     out = []
-    for j, rule in enumerate(template):
-        pos = np.array([rows[j]["positives"] if rows else 0 for rows in scenes], np.float64)
-        kept = np.array([rows[j]["kept_positives"] if rows else 0 for rows in scenes], np.float64)
-        n_pos, n_kept = int(pos.sum()), int(kept.sum())
-        kept_total = sum(rows[j]["kept"] for rows in scenes if rows)
+    for j, rule in enumerate(rules):
+        pos, kept = cols[j, 0].astype(np.float64), cols[j, 1].astype(np.float64)
+        n_pos, n_kept = int(cols[j, 0].sum()), int(cols[j, 1].sum())
         row: dict[str, Any] = {
-            "rule": rule["rule"], "kind": rule["kind"], "k": rule["k"], "radius_m": rule["radius_m"],
-            "mean_kept": kept_total / max(1, situations),
-            "positives": n_pos, "kept_positives": n_kept,
+            **rule,
+            "mean_kept": int(cols[j, 2].sum()) / max(1, situations),
+            "positives": n_pos,
+            "kept_positives": n_kept,
             "value": n_kept / n_pos if n_pos else math.nan,
-        }  # fmt: skip
+        }
         if draws is not None:
             d = draws.astype(np.float64)
             with np.errstate(invalid="ignore", divide="ignore"):
