@@ -3,6 +3,7 @@ full-rows evaluation (evaluate_table on every row at once, the slow obvious orac
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -140,7 +141,8 @@ def test_one_model_per_pass_gives_the_same_intervals(tmp_path, monkeypatch):
     together, _ = both(tmp_path, scenes, n_boot=25)
     monkeypatch.setattr(streaming, "MODELS_PER_PASS", 1)
     apart, _ = both(tmp_path, scenes, n_boot=25)
-    assert apart["models"] == together["models"]
+    apart.pop("summary_bytes"), together.pop("summary_bytes")
+    assert json.dumps(apart, sort_keys=True) == json.dumps(together, sort_keys=True)
     assert "ci" in apart["models"]["survival"]["hindsight"]["auc"]
 
 

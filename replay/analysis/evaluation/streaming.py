@@ -1,22 +1,33 @@
-"""The pooled ROC, AUC, TPR at fixed FPRs and their scene bootstrap from a run's part
-files, one scene at a time (issue 38): the driver's memory grows with the scenes'
-summaries (coarse bin counts per scene), not with the agent-frames.
+"""The overall block of ``replay evaluate``'s summary from a run's part files, one scene
+at a time (issue 38): the driver holds per-scene summaries and merged curves, never the
+corpus's rows. Not yet what ``replay evaluate`` runs: see ``benchmarks/results/memory.md``.
 
-Two passes over ``OUT/parts/agents`` in key order, reading only the score and reference
-columns of one part at a time:
+Passes over ``OUT/parts/agents`` in scene-key order, each reading one part at a time
+(only the score, reference, situation and cascade columns; columns a scene lacks are
+nulls, as in the full evaluation's diagonal concatenation). Per chunk of
+:data:`MODELS_PER_PASS` models (so that only that chunk's curves are held):
 
-1. every scene's :class:`risk.roc_counts.BinCounts` per model and reference, merged
-   into one running count per curve (bounded by the fixed score grid's occupied bins);
-2. every scene again, on the merged curve's coarse bootstrap bins: one ``(bins,)``
-   column per scene and curve, weighed by :func:`risk.evaluation.scene_draws` over the
-   key-ordered scenes (the draws do not depend on the engine or on the order in which
-   scenes finished).
+1. every scene's :class:`risk.roc_counts.BinCounts` per model and reference, merged into
+   one running curve each; on the first chunk also the exact additive pieces: reference
+   counts, agreement (agents are distinct within a scene, so counts add up), the
+   budgets' kept positives per rule (situations lie inside a scene);
+2. every scene on each curve's coarse bootstrap bins (one column per scene), weighed by
+   :func:`risk.evaluation.scene_draws` over the key-ordered scenes: the resampling
+   depends on the scene list and the seed, not on the engine or the order in which
+   scenes finished; and the positives' scores in the bins where the operating
+   thresholds fall, so that the thresholds are exact.
 
-The AUC is exact up to the bound :func:`risk.roc_counts.binned_roc` states (pairs of a
-positive and a negative in one bin holding distinct scores). This covers the overall
-curves of :func:`replay.analysis.evaluation.corpus.evaluate_table` only (not the
-per-group blocks, thresholds, miss rates, budgets or agreement): see
-``benchmarks/results/memory.md``.
+Then one pass for every model at the exact thresholds: missed agent-frames and agents,
+kept shares and the miss rates' intervals.
+
+Exact against :func:`replay.analysis.evaluation.corpus.evaluate_table` (tested): the
+reference counts, agreement, budgets with their intervals, operating thresholds and miss
+rates with their intervals. Within a stated bound: the AUC (``error_bound``, from the
+bins that hold distinct scores, :func:`risk.roc_counts.binned_roc`) and the TPR at fixed
+FPRs. Approximate: the AUC and TPR intervals (the bootstrap's 512 coarse bins group grid
+bins, not distinct scores; identical when each bin holds one score). Not covered: the
+per-group blocks (dataset, kind), the situation-mean AUC, site transfer, the cascade's
+stage misses, composition medians, track flags, and the roc and positives tables.
 """
 
 from __future__ import annotations
@@ -57,8 +68,8 @@ from risk.roc_counts import (
 
 #: Scenes' counts merged into the running curve at once (fewer sorts of the running one).
 MERGE_BATCH = 32
-#: Models whose bootstrap columns (coarse bins x scenes per curve) are held at once: one
-#: pass over the parts per chunk.
+#: Models whose curves (merged grid bins, and coarse bins x scenes for the bootstrap) are
+#: held at once: two passes over the parts per chunk.
 MODELS_PER_PASS = 3
 #: The columns a reference may come from (besides ``label_*``), and the others the exact
 #: per-scene pieces (counts, budgets, agreement) read.
@@ -157,11 +168,26 @@ def scene_arrays(path: pathlib.Path, settings: StreamSettings, columns: pl.Schem
     return SceneArrays(df, scores, refs, _rank(df, "ego_id", "agent_id"))
 
 
-def scene_summary(path: pathlib.Path, settings: StreamSettings, columns: pl.Schema) -> SceneSummary:
-    """One part's :class:`SceneSummary` (pass 1)."""
+def scene_summary(
+    path: pathlib.Path,
+    settings: StreamSettings,
+    columns: pl.Schema,
+    *,
+    curve_models: Sequence[str] | None = None,
+    exact: bool = True,
+) -> SceneSummary:
+    """One part's :class:`SceneSummary` (pass 1): the curves of ``curve_models`` (default:
+    all); the exact pieces only with ``exact``."""
     arrays = scene_arrays(path, settings, columns)
     df, scores, refs, agent_key = arrays.df, arrays.scores, arrays.refs, arrays.agent_key
-    curves = {(m, name): bin_counts(s, r) for m, s in scores.items() for name, r in refs.items()}
+    curves = {
+        (m, name): bin_counts(s, r)
+        for m, s in scores.items()
+        if curve_models is None or m in curve_models
+        for name, r in refs.items()
+    }
+    if not exact:
+        return SceneSummary(curves, {}, {}, {}, 0)
     situations = _rank(df, "ego_id", "frame")
     one = np.zeros(df.height, dtype=np.int64)  # the scene, as a cluster code
     counts = {name: reference_counts(r, agent_key, one) for name, r in refs.items()}
@@ -221,114 +247,100 @@ def streamed_roc(
     key order), and the bytes of the per-scene summaries held."""
     st = settings or StreamSettings()
     columns = corpus_columns(parts, st.models)
-    merged: dict[tuple[str, str], BinCounts] = {}
-    pending: dict[tuple[str, str], list[BinCounts]] = {}
     n_scenes = len(parts)
+    draws = scene_draws(n_scenes, n_boot=st.n_boot, seed=st.seed) if st.n_boot > 0 else None
+    present = [c.removeprefix("risk_") for c in columns if c.startswith("risk_")]
+    model_names = [m for m in (present if st.models is None else st.models) if m in present]
+    chunks = [
+        model_names[i : i + MODELS_PER_PASS] for i in range(0, len(model_names), MODELS_PER_PASS)
+    ]
     totals: dict[str, Any] = {}
     budget_rules: dict[str, list[dict[str, Any]]] = {}
     budget_cols: dict[str, np.ndarray] = {}  # (rules, positives / kept ones / kept, S)
     situations = 0
-    for i, path in enumerate(parts):  # pass 1: the merged curves, the exact sums
-        scene = scene_summary(path, st, columns)
-        situations += scene.situations
-        exact = {"references": scene.counts, "agreement": scene.agreement}
-        totals = add_counts(totals, exact) if totals else exact
-        for name, rows in scene.budgets.items():
-            if name not in budget_cols:
-                budget_rules[name] = [{k: r[k] for k in ("rule", "kind", "k", "radius_m")}
-                                      for r in rows]  # fmt: skip
-                budget_cols[name] = np.zeros((len(rows), 3, n_scenes), dtype=np.int64)
-            budget_cols[name][:, :, i] = [
-                [r["positives"], r["kept_positives"], r["kept"]] for r in rows
-            ]
-        for curve, counts in scene.curves.items():
-            pending.setdefault(curve, []).append(counts)
-        if (i + 1) % MERGE_BATCH == 0 or i + 1 == len(parts):
-            for curve, batch in pending.items():
-                merged[curve] = merge_counts([merged.get(curve, BinCounts.empty()), *batch])
-            pending.clear()
-    with_positives = [n for n, c in totals["references"].items() if c["positive_agent_frames"]]
-    crossings = {
-        (m, name, t): recall_crossing(merged[m, name], t)
-        for (m, name) in merged
-        if name in with_positives
-        for t in TPR_TARGETS
-    }
-    # Crossing bins holding several values: the positives' scores there decide (pass 2).
-    open_bins: dict[tuple[str, str, float], tuple[int, list[np.ndarray]]] = {
-        key: (int(merged[key[:2]].bins[c[0]]), [])
-        for key, c in crossings.items()
-        if c is not None and merged[key[:2]].low[c[0]] < merged[key[:2]].high[c[0]]
-    }
-    draws = scene_draws(n_scenes, n_boot=st.n_boot, seed=st.seed) if st.n_boot > 0 else None
-    model_names = list(dict.fromkeys(m for m, _ in merged))
-    chunks = [
-        model_names[i : i + MODELS_PER_PASS] for i in range(0, len(model_names), MODELS_PER_PASS)
-    ]
-    intervals: dict[tuple[str, str], dict[str, Any]] = {}
+    with_positives: list[str] = []
+    thresholds: dict[str, dict[str, float]] = {}
+    models: dict[str, dict[str, Any]] = {}
     held = 0
-    for number, chunk in enumerate(chunks if draws is not None else [[]]):
-        if not chunk and not open_bins:
-            break
-        # pass 2 (one per chunk of models): the scenes' columns on each curve's coarse
-        # bootstrap bins; on the first, the positives in the crossing bins too
+    for number, chunk in enumerate(chunks or [[]]):
+        # pass 1 (per chunk of models): the chunk's merged curves; on the first, the
+        # exact sums too
+        merged: dict[tuple[str, str], BinCounts] = {}
+        pending: dict[tuple[str, str], list[BinCounts]] = {}
+        for i, path in enumerate(parts):
+            scene = scene_summary(path, st, columns, curve_models=chunk, exact=number == 0)
+            if number == 0:
+                situations += scene.situations
+                exact = {"references": scene.counts, "agreement": scene.agreement}
+                totals = add_counts(totals, exact) if totals else exact
+                for name, rows in scene.budgets.items():
+                    if name not in budget_cols:
+                        budget_rules[name] = [
+                            {k: r[k] for k in ("rule", "kind", "k", "radius_m")} for r in rows
+                        ]
+                        budget_cols[name] = np.zeros((len(rows), 3, n_scenes), dtype=np.int64)
+                    budget_cols[name][:, :, i] = [
+                        [r["positives"], r["kept_positives"], r["kept"]] for r in rows
+                    ]
+            for curve, counts in scene.curves.items():
+                pending.setdefault(curve, []).append(counts)
+            if (i + 1) % MERGE_BATCH == 0 or i + 1 == len(parts):
+                for curve, batch in pending.items():
+                    merged[curve] = merge_counts([merged.get(curve, BinCounts.empty()), *batch])
+                pending.clear()
+        if number == 0:
+            with_positives = [
+                n for n, c in totals["references"].items() if c["positive_agent_frames"]
+            ]
+        crossings = {
+            (m, name, t): recall_crossing(merged[m, name], t)
+            for (m, name) in merged
+            if name in with_positives
+            for t in TPR_TARGETS
+        }
+        # Crossing bins holding several values: the positives' scores there decide.
+        open_bins: dict[tuple[str, str, float], tuple[int, list[np.ndarray]]] = {
+            key: (int(merged[key[:2]].bins[c[0]]), [])
+            for key, c in crossings.items()
+            if c is not None and merged[key[:2]].low[c[0]] < merged[key[:2]].high[c[0]]
+        }
         cols = {
             curve: np.zeros((2, min(whole.bins.size, BOOT_BINS), n_scenes), dtype=np.int32)
             for curve, whole in merged.items()
-            if curve[0] in chunk
+            if draws is not None
         }
-        for j, path in enumerate(parts):
-            arrays = scene_arrays(path, st, columns)
-            if number == 0:
+        if cols or open_bins:  # pass 2 (per chunk): bootstrap columns, crossing bins
+            for j, path in enumerate(parts):
+                arrays = scene_arrays(path, st, columns)
                 for (m, name, _t), (b, found) in open_bins.items():
-                    s, r = arrays.scores[m], arrays.refs[name]
-                    pos = (np.asarray(r) == 1) & ~np.isnan(s)
-                    pos[pos] = score_bins(s[pos]) == b
-                    found.append(s[pos])
-            for (m, name), col in cols.items():
-                counts = bin_counts(arrays.scores[m], arrays.refs[name])
-                p, n = scene_bin_matrix(merged[m, name], [counts])
-                col[0, :, j], col[1, :, j] = p[:, 0], n[:, 0]
-        held = max(held, sum(c.nbytes for c in cols.values()))
-        for curve, col in cols.items():
-            if draws is not None and col[0].any() and col[1].any():
-                auc_r, tpr_r = binned_replicates(col[0], col[1], draws, st.fpr_points)
-                intervals[curve] = {
-                    "auc": list(percentile_interval(auc_r, level=st.level)),
-                    **{f"{f:g}": list(percentile_interval(tpr_r[:, k], level=st.level))
-                       for k, f in enumerate(st.fpr_points)},
-                }  # fmt: skip
-    thresholds: dict[str, dict[str, float]] = {}
-    for (m, name, t), c in crossings.items():
-        if c is None:
-            value = -math.inf
-        elif (m, name, t) in open_bins:
-            value = kth_highest(np.concatenate(open_bins[m, name, t][1]), c[1])
-        else:
-            value = float(merged[m, name].low[c[0]])
-        thresholds.setdefault(m, {})[f"tpr{t:g}_{name}"] = value
+                    sc, r = arrays.scores[m], arrays.refs[name]
+                    pos = (np.asarray(r) == 1) & ~np.isnan(sc)
+                    pos[pos] = score_bins(sc[pos]) == b
+                    found.append(sc[pos])
+                for (m, name), col in cols.items():
+                    counts = bin_counts(arrays.scores[m], arrays.refs[name])
+                    p, n = scene_bin_matrix(merged[m, name], [counts])
+                    col[0, :, j], col[1, :, j] = p[:, 0], n[:, 0]
+        held = max(
+            held,
+            sum(c.nbytes for c in merged.values()) + sum(c.nbytes for c in cols.values()),
+        )
+        for (m, name, t), c in crossings.items():
+            if c is None:
+                value = -math.inf
+            elif (m, name, t) in open_bins:
+                value = kth_highest(np.concatenate(open_bins[m, name, t][1]), c[1])
+            else:
+                value = float(merged[m, name].low[c[0]])
+            thresholds.setdefault(m, {})[f"tpr{t:g}_{name}"] = value
+        for (m, name), whole in merged.items():
+            models.setdefault(m, {})[name] = _roc_block(whole, cols.get((m, name)), draws, st)
+        del merged, cols
     misses = _miss_columns(parts, st, columns, thresholds, with_positives)  # pass 3
-    models: dict[str, dict[str, Any]] = {}
-    for (m, name), counts in merged.items():
-        roc = binned_roc(counts)
-        block: dict[str, Any] = {
-            "agent_frames": roc.n_positive + roc.n_negative,
-            "positives": roc.n_positive,
-            "mixed_bins": roc.mixed_bins,
-            "auc": {"value": roc.auc, "error_bound": roc.auc_error_bound},
-            "tpr_at_fpr": {
-                f"{f:g}": {"value": roc.tpr_at(f), "error_bound": roc.tpr_error_bound}
-                for f in st.fpr_points
-            },
-        }
-        if (m, name) in intervals:
-            block["auc"]["ci"] = intervals[m, name]["auc"]
-            for f in st.fpr_points:
-                block["tpr_at_fpr"][f"{f:g}"]["ci"] = intervals[m, name][f"{f:g}"]
-        if name in with_positives:
-            block["miss_rate"] = _miss_rates(misses[m, name], thresholds[m], draws, st.level)
-        models.setdefault(m, {})[name] = block
-    held += sum(c.nbytes for c in merged.values())
+    for m, refs in models.items():
+        for name, block in refs.items():
+            if name in with_positives:
+                block["miss_rate"] = _miss_rates(misses[m, name], thresholds[m], draws, st.level)
     budgets = {
         name: _budget_rows(budget_rules[name], budget_cols[name], situations, draws, st.level)
         for name in with_positives
@@ -337,6 +349,32 @@ def streamed_roc(
             "references": totals["references"], "agreement": totals["agreement"],
             "budgets": budgets, "thresholds": thresholds,
             "auc_method": "pooled ROC on a fixed score grid, summed over scenes"}  # fmt: skip
+
+
+def _roc_block(
+    whole: BinCounts, col: np.ndarray | None, draws: np.ndarray | None, st: StreamSettings
+) -> dict[str, Any]:
+    """One curve's AUC, TPR at the FPR points (with their bounds) and, with the scenes'
+    bootstrap columns ``col (2, bins, S)``, their intervals."""
+    roc = binned_roc(whole)
+    block: dict[str, Any] = {
+        "agent_frames": roc.n_positive + roc.n_negative,
+        "positives": roc.n_positive,
+        "mixed_bins": roc.mixed_bins,
+        "auc": {"value": roc.auc, "error_bound": roc.auc_error_bound},
+        "tpr_at_fpr": {
+            f"{f:g}": {"value": roc.tpr_at(f), "error_bound": roc.tpr_error_bound}
+            for f in st.fpr_points
+        },
+    }
+    if draws is not None and col is not None and roc.n_positive and roc.n_negative:
+        auc_r, tpr_r = binned_replicates(col[0], col[1], draws, st.fpr_points)
+        block["auc"]["ci"] = list(percentile_interval(auc_r, level=st.level))
+        for k, f in enumerate(st.fpr_points):
+            block["tpr_at_fpr"][f"{f:g}"]["ci"] = list(
+                percentile_interval(tpr_r[:, k], level=st.level)
+            )
+    return block
 
 
 def _miss_columns(
