@@ -53,20 +53,26 @@ from risk.metrics import trapezoid_auc
 
 #: Mantissa bits of a score kept by the grid (of float64's 52).
 GRID_BITS = 12
+#: At most this many bins per merged curve (:func:`merge_counts`' ``max_bins`` in the
+#: streamed evaluation): about 2.6 MB a curve.
+MAX_CURVE_BINS = 1 << 16
+#: The coarsest level: two bins, the negative scores and the others.
+MAX_LEVEL = 63 - (52 - GRID_BITS)
 _SHIFT = 52 - GRID_BITS
 _MAGNITUDE = np.int64(0x7FFF_FFFF_FFFF_FFFF)
 
 
-def score_bins(scores: np.ndarray) -> np.ndarray:
-    """``(A,)`` int64 bin of each finite or infinite score (not NaN) on the fixed grid;
-    bins are ordered as the scores are (``a <= b`` implies ``bin(a) <= bin(b)``)."""
+def score_bins(scores: np.ndarray, level: int = 0) -> np.ndarray:
+    """``(A,)`` int64 bin of each finite or infinite score (not NaN) on the fixed grid
+    (``level`` more mantissa bits dropped: see :func:`coarsen`); bins are ordered as the
+    scores are (``a <= b`` implies ``bin(a) <= bin(b)``)."""
     s = np.asarray(scores, dtype=np.float64) + 0.0  # -0.0 -> +0.0: one zero
     if np.isnan(s).any():
         raise RiskError("score_bins: NaN is not a score (leave non-agents out first)")
     bits = s.view(np.int64)
     # Negative floats order backwards as integers: flip their magnitude bits.
     ordered = bits ^ ((bits >> 63) & _MAGNITUDE)
-    return ordered >> _SHIFT
+    return ordered >> (_SHIFT + level)
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,6 +86,7 @@ class BinCounts:
     negatives: np.ndarray
     low: np.ndarray
     high: np.ndarray
+    level: int = 0  # mantissa bits dropped beyond the grid's (see coarsen)
 
     @classmethod
     def empty(cls) -> BinCounts:
@@ -106,11 +113,17 @@ def bin_counts(scores: np.ndarray, reference: np.ndarray) -> BinCounts:
 
 
 def _grouped(
-    bins: np.ndarray, low: np.ndarray, pos: np.ndarray, neg: np.ndarray, high: np.ndarray
+    bins: np.ndarray,
+    low: np.ndarray,
+    pos: np.ndarray,
+    neg: np.ndarray,
+    high: np.ndarray,
+    level: int = 0,
 ) -> BinCounts:
     """Rows ``(bin, low, positives, negatives, high)`` summed per bin."""
     if bins.size == 0:
-        return BinCounts.empty()
+        e = BinCounts.empty()
+        return BinCounts(e.bins, e.positives, e.negatives, e.low, e.high, level)
     order = np.argsort(bins, kind="stable")
     b = bins[order]
     start = np.r_[0, np.flatnonzero(b[1:] != b[:-1]) + 1]
@@ -120,19 +133,40 @@ def _grouped(
         np.add.reduceat(neg[order], start),
         np.minimum.reduceat(low[order], start),
         np.maximum.reduceat(high[order], start),
+        level,
     )
 
 
-def merge_counts(parts: Sequence[BinCounts]) -> BinCounts:
-    """The counts of the union of the agent-frames of ``parts`` (any order)."""
-    parts = [p for p in parts if p.bins.size]
+def coarsen(counts: BinCounts, level: int) -> BinCounts:
+    """``counts`` on the grid with ``level`` more mantissa bits dropped (each step merges
+    pairs of neighbouring bins: bins stay intervals, twice as wide)."""
+    if level < counts.level:
+        raise RiskError(f"cannot refine counts of level {counts.level} to level {level}")
+    if level == counts.level:
+        return counts
+    return _grouped(counts.bins >> (level - counts.level), counts.low, counts.positives,
+                    counts.negatives, counts.high, level)  # fmt: skip
+
+
+def merge_counts(parts: Sequence[BinCounts], max_bins: int | None = None) -> BinCounts:
+    """The counts of the union of the agent-frames of ``parts`` (any order), on the
+    coarsest level among them; with ``max_bins``, coarsened further until at most that
+    many bins are left or :data:`MAX_LEVEL` is reached (two bins), so that a merged
+    curve's memory is bounded whatever the corpus; the AUC bound of :func:`binned_roc`
+    grows with the width of the bins that mix scores."""
+    level = max((p.level for p in parts), default=0)
+    parts = [coarsen(p, level) for p in parts if p.bins.size]
     if not parts:
-        return BinCounts.empty()
+        return _grouped(np.empty(0, np.int64), *(np.empty(0),) * 4, level)
     if len(parts) == 1:
-        return parts[0]
-    cat = [np.concatenate([getattr(p, f) for p in parts]) for f in
-           ("bins", "low", "positives", "negatives", "high")]  # fmt: skip
-    return _grouped(*cat)
+        out = parts[0]
+    else:
+        cat = [np.concatenate([getattr(p, f) for p in parts]) for f in
+               ("bins", "low", "positives", "negatives", "high")]  # fmt: skip
+        out = _grouped(*cat, level)
+    while max_bins is not None and out.bins.size > max_bins and out.level < MAX_LEVEL:
+        out = coarsen(out, out.level + 1)
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -209,9 +243,10 @@ def scene_bin_matrix(
     n_bins = int(coarse.max()) + 1 if coarse.size else 0
     pos = np.zeros((n_bins, len(scenes)), dtype=np.int64)
     neg = np.zeros((n_bins, len(scenes)), dtype=np.int64)
-    for j, sc in enumerate(scenes):  # one scene at a time: vectorised inside
-        if not sc.bins.size:
+    for j, scene in enumerate(scenes):  # one scene at a time: vectorised inside
+        if not scene.bins.size:
             continue
+        sc = coarsen(scene, merged.level)
         at = np.searchsorted(merged.bins, sc.bins)
         if (at >= merged.bins.size).any() or (
             merged.bins[np.minimum(at, merged.bins.size - 1)] != sc.bins

@@ -59,7 +59,7 @@ def corpus(seed: int, n_scenes: int = 4, integer_scores: bool = False) -> list[p
     return scenes
 
 
-def both(tmp_path, scenes, n_boot):
+def both(tmp_path, scenes, n_boot, **stream):
     paths = []
     for i, df in enumerate(scenes):
         paths.append(tmp_path / f"s{i}.parquet")
@@ -68,7 +68,7 @@ def both(tmp_path, scenes, n_boot):
         pl.concat(scenes, how="diagonal_relaxed"),
         settings=EvaluationSettings(n_boot=n_boot, groupings=()),
     )
-    return streamed_roc(paths, StreamSettings(n_boot=n_boot)), full
+    return streamed_roc(paths, StreamSettings(n_boot=n_boot, **stream)), full
 
 
 @settings(
@@ -144,6 +144,20 @@ def test_one_model_per_pass_gives_the_same_intervals(tmp_path, monkeypatch):
     apart.pop("summary_bytes"), together.pop("summary_bytes")
     assert json.dumps(apart, sort_keys=True) == json.dumps(together, sort_keys=True)
     assert "ci" in apart["models"]["survival"]["hindsight"]["auc"]
+
+
+def test_coarsened_curves_keep_exact_thresholds_and_their_auc_bound(tmp_path):
+    # At most 8 bins per merged curve: the grid is coarsened many levels, the AUC moves
+    # within its (wider) bound, the thresholds and miss rates stay exact.
+    streamed, full = both(tmp_path, corpus(3), n_boot=10, max_curve_bins=8)
+    block = streamed["models"]["current_distance"]["hindsight"]
+    assert block["grid_level"] > 0
+    assert max_difference(streamed, full)["beyond_bound"] == 0
+    assert streamed["thresholds"] == full["thresholds"]
+    want = full["models"]["current_distance"]["hindsight"]["miss_rate"]
+    for t, w in want.items():
+        assert block["miss_rate"][t]["missed_agent_frames"] == w["missed_agent_frames"]
+        assert block["miss_rate"][t]["kept_share"] == w["kept_share"]
 
 
 def test_add_counts_by_hand():

@@ -23,10 +23,12 @@ from risk.evaluation import (
 )
 from risk.metrics import SortedScores
 from risk.roc_counts import (
+    GRID_BITS,
     BinCounts,
     bin_counts,
     binned_replicates,
     binned_roc,
+    coarsen,
     kth_highest,
     merge_counts,
     recall_crossing,
@@ -219,6 +221,39 @@ def test_recall_crossing_by_hand():
         kth_highest(np.array([1.0]), 2)
     with pytest.raises(RiskError):
         recall_crossing(counts, 0.0)
+
+
+@settings(max_examples=100, deadline=None)
+@given(rows, st.integers(2, 8))
+def test_a_capped_merge_is_coarser_and_stays_within_its_bound(data, cap):
+    s, r, c = _arrays(data)
+    scenes = [bin_counts(s[c == k], r[c == k]) for k in range(5)]
+    merged = merge_counts(scenes, max_bins=cap)
+    assert merged.bins.size <= cap
+    whole = bin_counts(s, r)
+    assert merged.positives.sum() == whole.positives.sum()
+    # the same bins as coarsening the whole at once
+    again = coarsen(whole, merged.level)
+    np.testing.assert_array_equal(again.bins, merged.bins)
+    np.testing.assert_array_equal(again.negatives, merged.negatives)
+    np.testing.assert_array_equal(again.bins, np.unique(score_bins(s[(r >= 0)], merged.level)))
+    roc = binned_roc(merged)
+    exact = pooled_roc(s, r).auc
+    if not math.isnan(exact):
+        assert abs(roc.auc - exact) <= roc.auc_error_bound + 1e-12
+    # scenes of a finer level go onto the merged bins
+    pos, neg = scene_bin_matrix(merged, scenes)
+    assert pos.sum() == merged.positives.sum() and neg.sum() == merged.negatives.sum()
+
+
+def test_coarsen_by_hand():
+    counts = bin_counts(np.array([1.0, 1.5, 3.0]), np.array([1, 0, 1], np.int8))
+    assert counts.bins.size == 3
+    one = coarsen(counts, GRID_BITS)  # one bin per power of two: 1.0 and 1.5 together
+    assert one.bins.size == 2 and one.low[0] == 1.0 and one.high[0] == 1.5
+    assert (list(one.positives), list(one.negatives)) == ([1, 1], [1, 0])
+    with pytest.raises(RiskError):
+        coarsen(one, 0)
 
 
 def test_scene_bins_must_be_in_the_merge():

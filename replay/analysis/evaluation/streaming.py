@@ -55,6 +55,7 @@ from risk.evaluation import (
 )
 from risk.registry import BASELINE_THRESHOLD, MODELS
 from risk.roc_counts import (
+    MAX_CURVE_BINS,
     BinCounts,
     bin_counts,
     binned_replicates,
@@ -86,6 +87,7 @@ class StreamSettings:
     level: float = 0.95
     seed: int = 0
     fpr_points: tuple[float, ...] = FPR_POINTS
+    max_curve_bins: int = MAX_CURVE_BINS  # merged curves are coarsened beyond this
 
 
 def run_parts(out_dir: str | os.PathLike[str], table: str = "agents") -> list[pathlib.Path]:
@@ -286,7 +288,9 @@ def streamed_roc(
                 pending.setdefault(curve, []).append(counts)
             if (i + 1) % MERGE_BATCH == 0 or i + 1 == len(parts):
                 for curve, batch in pending.items():
-                    merged[curve] = merge_counts([merged.get(curve, BinCounts.empty()), *batch])
+                    merged[curve] = merge_counts(
+                        [merged.get(curve, BinCounts.empty()), *batch], st.max_curve_bins
+                    )
                 pending.clear()
         if number == 0:
             with_positives = [
@@ -315,7 +319,7 @@ def streamed_roc(
                 for (m, name, _t), (b, found) in open_bins.items():
                     sc, r = arrays.scores[m], arrays.refs[name]
                     pos = (np.asarray(r) == 1) & ~np.isnan(sc)
-                    pos[pos] = score_bins(sc[pos]) == b
+                    pos[pos] = score_bins(sc[pos], merged[m, name].level) == b
                     found.append(sc[pos])
                 for (m, name), col in cols.items():
                     counts = bin_counts(arrays.scores[m], arrays.refs[name])
@@ -361,6 +365,7 @@ def _roc_block(
         "agent_frames": roc.n_positive + roc.n_negative,
         "positives": roc.n_positive,
         "mixed_bins": roc.mixed_bins,
+        "grid_level": whole.level,
         "auc": {"value": roc.auc, "error_bound": roc.auc_error_bound},
         "tpr_at_fpr": {
             f"{f:g}": {"value": roc.tpr_at(f), "error_bound": roc.tpr_error_bound}
