@@ -157,13 +157,16 @@ def merge_counts(parts: Sequence[BinCounts], max_bins: int | None = None) -> Bin
     level = max((p.level for p in parts), default=0)
     parts = [coarsen(p, level) for p in parts if p.bins.size]
     if not parts:
-        return _grouped(np.empty(0, np.int64), *(np.empty(0),) * 4, level)
+        empty = np.empty(0)
+        return _grouped(np.empty(0, np.int64), empty, empty, empty, empty, level)
     if len(parts) == 1:
         out = parts[0]
     else:
-        cat = [np.concatenate([getattr(p, f) for p in parts]) for f in
-               ("bins", "low", "positives", "negatives", "high")]  # fmt: skip
-        out = _grouped(*cat, level)
+        bins, low, pos, neg, high = (
+            np.concatenate([getattr(p, f) for p in parts])
+            for f in ("bins", "low", "positives", "negatives", "high")
+        )
+        out = _grouped(bins, low, pos, neg, high, level)
     while max_bins is not None and out.bins.size > max_bins and out.level < MAX_LEVEL:
         out = coarsen(out, out.level + 1)
     return out
