@@ -142,6 +142,7 @@ def test_one_model_per_pass_gives_the_same_intervals(tmp_path, monkeypatch):
     monkeypatch.setattr(streaming, "MODELS_PER_PASS", 1)
     apart, _ = both(tmp_path, scenes, n_boot=25)
     apart.pop("summary_bytes"), together.pop("summary_bytes")
+    assert apart.pop("positives").equals(together.pop("positives"))
     assert json.dumps(apart, sort_keys=True) == json.dumps(together, sort_keys=True)
     assert "ci" in apart["models"]["survival"]["hindsight"]["auc"]
 
@@ -166,3 +167,41 @@ def test_add_counts_by_hand():
     assert add_counts(a, b) == {"n": 3, "flag": True, "pairs": [{"a": "x", "c": 5}],
                                 "only_a": 5, "only_b": 1.5}  # fmt: skip
     assert not math.isnan(add_counts(1.0, 2.0))
+
+
+@settings(
+    max_examples=10, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(st.integers(0, 10_000))
+def test_the_side_blocks_add_up_to_the_full_rows_ones(tmp_path, seed):
+    # Stage misses, track flags, composition counts and shares, egos, situations, short
+    # scenes and the positives table: exact sums of the scenes' pieces.
+    scenes = corpus(seed, n_scenes=4)
+    scenes[2] = scenes[2].with_columns(pl.col("t_s") * 20)  # one scene as long as the horizon
+    scenes = [
+        s.with_columns(speed_mps=pl.Series(np.random.default_rng(seed + i).random(s.height) * 2))
+        for i, s in enumerate(scenes)
+    ]
+    datasets = {"s0": "a", "s1": "b", "s2": "a", "s3": "b"}
+    paths = []
+    for i, df in enumerate(scenes):
+        paths.append(tmp_path / f"s{i}.parquet")
+        df.write_parquet(paths[-1])
+    rows = pl.concat(scenes, how="diagonal_relaxed")
+    full = evaluate_table(
+        rows, settings=EvaluationSettings(n_boot=0, groupings=()), datasets=datasets
+    )
+    streamed = streamed_roc(paths, StreamSettings(n_boot=0), datasets=datasets)
+    assert streamed["cascade"] == full["cascade"]
+    assert streamed["track_flags"] == full["track_flags"]
+    assert (streamed["egos"], streamed["situations"]) == (full["egos"], full["situations"])
+    assert streamed["scenes_shorter_than_horizon"] == full["scenes_shorter_than_horizon"]
+    assert streamed["scenes_shorter_than_horizon"] == ["s0", "s1", "s3"]
+    for name, labels in full["composition"].items():
+        for label, want in labels.items():
+            got = streamed["composition"][name][label]
+            assert got == pytest.approx({k: want[k] for k in got})
+    from replay.analysis.evaluation.files import positives_table
+
+    in_order = rows.sort("scene", "frame", "ego_id", maintain_order=True)  # as evaluate reads
+    assert streamed["positives"].equals(positives_table(in_order, datasets))

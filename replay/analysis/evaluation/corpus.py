@@ -335,11 +335,11 @@ def evaluate_table(
     }
 
 
-#: The states of an agent-frame under a reference, as :func:`_state` codes them.
+#: The states of an agent-frame under a reference, as :func:`state_codes` codes them.
 STATES = {"positive": 1, "negative": 0, "unknown": -1}
 
 
-def _state(reference: np.ndarray) -> np.ndarray:
+def state_codes(reference: np.ndarray) -> np.ndarray:
     """``(A,)`` int8 state codes (:data:`STATES`) of label codes or booleans (one byte a
     row: the names as strings took 32 bytes a row per reference)."""
     r = np.asarray(reference)
@@ -363,7 +363,7 @@ def agreement(
     what hindsight says and why (the ego yielded, the window was censored, a track was
     flagged). Agent counts are distinct (scene, ego, agent)."""
     names = list(refs)
-    states = {n: _state(refs[n]) for n in names}
+    states = {n: state_codes(refs[n]) for n in names}
     pairs = []
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
@@ -430,7 +430,7 @@ def composition(df: pl.DataFrame, refs: Mapping[str, np.ndarray]) -> dict[str, A
     for name, r in refs.items():
         if not name.startswith("hindsight"):
             continue
-        st = _state(r)
+        st = state_codes(r)
         out[name] = {}
         for label in ("positive", "negative"):
             m = st == STATES[label]

@@ -36,23 +36,33 @@ import json
 import math
 import os
 import pathlib
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import polars as pl
 
-from replay.analysis.evaluation.corpus import EvaluationError, agreement, reference_arrays
+from replay.analysis.evaluation.corpus import (
+    STATES,
+    EvaluationError,
+    agreement,
+    reference_arrays,
+    state_codes,
+)
+from replay.analysis.evaluation.files import positives_table
 from risk.budgets import budget_recall
 from risk.evaluation import (
     BOOT_BINS,
     FPR_POINTS,
     TPR_TARGETS,
+    distinct,
     percentile_interval,
     reference_counts,
+    reference_mask,
     scene_draws,
 )
+from risk.hindsight import HindsightSettings
 from risk.registry import BASELINE_THRESHOLD, MODELS
 from risk.roc_counts import (
     MAX_CURVE_BINS,
@@ -75,7 +85,10 @@ MODELS_PER_PASS = 3
 #: The columns a reference may come from (besides ``label_*``), and the others the exact
 #: per-scene pieces (counts, budgets, agreement) read.
 _REFERENCE_COLUMNS = ("baseline", "truth_label", "truth_complete", "planner_label")
-_OTHER_COLUMNS = ("frame", "ego_id", "agent_id", "distance_m", "truth_yielded", "track_ok")
+_OTHER_COLUMNS = (
+    "scene", "frame", "ego_id", "agent_id", "distance_m", "truth_yielded", "track_ok", "kind",
+    "t_s", "dataset", "dropped_by", "truth_gap_m", "truth_pet_s", "speed_mps",
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -88,6 +101,7 @@ class StreamSettings:
     seed: int = 0
     fpr_points: tuple[float, ...] = FPR_POINTS
     max_curve_bins: int = MAX_CURVE_BINS  # merged curves are coarsened beyond this
+    horizon_s: float = HindsightSettings().horizon_s  # scenes shorter are listed
 
 
 def run_parts(out_dir: str | os.PathLike[str], table: str = "agents") -> list[pathlib.Path]:
@@ -138,6 +152,10 @@ class SceneSummary:
     budgets: dict[str, list[dict[str, Any]]]
     agreement: dict[str, Any]
     situations: int
+    side: dict[str, Any] = field(default_factory=dict)  # :func:`side_counts`
+    positives: pl.DataFrame | None = None  # its rows of the positives table
+    short: bool = False  # its recorded span is shorter than the horizon
+    name: str = ""  # its ``scene`` column
 
 
 @dataclass(frozen=True)
@@ -177,6 +195,7 @@ def scene_summary(
     *,
     curve_models: Sequence[str] | None = None,
     exact: bool = True,
+    datasets: Mapping[str, str] | None = None,
 ) -> SceneSummary:
     """One part's :class:`SceneSummary` (pass 1): the curves of ``curve_models`` (default:
     all); the exact pieces only with ``exact``."""
@@ -209,8 +228,90 @@ def scene_summary(
         ]
         for name, r in refs.items()
     }  # fmt: skip
-    return SceneSummary(curves, counts, budgets, agreement(refs, df, agent_key),
-                        int(np.unique(situations).size))  # fmt: skip
+    span = df["t_s"].max() - df["t_s"].min() if "t_s" in df.columns and df.height else None
+    return SceneSummary(
+        curves, counts, budgets, agreement(refs, df, agent_key), int(np.unique(situations).size),
+        side=side_counts(df, refs, agent_key, datasets),
+        positives=positives_table(df, datasets),
+        short=span is not None and span < settings.horizon_s - 1e-9,  # type: ignore[operator]
+        name=str(df["scene"][0]) if "scene" in df.columns and df.height else str(path),
+    )  # fmt: skip
+
+
+def _dataset_column(df: pl.DataFrame, datasets: Mapping[str, str] | None) -> pl.Series:
+    """Each row's dataset, as the full evaluation names it: the mapping (scene ->
+    dataset), else the ``dataset`` column, else ``unknown``."""
+    if datasets:
+        return df["scene"].cast(pl.String).replace_strict(dict(datasets), default="unknown")
+    if "dataset" in df.columns:
+        return df["dataset"].cast(pl.String).fill_null("unknown")
+    return pl.Series(["unknown"] * df.height, dtype=pl.String)
+
+
+def side_counts(
+    df: pl.DataFrame,
+    refs: Mapping[str, np.ndarray],
+    agent_key: np.ndarray,
+    datasets: Mapping[str, str] | None,
+) -> dict[str, Any]:
+    """One scene's additive pieces of the cascade's stage misses, the track flags and the
+    composition's counts and shares (agents are distinct within a scene, so the distinct
+    counts add up over scenes; :func:`merge_side` turns the sums into the blocks)."""
+    n = df.height
+    out: dict[str, Any] = {
+        "rows": n,
+        "egos": int(df["ego_id"].n_unique()) if n else 0,
+        "speed": "speed_mps" in df.columns,
+    }
+    stages = [c for c in df.columns if c.startswith("kept_")]
+    if stages:
+        kept = np.column_stack([df[c].fill_null(False).to_numpy() for c in stages]).astype(bool)
+        out["kept"] = {c.removeprefix("kept_"): int(kept[:, j].sum()) for j, c in enumerate(stages)}
+        out["cascade"] = {}
+        for name, r in refs.items():
+            include, positive = reference_mask(r)
+            pos = include & positive
+            out["cascade"][name] = {
+                "positives": int(pos.sum()),
+                **{
+                    c.removeprefix("kept_"): {
+                        "missed_agent_frames": int((pos & ~kept[:, j]).sum()),
+                        "missed_agents": distinct(agent_key, pos & ~kept[:, j]),
+                    }
+                    for j, c in enumerate(stages)
+                },
+            }
+    if "track_ok" in df.columns:
+        bad = ~df["track_ok"].fill_null(True).to_numpy().astype(bool)
+        dataset = _dataset_column(df, datasets).to_numpy()
+        kinds = df["kind"].cast(pl.String).fill_null("None").to_numpy()  # as str(None)
+        out["track"] = {
+            "agent_frames": int(bad.sum()),
+            "agents": int(df.filter(pl.Series(bad))["agent_id"].n_unique()),
+            "scenes": int(bad.any()),
+            "by_kind": {str(k): int((kinds[bad] == k).sum()) for k in np.unique(kinds[bad])},
+            "by_dataset": {
+                str(d): [int((bad & (dataset == d)).sum()), int((dataset == d).sum())]
+                for d in np.unique(dataset)
+            },
+        }
+    t0 = (df["t_s"] - df["t_s"].min()).to_numpy() if n else np.zeros(0)
+    speed = df["speed_mps"].to_numpy().astype(np.float64) if "speed_mps" in df.columns else None
+    out["composition"] = {}
+    for name, r in refs.items():
+        if not name.startswith("hindsight"):
+            continue
+        st = state_codes(r)
+        block = {}
+        for label in ("positive", "negative"):
+            m = st == STATES[label]
+            block[label] = {
+                "agent_frames": int(m.sum()),
+                "first_2s": int((t0[m] <= 2.0 + 1e-9).sum()),
+                "standing": int((speed[m] < 0.5).sum()) if speed is not None else 0,
+            }
+        out["composition"][name] = block
+    return out
 
 
 def _rank(df: pl.DataFrame, *columns: str) -> np.ndarray:
@@ -242,7 +343,10 @@ def add_counts(a: Any, b: Any) -> Any:
 
 
 def streamed_roc(
-    parts: Sequence[pathlib.Path], settings: StreamSettings | None = None
+    parts: Sequence[pathlib.Path],
+    settings: StreamSettings | None = None,
+    *,
+    datasets: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
     """``models -> reference -> {auc: {value, ci, error_bound}, tpr_at_fpr, agent_frames,
     positives, mixed_bins}`` over the scenes of ``parts`` (one part file per scene, in
@@ -260,6 +364,8 @@ def streamed_roc(
     budget_rules: dict[str, list[dict[str, Any]]] = {}
     budget_cols: dict[str, np.ndarray] = {}  # (rules, positives / kept ones / kept, S)
     situations = 0
+    positive_rows: list[pl.DataFrame] = []
+    short: list[str] = []
     with_positives: list[str] = []
     thresholds: dict[str, dict[str, float]] = {}
     models: dict[str, dict[str, Any]] = {}
@@ -270,10 +376,17 @@ def streamed_roc(
         merged: dict[tuple[str, str], BinCounts] = {}
         pending: dict[tuple[str, str], list[BinCounts]] = {}
         for i, path in enumerate(parts):
-            scene = scene_summary(path, st, columns, curve_models=chunk, exact=number == 0)
+            scene = scene_summary(
+                path, st, columns, curve_models=chunk, exact=number == 0, datasets=datasets
+            )
             if number == 0:
                 situations += scene.situations
-                exact = {"references": scene.counts, "agreement": scene.agreement}
+                exact = {"references": scene.counts, "agreement": scene.agreement,
+                         "side": scene.side}  # fmt: skip
+                if scene.positives is not None and scene.positives.height:
+                    positive_rows.append(scene.positives)
+                if scene.short:
+                    short.append(scene.name)
                 totals = add_counts(totals, exact) if totals else exact
                 for name, rows in scene.budgets.items():
                     if name not in budget_cols:
@@ -349,10 +462,75 @@ def streamed_roc(
         name: _budget_rows(budget_rules[name], budget_cols[name], situations, draws, st.level)
         for name in with_positives
     }
+    side = totals["side"]
+    positives = (
+        pl.concat(positive_rows, how="diagonal_relaxed").sort("scene", "ego_id", "agent_id")
+        if positive_rows
+        else pl.DataFrame()
+    )
     return {"scenes": n_scenes, "models": models, "summary_bytes": int(held),
             "references": totals["references"], "agreement": totals["agreement"],
             "budgets": budgets, "thresholds": thresholds,
+            "egos": side["egos"], "situations": situations,
+            "scenes_shorter_than_horizon": sorted(short),
+            "cascade": _cascade(side, with_positives),
+            "track_flags": _track_flags(side),
+            "composition": _composition(side),
+            "positives": positives,
             "auc_method": "pooled ROC on a fixed score grid, summed over scenes"}  # fmt: skip
+
+
+def _cascade(side: Mapping[str, Any], references: Sequence[str]) -> dict[str, Any]:
+    """:func:`risk.evaluation.stage_misses` per reference from the scenes' sums."""
+    if "kept" not in side:
+        return {}
+    rows = side["rows"]
+    out: dict[str, Any] = {}
+    for name in references:
+        sums = side["cascade"][name]
+        n_pos = sums["positives"]
+        out[name] = [
+            {
+                "stage": stage,
+                "missed_agent_frames": sums[stage]["missed_agent_frames"],
+                "miss_rate": sums[stage]["missed_agent_frames"] / n_pos if n_pos else math.nan,
+                "missed_agents": sums[stage]["missed_agents"],
+                "kept_share": kept / rows if rows else math.nan,
+            }
+            for stage, kept in side["kept"].items()
+        ]
+    return out
+
+
+def _track_flags(side: Mapping[str, Any]) -> dict[str, Any]:
+    """The track-flag block of the summary (as the full evaluation's) from the sums."""
+    if "track" not in side:
+        return {"available": False}
+    t = side["track"]
+    return {
+        "available": True,
+        "agent_frames": t["agent_frames"],
+        "share": t["agent_frames"] / max(1, side["rows"]),
+        "agents": t["agents"],
+        "scenes": t["scenes"],
+        "by_kind": {k: v for k, v in t["by_kind"].items() if v},
+        "share_by_dataset": {d: bad / rows for d, (bad, rows) in t["by_dataset"].items()},
+    }
+
+
+def _composition(side: Mapping[str, Any]) -> dict[str, Any]:
+    """Counts and shares of the composition block (its medians are not streamed yet)."""
+    out: dict[str, Any] = {}
+    for name, labels in side.get("composition", {}).items():
+        out[name] = {}
+        for label, c in labels.items():
+            block: dict[str, Any] = {"agent_frames": c["agent_frames"]}
+            if c["agent_frames"]:
+                block["share_first_2s"] = c["first_2s"] / c["agent_frames"]
+                if side["speed"]:
+                    block["share_standing"] = c["standing"] / c["agent_frames"]
+            out[name][label] = block
+    return out
 
 
 def _roc_block(
