@@ -10,10 +10,10 @@ processes) every 20 ms. The scenes are replayed by ``--workers`` worker processe
 the driver's figure is the evaluation's own memory: reading the parts back and
 computing the summary.
 
-``--streamed`` also measures, after each evaluation, a separate process that computes the
-pooled ROC, AUC, TPR at fixed FPRs and their bootstrap from the same part files one scene
-at a time (:mod:`replay.analysis.evaluation.streaming`), and compares its AUCs with the
-evaluation's (the difference must lie within the stated bound).
+``--streamed`` also measures, after each evaluation, a separate process that runs the
+evaluation alone (:func:`replay.analysis.evaluation.streaming.evaluate_parts`, what
+``replay evaluate`` runs since issue 38) over the same part files, and compares its AUCs
+with the command's summary (the difference must lie within the stated bound).
 
 Usage::
 
@@ -90,18 +90,18 @@ def streamed_pass(out: pathlib.Path, n_boot: int, result: pathlib.Path, factor: 
     part ``factor`` times, as that many scenes: a replica without copying the files)."""
     from replay.analysis.evaluation.streaming import (
         StreamSettings,
+        evaluate_parts,
         max_difference,
         run_parts,
-        streamed_roc,
     )
 
     start = time.perf_counter()
-    streamed = streamed_roc(run_parts(out) * factor, StreamSettings(n_boot=n_boot))
+    streamed = evaluate_parts(run_parts(out) * factor, StreamSettings(n_boot=n_boot))
     seconds = time.perf_counter() - start
     summary = json.loads((out / "summary.json").read_text())
-    diff = max_difference(streamed, summary) if factor == 1 else {}
-    result.write_text(json.dumps({"seconds": seconds, "summary_bytes": streamed["summary_bytes"],
-                                  "scenes": streamed["scenes"], **diff}))  # fmt: skip
+    diff = max_difference(streamed.summary, summary) if factor == 1 else {}
+    result.write_text(json.dumps({"seconds": seconds, "summary_bytes": streamed.held_bytes,
+                                  "scenes": streamed.summary["scenes"], **diff}))  # fmt: skip
 
 
 def streamed_only(args: argparse.Namespace) -> None:

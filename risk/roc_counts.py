@@ -302,3 +302,50 @@ def kth_highest(values: np.ndarray, k: int) -> float:
     if not 1 <= k <= v.size:
         raise RiskError(f"k = {k} outside 1 .. {v.size}")
     return float(np.partition(v, v.size - k)[v.size - k])
+
+
+def weighted_bin_counts(
+    scores: np.ndarray, positive_weights: np.ndarray, negative_weights: np.ndarray
+) -> BinCounts:
+    """:class:`BinCounts` with float weights instead of counts (rows of weight 0 on both
+    sides still mark their bin's score range): the mean curve over situations weighs a
+    positive by ``1 / P_s`` and a negative by ``1 / N_s`` (:func:`situation_weights`)."""
+    s = np.asarray(scores, dtype=np.float64) + 0.0
+    pw = np.asarray(positive_weights, dtype=np.float64)
+    nw = np.asarray(negative_weights, dtype=np.float64)
+    if not s.shape == pw.shape == nw.shape:
+        raise RiskError(f"scores {s.shape} and weights {pw.shape}, {nw.shape} differ in shape")
+    return _grouped(score_bins(s), s, pw, nw, s)
+
+
+def situation_weights(
+    situations: np.ndarray, positive: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(A,)`` weights of the mean ROC over situations (:func:`risk.metrics.exact_sweep`):
+    ``1 / P_s`` for a positive of situation ``s`` with ``P_s`` positives, ``1 / N_s`` for
+    a negative; 0 on the other side."""
+    _, sit = np.unique(np.asarray(situations), return_inverse=True)
+    pos = np.asarray(positive, dtype=bool)
+    p = np.bincount(sit[pos], minlength=sit.max(initial=-1) + 1)
+    n = np.bincount(sit[~pos], minlength=sit.max(initial=-1) + 1)
+    with np.errstate(divide="ignore"):
+        return (
+            np.where(pos, 1.0 / np.maximum(p[sit], 1), 0.0),
+            np.where(~pos, 1.0 / np.maximum(n[sit], 1), 0.0),
+        )
+
+
+def weighted_auc(counts: BinCounts) -> tuple[float, float]:
+    """The AUC of the weighted curve (:func:`weighted_bin_counts`, merged) and the bound
+    of its difference from the exact every-distinct-score curve: the weighted pairs in
+    mixed bins, ``sum w+_b w-_b / (2 W+ W-)`` (as :func:`binned_roc`'s). NaN without a
+    positive or a negative weight."""
+    p, n = counts.positives[::-1], counts.negatives[::-1]  # strictest first
+    cp, cn = np.cumsum(p), np.cumsum(n)
+    if not cp.size or cp[-1] <= 0 or cn[-1] <= 0:
+        return math.nan, math.nan
+    tpr = np.minimum(cp / cp[-1], 1.0)  # as risk.metrics' mean curve: ends at exactly 1
+    fpr = np.minimum(cn / cn[-1], 1.0)
+    mixed = counts.low < counts.high
+    bound = float(np.sum(counts.positives[mixed] * counts.negatives[mixed]))
+    return trapezoid_auc(fpr, tpr), bound / (2.0 * float(cp[-1]) * float(cn[-1]))

@@ -242,7 +242,12 @@ def evaluate_table(
         if n not in refs
     }
     if not refs:
-        raise EvaluationError(_no_positive_message(df, all_refs["hindsight"], hindsight))
+        raise EvaluationError(
+            no_positive_message(
+                df.height, df["scene"].n_unique(), int((all_refs["hindsight"] == -1).sum()),
+                hindsight,
+            )
+        )  # fmt: skip
     stages = [c.removeprefix("kept_") for c in df.columns if c.startswith("kept_")]
     kept = np.column_stack([df[f"kept_{s}"].to_numpy() for s in stages]) if stages else None
     groups = {"dataset": dataset, "kind": kind, "site": site}
@@ -492,12 +497,15 @@ def _datasets(df: pl.DataFrame, datasets: Mapping[str, str] | None) -> np.ndarra
     return np.full(df.height, "unknown", dtype=object)
 
 
-def _no_positive_message(df: pl.DataFrame, truth: np.ndarray, hs: HindsightSettings | None) -> str:
+def no_positive_message(
+    agent_frames: int, scenes: int, censored: int, hs: HindsightSettings | None
+) -> str:
+    """The error when no agent came close in hindsight."""
     hs = hs or HindsightSettings()
     return (
         f"no agent came close in hindsight (box gap <= {hs.gap_m:g} m or PET <= "
-        f"{hs.pet_s:g} s within {hs.horizon_s:g} s) in {df.height} agent-frames of "
-        f"{df['scene'].n_unique()} scene(s) ({int((truth == -1).sum())} censored): every "
+        f"{hs.pet_s:g} s within {hs.horizon_s:g} s) in {agent_frames} agent-frames of "
+        f"{scenes} scene(s) ({censored} censored): every "
         "rate against hindsight is undefined; add scenes or loosen --truth-gap / --truth-pet"
     )
 

@@ -1,33 +1,36 @@
-"""The overall block of ``replay evaluate``'s summary from a run's part files, one scene
-at a time (issue 38): the driver holds per-scene summaries and merged curves, never the
-corpus's rows. Not yet what ``replay evaluate`` runs: see ``benchmarks/results/memory.md``.
+"""``replay evaluate``'s summary and tables from a run's part files, one scene at a time
+(issue 38): the driver holds per-scene sums and merged curves, never the corpus's rows.
 
-Passes over ``OUT/parts/agents`` in scene-key order, each reading one part at a time
-(only the score, reference, situation and cascade columns; columns a scene lacks are
-nulls, as in the full evaluation's diagonal concatenation). Per chunk of
-:data:`MODELS_PER_PASS` models (so that only that chunk's curves are held):
+:func:`evaluate_parts` passes over the part files (``OUT/parts/agents``), each pass
+reading one part at a time (only the columns that pass needs; columns a scene lacks are
+nulls, as in a diagonal concatenation). A scene is a (scene name, part) pair; the
+bootstrap's clusters are the scenes in name order, so the resampling depends on the scene
+list and the seed, not on the engine or the order in which scenes finished.
 
-1. every scene's :class:`risk.roc_counts.BinCounts` per model and reference, merged into
-   one running curve each; on the first chunk also the exact additive pieces: reference
-   counts, agreement (agents are distinct within a scene, so counts add up), the
-   budgets' kept positives per rule (situations lie inside a scene);
-2. every scene on each curve's coarse bootstrap bins (one column per scene), weighed by
-   :func:`risk.evaluation.scene_draws` over the key-ordered scenes: the resampling
-   depends on the scene list and the seed, not on the engine or the order in which
-   scenes finished; and the positives' scores in the bins where the operating
-   thresholds fall, so that the thresholds are exact.
+1. Once: the exact additive pieces of every scene (agents are distinct within a scene,
+   situations lie inside one): reference counts (overall and per group), agreement,
+   the budgets' kept positives per rule, the cascade's stage misses, track flags, the
+   composition's counts, shares and value histograms, short scenes, egos, situations,
+   the positives table's rows.
+2. Per chunk of :data:`CURVES_PER_PASS` curves (group x model x reference; groups are
+   the whole corpus, each ``--group-by`` label and the calibration sites): every
+   scene's :class:`risk.roc_counts.BinCounts` merged into one running curve each (and
+   the mean-over-situations curve's weighted counts); then a second pass for the
+   bootstrap columns (one per scene, on the merged curve's coarse bins) and the
+   positives' scores in the bins where the operating thresholds fall.
+3. Once, at the exact thresholds: miss rates with their intervals (overall and per
+   group), site transfer, and the values in the bins holding the composition medians.
 
-Then one pass for every model at the exact thresholds: missed agent-frames and agents,
-kept shares and the miss rates' intervals.
-
-Exact against :func:`replay.analysis.evaluation.corpus.evaluate_table` (tested): the
-reference counts, agreement, budgets with their intervals, operating thresholds and miss
-rates with their intervals. Within a stated bound: the AUC (``error_bound``, from the
-bins that hold distinct scores, :func:`risk.roc_counts.binned_roc`) and the TPR at fixed
-FPRs. Approximate: the AUC and TPR intervals (the bootstrap's 512 coarse bins group grid
-bins, not distinct scores; identical when each bin holds one score). Not covered: the
-per-group blocks (dataset, kind), the situation-mean AUC, site transfer, the cascade's
-stage misses, composition medians, track flags, and the roc and positives tables.
+Exact against the full-rows evaluation (tested; the slow obvious oracle is
+:func:`replay.analysis.evaluation.corpus.evaluate_table`): reference counts, agreement,
+budgets with their intervals, operating thresholds, miss rates with their intervals,
+stage misses, site transfer, composition (medians too: refined on the last pass), track
+flags, short scenes, the positives table. Within a stated bound: every AUC
+(``auc.error_bound``), the situation-mean AUC (``auc_situation_mean_error_bound``) and the
+TPR at fixed FPRs (``error_bound``): a grid bin holding several distinct scores is one
+threshold (:func:`risk.roc_counts.binned_roc`); the roc table's points are the binned
+curve's. Approximate: the AUC and TPR intervals (the bootstrap's 512 coarse bins group
+grid bins rather than distinct scores; identical when each grid bin holds one score).
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ import json
 import math
 import os
 import pathlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -44,10 +47,17 @@ import numpy as np
 import polars as pl
 
 from replay.analysis.evaluation.corpus import (
+    ROC_TABLE_POINTS,
     STATES,
+    TRUTH_COLUMNS,
     EvaluationError,
+    EvaluationSettings,
     agreement,
+    check_groupings,
+    default_calibration_sites,
+    no_positive_message,
     reference_arrays,
+    site_of,
     state_codes,
 )
 from replay.analysis.evaluation.files import positives_table
@@ -75,20 +85,27 @@ from risk.roc_counts import (
     recall_crossing,
     scene_bin_matrix,
     score_bins,
+    situation_weights,
+    weighted_auc,
+    weighted_bin_counts,
 )
 
 #: Scenes' counts merged into the running curve at once (fewer sorts of the running one).
 MERGE_BATCH = 32
-#: Models whose curves (merged grid bins, and coarse bins x scenes for the bootstrap) are
-#: held at once: two passes over the parts per chunk.
-MODELS_PER_PASS = 3
+#: Curves (group x model x reference) held at once: their merged grid bins, and coarse
+#: bins x scenes for the bootstrap; two passes over the parts per chunk.
+CURVES_PER_PASS = 12
 #: The columns a reference may come from (besides ``label_*``), and the others the exact
-#: per-scene pieces (counts, budgets, agreement) read.
+#: per-scene pieces (counts, budgets, agreement, flags, composition, positives) read.
 _REFERENCE_COLUMNS = ("baseline", "truth_label", "truth_complete", "planner_label")
 _OTHER_COLUMNS = (
     "scene", "frame", "ego_id", "agent_id", "distance_m", "truth_yielded", "track_ok", "kind",
     "t_s", "dataset", "dropped_by", "truth_gap_m", "truth_pet_s", "speed_mps",
 )  # fmt: skip
+#: A group of rows: () the whole corpus, (grouping, label), or the calibration sites.
+Group = tuple[str, ...]
+OVERALL: Group = ()
+CALIBRATION: Group = ("calibration sites",)
 
 
 @dataclass(frozen=True)
@@ -102,6 +119,23 @@ class StreamSettings:
     fpr_points: tuple[float, ...] = FPR_POINTS
     max_curve_bins: int = MAX_CURVE_BINS  # merged curves are coarsened beyond this
     horizon_s: float = HindsightSettings().horizon_s  # scenes shorter are listed
+    groupings: tuple[str, ...] = ()
+    calibration_sites: tuple[str, ...] | None = None  # None: every other site
+    targets: tuple[float, ...] = TPR_TARGETS
+
+    @classmethod
+    def of(
+        cls, settings: EvaluationSettings, hindsight: HindsightSettings | None = None
+    ) -> StreamSettings:
+        """The settings of the command (``replay evaluate``'s options)."""
+        return cls(
+            models=settings.models, baseline_threshold=settings.baseline_threshold,
+            hindsight_windows=settings.hindsight_windows, n_boot=settings.n_boot,
+            level=settings.level, seed=settings.seed,
+            horizon_s=(hindsight or HindsightSettings()).horizon_s,
+            groupings=check_groupings(settings.groupings),
+            calibration_sites=settings.calibration_sites,
+        )  # fmt: skip
 
 
 def run_parts(out_dir: str | os.PathLike[str], table: str = "agents") -> list[pathlib.Path]:
@@ -142,76 +176,135 @@ def corpus_columns(parts: Sequence[pathlib.Path], models: Sequence[str] | None) 
     )
 
 
-@dataclass
-class SceneSummary:
-    """What one scene adds: its ROC counts per (model, reference) and the exact additive
-    pieces: reference counts, budget counts per rule, agreement counts."""
-
-    curves: dict[tuple[str, str], BinCounts]
-    counts: dict[str, dict[str, int]]
-    budgets: dict[str, list[dict[str, Any]]]
-    agreement: dict[str, Any]
-    situations: int
-    side: dict[str, Any] = field(default_factory=dict)  # :func:`side_counts`
-    positives: pl.DataFrame | None = None  # its rows of the positives table
-    short: bool = False  # its recorded span is shorter than the horizon
-    name: str = ""  # its ``scene`` column
-
-
 @dataclass(frozen=True)
-class SceneArrays:
-    """One part's rows in the evaluation's order: the table, model scores, references
-    and agent identities (dense within the scene)."""
+class SceneRows:
+    """One scene's rows in the evaluation's order (frame, ego; stable): the table, model
+    scores, references, agent identities and situations (dense within the scene), the
+    group label of every row per grouping, and its place among the scenes (``index``:
+    the bootstrap's cluster)."""
 
+    name: str
+    index: int
     df: pl.DataFrame
     scores: dict[str, np.ndarray]
     refs: dict[str, np.ndarray]
     agent_key: np.ndarray
+    situations: np.ndarray
+    labels: dict[str, np.ndarray]
+
+    def mask(self, group: Group, calibration: frozenset[str]) -> np.ndarray | None:
+        """The rows of ``group`` (None: every row)."""
+        if group == OVERALL:
+            return None
+        if group == CALIBRATION:
+            return np.full(self.df.height, site_of(self.name) in calibration)
+        return self.labels[group[0]] == group[1]
 
 
-def scene_arrays(path: pathlib.Path, settings: StreamSettings, columns: pl.Schema) -> SceneArrays:
-    """One part over ``columns`` (:func:`corpus_columns`), its rows in the evaluation's
-    order (frame, ego; stable), as
-    :func:`replay.analysis.evaluation.collect.evaluation_agents` reads them."""
-    own = pl.read_parquet_schema(path)
-    df = pl.read_parquet(path, columns=[c for c in columns if c in own])
-    df = df.with_columns(
-        pl.lit(None, dtype=t).alias(c) for c, t in columns.items() if c not in own
-    ).sort("frame", "ego_id", maintain_order=True)
-    models = [c.removeprefix("risk_") for c in columns if c.startswith("risk_")]
-    if settings.models is not None:
-        models = [m for m in settings.models if m in models]
+def scene_units(parts: Sequence[pathlib.Path]) -> list[tuple[str, int]]:
+    """Every (scene name, part number) in name order: the scenes of the bootstrap (a
+    part given twice is two scenes; a table part may hold several scenes)."""
+    units = set()
+    for k, path in enumerate(parts):
+        if "scene" in pl.read_parquet_schema(path):
+            names = pl.read_parquet(path, columns=["scene"])["scene"].cast(pl.String).unique()
+            units.update((str(n), k) for n in names.to_list())
+        else:
+            units.add((str(path), k))
+    return sorted(units)
+
+
+def iter_scenes(
+    parts: Sequence[pathlib.Path],
+    st: StreamSettings,
+    columns: pl.Schema,
+    *,
+    datasets: Mapping[str, str] | None = None,
+    models: Sequence[str] | None = None,
+    units: Sequence[tuple[str, int]] | None = None,
+) -> Iterator[SceneRows]:
+    """Every scene of ``parts``, one part read at a time over ``columns`` (of the risk
+    columns only those of ``models``, default all; :func:`corpus_columns`)."""
+    index = {u: j for j, u in enumerate(units or scene_units(parts))}
+    wanted = {
+        c: t
+        for c, t in columns.items()
+        if not c.startswith("risk_") or c == "risk_survival" or models is None
+        or c.removeprefix("risk_") in models
+    }  # fmt: skip
+    for k, path in enumerate(parts):
+        own = pl.read_parquet_schema(path)
+        df = pl.read_parquet(path, columns=[c for c in wanted if c in own])
+        df = df.with_columns(
+            pl.lit(None, dtype=t).alias(c) for c, t in wanted.items() if c not in own
+        )
+        if "scene" not in own:
+            df = df.with_columns(pl.lit(str(path)).alias("scene"))
+        for (name,), sub in sorted(df.partition_by("scene", as_dict=True).items()):
+            yield _scene_rows(str(name), index[str(name), k], sub, st, datasets)
+
+
+def _scene_rows(
+    name: str,
+    index: int,
+    df: pl.DataFrame,
+    st: StreamSettings,
+    datasets: Mapping[str, str] | None,
+) -> SceneRows:
+    df = df.sort("frame", "ego_id", maintain_order=True)
+    present = [c.removeprefix("risk_") for c in df.columns if c.startswith("risk_")]
+    models = [m for m in (present if st.models is None else st.models) if m in present]
     refs, _ = reference_arrays(
-        df, baseline_threshold=settings.baseline_threshold, windows=settings.hindsight_windows
+        df, baseline_threshold=st.baseline_threshold, windows=st.hindsight_windows
     )
     scores = {m: df[f"risk_{m}"].to_numpy().astype(np.float64, copy=False) for m in models}
-    return SceneArrays(df, scores, refs, _rank(df, "ego_id", "agent_id"))
+    labels: dict[str, np.ndarray] = {}
+    for g in st.groupings:
+        if g == "dataset":
+            labels[g] = _dataset_column(df, datasets).to_numpy()
+        elif g == "kind":
+            labels[g] = df["kind"].cast(pl.String).fill_null("other").to_numpy()
+        else:  # site
+            labels[g] = np.full(df.height, site_of(name), dtype=object)
+    return SceneRows(
+        name, index, df, scores, refs, _rank(df, "ego_id", "agent_id"),
+        _rank(df, "ego_id", "frame"), labels,
+    )  # fmt: skip
+
+
+@dataclass
+class SceneSummary:
+    """What one scene adds exactly (pass 1): reference counts per group, budget sums per
+    rule, agreement, the side pieces (:func:`side_counts`), its positives, and the
+    composition's value histograms (hindsight rule, label, quantity) -> counts."""
+
+    counts: dict[Group, dict[str, dict[str, int]]]
+    budgets: dict[str, list[dict[str, Any]]]
+    agreement: dict[str, Any]
+    situations: int
+    side: dict[str, Any]
+    positives: pl.DataFrame
+    short: bool
+    histograms: dict[tuple[str, str, str], BinCounts]
+    labels: dict[str, set[str]]
 
 
 def scene_summary(
-    path: pathlib.Path,
-    settings: StreamSettings,
-    columns: pl.Schema,
-    *,
-    curve_models: Sequence[str] | None = None,
-    exact: bool = True,
-    datasets: Mapping[str, str] | None = None,
+    rows: SceneRows, st: StreamSettings, datasets: Mapping[str, str] | None
 ) -> SceneSummary:
-    """One part's :class:`SceneSummary` (pass 1): the curves of ``curve_models`` (default:
-    all); the exact pieces only with ``exact``."""
-    arrays = scene_arrays(path, settings, columns)
-    df, scores, refs, agent_key = arrays.df, arrays.scores, arrays.refs, arrays.agent_key
-    curves = {
-        (m, name): bin_counts(s, r)
-        for m, s in scores.items()
-        if curve_models is None or m in curve_models
-        for name, r in refs.items()
-    }
-    if not exact:
-        return SceneSummary(curves, {}, {}, {}, 0)
-    situations = _rank(df, "ego_id", "frame")
+    """One scene's exact pieces."""
+    df, scores, refs, agent_key = rows.df, rows.scores, rows.refs, rows.agent_key
     one = np.zeros(df.height, dtype=np.int64)  # the scene, as a cluster code
-    counts = {name: reference_counts(r, agent_key, one) for name, r in refs.items()}
+    n_sit = int(np.unique(rows.situations).size)
+    counts: dict[Group, dict[str, dict[str, int]]] = {
+        OVERALL: {name: reference_counts(r, agent_key, one) for name, r in refs.items()}
+    }
+    for g, lab in rows.labels.items():
+        for label in np.unique(lab):
+            m = lab == label
+            counts[g, str(label)] = {
+                name: reference_counts(r[m], agent_key[m], one[m]) for name, r in refs.items()
+            }
     stages = [c for c in df.columns if c.startswith("kept_")]
     distance = (
         df["distance_m"].to_numpy().astype(np.float64, copy=False)
@@ -220,22 +313,50 @@ def scene_summary(
     )
     budgets = {
         name: [
-            _budget_counts(row, int(np.unique(situations).size))
+            _budget_counts(row, n_sit)
             for row in budget_recall(
-                scores, r, situations=situations, codes=one, distance_m=distance,
+                scores, r, situations=rows.situations, codes=one, distance_m=distance,
                 kept_sets={"cascade": df[stages[-1]].to_numpy()} if stages else None,
             )
         ]
         for name, r in refs.items()
     }  # fmt: skip
-    span = df["t_s"].max() - df["t_s"].min() if "t_s" in df.columns and df.height else None
+    span = df["t_s"].max() - df["t_s"].min() if df.height else None  # type: ignore[operator]
     return SceneSummary(
-        curves, counts, budgets, agreement(refs, df, agent_key), int(np.unique(situations).size),
+        counts, budgets, agreement(refs, df, agent_key), n_sit,
         side=side_counts(df, refs, agent_key, datasets),
         positives=positives_table(df, datasets),
-        short=span is not None and span < settings.horizon_s - 1e-9,  # type: ignore[operator]
-        name=str(df["scene"][0]) if "scene" in df.columns and df.height else str(path),
+        short=span is not None and span < st.horizon_s - 1e-9,  # type: ignore[operator]
+        histograms=_histograms(df, refs),
+        labels={g: {str(x) for x in np.unique(lab)} for g, lab in rows.labels.items()},
     )  # fmt: skip
+
+
+def _composition_values(df: pl.DataFrame) -> dict[str, np.ndarray]:
+    """The composition's quantities per row: time since the scene's first frame (s) and
+    the agent's speed (m/s; NaN left out of the median, as ``np.nanmedian``)."""
+    out = {"time_in_scene_s": (df["t_s"] - df["t_s"].min()).to_numpy().astype(np.float64)}
+    if "speed_mps" in df.columns:
+        out["speed_mps"] = df["speed_mps"].to_numpy().astype(np.float64)
+    return out
+
+
+def _histograms(
+    df: pl.DataFrame, refs: Mapping[str, np.ndarray]
+) -> dict[tuple[str, str, str], BinCounts]:
+    values = _composition_values(df)
+    out = {}
+    for name, r in refs.items():
+        if not name.startswith("hindsight"):
+            continue
+        st = state_codes(r)
+        for label in ("positive", "negative"):
+            m = st == STATES[label]
+            for q, v in values.items():
+                x = v[m]
+                x = x[~np.isnan(x)]
+                out[name, label, q] = bin_counts(x, np.ones(x.size, dtype=bool))
+    return out
 
 
 def _dataset_column(df: pl.DataFrame, datasets: Mapping[str, str] | None) -> pl.Series:
@@ -342,142 +463,543 @@ def add_counts(a: Any, b: Any) -> Any:
     return a
 
 
-def streamed_roc(
+@dataclass
+class StreamedEvaluation:
+    """:func:`evaluate_parts`' result: the summary (as the full-rows evaluation's, with
+    the bounds of the binned figures), the roc and positives tables, and the bytes of
+    merged curves and bootstrap columns held at most."""
+
+    summary: dict[str, Any]
+    roc: pl.DataFrame
+    positives: pl.DataFrame
+    held_bytes: int = 0
+
+
+@dataclass
+class _Merging:
+    """Running merged curves of one chunk: batches of scenes' counts wait in ``pending``."""
+
+    max_bins: int | None
+    merged: dict[Any, BinCounts] = field(default_factory=dict)
+    pending: dict[Any, list[BinCounts]] = field(default_factory=dict)
+
+    def add(self, key: Any, counts: BinCounts) -> None:
+        self.pending.setdefault(key, []).append(counts)
+
+    def flush(self) -> None:
+        for key, batch in self.pending.items():
+            self.merged[key] = merge_counts(
+                [self.merged.get(key, BinCounts.empty()), *batch], self.max_bins
+            )
+        self.pending.clear()
+
+
+def evaluate_parts(
     parts: Sequence[pathlib.Path],
     settings: StreamSettings | None = None,
     *,
     datasets: Mapping[str, str] | None = None,
-) -> dict[str, Any]:
-    """``models -> reference -> {auc: {value, ci, error_bound}, tpr_at_fpr, agent_frames,
-    positives, mixed_bins}`` over the scenes of ``parts`` (one part file per scene, in
-    key order), and the bytes of the per-scene summaries held."""
+    hindsight: HindsightSettings | None = None,
+    inputs: Sequence[str] = (),
+    evaluation: EvaluationSettings | None = None,
+) -> StreamedEvaluation:
+    """The evaluation of the scenes in ``parts`` (part files of the agents table, each
+    read one at a time; see the module docstring). ``evaluation``: the command's
+    settings, recorded in the summary (default: from ``settings``). Raises
+    :class:`EvaluationError` as the full evaluation does (missing columns or models, no
+    positive under any reference, an unknown calibration site)."""
     st = settings or StreamSettings()
+    if not parts:
+        raise EvaluationError("no scene to evaluate")
     columns = corpus_columns(parts, st.models)
-    n_scenes = len(parts)
+    _check_columns(parts, columns, st)
+    units = scene_units(parts)
+    n_scenes = len(units)
     draws = scene_draws(n_scenes, n_boot=st.n_boot, seed=st.seed) if st.n_boot > 0 else None
     present = [c.removeprefix("risk_") for c in columns if c.startswith("risk_")]
-    model_names = [m for m in (present if st.models is None else st.models) if m in present]
-    chunks = [
-        model_names[i : i + MODELS_PER_PASS] for i in range(0, len(model_names), MODELS_PER_PASS)
-    ]
+    models = [m for m in (present if st.models is None else st.models) if m in present]
+    sites = sorted({site_of(name) for name, _ in units})
+    calibration = (
+        list(st.calibration_sites)
+        if st.calibration_sites is not None
+        else default_calibration_sites(sites)
+    )
+    unknown_sites = sorted(set(calibration) - set(sites))
+    if unknown_sites:
+        raise EvaluationError(
+            f"unknown calibration site {unknown_sites[0]!r}; the sites are: {', '.join(sites)}"
+        )
+    cal = frozenset(calibration)
+    scan = {"datasets": datasets, "units": units}
+
+    # Pass 1: the exact pieces.
     totals: dict[str, Any] = {}
+    group_counts: dict[Group, dict[str, dict[str, int]]] = {}
     budget_rules: dict[str, list[dict[str, Any]]] = {}
     budget_cols: dict[str, np.ndarray] = {}  # (rules, positives / kept ones / kept, S)
-    situations = 0
+    histograms = _Merging(st.max_curve_bins)
+    labels: dict[str, set[str]] = {g: set() for g in st.groupings}
     positive_rows: list[pl.DataFrame] = []
     short: list[str] = []
-    with_positives: list[str] = []
-    thresholds: dict[str, dict[str, float]] = {}
-    models: dict[str, dict[str, Any]] = {}
-    held = 0
-    for number, chunk in enumerate(chunks or [[]]):
-        # pass 1 (per chunk of models): the chunk's merged curves; on the first, the
-        # exact sums too
-        merged: dict[tuple[str, str], BinCounts] = {}
-        pending: dict[tuple[str, str], list[BinCounts]] = {}
-        for i, path in enumerate(parts):
-            scene = scene_summary(
-                path, st, columns, curve_models=chunk, exact=number == 0, datasets=datasets
-            )
-            if number == 0:
-                situations += scene.situations
-                exact = {"references": scene.counts, "agreement": scene.agreement,
-                         "side": scene.side}  # fmt: skip
-                if scene.positives is not None and scene.positives.height:
-                    positive_rows.append(scene.positives)
-                if scene.short:
-                    short.append(scene.name)
-                totals = add_counts(totals, exact) if totals else exact
-                for name, rows in scene.budgets.items():
-                    if name not in budget_cols:
-                        budget_rules[name] = [
-                            {k: r[k] for k in ("rule", "kind", "k", "radius_m")} for r in rows
-                        ]
-                        budget_cols[name] = np.zeros((len(rows), 3, n_scenes), dtype=np.int64)
-                    budget_cols[name][:, :, i] = [
-                        [r["positives"], r["kept_positives"], r["kept"]] for r in rows
-                    ]
-            for curve, counts in scene.curves.items():
-                pending.setdefault(curve, []).append(counts)
-            if (i + 1) % MERGE_BATCH == 0 or i + 1 == len(parts):
-                for curve, batch in pending.items():
-                    merged[curve] = merge_counts(
-                        [merged.get(curve, BinCounts.empty()), *batch], st.max_curve_bins
-                    )
-                pending.clear()
-        if number == 0:
-            with_positives = [
-                n for n, c in totals["references"].items() if c["positive_agent_frames"]
+    situations = 0
+    cal_rows = test_rows = 0
+    for i, rows in enumerate(iter_scenes(parts, st, columns, **scan)):  # type: ignore[arg-type]
+        scene = scene_summary(rows, st, datasets)
+        situations += scene.situations
+        exact = {"references": scene.counts[OVERALL], "agreement": scene.agreement,
+                 "side": scene.side}  # fmt: skip
+        totals = add_counts(totals, exact) if totals else exact
+        for g, c in scene.counts.items():
+            group_counts[g] = add_counts(group_counts[g], c) if g in group_counts else c
+        for name, brows in scene.budgets.items():
+            if name not in budget_cols:
+                budget_rules[name] = [
+                    {k: r[k] for k in ("rule", "kind", "k", "radius_m")} for r in brows
+                ]
+                budget_cols[name] = np.zeros((len(brows), 3, n_scenes), dtype=np.int64)
+            budget_cols[name][:, :, rows.index] = [
+                [r["positives"], r["kept_positives"], r["kept"]] for r in brows
             ]
+        for key, h in scene.histograms.items():
+            histograms.add(key, h)
+        for g, found in scene.labels.items():
+            labels[g] |= found
+        if scene.positives.height:
+            positive_rows.append(scene.positives)
+        if scene.short:
+            short.append(rows.name)
+        if site_of(rows.name) in cal:
+            cal_rows += rows.df.height
+        else:
+            test_rows += rows.df.height
+        if (i + 1) % MERGE_BATCH == 0:
+            histograms.flush()
+    histograms.flush()
+    side = totals["side"]
+    counts = totals["references"]
+    refs = [n for n, c in counts.items() if c["positive_agent_frames"] > 0]
+    if not refs:
+        h = counts["hindsight"]
+        raise EvaluationError(
+            no_positive_message(side["rows"], n_scenes, h["unknown_agent_frames"], hindsight)
+        )
+    groups: list[Group] = [OVERALL] + [(g, lab) for g in st.groupings for lab in sorted(labels[g])]
+    transfer = bool(calibration) and cal_rows > 0 and test_rows > 0
+    curve_groups = groups + ([CALIBRATION] if transfer else [])
+
+    # Pass 2 (per chunk of curves): merged curves, then bootstrap columns and the
+    # positives' scores in the bins where the thresholds fall.
+    pairs = [(g, m) for m in models for g in curve_groups]
+    per_chunk = max(1, CURVES_PER_PASS // max(1, len(refs)))
+    thresholds: dict[str, dict[str, float]] = {m: {} for m in models}
+    cal_thresholds: dict[tuple[str, str], float] = {}
+    blocks: dict[tuple[Group, str, str], dict[str, Any]] = {}
+    roc_frames: list[pl.DataFrame] = []
+    held = 0
+    for start in range(0, len(pairs), per_chunk):
+        chunk = pairs[start : start + per_chunk]
+        chunk_models = sorted({m for _, m in chunk})
+        curves, sit_curves = _Merging(st.max_curve_bins), _Merging(st.max_curve_bins)
+        for i, rows in enumerate(iter_scenes(parts, st, columns, models=chunk_models, **scan)):  # type: ignore[arg-type]
+            for g, m in chunk:
+                mask = rows.mask(g, cal)
+                s, sit = _masked(rows.scores[m], mask), _masked(rows.situations, mask)
+                for name in refs:
+                    r = _masked(rows.refs[name], mask)
+                    curves.add((g, m, name), bin_counts(s, r))
+                    if g != CALIBRATION:
+                        include, positive = reference_mask(r)
+                        ok = include & ~np.isnan(s)
+                        pw, nw = situation_weights(sit[ok], positive[ok])
+                        sit_curves.add((g, m, name), weighted_bin_counts(s[ok], pw, nw))
+            if (i + 1) % MERGE_BATCH == 0:
+                curves.flush(), sit_curves.flush()
+        curves.flush(), sit_curves.flush()
+        merged = curves.merged
         crossings = {
-            (m, name, t): recall_crossing(merged[m, name], t)
-            for (m, name) in merged
-            if name in with_positives
-            for t in TPR_TARGETS
+            (g, m, name, t): recall_crossing(merged[g, m, name], t)
+            for (g, m, name) in merged
+            if g in (OVERALL, CALIBRATION)
+            for t in (st.targets if g == OVERALL else st.targets[:1])
         }
-        # Crossing bins holding several values: the positives' scores there decide.
-        open_bins: dict[tuple[str, str, float], tuple[int, list[np.ndarray]]] = {
-            key: (int(merged[key[:2]].bins[c[0]]), [])
+        open_bins: dict[tuple[Group, str, str, float], tuple[int, list[np.ndarray]]] = {
+            key: (int(merged[key[:3]].bins[c[0]]), [])
             for key, c in crossings.items()
-            if c is not None and merged[key[:2]].low[c[0]] < merged[key[:2]].high[c[0]]
+            if c is not None and merged[key[:3]].low[c[0]] < merged[key[:3]].high[c[0]]
         }
         cols = {
-            curve: np.zeros((2, min(whole.bins.size, BOOT_BINS), n_scenes), dtype=np.int32)
-            for curve, whole in merged.items()
-            if draws is not None
+            key: np.zeros((2, min(whole.bins.size, BOOT_BINS), n_scenes), dtype=np.int32)
+            for key, whole in merged.items()
+            if draws is not None and key[0] != CALIBRATION
         }
-        if cols or open_bins:  # pass 2 (per chunk): bootstrap columns, crossing bins
-            for j, path in enumerate(parts):
-                arrays = scene_arrays(path, st, columns)
-                for (m, name, _t), (b, found) in open_bins.items():
-                    sc, r = arrays.scores[m], arrays.refs[name]
-                    pos = (np.asarray(r) == 1) & ~np.isnan(sc)
-                    pos[pos] = score_bins(sc[pos], merged[m, name].level) == b
+        if cols or open_bins:
+            for rows in iter_scenes(parts, st, columns, models=chunk_models, **scan):  # type: ignore[arg-type]
+                masks = {g: rows.mask(g, cal) for g, _ in chunk}
+                for (g, m, name, _t), (b, found) in open_bins.items():
+                    sc = _masked(rows.scores[m], masks[g])
+                    pos = (np.asarray(_masked(rows.refs[name], masks[g])) == 1) & ~np.isnan(sc)
+                    pos[pos] = score_bins(sc[pos], merged[g, m, name].level) == b
                     found.append(sc[pos])
-                for (m, name), col in cols.items():
-                    counts = bin_counts(arrays.scores[m], arrays.refs[name])
-                    p, n = scene_bin_matrix(merged[m, name], [counts])
-                    col[0, :, j], col[1, :, j] = p[:, 0], n[:, 0]
+                for (g, m, name), col in cols.items():
+                    one = bin_counts(
+                        _masked(rows.scores[m], masks[g]), _masked(rows.refs[name], masks[g])
+                    )
+                    p, n = scene_bin_matrix(merged[g, m, name], [one])
+                    col[0, :, rows.index], col[1, :, rows.index] = p[:, 0], n[:, 0]
         held = max(
             held,
-            sum(c.nbytes for c in merged.values()) + sum(c.nbytes for c in cols.values()),
+            sum(c.nbytes for c in merged.values())
+            + sum(c.nbytes for c in sit_curves.merged.values())
+            + sum(c.nbytes for c in cols.values()),
         )
-        for (m, name, t), c in crossings.items():
+        for (g, m, name, t), c in crossings.items():
             if c is None:
                 value = -math.inf
-            elif (m, name, t) in open_bins:
-                value = kth_highest(np.concatenate(open_bins[m, name, t][1]), c[1])
+            elif (g, m, name, t) in open_bins:
+                value = kth_highest(np.concatenate(open_bins[g, m, name, t][1]), c[1])
             else:
-                value = float(merged[m, name].low[c[0]])
-            thresholds.setdefault(m, {})[f"tpr{t:g}_{name}"] = value
-        for (m, name), whole in merged.items():
-            models.setdefault(m, {})[name] = _roc_block(whole, cols.get((m, name)), draws, st)
-        del merged, cols
-    misses = _miss_columns(parts, st, columns, thresholds, with_positives)  # pass 3
-    for m, refs in models.items():
-        for name, block in refs.items():
-            if name in with_positives:
-                block["miss_rate"] = _miss_rates(misses[m, name], thresholds[m], draws, st.level)
-    budgets = {
-        name: _budget_rows(budget_rules[name], budget_cols[name], situations, draws, st.level)
-        for name in with_positives
+                value = float(merged[g, m, name].low[c[0]])
+            if g == OVERALL:
+                thresholds[m][f"tpr{t:g}_{name}"] = value
+            else:
+                cal_thresholds[m, name] = value
+        for (g, m, name), whole in merged.items():
+            if g == CALIBRATION:
+                continue
+            block = _roc_block(whole, cols.get((g, m, name)), draws, st)
+            auc, bound = weighted_auc(sit_curves.merged[g, m, name])
+            block["auc_situation_mean"] = auc
+            block["auc_situation_mean_error_bound"] = bound
+            blocks[g, m, name] = block
+            if g == OVERALL:
+                roc_frames.append(_roc_points(whole, m, name))
+        del merged, cols, curves, sit_curves
+    # The thresholds in the full evaluation's order: reference, then target.
+    thresholds = {
+        m: {f"tpr{t:g}_{n}": thresholds[m][f"tpr{t:g}_{n}"] for n in refs for t in st.targets}
+        for m in models
     }
-    side = totals["side"]
+
+    # Pass 3: miss rates at the thresholds, site transfer, the composition's medians.
+    last = _last_pass(
+        iter_scenes(parts, st, columns, **scan),  # type: ignore[arg-type]
+        groups, models, refs, thresholds, cal_thresholds if transfer else {}, cal,
+        histograms.merged, _median_bins(histograms.merged), n_scenes,
+    )  # fmt: skip
+    by: dict[str, dict[str, Any]] = {g: {} for g in st.groupings}
+    overall: dict[str, Any] = {}
+    for g in groups:
+        block = {
+            "references": {n: group_counts[g][n] for n in refs},
+            "models": {
+                m: {
+                    n: {
+                        **blocks[g, m, n],
+                        "miss_rate": _miss_rates(last.misses[g, m, n], thresholds[m], draws,
+                                                 st.level),
+                    }
+                    for n in refs
+                }
+                for m in models
+            },
+        }  # fmt: skip
+        if g == OVERALL:
+            overall = block
+        else:
+            by[g[0]][g[1]] = block
+    summary: dict[str, Any] = {
+        "inputs": list(inputs),
+        # how every "auc" is computed (replay stats averages per situation; issue 31)
+        "auc_method": "one ROC curve pooled over every agent-frame",
+        "auc_binning": (
+            "thresholds on a fixed score grid, counts summed over scenes: each auc states "
+            "its error_bound, the largest difference from the every-distinct-score curve"
+        ),
+        "settings": _settings_block(evaluation, st, models, calibration),
+        "hindsight": None if hindsight is None else _asdict(hindsight),
+        "baseline": {"model": "survival", "threshold": st.baseline_threshold},
+        "scenes": n_scenes,
+        "egos": side["egos"],
+        "situations": situations,
+        "scenes_shorter_than_horizon": sorted(short),
+        "operating_thresholds": OPERATING_THRESHOLDS,
+        "bootstrap": {
+            "n_boot": st.n_boot,
+            "level": st.level,
+            "seed": st.seed,
+            "scenes": n_scenes,
+        },
+        "thresholds": thresholds,
+        "references": {**counts, **overall["references"]},
+        "models": overall["models"],
+        "by": by,
+    }
+    if "kept" in side:
+        summary["cascade"] = _cascade(side, refs)
+    if transfer:
+        summary["site_transfer"] = _site_transfer(last.transfer, cal_thresholds, calibration,
+                                                  sites, st.targets[0])  # fmt: skip
+    summary.update(
+        {
+            "reference_names": refs,
+            "references_missing": _references_missing(columns, st),
+            "references_without_positives": {
+                n: (
+                    f"no positive among {c['agent_frames']} agent-frames "
+                    f"({c['negative_agent_frames']} negative, {c['unknown_agent_frames']} "
+                    "unknown): every rate against it is undefined"
+                )
+                for n, c in counts.items()
+                if n not in refs
+            },
+            "budgets": {
+                n: _budget_rows(budget_rules[n], budget_cols[n], situations, draws, st.level)
+                for n in refs
+            },
+            "agreement": totals["agreement"],
+            "composition": _composition(side, histograms.merged, last.medians),
+            "track_flags": _track_flags(side),
+        }
+    )
     positives = (
         pl.concat(positive_rows, how="diagonal_relaxed").sort("scene", "ego_id", "agent_id")
         if positive_rows
         else pl.DataFrame()
     )
-    return {"scenes": n_scenes, "models": models, "summary_bytes": int(held),
-            "references": totals["references"], "agreement": totals["agreement"],
-            "budgets": budgets, "thresholds": thresholds,
-            "egos": side["egos"], "situations": situations,
-            "scenes_shorter_than_horizon": sorted(short),
-            "cascade": _cascade(side, with_positives),
-            "track_flags": _track_flags(side),
-            "composition": _composition(side),
-            "positives": positives,
-            "auc_method": "pooled ROC on a fixed score grid, summed over scenes"}  # fmt: skip
+    roc = pl.concat(roc_frames) if roc_frames else pl.DataFrame()
+    return StreamedEvaluation(summary, roc, positives, int(held))
+
+
+OPERATING_THRESHOLDS = {
+    "tpr0.95_survival": "highest threshold keeping 95 % of survival-baseline agent-frames (pooled)",
+    "tpr1_survival": "highest threshold keeping every survival-baseline agent-frame",
+    "tpr0.95_hindsight": "highest threshold keeping 95 % of hindsight positives",
+    "tpr1_hindsight": "highest threshold keeping every hindsight positive",
+}
+
+
+def _asdict(value: Any) -> dict[str, Any]:
+    from dataclasses import asdict
+
+    return asdict(value)
+
+
+def _settings_block(
+    evaluation: EvaluationSettings | None,
+    st: StreamSettings,
+    models: Sequence[str],
+    calibration: Sequence[str],
+) -> dict[str, Any]:
+    ev = evaluation or EvaluationSettings(
+        models=st.models, baseline_threshold=st.baseline_threshold, groupings=st.groupings,
+        calibration_sites=st.calibration_sites, n_boot=st.n_boot, level=st.level,
+        seed=st.seed, hindsight_windows=st.hindsight_windows,
+    )  # fmt: skip
+    return {
+        **{k: (list(v) if isinstance(v, tuple) else v) for k, v in _asdict(ev).items()},
+        "models": list(models),
+        "calibration_sites": list(calibration),
+    }
+
+
+def _masked(values: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    return values if mask is None else values[mask]
+
+
+def _check_columns(parts: Sequence[pathlib.Path], columns: pl.Schema, st: StreamSettings) -> None:
+    """The full evaluation's checks, on the union of the parts' columns."""
+    union: set[str] = set()
+    for path in parts:
+        union.update(pl.read_parquet_schema(path))
+    missing = [c for c in ("scene", "agent_id", "ego_id", "kind", *TRUTH_COLUMNS) if c not in union]
+    if missing:
+        raise EvaluationError(
+            f"the table has no {', '.join(missing)} column(s): it was written before the "
+            "hindsight truth existed; replay the scenes again (replay run --table, or give "
+            "the .mcap scenes to replay evaluate)"
+        )
+    present = [m for m in MODELS if f"risk_{m}" in union]
+    for m in st.models or ():
+        if m not in present:
+            raise EvaluationError(
+                f"no risk_{m} column in the table; it has: {', '.join(present) or 'none'}"
+            )
+    if "risk_survival" not in union and "baseline" not in union:
+        raise EvaluationError("the table has neither risk_survival nor baseline")
+
+
+def _references_missing(columns: pl.Schema, st: StreamSettings) -> dict[str, str]:
+    """The notes on absent references: they depend on the columns only."""
+    empty = pl.DataFrame(schema=columns)
+    _, missing = reference_arrays(
+        empty, baseline_threshold=st.baseline_threshold, windows=st.hindsight_windows
+    )
+    return missing
+
+
+def _roc_points(whole: BinCounts, model: str, reference: str) -> pl.DataFrame:
+    """The roc table's rows of one binned curve (thresholds ascending, at most
+    :data:`ROC_TABLE_POINTS`, evenly spread, the ends kept)."""
+    roc = binned_roc(whole)
+    k = roc.thresholds.size
+    idx = (
+        np.unique(np.linspace(0, k - 1, min(k, ROC_TABLE_POINTS)).round().astype(int))
+        if k
+        else np.empty(0, int)
+    )
+    return pl.DataFrame(
+        {
+            "model": [model] * idx.size,
+            "reference": [reference] * idx.size,
+            "threshold": roc.thresholds[idx],
+            "tpr": roc.tpr[idx],
+            "fpr": roc.fpr[idx],
+        }
+    )
+
+
+def _median_bins(
+    histograms: Mapping[tuple[str, str, str], BinCounts],
+) -> dict[tuple[str, str, str], list[tuple[int, int]]]:
+    """Per histogram, the bins (index) and ranks in them (0 = the lowest) of its middle
+    value(s): one for an odd count, two for an even one (the median is their mean)."""
+    out = {}
+    for key, h in histograms.items():
+        n = int(h.positives.sum())
+        if n == 0:
+            continue
+        cum = np.cumsum(h.positives)
+        ranks = [n // 2] if n % 2 else [n // 2 - 1, n // 2]
+        out[key] = [
+            (i, int(k - (cum[i - 1] if i else 0)))
+            for k in ranks
+            for i in [int(np.searchsorted(cum, k + 1))]
+        ]
+    return out
+
+
+@dataclass
+class _LastPass:
+    misses: dict[tuple[Group, str, str], dict[str, np.ndarray]]
+    transfer: dict[tuple[str, str], dict[str, dict[str, int]]]
+    medians: dict[tuple[str, str, str], float]
+
+
+def _last_pass(
+    scenes: Iterator[SceneRows],
+    groups: Sequence[Group],
+    models: Sequence[str],
+    refs: Sequence[str],
+    thresholds: Mapping[str, Mapping[str, float]],
+    cal_thresholds: Mapping[tuple[str, str], float],
+    cal: frozenset[str],
+    histograms: Mapping[tuple[str, str, str], BinCounts],
+    median_bins: Mapping[tuple[str, str, str], list[tuple[int, int]]],
+    n_scenes: int,
+) -> _LastPass:
+    """Pass 3: per (group, model, reference) the miss columns at the model's thresholds
+    (per scene: positives and kept positives, for the intervals; totals of the rest);
+    per (model, reference) the site transfer's counts; the composition's middle values."""
+    misses: dict[tuple[Group, str, str], dict[str, np.ndarray]] = {}
+    transfer: dict[tuple[str, str], dict[str, dict[str, int]]] = {}
+    found: dict[tuple[str, str, str], list[np.ndarray]] = {k: [] for k in median_bins}
+    for rows in scenes:
+        j = rows.index
+        for g in groups:
+            mask = rows.mask(g, cal)
+            key_ = _masked(rows.agent_key, mask)
+            for m in models:
+                s = _masked(rows.scores[m], mask)
+                named = list(thresholds[m].values())
+                for name in refs:
+                    r = np.asarray(_masked(rows.refs[name], mask))
+                    scored = (r >= 0) & ~np.isnan(s)
+                    pos = scored & (r == 1)
+                    cols = misses.setdefault((g, m, name), {
+                        "kept_positives": np.zeros((len(named), n_scenes), dtype=np.int64),
+                        "positives": np.zeros(n_scenes, dtype=np.int64),
+                        **{k: np.zeros(len(named), dtype=np.int64)
+                           for k in ("missed", "missed_agents", "kept")},
+                        "scored": np.zeros(1, dtype=np.int64),
+                    })  # fmt: skip
+                    cols["scored"][0] += scored.sum()
+                    cols["positives"][j] = pos.sum()
+                    for i, thr in enumerate(named):
+                        keep = s >= thr
+                        missed = pos & ~keep
+                        cols["kept_positives"][i, j] = (pos & keep).sum()
+                        cols["missed"][i] += missed.sum()
+                        cols["missed_agents"][i] += np.unique(key_[missed]).size
+                        cols["kept"][i] += (scored & keep).sum()
+        part = "calibration" if site_of(rows.name) in cal else "test"
+        for (m, name), thr in cal_thresholds.items():
+            s, r = rows.scores[m], rows.refs[name]
+            include, positive = reference_mask(r)
+            agent = include & ~np.isnan(s)
+            pos = agent & positive
+            keep = s >= thr
+            t = transfer.setdefault((m, name), {})
+            t[part] = add_counts(t.get(part, _NO_COUNTS), {
+                "positives": int(pos.sum()), "kept_positives": int((keep & pos).sum()),
+                "agents": int(agent.sum()), "kept_agents": int((keep & agent).sum()),
+            })  # fmt: skip
+        if median_bins:
+            values = _composition_values(rows.df)
+            for key, where in median_bins.items():
+                name, label, q = key
+                h = histograms[key]
+                x = values[q][state_codes(rows.refs[name]) == STATES[label]]
+                x = x[~np.isnan(x)]
+                middle = np.isin(score_bins(x, h.level), h.bins[[i for i, _ in where]])
+                found[key].append(x[middle])  # only the middle bins' values
+    return _LastPass(misses, transfer, _medians(found, histograms, median_bins))
+
+
+_NO_COUNTS = {"positives": 0, "kept_positives": 0, "agents": 0, "kept_agents": 0}
+
+
+def _medians(
+    found: Mapping[tuple[str, str, str], list[np.ndarray]],
+    histograms: Mapping[tuple[str, str, str], BinCounts],
+    median_bins: Mapping[tuple[str, str, str], list[tuple[int, int]]],
+) -> dict[tuple[str, str, str], float]:
+    """The exact medians: the middle value(s) picked from the values of their bins (the
+    mean of two, as ``np.median``)."""
+    out = {}
+    for key, where in median_bins.items():
+        h = histograms[key]
+        x = np.concatenate(found[key]) if found[key] else np.empty(0)
+        bins = score_bins(x, h.level)
+        picks = [float(np.sort(x[bins == h.bins[i]])[k]) for i, k in where]
+        out[key] = picks[0] if len(picks) == 1 else (picks[0] + picks[1]) / 2
+    return out
+
+
+def _site_transfer(
+    counts: Mapping[tuple[str, str], Mapping[str, Mapping[str, int]]],
+    thresholds: Mapping[tuple[str, str], float],
+    calibration: Sequence[str],
+    sites: Sequence[str],
+    target: float,
+) -> dict[str, dict[str, Any]]:
+    """:func:`risk.evaluation.site_transfer` per model and reference from the counts."""
+    out: dict[str, dict[str, Any]] = {}
+    for (m, name), thr in thresholds.items():
+        block: dict[str, Any] = {
+            "calibration_sites": sorted(set(calibration) & set(sites)),
+            "test_sites": sorted(set(sites) - set(calibration)),
+            "target_tpr": target,
+            "threshold": thr,
+        }
+        for part in ("calibration", "test"):
+            c = counts[m, name][part]
+            block[part] = {
+                "positives": c["positives"],
+                "tpr": c["kept_positives"] / c["positives"] if c["positives"] else math.nan,
+                "kept_share": c["kept_agents"] / c["agents"] if c["agents"] else math.nan,
+            }
+        out.setdefault(m, {})[name] = block
+    return out
 
 
 def _cascade(side: Mapping[str, Any], references: Sequence[str]) -> dict[str, Any]:
@@ -518,16 +1040,24 @@ def _track_flags(side: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
-def _composition(side: Mapping[str, Any]) -> dict[str, Any]:
-    """Counts and shares of the composition block (its medians are not streamed yet)."""
+def _composition(
+    side: Mapping[str, Any],
+    histograms: Mapping[tuple[str, str, str], BinCounts],
+    medians: Mapping[tuple[str, str, str], float],
+) -> dict[str, Any]:
+    """The composition block (as the full evaluation's) from the sums and the medians."""
     out: dict[str, Any] = {}
     for name, labels in side.get("composition", {}).items():
         out[name] = {}
         for label, c in labels.items():
             block: dict[str, Any] = {"agent_frames": c["agent_frames"]}
             if c["agent_frames"]:
+                block["median_time_in_scene_s"] = medians.get(
+                    (name, label, "time_in_scene_s"), math.nan
+                )
                 block["share_first_2s"] = c["first_2s"] / c["agent_frames"]
                 if side["speed"]:
+                    block["median_speed_mps"] = medians.get((name, label, "speed_mps"), math.nan)
                     block["share_standing"] = c["standing"] / c["agent_frames"]
             out[name][label] = block
     return out
@@ -558,43 +1088,6 @@ def _roc_block(
                 percentile_interval(tpr_r[:, k], level=st.level)
             )
     return block
-
-
-def _miss_columns(
-    parts: Sequence[pathlib.Path],
-    st: StreamSettings,
-    columns: pl.Schema,
-    thresholds: dict[str, dict[str, float]],
-    references: Sequence[str],
-) -> dict[tuple[str, str], dict[str, np.ndarray]]:
-    """Per (model, reference): per threshold and scene ``(T, S)`` the positives kept, the
-    positive and missed agent-frames, the distinct agents missed and the agent-frames
-    kept, and per scene the included agent-frames."""
-    n = len(parts)
-    out: dict[tuple[str, str], dict[str, np.ndarray]] = {}
-    for j, path in enumerate(parts):
-        arrays = scene_arrays(path, st, columns)
-        for m, s in arrays.scores.items():
-            named = thresholds.get(m, {})
-            for name in references:
-                r = np.asarray(arrays.refs[name])
-                scored = (r >= 0) & ~np.isnan(s)
-                pos = scored & (r == 1)
-                cols = out.setdefault((m, name), {
-                    k: np.zeros((len(named), n), dtype=np.int64)
-                    for k in ("kept_positives", "missed", "missed_agents", "kept")
-                } | {"scored": np.zeros(n, dtype=np.int64),
-                     "positives": np.zeros(n, dtype=np.int64)})  # fmt: skip
-                cols["scored"][j] = scored.sum()
-                cols["positives"][j] = pos.sum()
-                for i, thr in enumerate(named.values()):
-                    keep = s >= thr
-                    missed = pos & ~keep
-                    cols["kept_positives"][i, j] = (pos & keep).sum()
-                    cols["missed"][i, j] = missed.sum()
-                    cols["missed_agents"][i, j] = np.unique(arrays.agent_key[missed]).size
-                    cols["kept"][i, j] = (scored & keep).sum()
-    return out
 
 
 def _miss_rates(
