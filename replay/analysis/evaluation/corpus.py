@@ -1,11 +1,12 @@
 """Outcome evaluation of a corpus: every model against the survival baseline and against
 what really happened (the hindsight truth), with scene-bootstrap intervals.
 
-The input is an agents table (the columns of ``replay run --table`` plus ``scene``, one
-scene's part after another, see :mod:`replay.analysis.evaluation.collect`);
-:func:`evaluate_table` turns it into arrays and calls the pure
-:func:`risk.evaluation.evaluate_references`; :mod:`replay.analysis.evaluation.files`
-writes ``summary.json``, tables and plots. ``docs/evaluation.md`` describes every field.
+The commands evaluate one scene at a time (:mod:`replay.analysis.evaluation.streaming`);
+this module holds what both ways share (names, references, agreement, settings) and
+:func:`evaluate_table`: the whole agents table at once, turned into arrays for the pure
+:func:`risk.evaluation.evaluate_references` (exact every-score ROC curves). It is the
+slow, obvious oracle the tests compare the streamed evaluation with; no command runs it.
+``docs/evaluation.md`` describes every field.
 """
 
 from __future__ import annotations

@@ -23,6 +23,7 @@ import polars as pl
 
 from outputs.atomic import atomic_output
 from replay.analysis.evaluation.corpus import HEADLINE_THRESHOLD
+from replay.analysis.evaluation.files import auc_bound_note
 from replay.analysis.evaluation.sensitivity import RANKED, SweepResult
 from risk.registry import MODELS
 
@@ -593,7 +594,8 @@ def write_report(
         "roc_plot": f"![ROC against hindsight]({rel}/roc_hindsight.png)"
         if any(p.name == "roc_hindsight.png" for p in pngs)
         else "",
-        "auc_all": _auc_all(summary),
+        "auc_all": _auc_all(summary)
+        + (f"\n\n{note}." if (note := auc_bound_note(summary)) else ""),
         "agreement": _agreement_section(summary),
         "windows_section": _windows_section(summary),
         "budgets": _budget_section(summary, rel, [p.name for p in pngs]),

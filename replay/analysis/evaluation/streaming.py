@@ -39,6 +39,7 @@ import json
 import math
 import os
 import pathlib
+import tempfile
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -768,6 +769,35 @@ def evaluate_parts(
     )
     roc = pl.concat(roc_frames) if roc_frames else pl.DataFrame()
     return StreamedEvaluation(summary, roc, positives, int(held))
+
+
+def evaluate_frame(
+    agents: pl.DataFrame,
+    *,
+    settings: EvaluationSettings | None = None,
+    datasets: Mapping[str, str] | None = None,
+    hindsight: HindsightSettings | None = None,
+    inputs: Sequence[str] = (),
+) -> dict[str, Any]:
+    """The summary of an agents table already in memory (the library's
+    :func:`replay.analysis.evaluation.collect.evaluate_inputs` and the sensitivity
+    sweep's), by the same passes as ``replay evaluate``: each scene is written to a
+    temporary part file and :func:`evaluate_parts` reads them back."""
+    settings = settings or EvaluationSettings()
+    with tempfile.TemporaryDirectory(prefix="replay-evaluate-") as tmp:
+        scenes = (
+            sorted(agents.partition_by("scene", as_dict=True).items(), key=lambda kv: str(kv[0]))
+            if "scene" in agents.columns and agents.height
+            else [(("",), agents)]
+        )
+        paths = []
+        for k, (_, part) in enumerate(scenes):
+            paths.append(pathlib.Path(tmp) / f"{k}.parquet")
+            part.write_parquet(paths[-1])
+        return evaluate_parts(
+            paths, StreamSettings.of(settings, hindsight), datasets=datasets,
+            hindsight=hindsight, inputs=inputs, evaluation=settings,
+        ).summary  # fmt: skip
 
 
 OPERATING_THRESHOLDS = {
