@@ -96,7 +96,10 @@ def streamed_pass(out: pathlib.Path, n_boot: int, result: pathlib.Path, factor: 
     )
 
     start = time.perf_counter()
-    streamed = evaluate_parts(run_parts(out) * factor, StreamSettings(n_boot=n_boot))
+    from replay.analysis.evaluation.corpus import EvaluationSettings
+
+    settings = StreamSettings.of(EvaluationSettings(n_boot=n_boot))  # the command's defaults
+    streamed = evaluate_parts(run_parts(out) * factor, settings)
     seconds = time.perf_counter() - start
     summary = json.loads((out / "summary.json").read_text())
     diff = max_difference(streamed.summary, summary) if factor == 1 else {}

@@ -205,7 +205,7 @@ class SceneRows:
 def scene_units(parts: Sequence[pathlib.Path]) -> list[tuple[str, int]]:
     """Every (scene name, part number) in name order: the scenes of the bootstrap (a
     part given twice is two scenes; a table part may hold several scenes)."""
-    units = set()
+    units: set[tuple[str, int]] = set()
     for k, path in enumerate(parts):
         if "scene" in pl.read_parquet_schema(path):
             names = pl.read_parquet(path, columns=["scene"])["scene"].cast(pl.String).unique()
@@ -327,7 +327,7 @@ def scene_summary(
         counts, budgets, agreement(refs, df, agent_key), n_sit,
         side=side_counts(df, refs, agent_key, datasets),
         positives=positives_table(df, datasets),
-        short=span is not None and span < st.horizon_s - 1e-9,  # type: ignore[operator]
+        short=bool(span is not None and span < st.horizon_s - 1e-9),  # type: ignore[operator]
         histograms=_histograms(df, refs),
         labels={g: {str(x) for x in np.unique(lab)} for g, lab in rows.labels.items()},
     )  # fmt: skip
@@ -531,7 +531,9 @@ def evaluate_parts(
             f"unknown calibration site {unknown_sites[0]!r}; the sites are: {', '.join(sites)}"
         )
     cal = frozenset(calibration)
-    scan = {"datasets": datasets, "units": units}
+
+    def scenes(models: Sequence[str] | None = None) -> Iterator[SceneRows]:
+        return iter_scenes(parts, st, columns, datasets=datasets, models=models, units=units)
 
     # Pass 1: the exact pieces.
     totals: dict[str, Any] = {}
@@ -544,7 +546,7 @@ def evaluate_parts(
     short: list[str] = []
     situations = 0
     cal_rows = test_rows = 0
-    for i, rows in enumerate(iter_scenes(parts, st, columns, **scan)):  # type: ignore[arg-type]
+    for i, rows in enumerate(scenes()):
         scene = scene_summary(rows, st, datasets)
         situations += scene.situations
         exact = {"references": scene.counts[OVERALL], "agreement": scene.agreement,
@@ -563,8 +565,8 @@ def evaluate_parts(
             ]
         for key, h in scene.histograms.items():
             histograms.add(key, h)
-        for g, found in scene.labels.items():
-            labels[g] |= found
+        for grouping, seen in scene.labels.items():
+            labels[grouping] |= seen
         if scene.positives.height:
             positive_rows.append(scene.positives)
         if scene.short:
@@ -601,7 +603,7 @@ def evaluate_parts(
         chunk = pairs[start : start + per_chunk]
         chunk_models = sorted({m for _, m in chunk})
         curves, sit_curves = _Merging(st.max_curve_bins), _Merging(st.max_curve_bins)
-        for i, rows in enumerate(iter_scenes(parts, st, columns, models=chunk_models, **scan)):  # type: ignore[arg-type]
+        for i, rows in enumerate(scenes(chunk_models)):
             for g, m in chunk:
                 mask = rows.mask(g, cal)
                 s, sit = _masked(rows.scores[m], mask), _masked(rows.situations, mask)
@@ -614,8 +616,10 @@ def evaluate_parts(
                         pw, nw = situation_weights(sit[ok], positive[ok])
                         sit_curves.add((g, m, name), weighted_bin_counts(s[ok], pw, nw))
             if (i + 1) % MERGE_BATCH == 0:
-                curves.flush(), sit_curves.flush()
-        curves.flush(), sit_curves.flush()
+                curves.flush()
+                sit_curves.flush()
+        curves.flush()
+        sit_curves.flush()
         merged = curves.merged
         crossings = {
             (g, m, name, t): recall_crossing(merged[g, m, name], t)
@@ -634,13 +638,13 @@ def evaluate_parts(
             if draws is not None and key[0] != CALIBRATION
         }
         if cols or open_bins:
-            for rows in iter_scenes(parts, st, columns, models=chunk_models, **scan):  # type: ignore[arg-type]
+            for rows in scenes(chunk_models):
                 masks = {g: rows.mask(g, cal) for g, _ in chunk}
-                for (g, m, name, _t), (b, found) in open_bins.items():
+                for (g, m, name, _t), (b, in_bin) in open_bins.items():
                     sc = _masked(rows.scores[m], masks[g])
                     pos = (np.asarray(_masked(rows.refs[name], masks[g])) == 1) & ~np.isnan(sc)
                     pos[pos] = score_bins(sc[pos], merged[g, m, name].level) == b
-                    found.append(sc[pos])
+                    in_bin.append(sc[pos])
                 for (g, m, name), col in cols.items():
                     one = bin_counts(
                         _masked(rows.scores[m], masks[g]), _masked(rows.refs[name], masks[g])
@@ -653,13 +657,13 @@ def evaluate_parts(
             + sum(c.nbytes for c in sit_curves.merged.values())
             + sum(c.nbytes for c in cols.values()),
         )
-        for (g, m, name, t), c in crossings.items():
-            if c is None:
+        for (g, m, name, t), crossing in crossings.items():
+            if crossing is None:
                 value = -math.inf
             elif (g, m, name, t) in open_bins:
-                value = kth_highest(np.concatenate(open_bins[g, m, name, t][1]), c[1])
+                value = kth_highest(np.concatenate(open_bins[g, m, name, t][1]), crossing[1])
             else:
-                value = float(merged[g, m, name].low[c[0]])
+                value = float(merged[g, m, name].low[crossing[0]])
             if g == OVERALL:
                 thresholds[m][f"tpr{t:g}_{name}"] = value
             else:
@@ -683,7 +687,7 @@ def evaluate_parts(
 
     # Pass 3: miss rates at the thresholds, site transfer, the composition's medians.
     last = _last_pass(
-        iter_scenes(parts, st, columns, **scan),  # type: ignore[arg-type]
+        scenes(),
         groups, models, refs, thresholds, cal_thresholds if transfer else {}, cal,
         histograms.merged, _median_bins(histograms.merged), n_scenes,
     )  # fmt: skip
