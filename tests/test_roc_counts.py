@@ -262,3 +262,47 @@ def test_scene_bins_must_be_in_the_merge():
     with pytest.raises(RiskError):
         scene_bin_matrix(a, [b])
     assert BinCounts.empty().nbytes == 0
+
+
+# ---------------------------------------------------------------- situation-mean curve
+def _situation_auc(scores, situations, positive, max_bins=None):
+    from risk.roc_counts import situation_weights, weighted_auc, weighted_bin_counts
+
+    pw, nw = situation_weights(situations, positive)
+    counts = merge_counts([weighted_bin_counts(scores, pw, nw)], max_bins)
+    return weighted_auc(counts)
+
+
+def test_situation_mean_auc_by_hand():
+    # Situation 0 ranks its positive first (0.9 > 0.1), situation 1 last (0.2 < 0.8).
+    # Mean curve from the strictest threshold: (fpr, tpr) = (0, .5), (.5, .5), (.5, 1),
+    # (1, 1): area 0.25 + 0.5 = 0.75; one score per bin, so no bound.
+    scores = np.array([0.9, 0.1, 0.2, 0.8])
+    auc, bound = _situation_auc(scores, np.array([0, 0, 1, 1]), np.array([1, 0, 1, 0], bool))
+    assert auc == pytest.approx(0.75, abs=1e-15) and bound == 0.0
+    # No negative anywhere: undefined.
+    auc, _ = _situation_auc(scores, np.zeros(4, int), np.ones(4, bool))
+    assert math.isnan(auc)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000), st.booleans(), st.sampled_from([None, 4]))
+def test_situation_mean_auc_matches_the_exact_sweep_within_its_bound(seed, few, max_bins):
+    from risk.metrics import exact_sweep
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(4, 80))
+    scores = rng.integers(0, 5, n).astype(float) if few else rng.random(n)
+    situations = rng.integers(0, 6, n)
+    positive = rng.random(n) < 0.4
+    if positive.all() or not positive.any():
+        positive[0] = not positive[0]
+    auc, bound = _situation_auc(scores, situations, positive, max_bins)
+    _, sit = np.unique(situations, return_inverse=True)
+    exact = exact_sweep(scores, sit.astype(np.int64), positive).auc
+    if math.isnan(exact):
+        assert math.isnan(auc)
+    else:
+        assert abs(auc - exact) <= bound + 1e-12
+        if few and max_bins is None:
+            assert bound == 0.0
