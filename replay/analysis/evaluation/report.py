@@ -595,7 +595,7 @@ def write_report(
         if any(p.name == "roc_hindsight.png" for p in pngs)
         else "",
         "auc_all": _auc_all(summary)
-        + (f"\n\n{note}." if (note := auc_bound_note(summary)) else ""),
+        + (f"\n\n{bound}." if (bound := auc_bound_note(summary)) else ""),
         "agreement": _agreement_section(summary),
         "windows_section": _windows_section(summary),
         "budgets": _budget_section(summary, rel, [p.name for p in pngs]),
