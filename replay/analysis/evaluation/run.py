@@ -1,10 +1,12 @@
 """``replay evaluate``'s workflow as one library function: every scene replayed (or table
-read) as a job on an engine (:mod:`replay.jobs`) into ``OUT/parts/``, the parts read
-back lazily, every model evaluated against every reference, optionally the sensitivity
-sweep (:mod:`replay.analysis.evaluation.sensitivity`), and the files and the report.
+read) as a job on an engine (:mod:`replay.jobs`) into ``OUT/parts/``, every model
+evaluated against every reference from the parts one scene at a time
+(:mod:`replay.analysis.evaluation.streaming`: the driver never holds the corpus's rows),
+optionally the sensitivity sweep (:mod:`replay.analysis.evaluation.sensitivity`, which
+does hold the defaults' rows), and the files and the report.
 
-The maths is :mod:`risk.evaluation`; the corpus-level steps are
-:mod:`replay.analysis.evaluation.corpus`; this module only puts them in order. The
+The maths is :mod:`risk.evaluation` and :mod:`risk.roc_counts`; this module only puts
+the steps in order. The
 outputs appear together at the end (:class:`outputs.transaction.OutputGuard`); the parts
 and ``failures.csv`` are written as scenes finish, so that a rerun resumes.
 """
