@@ -10,10 +10,17 @@ processes) every 20 ms. The scenes are replayed by ``--workers`` worker processe
 the driver's figure is the evaluation's own memory: reading the parts back and
 computing the summary.
 
+``--streamed`` also measures, after each evaluation, a separate process that runs the
+evaluation alone (:func:`replay.analysis.evaluation.streaming.evaluate_parts`, what
+``replay evaluate`` runs since issue 38) over the same part files, and compares its AUCs
+with the command's summary (the difference must lie within the stated bound).
+
 Usage::
 
     python benchmarks/bench_memory.py --scenes DIR --work DIR [--factors 1,4]
-        [--workers 2] [--bootstrap 200] [--repeat 1] [--keep-parts]
+        [--workers 2] [--bootstrap 200] [--repeat 1] [--keep-parts] [--streamed]
+    python benchmarks/bench_memory.py --streamed-parts OUT --work DIR [--factors 1,4]
+        [--bootstrap 1000] [--repeat 1]
 """
 
 from __future__ import annotations
@@ -30,6 +37,9 @@ import threading
 import time
 
 import psutil
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from results_log import recorded
 
 
 def replica(scenes: list[pathlib.Path], work: pathlib.Path, factor: int) -> pathlib.Path:
@@ -75,9 +85,68 @@ def peak_rss(cmd: list[str], env: dict[str, str]) -> tuple[int, int, float, int]
     return peaks[0], peaks[1], time.perf_counter() - start, proc.returncode
 
 
+def streamed_pass(out: pathlib.Path, n_boot: int, result: pathlib.Path, factor: int = 1) -> None:
+    """The child process of ``--streamed``: the streamed pass over ``out``'s parts (each
+    part ``factor`` times, as that many scenes: a replica without copying the files)."""
+    from replay.analysis.evaluation.streaming import (
+        StreamSettings,
+        evaluate_parts,
+        max_difference,
+        run_parts,
+    )
+
+    start = time.perf_counter()
+    from replay.analysis.evaluation.corpus import EvaluationSettings
+
+    settings = StreamSettings.of(EvaluationSettings(n_boot=n_boot))  # the command's defaults
+    streamed = evaluate_parts(run_parts(out) * factor, settings)
+    seconds = time.perf_counter() - start
+    summary = json.loads((out / "summary.json").read_text())
+    diff = max_difference(streamed.summary, summary) if factor == 1 else {}
+    result.write_text(json.dumps({"seconds": seconds, "summary_bytes": streamed.held_bytes,
+                                  "scenes": streamed.summary["scenes"], **diff}))  # fmt: skip
+
+
+def streamed_only(args: argparse.Namespace) -> None:
+    env = {**os.environ, "PYTHONPATH": str(pathlib.Path(__file__).resolve().parents[1])}
+    args.work.mkdir(parents=True, exist_ok=True)
+    factors = [int(f) for f in args.factors.split(",")]
+    peaks: dict[int, list[int]] = {}
+    for rep in range(args.repeat):
+        for factor in factors:
+            res = args.work / f"streamed-parts-x{factor}-{rep}.json"
+            child = [sys.executable, __file__, "--stream-child", str(args.streamed_parts),
+                     str(args.bootstrap), str(res), str(factor)]  # fmt: skip
+            own, _, seconds, code = peak_rss(child, env)
+            info = json.loads(res.read_text()) if code == 0 else {}
+            peaks.setdefault(factor, []).append(own)
+            print(
+                f"x{factor} run {rep}: {info.get('scenes')} scenes, streamed pass peak "
+                f"{own / 2**20:.0f} MiB, {seconds:.0f} s, summaries "
+                f"{info.get('summary_bytes', 0) / 2**20:.1f} MiB"
+                + (
+                    f", max |AUC - evaluate's| {info['auc']:.2e} (max bound "
+                    f"{info['auc_bound']:.2e}), max CI end difference {info['auc_ci']:.2e}, "
+                    f"curves beyond their bound {info['beyond_bound']:.0f}"
+                    if "auc" in info
+                    else ""
+                )
+                + f", exit {code}",
+                flush=True,
+            )
+    base = sorted(peaks[factors[0]])[len(peaks[factors[0]]) // 2]
+    for factor in factors[1:]:
+        p = sorted(peaks[factor])[len(peaks[factor]) // 2]
+        print(f"x{factor} / x{factors[0]} streamed pass peak (medians): {p / base:.2f}")
+
+
 def main() -> None:
+    if len(sys.argv) in (5, 6) and sys.argv[1] == "--stream-child":
+        out, n_boot, result, factor = [*sys.argv[2:], "1"][:4]
+        streamed_pass(pathlib.Path(out), int(n_boot), pathlib.Path(result), int(factor))
+        return
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", type=pathlib.Path, required=True)
+    ap.add_argument("--scenes", type=pathlib.Path, default=None)
     ap.add_argument("--work", type=pathlib.Path, required=True)
     ap.add_argument("--factors", default="1,4")
     ap.add_argument("--workers", type=int, default=2)
@@ -88,12 +157,29 @@ def main() -> None:
         help="Evaluate into the folders of an earlier run: its scenes are complete, so only "
         "reading the parts back and the evaluation are measured.",
     )  # fmt: skip
+    ap.add_argument("--streamed", action="store_true")
+    ap.add_argument(
+        "--streamed-parts", type=pathlib.Path, default=None,
+        help="Only the streamed pass, over the parts of this evaluate output folder, each "
+        "part given --factors times (as that many scenes); no scene is replayed.",
+    )  # fmt: skip
     args = ap.parse_args()
+    with recorded("memory", "Driver memory of `replay evaluate` (issue 38)"):
+        if args.streamed_parts is not None:
+            streamed_only(args)
+        else:
+            evaluate_runs(args)
+
+
+def evaluate_runs(args: argparse.Namespace) -> None:
+    if args.scenes is None:
+        raise SystemExit("--scenes DIR is needed (or --streamed-parts OUT)")
     scenes = sorted(args.scenes.glob("*.mcap"))
     factors = [int(f) for f in args.factors.split(",")]
     args.work.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "PYTHONPATH": str(pathlib.Path(__file__).resolve().parents[1])}
     rows = []
+    streamed_rows: list[tuple[int, int]] = []
     for rep in range(args.repeat):
         for factor in factors:  # the factors take turns in every repeat
             folder = replica(scenes, args.work, factor)
@@ -115,6 +201,29 @@ def main() -> None:
                 f"{seconds:.0f} s, exit {code}",
                 flush=True,
             )
+            if args.streamed and code == 0:
+                res = args.work / f"streamed-x{factor}-{rep}.json"
+                child = [sys.executable, __file__, "--stream-child", str(out),
+                         str(args.bootstrap), str(res), "1"]  # fmt: skip
+                s_own, _, s_sec, s_code = peak_rss(child, env)
+                info = json.loads(res.read_text()) if s_code == 0 else {}
+                streamed_rows.append((factor, s_own))
+                print(
+                    f"x{factor} run {rep} streamed ROC pass: peak {s_own / 2**20:.0f} MiB, "
+                    f"{s_sec:.0f} s, summaries {info.get('summary_bytes', 0) / 2**20:.1f} MiB, "
+                    f"max |AUC - evaluate's| {info.get('auc', float('nan')):.2e} "
+                    f"(max bound {info.get('auc_bound', float('nan')):.2e}), max CI end "
+                    f"difference {info.get('auc_ci', float('nan')):.2e}, curves beyond their bound "
+                    f"{info.get('beyond_bound', float('nan')):.0f}, exit {s_code}",
+                    flush=True,
+                )
+    for name, table in (("streamed ROC pass", streamed_rows),):
+        ref_rows = sorted(r[1] for r in table if r[0] == factors[0])
+        for factor in factors[1:]:
+            peaks = sorted(r[1] for r in table if r[0] == factor)
+            if ref_rows and peaks:
+                ratio = peaks[len(peaks) // 2] / ref_rows[len(ref_rows) // 2]
+                print(f"x{factor} / x{factors[0]} {name} peak (medians): {ratio:.2f}")
     base = [r[4] for r in rows if r[0] == factors[0]]
     if base:
         ref = sorted(base)[len(base) // 2]

@@ -115,11 +115,21 @@ def bootstrap_weights(
         raise RiskError(f"n_boot must be >= 1, got {n_boot}")
     _, codes = np.unique(np.asarray(clusters), return_inverse=True)
     n = int(codes.max()) + 1 if codes.size else 0
+    return codes.astype(np.int64), scene_draws(n, n_boot=n_boot, seed=seed)
+
+
+def scene_draws(n_scenes: int, *, n_boot: int = 1000, seed: int = 0) -> np.ndarray:
+    """``(B, S)`` int64: how often each replicate draws each of ``S`` clusters (``S``
+    draws with replacement). Cluster ``s`` is the ``s``-th in a fixed order (sorted
+    names, or the key order of a run's scenes): the draws depend on ``seed`` and ``S``
+    only, never on the order in which the scenes were computed."""
+    if n_boot < 1:
+        raise RiskError(f"n_boot must be >= 1, got {n_boot}")
     rng = np.random.default_rng(seed)
-    draws = rng.integers(0, max(n, 1), size=(n_boot, n))
-    counts = np.zeros((n_boot, n), dtype=np.int64)
-    np.add.at(counts, (np.repeat(np.arange(n_boot), n), draws.ravel()), 1)
-    return codes.astype(np.int64), counts
+    draws = rng.integers(0, max(n_scenes, 1), size=(n_boot, n_scenes))
+    counts = np.zeros((n_boot, n_scenes), dtype=np.int64)
+    np.add.at(counts, (np.repeat(np.arange(n_boot), n_scenes), draws.ravel()), 1)
+    return counts
 
 
 def percentile_interval(replicates: np.ndarray, *, level: float = 0.95) -> tuple[float, float]:
@@ -244,7 +254,6 @@ def _replicates(
     bins (consecutive distinct scores merged, ties never split); with fewer distinct
     scores it is exact. Cost ``O(A + B * S * bins)``, with BLAS doing the products.
     """
-    n_boot = draws.shape[0]
     present, cluster = np.unique(srt.cluster, return_inverse=True)  # clusters seen here
     draws = draws[:, present]
     n_clusters = present.size
@@ -269,6 +278,22 @@ def _replicates(
     with np.errstate(invalid="ignore", divide="ignore"):
         tot_p = d @ all_pos
         miss = np.where(tot_p[:, None] > 0, 1.0 - (d @ kept_pos.T) / tot_p[:, None], np.nan)
+    auc, tpr_at = replicate_curves(pos, neg, d, fpr_points)
+    return auc, tpr_at, miss
+
+
+def replicate_curves(
+    pos: np.ndarray, neg: np.ndarray, draws: np.ndarray, fpr_points: Sequence[float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """AUC ``(B,)`` and TPR at each FPR ``(B, P)`` of every bootstrap replicate, from the
+    positives and negatives per (score bin, cluster) ``pos``, ``neg (bins, C)`` (bins
+    strictest first) and the draws ``(B, C)``: a replicate's counts per bin are the
+    draw-weighted sums over clusters. Blocks of replicates keep the (B, bins) matrices
+    small."""
+    n_boot, n_bins = draws.shape[0], pos.shape[0]
+    d = np.asarray(draws, dtype=np.float64)
+    pos = np.asarray(pos, dtype=np.float64)
+    neg = np.asarray(neg, dtype=np.float64)
     auc = np.empty(n_boot)
     tpr_at = np.empty((n_boot, len(fpr_points)))
     step = max(1, BOOT_BLOCK_ELEMENTS // max(n_bins, 1))
@@ -287,7 +312,7 @@ def _replicates(
                 idx = (fpr <= f + RATE_TOLERANCE).sum(axis=1) - 1
             val = np.where(idx >= 0, tpr[rows, np.maximum(idx, 0)], 0.0)
             tpr_at[start : start + step, k] = np.where(np.isnan(fpr[:, 0]), np.nan, val)
-    return auc, tpr_at, miss
+    return auc, tpr_at
 
 
 def _situation_mean_auc(

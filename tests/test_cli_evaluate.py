@@ -215,3 +215,26 @@ def test_dataset_is_the_folder_named_not_where_a_link_points(corpus, tmp_path):
         (linked / scene.name).symlink_to(scene)
     _, datasets, _ = collect_agents([linked])
     assert set(datasets.values()) == {"mydata"}
+
+
+def test_the_command_equals_the_full_rows_oracle_within_its_stated_bounds(corpus, tmp_path):
+    """``replay evaluate`` (one scene's part at a time) against evaluate_table on every
+    row at once: equal, the binned figures within the bound the summary states; the
+    report and the printed summary state the largest AUC bound."""
+    from test_evaluation_parts import assert_same
+
+    from replay.analysis.evaluation.corpus import evaluate_table
+    from replay.analysis.evaluation.files import _jsonable
+
+    out, report = tmp_path / "out", tmp_path / "report.md"
+    inputs = [corpus / "setA", corpus / "setB"]
+    r = invoke("evaluate", *inputs, "-o", out, "--bootstrap", 40, "--workers", 1,
+               "--no-progress", "--no-plots", "--report", report)  # fmt: skip
+    assert r.exit_code == 0, r.output
+    got = json.loads((out / "summary.json").read_text())
+    agents, datasets, hs = collect_agents(inputs)
+    full = evaluate_table(agents, settings=EvaluationSettings(n_boot=40), datasets=datasets,
+                          hindsight=hs, inputs=[str(p) for p in inputs])  # fmt: skip
+    assert_same(got, json.loads(json.dumps(_jsonable(full))))
+    assert got["by"]["dataset"] and got["site_transfer"] and got["cascade"]
+    assert "AUC ± " in r.output and "AUC ± " in report.read_text()

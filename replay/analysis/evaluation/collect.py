@@ -11,11 +11,7 @@ from typing import Any
 
 import polars as pl
 
-from replay.analysis.evaluation.corpus import (
-    EvaluationError,
-    EvaluationSettings,
-    evaluate_table,
-)
+from replay.analysis.evaluation.corpus import EvaluationError, EvaluationSettings
 from replay.analysis.stats.collect import collect, datasets_of
 from replay.core.engine import Stride
 from replay.jobs import resolve_inputs, scene_refs
@@ -80,7 +76,9 @@ def evaluate_inputs(
         paths, cascade=cascade, params=params, prediction=prediction, hindsight=hindsight,
         workers=workers, progress=progress, ego=ego, every=every,
     )  # fmt: skip
-    return evaluate_table(
+    from replay.analysis.evaluation.streaming import evaluate_frame  # (it imports this module)
+
+    return evaluate_frame(
         agents, settings=settings, datasets=datasets, hindsight=hs,
         inputs=[str(p) for p in paths],
     )  # fmt: skip

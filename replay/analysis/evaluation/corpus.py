@@ -1,11 +1,12 @@
 """Outcome evaluation of a corpus: every model against the survival baseline and against
 what really happened (the hindsight truth), with scene-bootstrap intervals.
 
-The input is an agents table (the columns of ``replay run --table`` plus ``scene``, one
-scene's part after another, see :mod:`replay.analysis.evaluation.collect`);
-:func:`evaluate_table` turns it into arrays and calls the pure
-:func:`risk.evaluation.evaluate_references`; :mod:`replay.analysis.evaluation.files`
-writes ``summary.json``, tables and plots. ``docs/evaluation.md`` describes every field.
+The commands evaluate one scene at a time (:mod:`replay.analysis.evaluation.streaming`);
+this module holds what both ways share (names, references, agreement, settings) and
+:func:`evaluate_table`: the whole agents table at once, turned into arrays for the pure
+:func:`risk.evaluation.evaluate_references` (exact every-score ROC curves). It is the
+slow, obvious oracle the tests compare the streamed evaluation with; no command runs it.
+``docs/evaluation.md`` describes every field.
 """
 
 from __future__ import annotations
@@ -242,7 +243,12 @@ def evaluate_table(
         if n not in refs
     }
     if not refs:
-        raise EvaluationError(_no_positive_message(df, all_refs["hindsight"], hindsight))
+        raise EvaluationError(
+            no_positive_message(
+                df.height, df["scene"].n_unique(), int((all_refs["hindsight"] == -1).sum()),
+                hindsight,
+            )
+        )  # fmt: skip
     stages = [c.removeprefix("kept_") for c in df.columns if c.startswith("kept_")]
     kept = np.column_stack([df[f"kept_{s}"].to_numpy() for s in stages]) if stages else None
     groups = {"dataset": dataset, "kind": kind, "site": site}
@@ -335,11 +341,11 @@ def evaluate_table(
     }
 
 
-#: The states of an agent-frame under a reference, as :func:`_state` codes them.
+#: The states of an agent-frame under a reference, as :func:`state_codes` codes them.
 STATES = {"positive": 1, "negative": 0, "unknown": -1}
 
 
-def _state(reference: np.ndarray) -> np.ndarray:
+def state_codes(reference: np.ndarray) -> np.ndarray:
     """``(A,)`` int8 state codes (:data:`STATES`) of label codes or booleans (one byte a
     row: the names as strings took 32 bytes a row per reference)."""
     r = np.asarray(reference)
@@ -363,7 +369,7 @@ def agreement(
     what hindsight says and why (the ego yielded, the window was censored, a track was
     flagged). Agent counts are distinct (scene, ego, agent)."""
     names = list(refs)
-    states = {n: _state(refs[n]) for n in names}
+    states = {n: state_codes(refs[n]) for n in names}
     pairs = []
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
@@ -430,7 +436,7 @@ def composition(df: pl.DataFrame, refs: Mapping[str, np.ndarray]) -> dict[str, A
     for name, r in refs.items():
         if not name.startswith("hindsight"):
             continue
-        st = _state(r)
+        st = state_codes(r)
         out[name] = {}
         for label in ("positive", "negative"):
             m = st == STATES[label]
@@ -492,12 +498,15 @@ def _datasets(df: pl.DataFrame, datasets: Mapping[str, str] | None) -> np.ndarra
     return np.full(df.height, "unknown", dtype=object)
 
 
-def _no_positive_message(df: pl.DataFrame, truth: np.ndarray, hs: HindsightSettings | None) -> str:
+def no_positive_message(
+    agent_frames: int, scenes: int, censored: int, hs: HindsightSettings | None
+) -> str:
+    """The error when no agent came close in hindsight."""
     hs = hs or HindsightSettings()
     return (
         f"no agent came close in hindsight (box gap <= {hs.gap_m:g} m or PET <= "
-        f"{hs.pet_s:g} s within {hs.horizon_s:g} s) in {df.height} agent-frames of "
-        f"{df['scene'].n_unique()} scene(s) ({int((truth == -1).sum())} censored): every "
+        f"{hs.pet_s:g} s within {hs.horizon_s:g} s) in {agent_frames} agent-frames of "
+        f"{scenes} scene(s) ({censored} censored): every "
         "rate against hindsight is undefined; add scenes or loosen --truth-gap / --truth-pet"
     )
 

@@ -7,7 +7,7 @@ import json
 import math
 import os
 import pathlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -17,11 +17,8 @@ from outputs.atomic import atomic_output
 from replay.analysis.evaluation.corpus import (
     HEADLINE_THRESHOLD,
     REFERENCES,
-    ROC_TABLE_POINTS,
-    reference_arrays,
 )
 from replay.analysis.evaluation.plots import plot_budgets, plot_evaluation
-from risk.evaluation import pooled_roc
 from risk.hindsight import HindsightSettings
 
 
@@ -58,42 +55,6 @@ def positives_table(
         .replace_strict(ds, default="unknown", return_dtype=pl.String)
         .alias("dataset")
     )
-
-
-def roc_table(
-    agents: pl.DataFrame, models: Sequence[str], summary: Mapping[str, Any]
-) -> pl.DataFrame:
-    """Pooled ROC points of every model against every reference with positives (at most
-    :data:`ROC_TABLE_POINTS` per curve, evenly spread; the ends are kept)."""
-    all_refs, _ = reference_arrays(
-        agents, baseline_threshold=summary["baseline"]["threshold"],
-        windows=summary["settings"].get("hindsight_windows", "complete"),
-    )  # fmt: skip
-    names = summary.get("reference_names", list(all_refs))
-    refs = {n: all_refs[n] for n in names if n in all_refs}
-    frames = []
-    for m in models:
-        s = agents[f"risk_{m}"].to_numpy().astype(np.float64)
-        for name, ref in refs.items():
-            roc = pooled_roc(s, ref)
-            k = roc.thresholds.size
-            idx = (
-                np.unique(np.linspace(0, k - 1, min(k, ROC_TABLE_POINTS)).round().astype(int))
-                if k
-                else np.empty(0, int)
-            )
-            frames.append(
-                pl.DataFrame(
-                    {
-                        "model": [m] * idx.size,
-                        "reference": [name] * idx.size,
-                        "threshold": roc.thresholds[idx],
-                        "tpr": roc.tpr[idx],
-                        "fpr": roc.fpr[idx],
-                    }
-                )
-            )
-    return pl.concat(frames) if frames else pl.DataFrame()
 
 
 def budget_table(summary: Mapping[str, Any]) -> pl.DataFrame:
@@ -151,22 +112,23 @@ def miss_table(summary: Mapping[str, Any]) -> pl.DataFrame:
 
 def write_evaluation(
     summary: Mapping[str, Any],
-    agents: pl.DataFrame,
     out_dir: str | os.PathLike[str],
     *,
-    datasets: Mapping[str, str] | None = None,
+    roc: pl.DataFrame,
+    positives: pl.DataFrame,
     plots: bool = True,
 ) -> dict[str, pathlib.Path]:
-    """``summary.json``, the tables (``roc``, ``miss_rates``, ``positives``, Parquet and
-    CSV) and the plots into ``out_dir``, each file atomically. Returns name -> path."""
+    """``summary.json``, the tables (``roc`` and ``positives`` as
+    :func:`replay.analysis.evaluation.streaming.evaluate_parts` made them, ``miss_rates``
+    and ``budgets`` from the summary; Parquet and CSV) and the plots into ``out_dir``,
+    each file atomically. Returns name -> path."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written: dict[str, pathlib.Path] = {}
-    models = summary["settings"]["models"]
     tables = {
-        "roc": roc_table(agents, models, summary),
+        "roc": roc,
         "miss_rates": miss_table(summary),
-        "positives": positives_table(agents, datasets),
+        "positives": positives,
         "budgets": budget_table(summary),
     }
     for name, df in tables.items():
@@ -215,6 +177,25 @@ EVALUATION_AUC_NOTE = (
 )
 
 
+def auc_bound_note(summary: Mapping[str, Any]) -> str:
+    """The largest error bound of the summary's AUCs (binned on a fixed score grid,
+    :mod:`replay.analysis.evaluation.streaming`), as a sentence; empty without one."""
+    bounds = [
+        float(block["auc"]["error_bound"])
+        for per_ref in summary.get("models", {}).values()
+        for block in per_ref.values()
+        if isinstance(block.get("auc", {}).get("error_bound"), float)
+        and math.isfinite(block["auc"]["error_bound"])
+    ]
+    if not bounds:
+        return ""
+    return (
+        f"AUC ± {max(bounds):.1e} bound: thresholds on a fixed score grid summed over scenes; "
+        "each AUC lies within its stated error_bound (summary.json) of the "
+        "every-distinct-score value, the largest shown here"
+    )
+
+
 def format_evaluation(summary: Mapping[str, Any]) -> str:
     """The end-of-run text: counts per reference, each model's AUC against every
     reference with intervals, its miss rate against hindsight at the headline threshold,
@@ -256,6 +237,8 @@ def format_evaluation(summary: Mapping[str, Any]) -> str:
         )
     pct = f"{100 * level:g} %"
     lines.append(EVALUATION_AUC_NOTE)
+    if note := auc_bound_note(summary):
+        lines.append(note)
     lines.append(f"AUC per reference [{pct} scene-bootstrap interval]:")
     lines.append(f"  {'model':<22}" + "".join(f"{n:>30}" for n in names))
     for model, per_ref in summary["models"].items():

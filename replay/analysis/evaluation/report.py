@@ -23,7 +23,7 @@ import polars as pl
 
 from outputs.atomic import atomic_output
 from replay.analysis.evaluation.corpus import HEADLINE_THRESHOLD
-from replay.analysis.evaluation.files import positives_table
+from replay.analysis.evaluation.files import auc_bound_note
 from replay.analysis.evaluation.sensitivity import RANKED, SweepResult
 from risk.registry import MODELS
 
@@ -114,8 +114,7 @@ def _table(header: list[str], rows: list[list[str]]) -> str:
     return "\n".join(lines)
 
 
-def _positives_section(agents: pl.DataFrame, datasets: Mapping[str, str] | None) -> str:
-    pos = positives_table(agents, datasets)
+def _positives_section(pos: pl.DataFrame) -> str:
     if pos.is_empty():
         return "No agent came close."
     per: list[str] = []
@@ -527,7 +526,7 @@ def _better_defaults(sweep: SweepResult) -> str:
 def write_report(
     path: str | os.PathLike[str],
     summary: Mapping[str, Any],
-    agents: pl.DataFrame,
+    positives: pl.DataFrame,
     *,
     out_dir: str | os.PathLike[str],
     sweep: SweepResult | None = None,
@@ -588,14 +587,15 @@ def write_report(
         or "as the tables were written",
         "baseline": f"{summary['baseline']['model']} >= {summary['baseline']['threshold']:g}",
         "n_boot": str(summary["bootstrap"]["n_boot"]),
-        "positives": _positives_section(agents, datasets),
+        "positives": _positives_section(positives),
         "auc_table": _auc_section(summary),
         "findings": _table(["finding of the paper", "reference", "verdict"], findings),
         "cascade": cascade_text,
         "roc_plot": f"![ROC against hindsight]({rel}/roc_hindsight.png)"
         if any(p.name == "roc_hindsight.png" for p in pngs)
         else "",
-        "auc_all": _auc_all(summary),
+        "auc_all": _auc_all(summary)
+        + (f"\n\n{bound}." if (bound := auc_bound_note(summary)) else ""),
         "agreement": _agreement_section(summary),
         "windows_section": _windows_section(summary),
         "budgets": _budget_section(summary, rel, [p.name for p in pngs]),

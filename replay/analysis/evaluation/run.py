@@ -1,10 +1,12 @@
 """``replay evaluate``'s workflow as one library function: every scene replayed (or table
-read) as a job on an engine (:mod:`replay.jobs`) into ``OUT/parts/``, the parts read
-back lazily, every model evaluated against every reference, optionally the sensitivity
-sweep (:mod:`replay.analysis.evaluation.sensitivity`), and the files and the report.
+read) as a job on an engine (:mod:`replay.jobs`) into ``OUT/parts/``, every model
+evaluated against every reference from the parts one scene at a time
+(:mod:`replay.analysis.evaluation.streaming`: the driver never holds the corpus's rows),
+optionally the sensitivity sweep (:mod:`replay.analysis.evaluation.sensitivity`, which
+does hold the defaults' rows), and the files and the report.
 
-The maths is :mod:`risk.evaluation`; the corpus-level steps are
-:mod:`replay.analysis.evaluation.corpus`; this module only puts them in order. The
+The maths is :mod:`risk.evaluation` and :mod:`risk.roc_counts`; this module only puts
+the steps in order. The
 outputs appear together at the end (:class:`outputs.transaction.OutputGuard`); the parts
 and ``failures.csv`` are written as scenes finish, so that a rerun resumes.
 """
@@ -23,7 +25,7 @@ from replay.analysis.evaluation.collect import (
     check_tables_hindsight,
     evaluation_agents,
 )
-from replay.analysis.evaluation.corpus import EvaluationError, EvaluationSettings, evaluate_table
+from replay.analysis.evaluation.corpus import EvaluationError, EvaluationSettings
 from replay.analysis.evaluation.files import format_evaluation, write_evaluation
 from replay.analysis.evaluation.report import write_report
 from replay.analysis.evaluation.sensitivity import (
@@ -33,6 +35,7 @@ from replay.analysis.evaluation.sensitivity import (
     sweep_subset,
     write_sweep,
 )
+from replay.analysis.evaluation.streaming import StreamSettings, evaluate_parts
 from replay.analysis.stats.collect import TablesSettings, collected_parts, tables_job
 from replay.core.engine import EVERY_FRAME, Stride
 from replay.jobs import JobReport, resolve_inputs, run_jobs, scene_refs
@@ -149,15 +152,16 @@ def run_evaluation(
         )  # fmt: skip
         if report.failures and report.done:  # at once: the evaluation may yet fail
             show(report.describe())
-        parts = collected_parts(report, cascade)
-        agents = evaluation_agents(parts.agents)
+        parts = collected_parts(report, cascade)  # checks the tables' cascade stages
         datasets = parts.datasets
         read_s = time.perf_counter() - start
         start = time.perf_counter()
-        summary = evaluate_table(
-            agents, settings=settings, datasets=datasets, hindsight=hs,
-            inputs=[str(p) for p in inputs], presorted=True,
+        # One scene's rows at a time (issue 38): the driver never holds the corpus's rows.
+        streamed = evaluate_parts(
+            report.parts("agents"), StreamSettings.of(settings, hs), datasets=datasets,
+            hindsight=hs, inputs=[str(p) for p in inputs], evaluation=settings,
         )  # fmt: skip
+        summary = streamed.summary
         summary["settings"]["planner"] = planner
         summary["failed_scenes"] = [f.scene for f in report.failures]
         summary["time_s"] = {"replay / read": read_s, "evaluation": time.perf_counter() - start}
@@ -171,13 +175,17 @@ def run_evaluation(
                 and sensitivity.every in (None, every)
                 and not report.failures
             )
+            # The sweep evaluates every variant on rows in memory (its own, smaller job):
+            # it is given the defaults' rows rather than replaying them.
+            agents = evaluation_agents(parts.agents) if same else None
             run.sweep = run_sweep(
-                subset, default_agents=agents if same else None,
+                subset, default_agents=agents,
                 datasets=datasets if same else None, cascade=cascade, hindsight=hs,
                 settings=replace(settings, n_boot=sensitivity.bootstrap),
                 workers=workers, progress=progress, ego=ego,
                 every=sensitivity.every or every,
             )  # fmt: skip
+            del agents
             summary["sensitivity"] = {
                 "scenes": len(subset), "every": str(sensitivity.every or every),
                 "bootstrap": sensitivity.bootstrap, "time_s": run.sweep.time_s,
@@ -185,13 +193,17 @@ def run_evaluation(
             summary["time_s"]["sensitivity"] = time.perf_counter() - start
             run.files.update(write_sweep(run.sweep, out_dir, plots=plots))
             show(format_sweep(run.sweep))
-        run.files.update(write_evaluation(summary, agents, out_dir, datasets=datasets, plots=plots))
+        run.files.update(
+            write_evaluation(
+                summary, out_dir, roc=streamed.roc, positives=streamed.positives, plots=plots
+            )
+        )
         if report_path is not None:  # same guard: it may not replace an input or output
             pending = guard.pending()  # the plots above, not yet renamed into place
             pngs = {p: pending.get(p, p) for p in run.files.values() if p.suffix == ".png"}
             run.files.update(
                 write_report(
-                    report_path, summary, agents, out_dir=out_dir, sweep=run.sweep,
+                    report_path, summary, streamed.positives, out_dir=out_dir, sweep=run.sweep,
                     command=command, datasets=datasets, note=report_note, plots=pngs,
                 )
             )  # fmt: skip

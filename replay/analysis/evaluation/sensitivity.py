@@ -28,9 +28,9 @@ from replay.analysis.evaluation.corpus import (
     REFERENCES,
     EvaluationError,
     EvaluationSettings,
-    evaluate_table,
 )
 from replay.analysis.evaluation.plots import plot_sensitivity
+from replay.analysis.evaluation.streaming import evaluate_frame
 from replay.core.engine import Stride
 from risk.cascade import CascadeConfig
 from risk.hindsight import HindsightSettings
@@ -292,7 +292,7 @@ def run_sweep(
     base_threshold = settings.baseline_threshold
 
     def evaluate(agents: pl.DataFrame, threshold: float) -> dict[str, Any]:
-        return evaluate_table(
+        return evaluate_frame(
             agents, settings=replace(settings, baseline_threshold=threshold),
             datasets=datasets, hindsight=hindsight,
         )  # fmt: skip
