@@ -12,6 +12,7 @@ from typing import Any
 import polars as pl
 
 from replay.analysis.evaluation.corpus import EvaluationError, EvaluationSettings
+from replay.analysis.evaluation.streaming import evaluate_frame
 from replay.analysis.stats.collect import collect, datasets_of
 from replay.core.engine import Stride
 from replay.jobs import resolve_inputs, scene_refs
@@ -76,7 +77,6 @@ def evaluate_inputs(
         paths, cascade=cascade, params=params, prediction=prediction, hindsight=hindsight,
         workers=workers, progress=progress, ego=ego, every=every,
     )  # fmt: skip
-    from replay.analysis.evaluation.streaming import evaluate_frame  # (it imports this module)
 
     return evaluate_frame(
         agents, settings=settings, datasets=datasets, hindsight=hs,

@@ -41,7 +41,7 @@ import os
 import pathlib
 import tempfile
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -813,7 +813,6 @@ OPERATING_THRESHOLDS = {
 
 
 def _asdict(value: Any) -> dict[str, Any]:
-    from dataclasses import asdict
 
     return asdict(value)
 
