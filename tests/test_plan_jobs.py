@@ -98,3 +98,37 @@ def test_ray_gives_the_local_answers(corpus, local_run, ray_instance, tmp_path):
         assert untimed_table(out / f"{name}.parquet").equals(
             untimed_table(local_run / f"{name}.parquet")
         ), name
+
+
+def test_ego_tasks_cut_a_scenes_egos_into_runs_of_at_most_n():
+    from replay.analysis.planner_eval.jobs import ego_tasks
+
+    tasks = ego_tasks({"b/s2": [7], "a/s1": [1, 2, 3, 4, 5, 6, 8, 9, 10]}, per_task=4)
+    assert tasks == [
+        ("a/s1", "a/s1", (1, 2, 3, 4)),
+        ("a/s1#egos-001", "a/s1", (5, 6, 8, 9)),
+        ("a/s1#egos-002", "a/s1", (10,)),
+        ("b/s2", "b/s2", (7,)),
+    ]
+    assert [t for t, _, _ in tasks] == sorted(t for t, _, _ in tasks)
+
+
+def test_a_scenes_egos_split_over_tasks_give_the_rows_of_one_task(corpus, tmp_path, monkeypatch):
+    from replay.analysis.planner_eval import jobs
+
+    study = [*STUDY[: STUDY.index("--closed-loop-sample")], "--closed-loop-sample", "5"]
+    study += [*STUDY[STUDY.index("--closed-loop-sample") + 2 :], "--ego", "all"]
+    tables = []
+    for per_task in (1, 100):
+        monkeypatch.setattr(jobs, "EGOS_PER_TASK", per_task)
+        out = tmp_path / f"out{per_task}"
+        result = plan(corpus, "-o", out, *study, "--workers", "1")
+        assert result.exit_code == 0, result.output
+        tables.append(untimed_table(out / "closed_loop.parquet").sort("scene", "ego_id", "filter"))
+    split, whole = tables
+    runs = split.filter(pl.col("filter") == "none")
+    assert runs.height == 5
+    assert runs.group_by("scene").len()["len"].max() >= 2  # one scene's egos in two tasks
+    assert split["scene"].unique().sort().to_list() == whole["scene"].unique().sort().to_list()
+    assert "#" not in "".join(split["scene"].to_list())
+    assert split.equals(whole)

@@ -160,13 +160,35 @@ def egos_job(settings: EgosSettings) -> Job:
     return Job("plan-egos", vehicle_egos_scene, settings, _key("plan-egos", settings))
 
 
+#: At most this many egos of one scene per closed-loop task: a scene with many sampled
+#: egos (a dataset of one or two scenes takes a dataset's whole share) would otherwise
+#: run them one after another on one worker while the others sit idle.
+EGOS_PER_TASK = 4
+
+
 @dataclasses.dataclass(frozen=True)
 class ClosedLoopJobSettings:
     """The closed loop of one planner: ``closed`` (planner, filters, agents, tracker) and
-    each scene's sampled egos (``egos``: scene key -> ego ids, in the order to run)."""
+    each task's egos (``egos``: task key -> (scene key, ego ids in the order to run))."""
 
     closed: ClosedLoopSettings
-    egos: tuple[tuple[str, tuple[int, ...]], ...]
+    egos: tuple[tuple[str, tuple[str, tuple[int, ...]]], ...]
+
+
+def ego_tasks(
+    chosen: dict[str, list[int]], per_task: int | None = None
+) -> list[tuple[str, str, tuple[int, ...]]]:
+    """(task key, scene key, egos): each scene's sampled egos cut into runs of at most
+    ``per_task``; a scene's first task keeps the scene's key, the others add
+    ``#egos-NNN`` (zero-padded, so keys sort in the egos' order)."""
+    per_task = EGOS_PER_TASK if per_task is None else per_task
+    tasks: list[tuple[str, str, tuple[int, ...]]] = []
+    for key in sorted(chosen):
+        egos = chosen[key]
+        for i, start in enumerate(range(0, len(egos), per_task)):
+            task_key = key if i == 0 else f"{key}#egos-{i:03d}"
+            tasks.append((task_key, key, tuple(egos[start : start + per_task])))
+    return tasks
 
 
 def closed_loop_table(planner: str) -> str:
@@ -174,14 +196,14 @@ def closed_loop_table(planner: str) -> str:
 
 
 def closed_loop_scene(ref: SceneRef, settings: ClosedLoopJobSettings) -> SceneOutput:
-    """Every sampled ego of one scene in closed loop, one task: the scene is read once
-    for its egos (:func:`run_ego` keeps it per worker)."""
-    egos = dict(settings.egos).get(ref.key, ())
+    """A run of one scene's sampled egos in closed loop (:func:`ego_tasks`), one task:
+    the scene is read once for them (:func:`run_ego` keeps it per worker)."""
+    scene_key, egos = dict(settings.egos).get(ref.key, (ref.key, ()))
     rows = [row for ego_id in egos for row in run_ego(ref.path, ego_id, settings.closed)]
     if not rows:
         return SceneOutput({})
     df = pl.DataFrame(rows, infer_schema_length=None).with_columns(
-        pl.lit(ref.key).alias("scene"), pl.lit(dataset_of(ref.path)).alias("dataset")
+        pl.lit(scene_key).alias("scene"), pl.lit(dataset_of(ref.path)).alias("dataset")
     )
     return SceneOutput({closed_loop_table(settings.closed.plan.planner): df})
 

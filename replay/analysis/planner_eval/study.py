@@ -39,6 +39,7 @@ from replay.analysis.planner_eval.jobs import (
     closed_loop_job,
     closed_loop_table,
     dataset_of,
+    ego_tasks,
     egos_job,
     match_job,
     open_loop_job,
@@ -556,11 +557,14 @@ def run_closed_loop(
         chosen: dict[str, list[int]] = {}
         for path, ego_id in picks:
             chosen.setdefault(key_of[path], []).append(ego_id)
+        tasks = ego_tasks(chosen)
         job = closed_loop_job(
-            ClosedLoopJobSettings(closed, tuple((k, tuple(chosen[k])) for k in sorted(chosen)))
+            ClosedLoopJobSettings(closed, tuple((t, (k, egos)) for t, k, egos in tasks))
         )
         desc = f"closed loop ({settings.planner}, {agents} agents)"
-        report = run_job(job, [r for r in refs if r.key in chosen], where, desc)
+        ref_of = {r.key: r for r in refs}
+        task_refs = [dataclasses.replace(ref_of[k], key=t) for t, k, _ in tasks]
+        report = run_job(job, task_refs, where, desc)
         runs = read_table(report, closed_loop_table(settings.planner))
     return ClosedLoopRuns(
         runs=runs, vehicle_egos=vehicles, skipped_egos=skipped, sampled=len(picks),
