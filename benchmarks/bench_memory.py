@@ -1,5 +1,6 @@
-"""Benchmark: the driver's peak memory of ``replay evaluate`` on a corpus and on the same
-corpus replicated K times (issue 38: at 4x, no more than 1.3x the peak of 1x).
+"""Benchmark: the driver's peak memory of a corpus command (``replay evaluate`` unless
+``--command`` names another) on a corpus and on the same corpus replicated K times
+(issue 38: at 4x, no more than 1.3x the peak of 1x).
 
 The corpus is a folder of MCAP scenes. Replica ``K`` is a folder with K sub-folders
 ``r0 .. r{K-1}``, each holding a *copy* of every scene (copies, not links: the same file
@@ -35,6 +36,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 
 import psutil
 
@@ -157,6 +159,18 @@ def main() -> None:
         help="Evaluate into the folders of an earlier run: its scenes are complete, so only "
         "reading the parts back and the evaluation are measured.",
     )  # fmt: skip
+    ap.add_argument(
+        "--command",
+        choices=sorted(COMMANDS),
+        default="evaluate",
+        help="The corpus command whose driver is measured.",
+    )
+    ap.add_argument(
+        "--extra",
+        nargs=argparse.REMAINDER,
+        default=[],
+        help="Further options of that command (last on the line).",
+    )
     ap.add_argument("--streamed", action="store_true")
     ap.add_argument(
         "--streamed-parts", type=pathlib.Path, default=None,
@@ -169,6 +183,20 @@ def main() -> None:
             streamed_only(args)
         else:
             evaluate_runs(args)
+
+
+def _evaluate_argv(folder: pathlib.Path, out: pathlib.Path, args: argparse.Namespace) -> list[str]:
+    return [
+        "evaluate", str(folder), "-o", str(out), "--bootstrap", str(args.bootstrap),
+        "--no-plots", "--no-progress", "--workers", str(args.workers), *args.extra,
+    ]  # fmt: skip
+
+
+# The corpus commands measured (issue 38): each maps (replica folder, output folder, the
+# parsed options) to the arguments of ``python -m replay``. ``--extra`` appends options.
+COMMANDS: dict[str, Callable[[pathlib.Path, pathlib.Path, argparse.Namespace], list[str]]] = {
+    "evaluate": _evaluate_argv,
+}
 
 
 def evaluate_runs(args: argparse.Namespace) -> None:
@@ -186,13 +214,10 @@ def evaluate_runs(args: argparse.Namespace) -> None:
             out = args.work / f"out-x{factor}-{0 if args.keep_parts else rep}"
             if not args.keep_parts:
                 shutil.rmtree(out, ignore_errors=True)
-            cmd = [
-                sys.executable, "-m", "replay", "evaluate", str(folder), "-o", str(out),
-                "--bootstrap", str(args.bootstrap), "--no-plots", "--no-progress",
-                "--workers", str(args.workers),
-            ]  # fmt: skip
+            cmd = [sys.executable, "-m", "replay", *COMMANDS[args.command](folder, out, args)]
             own, tree, seconds, code = peak_rss(cmd, env)
-            summary = json.loads((out / "summary.json").read_text()) if code == 0 else {}
+            summary_file = out / "summary.json"
+            summary = json.loads(summary_file.read_text()) if summary_file.is_file() else {}
             frames = summary.get("references", {}).get("hindsight", {}).get("agent_frames")
             rows.append((factor, rep, len(scenes) * factor, frames, own, tree, seconds, code))
             print(
