@@ -219,3 +219,30 @@ def test_a_worker_that_dies_is_listed_and_the_others_complete(tmp_path):
     again = run_jobs(job, refs, tmp_path / "out", workers=2, progress=False)
     assert not stale.exists()
     assert (again.skipped, again.computed, len(again.failures)) == (3, 0, 1)
+
+
+def interrupted_job(ref: SceneRef, settings: str) -> SceneOutput:
+    """A job stopped (Ctrl-C, SIGTERM) while it runs the scene named ``settings``."""
+    if ref.key == settings:
+        raise KeyboardInterrupt
+    return SceneOutput({"rows": pl.DataFrame({"scene": [ref.key]})})
+
+
+def test_a_stopped_run_says_which_scenes_it_kept_and_a_rerun_resumes(tmp_path):
+    for name in ("a", "b", "c"):
+        (tmp_path / f"{name}.mcap").write_bytes(name.encode())
+    refs = scene_refs(resolve_inputs([tmp_path]))
+    out = tmp_path / "out"
+    stopped = Job("test", interrupted_job, "c", fingerprint("test", {"stop": "c"}))
+    with pytest.raises(KeyboardInterrupt) as info:
+        run_jobs(stopped, refs, out, workers=1, progress=False)
+    kept = info.value.kept  # the line the CLI prints after "Stopped by SIGINT: "
+    assert kept.startswith("2 complete scene(s) of test are kept in ") and "resume" in kept
+    # Stopped before anything was complete: nothing to say beyond the CLI's default line.
+    with pytest.raises(KeyboardInterrupt) as first:
+        run_jobs(Job("first", interrupted_job, "a", "f1"), refs, tmp_path / "o2", workers=1,
+                 progress=False)  # fmt: skip
+    assert not getattr(first.value, "kept", None)
+    resumed = run_jobs(Job("test", interrupted_job, "none", stopped.fingerprint), refs, out,
+                       workers=1, progress=False)  # fmt: skip
+    assert (resumed.skipped, resumed.computed) == (2, 1)

@@ -330,9 +330,17 @@ def run_jobs(
         recomputed += prior == "stale"
         todo.append(_Task(job.name, job.run, job.settings, job.fingerprint, ref, str(parts)))
     failures: list[Failure] = []
-    name, n_workers = _execute(
-        todo, done, failures, engine, workers, ray_address, progress, desc or job.name
-    )
+    try:
+        name, n_workers = _execute(
+            todo, done, failures, engine, workers, ray_address, progress, desc or job.name
+        )
+    except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP: say what a rerun reuses
+        if done and not getattr(exc, "kept", None):
+            exc.kept = (  # type: ignore[attr-defined]
+                f"{len(done)} complete scene(s) of {job.name} are kept in {parts}; run the "
+                "same command again to resume (the final outputs were not written)"
+            )
+        raise
     done.sort(key=lambda d: d.ref.key)
     failures.sort(key=lambda f: (f.scene, f.input, f.stage))
     if done:  # when nothing is complete the command fails and leaves no file behind
