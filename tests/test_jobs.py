@@ -246,3 +246,27 @@ def test_a_stopped_run_says_which_scenes_it_kept_and_a_rerun_resumes(tmp_path):
     resumed = run_jobs(Job("test", interrupted_job, "none", stopped.fingerprint), refs, out,
                        workers=1, progress=False)  # fmt: skip
     assert (resumed.skipped, resumed.computed) == (2, 1)
+
+
+def test_a_rerun_with_every_scene_complete_starts_no_engine(tmp_path, monkeypatch):
+    """``shared_engine`` opens its engine (a local Ray instance, a cluster connection)
+    only when a job has a scene to run."""
+    from replay.jobs import place as place_module
+
+    for name in ("a", "b"):
+        (tmp_path / f"{name}.mcap").write_bytes(name.encode())
+    refs = scene_refs(resolve_inputs([tmp_path]))
+    opened: list[str] = []
+    real = place_module.make_engine
+
+    def counting(name, **kwargs):
+        opened.append(name)
+        return real(name, **kwargs)
+
+    monkeypatch.setattr(place_module, "make_engine", counting)
+    job = Job("test", interrupted_job, "none", fingerprint("test", {"stop": "none"}))
+    where = place_module.JobPlace(tmp_path / "out", engine="local", workers=2, progress=False)
+    for expected_opened, expected_computed in ((1, 2), (1, 0)):
+        with place_module.shared_engine(where, scenes=2) as shared:
+            report = place_module.run_job(job, refs, shared, "test")
+        assert report.computed == expected_computed and len(opened) == expected_opened

@@ -8,7 +8,8 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import pathlib
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
 
 from replay.core.pool import default_workers
 from replay.errors import ReplayError
@@ -53,13 +54,55 @@ def shared_engine(place: JobPlace, scenes: int) -> Iterator[JobPlace]:
         if workers == 1:
             yield dataclasses.replace(place, workers=1)
             return
-    engine = make_engine(place.engine, workers=workers, address=place.address)
+    engine = OnFirstUse(place.engine, workers, place.address)
     try:
         yield dataclasses.replace(place, engine=engine)
     except BaseException:
         engine.close(cancel=True)
         raise
     engine.close()
+
+
+class OnFirstUse:
+    """An engine that starts when a job first needs it: a rerun whose scenes are all
+    complete neither starts a local Ray instance nor connects to a cluster."""
+
+    def __init__(self, name: str, workers: int | None, address: str | None) -> None:
+        self.name = name
+        self._args = (workers, address)
+        self._engine: Engine | None = None
+
+    @property
+    def started(self) -> bool:
+        return self._engine is not None
+
+    def _open(self) -> Engine:
+        if self._engine is None:
+            workers, address = self._args
+            self._engine = make_engine(self.name, workers=workers, address=address)
+        return self._engine
+
+    @property
+    def workers(self) -> int:
+        return self._open().workers
+
+    @workers.setter
+    def workers(self, value: int) -> None:  # the protocol's attribute; never set here
+        self._open().workers = value
+
+    @property
+    def pending(self) -> int:
+        return 0 if self._engine is None else self._engine.pending
+
+    def submit(self, fn: Callable[[Any], Any], task: Any) -> None:
+        self._open().submit(fn, task)
+
+    def results(self) -> list[tuple[Any, Any]]:
+        return [] if self._engine is None else self._engine.results()
+
+    def close(self, *, cancel: bool = False) -> None:
+        if self._engine is not None:
+            self._engine.close(cancel=cancel)
 
 
 def every_done(report: JobReport) -> None:
