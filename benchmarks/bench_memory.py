@@ -192,9 +192,7 @@ def _evaluate_argv(folder: pathlib.Path, out: pathlib.Path, args: argparse.Names
     ]  # fmt: skip
 
 
-def _calibrate_argv(
-    folder: pathlib.Path, out: pathlib.Path, args: argparse.Namespace
-) -> list[str]:
+def _calibrate_argv(folder: pathlib.Path, out: pathlib.Path, args: argparse.Namespace) -> list[str]:
     """``replay calibrate`` on every scene of the replica: its parts (the per-scene jobs)
     in OUT (so that --keep-parts reuses them), the TOML beside it as OUT.toml. Without
     --extra: the survival reference."""

@@ -34,6 +34,8 @@ from replay.analysis.scene_calibration import (
 from replay.errors import ReplayError
 from risk import MODELS
 from risk.calibration import (
+    CalibrationError,
+    GuaranteedCalibration,
     calibrate_thresholds,
     calibrate_unit_minima,
     calibrate_with_guarantee,
@@ -111,7 +113,9 @@ def write_parts(df: pl.DataFrame, folder: pathlib.Path, *, split_corridor: bool)
             corridor = folder / "corridor" / f"{n}.parquet"
             corridor.parent.mkdir(parents=True, exist_ok=True)
             table.select("corridor", "behind").write_parquet(corridor)
-            table = table.with_columns(pl.lit(False).alias("corridor"), pl.lit(False).alias("behind"))
+            table = table.with_columns(
+                pl.lit(False).alias("corridor"), pl.lit(False).alias("behind")
+            )
         table.write_parquet(scores)
         parts.append(ScorePart(str(scene), scores, corridor))
     return parts
@@ -223,22 +227,27 @@ def test_unit_minima_of_the_scenes_side_by_side_give_the_guarantee(seed, stages,
     scores = rng.choice([0.0, 0.1, 0.5, 1.0, 2.0, np.inf, -np.inf, np.nan], size=(stages, n))
     models = [f"m{k}" for k in range(stages)]
     options = dict(models=models, miss_rate=rate, confidence=0.5, unit="scene")
+    whole: GuaranteedCalibration | CalibrationError
     try:
         whole = calibrate_with_guarantee(scores, important, units, **options)
-    except Exception as exc:  # noqa: BLE001  (the same refusal, below)
+    except CalibrationError as exc:  # the same refusal, below
         whole = exc
     order = rng.permutation(scenes)
     minima = [
-        np.stack([unit_minimum(scores[s][scene == k], important[scene == k], units[scene == k])
-                  for s in range(stages)])  # fmt: skip
+        np.stack(
+            [
+                unit_minimum(scores[s][scene == k], important[scene == k], units[scene == k])
+                for s in range(stages)
+            ]
+        )
         for k in order
     ]
     try:
         cal = calibrate_unit_minima(
             np.concatenate(minima, axis=1), positives=int(important.sum()), **options
         )
-    except Exception as exc:  # noqa: BLE001
-        assert type(exc) is type(whole) and str(exc) == str(whole)
+    except CalibrationError as exc:
+        assert str(exc) == str(whole)
         return
     dropped = sum(
         important_dropped(scores[:, scene == k], important[scene == k], cal.thresholds)
@@ -260,8 +269,8 @@ def test_survival_thresholds_from_the_baseline_rows_and_summed_counts(seed, stag
     models = [f"m{k}" for k in range(stages)]
     try:
         whole = calibrate_thresholds(risks, base, frames, models=models, max_fn_rate=rate)
-    except Exception as exc:  # noqa: BLE001
-        with pytest.raises(type(exc)):
+    except CalibrationError:
+        with pytest.raises(CalibrationError):
             fn_budget(rate, int(np.unique(frames).size), int(base.sum()))
         return
     allowed = fn_budget(rate, int(np.unique(frames).size), int(base.sum()))
