@@ -441,7 +441,7 @@ def calibrate_with_guarantee(
         minima, models=models, miss_rate=miss_rate, confidence=confidence, unit=unit,
         positives=int(imp.sum()),
     )  # fmt: skip
-    return with_agents_dropped(cal, important_dropped(scores, imp, cal.thresholds))
+    return with_agents_dropped(cal, important_dropped(scores, imp, cal.thresholds).tolist())
 
 
 def calibrate_unit_minima(

@@ -12,6 +12,11 @@ Three parts, each usable alone:
   union of the planners' labels (the shipped cascade keeps what either reacts to);
 - :func:`site_split`, :func:`held_out_report`, :func:`leave_one_dataset_out`: calibrate on
   some recording sites, report on the others with scene-bootstrap intervals.
+
+These work on the whole scores table (:func:`collect_scores`, :func:`planner_calibration`):
+small runs and the tests' oracle. ``replay calibrate`` runs
+:func:`streamed_planner_calibration` on the scenes' parts (:func:`score_parts`) instead:
+the same results from per-scene summaries, one scene read at a time (issue 38).
 """
 
 from __future__ import annotations
@@ -903,7 +908,7 @@ def streamed_planner_calibration(
         if isinstance(other, tuple):
             lodo_keeps[summary.scene] = scene_keeps(df, other[0], planners, unit)
     cal = with_agents_dropped(cal, dropped.tolist())
-    loo = None
+    loo: dict[str, Any] | None = None
     if lodo:
         loo = {}
         for dataset, other in others.items():

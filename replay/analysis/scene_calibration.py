@@ -3,7 +3,11 @@
 :func:`collect` evaluates the stage models and survival analysis on every agent of every
 frame of some scenes; :func:`calibrated_config` turns that into a cascade with the maths
 of :mod:`risk.calibration`; :func:`provenance` records how (kept in the TOML).
-``replay calibrate`` and ``replay experiment`` (its half-calibration) both use them.
+``replay experiment`` (its half-calibration) uses them on the whole data.
+``replay calibrate`` runs :func:`streamed_calibration` on the scenes' parts
+(:func:`risk_parts`) instead: the same thresholds, tiers and counts, one scene read at a
+time, without holding every agent-frame (issue 38); the whole-data path is its tests'
+oracle.
 """
 
 from __future__ import annotations
