@@ -6,6 +6,7 @@ any order of the parts; a sample too small is still refused saying how many are 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import pathlib
 import random
@@ -13,13 +14,17 @@ import random
 import numpy as np
 import polars as pl
 import pytest
+from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from replay.analysis.planner_calibration import (
+    SCORES,
     ScorePart,
+    ScoreSettings,
     format_report,
     planner_calibration,
+    scores_job,
     streamed_planner_calibration,
 )
 from replay.analysis.planner_eval.study import json_safe
@@ -31,7 +36,9 @@ from replay.analysis.scene_calibration import (
     streamed_calibration,
     tier_means,
 )
+from replay.cli.app import main
 from replay.errors import ReplayError
+from replay.jobs import Inputs, SceneOutput, run_jobs, scene_refs
 from risk import MODELS
 from risk.calibration import (
     CalibrationError,
@@ -206,6 +213,53 @@ def test_the_leave_one_dataset_out_error_is_the_oracles(tmp_path):
     assert any("error" in e for e in (oracle.leave_one_dataset_out or {}).values())
     parts = write_parts(df, tmp_path, split_corridor=False)
     assert payload(streamed_planner_calibration(parts, ["gaussian"], **options)) == payload(oracle)
+
+
+def test_the_command_reports_what_the_whole_table_gives(table, tmp_path):
+    """``replay calibrate --reference planner`` end to end on a prepared cache of parts:
+    its TOML's thresholds and guarantee and its --report JSON are the whole-table
+    oracle's."""
+    score_settings = ScoreSettings(planners=("idm", "fop"), corridor=None)  # the cache key
+    tables = {}
+    for (scene,), part in table.group_by("scene", maintain_order=True):
+        path = tmp_path / "scenes" / f"{scene}.mcap"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"not read: the cache has its scores")
+        tables[path] = part
+    scenes = sorted(tables)
+    refs = scene_refs(Inputs(tuple(scenes), ()))
+    assert {r.key for r in refs} == set(table["scene"])
+
+    def fake(ref, _settings):  # in this process (one worker): no pickling
+        return SceneOutput({SCORES: tables[ref.path]})
+
+    job = dataclasses.replace(scores_job(score_settings), run=fake)
+    run_jobs(job, refs, tmp_path / "cache", workers=1, progress=False)
+    out, report = tmp_path / "planner.toml", tmp_path / "report.json"
+    res = CliRunner().invoke(main, [
+        "calibrate", *map(str, scenes), "--reference", "planner", "--planner", "idm",
+        "--planner", "fop", "--miss-rate", "0.2", "--confidence", "0.8", "--stages",
+        "gaussian,trajectory_distance", "--scores-cache", str(tmp_path / "cache"),
+        "--holdout", "auto", "--no-corridor", "--leave-one-dataset-out", "--report",
+        str(report), "-o", str(out), "--no-progress",
+    ])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    oracle = planner_calibration(
+        table, ["gaussian", "trajectory_distance"], planners=["idm", "fop"], miss_rate=0.2,
+        confidence=0.8, unit="scene", corridor=None, tiers=TIERS, holdout="auto", lodo=True,
+    )  # fmt: skip
+    assert format_report(oracle, ["idm", "fop"]) in res.output
+    config = CascadeConfig.from_toml(out)
+    assert config.stages == oracle.config.stages and config.guarantee == oracle.config.guarantee
+    expected = {
+        "guarantee": oracle.config.guarantee,
+        "thresholds": {s.model: s.threshold for s in oracle.config.stages},
+        "calibrated_on": oracle.calibrated_on,
+        "held_out_sites": list(oracle.held_out_sites),
+        "held_out": oracle.held_out,
+        "leave_one_dataset_out": oracle.leave_one_dataset_out,
+    }
+    assert json.loads(report.read_text()) == json.loads(json.dumps(json_safe(expected)))
 
 
 # ---------------------------------------------------------------------- the pure pieces

@@ -200,7 +200,8 @@ def calibrate(
     The scenes run as jobs on --engine (local processes or Ray; docs/batch.md), their
     parts in --scores-cache (default: OUTPUT.parts/). Scenes that fail are listed in
     its failures.csv and left out, and the command says so; it exits non-zero when
-    every scene failed.
+    every scene failed. The thresholds come from the parts read back one scene at a
+    time (per-scene summaries), never from all agent-frames at once.
 
     \b
     Example (the shipped planner cascade, recalibrated for your own scenes):
