@@ -6,6 +6,12 @@ valid non-ego agent per frame). Every model is a function of the ego and one age
 so an agent's risk on a cascade sub-frame equals its risk on the whole frame: running the
 stages on the flattened arrays reproduces the cascade exactly.
 
+Each calibration also comes in parts, for a caller that reads a corpus one scene at a
+time and never holds all of its agent-frames (issue 38): the thresholds from what alone
+moves them (the baseline-important agent-frames' risks; each unit's least score among its
+important agents), the rest from counts that add up over scenes. The whole-array
+functions are built from those parts, so both give the same numbers.
+
 Choices the spec leaves open (documented here and in ``docs/cascade.md``):
 
 - The false-negative budget of every stage is ``floor(max_fn_rate * B)`` agent-frames,
