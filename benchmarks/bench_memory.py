@@ -192,10 +192,22 @@ def _evaluate_argv(folder: pathlib.Path, out: pathlib.Path, args: argparse.Names
     ]  # fmt: skip
 
 
+def _calibrate_argv(folder: pathlib.Path, out: pathlib.Path, args: argparse.Namespace) -> list[str]:
+    """``replay calibrate`` on every scene of the replica: its parts (the per-scene jobs)
+    in OUT (so that --keep-parts reuses them), the TOML beside it as OUT.toml. Without
+    --extra: the survival reference."""
+    return [
+        "calibrate", *map(str, sorted(folder.rglob("*.mcap"))), "-o", f"{out}.toml",
+        "--scores-cache", str(out), "--no-progress", "--workers", str(args.workers),
+        *args.extra,
+    ]  # fmt: skip
+
+
 # The corpus commands measured (issue 38): each maps (replica folder, output folder, the
 # parsed options) to the arguments of ``python -m replay``. ``--extra`` appends options.
 COMMANDS: dict[str, Callable[[pathlib.Path, pathlib.Path, argparse.Namespace], list[str]]] = {
     "evaluate": _evaluate_argv,
+    "calibrate": _calibrate_argv,
 }
 
 

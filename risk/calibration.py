@@ -6,6 +6,12 @@ valid non-ego agent per frame). Every model is a function of the ego and one age
 so an agent's risk on a cascade sub-frame equals its risk on the whole frame: running the
 stages on the flattened arrays reproduces the cascade exactly.
 
+Each calibration also comes in parts, for a caller that reads a corpus one scene at a
+time and never holds all of its agent-frames (issue 38): the thresholds from what alone
+moves them (the baseline-important agent-frames' risks; each unit's least score among its
+important agents), the rest from counts that add up over scenes. The whole-array
+functions are built from those parts, so both give the same numbers.
+
 Choices the spec leaves open (documented here and in ``docs/cascade.md``):
 
 - The false-negative budget of every stage is ``floor(max_fn_rate * B)`` agent-frames,
@@ -22,6 +28,7 @@ Choices the spec leaves open (documented here and in ``docs/cascade.md``):
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -115,6 +122,10 @@ def calibrate_thresholds(
     number of distinct frames is used, for per-frame means). Stage ``s`` gets the highest
     threshold that drops at most ``floor(max_fn_rate * B)`` baseline agent-frames among
     those stages ``0..s-1`` kept.
+
+    The same in parts (per scene, without holding every agent-frame): :func:`fn_budget`,
+    :func:`sequential_thresholds` on the baseline-important agent-frames only, then
+    :func:`stage_counts` summed over the parts and :func:`calibration_from_counts`.
     """
     risks = np.asarray(stage_risks, dtype=np.float64)
     base = np.asarray(baseline, dtype=bool)
@@ -123,45 +134,100 @@ def calibrate_thresholds(
         raise CalibrationError(f"stage risks must have shape ({len(models)}, A), got {risks.shape}")
     if base.shape != (risks.shape[1],) or frames.shape != base.shape:
         raise CalibrationError("baseline and frame_index must have one entry per agent-frame")
+    n_frames = int(np.unique(frames).size)
+    n_base = int(base.sum())
+    allowed = fn_budget(max_fn_rate, n_frames, n_base)
+    thresholds = sequential_thresholds(risks[:, base], allowed)
+    return calibration_from_counts(
+        models,
+        thresholds,
+        stage_counts(risks, base, thresholds),
+        frames=n_frames,
+        agent_frames=int(base.size),
+        baseline_agents=n_base,
+        max_fn_rate=max_fn_rate,
+    )
+
+
+def fn_budget(max_fn_rate: float, frames: int, baseline_agents: int) -> int:
+    """Each stage's false-negative budget, ``floor(max_fn_rate * B)``; raises
+    CalibrationError for a rate outside [0, 1] or data without frames or without a
+    baseline-important agent-frame."""
     if not 0.0 <= max_fn_rate <= 1.0:
         raise CalibrationError(f"max_fn_rate must be in [0, 1], got {max_fn_rate}")
-    n_frames = int(np.unique(frames).size)
-    if n_frames == 0:
+    if frames == 0:
         raise CalibrationError("no agent-frames to calibrate on (scenes without other agents)")
-    n_base = int(base.sum())
-    if n_base == 0:
+    if baseline_agents == 0:
         raise CalibrationError(
             "no baseline-important agent in the calibration data: nothing to calibrate against"
         )
     # The tiny tolerance keeps e.g. 0.29 * 100 from flooring to 28.
-    allowed = math.floor(max_fn_rate * n_base + 1e-9)
+    return math.floor(max_fn_rate * baseline_agents + 1e-9)
 
+
+def sequential_thresholds(baseline_risks: np.ndarray, allowed: int) -> tuple[float, ...]:
+    """Each stage's threshold from the baseline-important agent-frames alone
+    (``baseline_risks (S, B)``; the others never move a threshold): the highest that
+    drops at most ``allowed`` of those the stages before it kept. Their order does not
+    matter."""
+    risks = np.nan_to_num(np.asarray(baseline_risks, dtype=np.float64), nan=-np.inf)
+    reaching = np.ones(risks.shape[1], dtype=bool)
+    thresholds = []
+    for r in risks:
+        threshold = highest_threshold(r[reaching], allowed)
+        reaching &= r >= threshold
+        thresholds.append(threshold)
+    return tuple(thresholds)
+
+
+def stage_counts(
+    stage_risks: np.ndarray, baseline: np.ndarray, thresholds: Sequence[float]
+) -> np.ndarray:
+    """``(3, S)`` int64 for the cascade ``thresholds`` on some agent-frames: per stage the
+    agent-frames reaching it, those it drops, and the baseline-important ones it drops.
+    Additive: the counts of a corpus are the sums of its scenes'."""
+    risks = np.asarray(stage_risks, dtype=np.float64)
+    base = np.asarray(baseline, dtype=bool)
+    if risks.shape[0] == 0:
+        return np.zeros((3, 0), dtype=np.int64)
+    keep = cascade_keep(risks, thresholds)
+    reaching = np.vstack([np.ones((1, base.size), dtype=bool), keep[:-1]])
+    dropped = reaching & ~keep
+    return np.stack([reaching.sum(axis=1), dropped.sum(axis=1), (dropped & base).sum(axis=1)])
+
+
+def calibration_from_counts(
+    models: Sequence[str],
+    thresholds: Sequence[float],
+    counts: np.ndarray,
+    *,
+    frames: int,
+    agent_frames: int,
+    baseline_agents: int,
+    max_fn_rate: float,
+) -> Calibration:
+    """The :class:`Calibration` of ``thresholds`` from the summed :func:`stage_counts`
+    (``frames``: distinct frames with an agent-frame, for per-frame means)."""
     stages = []
-    reaching = np.ones(base.shape, dtype=bool)
     for s, model in enumerate(models):
-        r = np.nan_to_num(risks[s], nan=-np.inf)
-        threshold = highest_threshold(r[reaching & base], allowed)
-        keep = reaching & (r >= threshold)
-        dropped = reaching & ~keep
-        n_in = int(reaching.sum())
+        n_in, removed, fn = (int(c) for c in counts[:, s])
         stages.append(
             StageCalibration(
                 model=model,
-                threshold=threshold,
+                threshold=thresholds[s],
                 agents_in=n_in,
-                removed=int(dropped.sum()),
-                mean_removed_per_frame=float(dropped.sum()) / n_frames,
-                removed_share=float(dropped.sum()) / n_in if n_in else math.nan,
-                false_negatives=int((dropped & base).sum()),
-                fn_share=float((dropped & base).sum()) / n_base,
+                removed=removed,
+                mean_removed_per_frame=float(removed) / frames,
+                removed_share=float(removed) / n_in if n_in else math.nan,
+                false_negatives=fn,
+                fn_share=float(fn) / baseline_agents,
             )
         )
-        reaching = keep
     return Calibration(
         stages=tuple(stages),
-        frames=n_frames,
-        agent_frames=int(base.size),
-        baseline_agents=n_base,
+        frames=frames,
+        agent_frames=agent_frames,
+        baseline_agents=baseline_agents,
         max_fn_rate=float(max_fn_rate),
     )
 
@@ -176,7 +242,8 @@ def tier_thresholds_for_counts(
     target ``c`` each frame proposes its ``c``-th largest survival risk (its smallest when
     it has fewer survivors: then every survivor qualifies); the threshold is the median
     of the proposals over the frames that have survivors. Tiers are nested, so a target
-    count is also capped by the tier before it at run time.
+    count is also capped by the tier before it at run time. In parts:
+    :func:`tier_proposals` per scene, :func:`median_proposals` of them all.
     """
     risk = np.asarray(survival, dtype=np.float64)
     frames = np.asarray(frame_index)
@@ -184,17 +251,36 @@ def tier_thresholds_for_counts(
         raise CalibrationError("survival and frame_index must be (K,) arrays of equal length")
     if risk.size == 0:
         raise CalibrationError("no survivors to choose tier thresholds from")
+    return median_proposals(tier_proposals(risk, frames, target_counts))
+
+
+def tier_proposals(
+    survival: np.ndarray, frame_index: np.ndarray, target_counts: Sequence[int]
+) -> np.ndarray:
+    """``(F, C)``: each frame's proposal for each target count (see
+    :func:`tier_thresholds_for_counts`), for the ``F`` frames with survivors, frame by
+    frame in the order of their numbers."""
+    for c in target_counts:
+        if c < 1:
+            raise CalibrationError(f"tier target counts must be >= 1, got {c}")
+    risk = np.asarray(survival, dtype=np.float64)
+    frames = np.asarray(frame_index)
+    if risk.size == 0:
+        return np.empty((0, len(target_counts)))
     order = np.lexsort((-risk, frames))  # by frame, riskiest first within a frame
     f_sorted, r_sorted = frames[order], risk[order]
     starts = np.flatnonzero(np.r_[True, f_sorted[1:] != f_sorted[:-1]])
     ends = np.r_[starts[1:], f_sorted.size]  # exclusive
-    result = []
-    for c in target_counts:
-        if c < 1:
-            raise CalibrationError(f"tier target counts must be >= 1, got {c}")
-        pick = np.minimum(starts + c - 1, ends - 1)
-        result.append(float(np.median(r_sorted[pick])))
-    return tuple(result)
+    columns = [r_sorted[np.minimum(starts + c - 1, ends - 1)] for c in target_counts]
+    return np.stack(columns, axis=1) if columns else np.empty((starts.size, 0))
+
+
+def median_proposals(proposals: np.ndarray) -> tuple[float, ...]:
+    """The tier minimums: the median over frames of ``proposals (F, C)`` (the frames'
+    order does not matter)."""
+    if proposals.shape[0] == 0:
+        raise CalibrationError("no survivors to choose tier thresholds from")
+    return tuple(float(np.median(proposals[:, k])) for k in range(proposals.shape[1]))
 
 
 # ---------------------------------------------------------------------- with a guarantee
@@ -292,6 +378,10 @@ class GuaranteedCalibration:
     stage_miss_rate: float
     stage_confidence: float
 
+    @property
+    def thresholds(self) -> tuple[float, ...]:
+        return tuple(s.threshold for s in self.stages)
+
     def guarantee(self) -> dict[str, object]:
         return {
             "miss_rate": self.miss_rate,
@@ -352,10 +442,40 @@ def calibrate_with_guarantee(
         raise CalibrationError("important and units must have one entry per agent-frame")
     if n_stages == 0:
         raise CalibrationError("no stage to calibrate")
+    minima = np.stack([unit_minimum(scores[s], imp, unit_codes) for s in range(n_stages)])
+    cal = calibrate_unit_minima(
+        minima, models=models, miss_rate=miss_rate, confidence=confidence, unit=unit,
+        positives=int(imp.sum()),
+    )  # fmt: skip
+    return with_agents_dropped(cal, important_dropped(scores, imp, cal.thresholds).tolist())
+
+
+def calibrate_unit_minima(
+    minima: np.ndarray,
+    *,
+    models: Sequence[str],
+    miss_rate: float,
+    confidence: float,
+    unit: str,
+    positives: int,
+) -> GuaranteedCalibration:
+    """:func:`calibrate_with_guarantee` from its per-unit summary: ``minima (S, U)``, each
+    stage's :func:`unit_minimum` of the ``U`` units with an important agent (in any
+    order: a corpus's are its scenes' side by side), ``positives`` the important
+    agent-frames. Each stage's ``agents_dropped`` is 0 here: count them with
+    :func:`important_dropped` (summed over the scenes) and :func:`with_agents_dropped`."""
+    per_units = np.asarray(minima, dtype=np.float64)
+    n_stages = len(models)
+    if n_stages == 0:
+        raise CalibrationError("no stage to calibrate")
+    if per_units.ndim != 2 or per_units.shape[0] != n_stages:
+        raise CalibrationError(
+            f"unit minima must have shape ({n_stages}, U), got {per_units.shape}"
+        )
     stage_miss = miss_rate / n_stages
     stage_conf = 1.0 - (1.0 - confidence) / n_stages
     need = units_needed(stage_miss, stage_conf)
-    n_units = int(np.unique(unit_codes[imp]).size)
+    n_units = int(per_units.shape[1])
     if n_units < need:
         per = (
             ""
@@ -369,8 +489,7 @@ def calibrate_with_guarantee(
         )
     k = allowed_unit_drops(n_units, stage_miss, stage_conf)
     stages = []
-    for s, model in enumerate(models):
-        per_unit = unit_minimum(scores[s], imp, unit_codes)
+    for model, per_unit in zip(models, per_units, strict=True):
         forced = int(np.isneginf(per_unit).sum())
         if forced > k:
             raise CalibrationError(
@@ -379,14 +498,13 @@ def calibrate_with_guarantee(
                 f"than the {k} the guarantee allows"
             )
         threshold = max(highest_threshold(per_unit, k), 0.0)
-        dropped = imp & (_nan_low(scores[s]) < threshold)
         stages.append(
             GuaranteedStage(
                 model=model,
                 threshold=threshold,
                 drops_allowed=k,
                 units_dropped=int((per_unit < threshold).sum()),
-                agents_dropped=int(dropped.sum()),
+                agents_dropped=0,
             )
         )
     return GuaranteedCalibration(
@@ -395,7 +513,29 @@ def calibrate_with_guarantee(
         confidence=float(confidence),
         unit=unit,
         units=n_units,
-        positives=int(imp.sum()),
+        positives=int(positives),
         stage_miss_rate=stage_miss,
         stage_confidence=stage_conf,
     )
+
+
+def important_dropped(
+    stage_scores: np.ndarray, important: np.ndarray, thresholds: Sequence[float]
+) -> np.ndarray:
+    """``(S,)`` int64: the important agent-frames each stage alone drops at
+    ``thresholds`` (additive over scenes)."""
+    scores = _nan_low(stage_scores)
+    imp = np.asarray(important, dtype=bool)
+    below = scores < np.asarray(thresholds, dtype=np.float64)[:, None]
+    return (below & imp[None, :]).sum(axis=1).astype(np.int64)
+
+
+def with_agents_dropped(
+    cal: GuaranteedCalibration, agents_dropped: Sequence[int]
+) -> GuaranteedCalibration:
+    """``cal`` with each stage's ``agents_dropped`` set (see :func:`important_dropped`)."""
+    stages = tuple(
+        dataclasses.replace(s, agents_dropped=int(n))
+        for s, n in zip(cal.stages, agents_dropped, strict=True)
+    )
+    return dataclasses.replace(cal, stages=stages)

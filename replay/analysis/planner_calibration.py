@@ -12,6 +12,11 @@ Three parts, each usable alone:
   union of the planners' labels (the shipped cascade keeps what either reacts to);
 - :func:`site_split`, :func:`held_out_report`, :func:`leave_one_dataset_out`: calibrate on
   some recording sites, report on the others with scene-bootstrap intervals.
+
+These work on the whole scores table (:func:`collect_scores`, :func:`planner_calibration`):
+small runs and the tests' oracle. ``replay calibrate`` runs
+:func:`streamed_planner_calibration` on the scenes' parts (:func:`score_parts`) instead:
+the same results from per-scene summaries, one scene read at a time (issue 38).
 """
 
 from __future__ import annotations
@@ -41,7 +46,15 @@ from replay.planning.inputs import plan_request
 from replay.planning.registry import make_planner
 from replay.planning.truth import planner_truth, target_speed
 from risk import MODELS, evaluate
-from risk.calibration import CalibrationError, GuaranteedCalibration, calibrate_with_guarantee
+from risk.calibration import (
+    CalibrationError,
+    GuaranteedCalibration,
+    calibrate_unit_minima,
+    calibrate_with_guarantee,
+    important_dropped,
+    unit_minimum,
+    with_agents_dropped,
+)
 from risk.cascade import (
     CascadeConfig,
     CorridorSettings,
@@ -50,6 +63,7 @@ from risk.cascade import (
     corridor_masks,
     reachable_mask,
 )
+from risk.evaluation import percentile_interval, scene_draws
 from risk.registry import BASELINE_THRESHOLD
 
 #: The units calibration may treat as independent: whole scenes (the default), or one
@@ -231,31 +245,42 @@ def corridor_scene(ref: SceneRef, settings: CorridorJobSettings) -> SceneOutput:
     )
 
 
-def collect_scores(
+@dataclasses.dataclass(frozen=True)
+class ScorePart:
+    """One scene's parts: its scores table and, with a corridor, the corridor pass's
+    two columns for the same rows (:meth:`read` joins them)."""
+
+    key: str
+    scores: pathlib.Path
+    corridor: pathlib.Path | None = None
+
+    def read(self) -> pl.DataFrame:
+        df = pl.read_parquet(self.scores)
+        if self.corridor is not None:
+            extra = pl.read_parquet(self.corridor)
+            df = df.with_columns(extra["corridor"], extra["behind"])
+        return df
+
+
+def score_parts(
     paths: Sequence[pathlib.Path],
     settings: ScoreSettings,
+    place: JobPlace,
     *,
-    workers: int = 1,
-    progress: bool = True,
-    place: JobPlace | None = None,
     reports: list[JobReport] | None = None,
-) -> pl.DataFrame:
-    """:func:`scene_scores` of every scene, concatenated in scene-key order: one job per
-    scene on the engine of ``place`` (default: ``workers`` local processes writing into a
-    temporary folder). Its parts are the cache: a rerun into the same folder with the
-    same settings reads the complete scenes. The scores do not depend on the corridor
-    settings: its columns are a second, cheap job (:func:`corridor_scene`), so that the
-    corridor can be tuned without planning again. ``reports`` receives both jobs'
-    reports (their failures: scenes left out)."""
+) -> list[ScorePart]:
+    """Run the scores job (:func:`scene_scores`, one task per scene) and, with a corridor,
+    the corridor job on the engine of ``place``, and return every complete scene's parts
+    in scene-key order (nothing read). Its parts are the cache: a rerun into the same
+    folder with the same settings reads the complete scenes. The scores do not depend on
+    the corridor settings: its columns are a second, cheap job (:func:`corridor_scene`),
+    so that the corridor can be tuned without planning again. ``reports`` receives both
+    jobs' reports (their failures: scenes left out)."""
     corridor = settings.corridor
     plain = dataclasses.replace(settings, corridor=None)
     refs = scene_refs(Inputs(tuple(pathlib.Path(p) for p in paths), ()))
     job = scores_job(plain)
-    with contextlib.ExitStack() as stack:
-        if place is None:
-            tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="replay-calibrate-"))
-            place = JobPlace(pathlib.Path(tmp), "local", workers, None, progress)
-        where = stack.enter_context(shared_engine(place, len(refs)))
+    with shared_engine(place, len(refs)) as where:
         report = run_job(job, refs, where, "planner truth")
         found = [report]
         every_done(report)
@@ -273,23 +298,42 @@ def collect_scores(
                 for d in found[-1].done
                 if CORRIDOR in d.tables
             }
-        if reports is not None:
-            reports += found
-        write_all_failures(place.out_dir, found)  # each pass wrote only its own
-        frames = []
-        for d in report.done:
-            if SCORES not in d.tables:
-                continue
-            df = pl.read_parquet(d.tables[SCORES])
-            if corridor is not None:
-                if d.ref.key not in with_columns:
-                    continue  # its corridor pass failed: listed, left out
-                extra = pl.read_parquet(with_columns[d.ref.key])
-                df = df.with_columns(extra["corridor"], extra["behind"])
-            frames.append(df)
-    if not frames:
+    if reports is not None:
+        reports += found
+    write_all_failures(place.out_dir, found)  # each pass wrote only its own
+    out = []
+    for d in report.done:
+        if SCORES not in d.tables:
+            continue
+        if corridor is not None and d.ref.key not in with_columns:
+            continue  # its corridor pass failed: listed, left out
+        out.append(
+            ScorePart(d.ref.key, pathlib.Path(d.tables[SCORES]), with_columns.get(d.ref.key))
+        )
+    if not out:
         raise ReplayError("no ego-frame with another agent in the given scenes")
-    return pl.concat(frames, how="diagonal_relaxed")
+    return out
+
+
+def collect_scores(
+    paths: Sequence[pathlib.Path],
+    settings: ScoreSettings,
+    *,
+    workers: int = 1,
+    progress: bool = True,
+    place: JobPlace | None = None,
+    reports: list[JobReport] | None = None,
+) -> pl.DataFrame:
+    """Every scene's scores (:func:`score_parts`, default: ``workers`` local processes
+    writing into a temporary folder) concatenated in scene-key order: the whole table,
+    for small runs and tests (``replay calibrate`` streams the parts instead:
+    :func:`streamed_planner_calibration`)."""
+    with contextlib.ExitStack() as stack:
+        if place is None:
+            tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="replay-calibrate-"))
+            place = JobPlace(pathlib.Path(tmp), "local", workers, None, progress)
+        parts = score_parts(paths, settings, place, reports=reports)
+        return pl.concat([part.read() for part in parts], how="diagonal_relaxed")
 
 
 def cached_scores(
@@ -405,15 +449,24 @@ def calibrated_planner_config(
         )
     except CalibrationError as exc:
         raise ReplayError(str(exc)) from None
+    return _guaranteed_config(cal, planners, corridor, tiers, baseline_threshold), cal
+
+
+def _guaranteed_config(
+    cal: GuaranteedCalibration,
+    planners: Sequence[str],
+    corridor: CorridorSettings | None,
+    tiers: Sequence[Tier],
+    baseline_threshold: float,
+) -> CascadeConfig:
     guarantee = {**cal.guarantee(), "reference": "planner", "planners": list(planners)}
-    config = CascadeConfig(
+    return CascadeConfig(
         stages=tuple(Stage(s.model, s.threshold) for s in cal.stages),
         tiers=tuple(tiers),
         baseline_threshold=baseline_threshold,
         corridor=corridor,
         guarantee=guarantee,
     )
-    return config, cal
 
 
 def cascade_keeps(df: pl.DataFrame, config: CascadeConfig) -> np.ndarray:
@@ -438,7 +491,15 @@ def site_split(
     never calibrated on. ``"auto"``: in every dataset with two or more sites, its
     smallest site (fewest scenes; ties: the last by name) is held out; datasets with
     one site are calibrated on only. Else the names of the sites to hold out."""
-    sites = df.select("dataset", "site", "scene").unique()
+    chosen = held_out_sites(df, holdout)
+    report = df["site"].is_in(sorted(chosen)).to_numpy()
+    return ~report, report
+
+
+def held_out_sites(scenes: pl.DataFrame, holdout: Sequence[str] | str = "auto") -> set[str]:
+    """The sites :func:`site_split` holds out, from a table with the columns ``dataset``,
+    ``site`` and ``scene`` (a row per agent-frame, or per scene)."""
+    sites = scenes.select("dataset", "site", "scene").unique()
     if isinstance(holdout, str) and holdout == "auto":
         chosen: set[str] = set()
         per = sites.group_by("dataset", "site").agg(pl.len().alias("scenes"))
@@ -456,12 +517,10 @@ def site_split(
             raise ReplayError(
                 f"--holdout: no site {', '.join(unknown)} in the scenes; sites: {', '.join(sorted(known))}"
             )
-    report = df["site"].is_in(sorted(chosen)).to_numpy()
-    return ~report, report
+    return chosen
 
 
 def _share(hits: np.ndarray, clusters: np.ndarray, n_boot: int, seed: int) -> dict[str, Any]:
-
     return share_with_interval(hits, clusters, n_boot=n_boot, seed=seed)
 
 
@@ -611,6 +670,266 @@ def planner_calibration(
         calibrated_on=describe(calibration_df, planners),
         held_out=held_out,
         held_out_sites=sites,
+        leave_one_dataset_out=loo,
+    )
+
+
+# ---------------------------------------------------------------------- in bounded memory
+# ``replay calibrate`` never holds the corpus's rows (issue 38): a first pass over the
+# parts, one scene at a time, keeps what no threshold changes (counts, and each unit's
+# least stage score among its planner-important agents: all the guarantee's rule needs);
+# the thresholds follow from those; a second pass counts what the chosen cascades keep
+# (the dropped important agent-frames of the calibration scenes, the held-out and
+# leave-one-dataset-out figures). The held memory grows with scenes and units, not with
+# agent-frames. :func:`planner_calibration` on the whole table is the tests' oracle.
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class SceneSummary:
+    """One scene's part of the calibration that no threshold changes. ``positives``:
+    planner-important agent-frames per planner and of their ``union``; ``minima (S, U)``:
+    per stage, the least stage score of the union-important agents of each of the
+    scene's ``U`` units that has one (:func:`risk.calibration.unit_minimum`)."""
+
+    scene: str
+    dataset: str
+    site: str
+    ego_frames: int
+    agent_frames: int
+    positives: dict[str, int]
+    minima: np.ndarray
+
+
+def summarize_scene(
+    df: pl.DataFrame, models: Sequence[str], *, planners: Sequence[str], unit: str, corridor: bool
+) -> SceneSummary:
+    """The :class:`SceneSummary` of one scene's scores table (pass 1)."""
+    imp = important(df, planners)
+    units = units_of(df, unit)
+    scores = stage_scores(df, models, corridor=corridor)
+    minima = (
+        np.stack([unit_minimum(scores[s], imp, units) for s in range(len(models))])
+        if models
+        else np.empty((0, np.unique(units[imp]).size))
+    )
+    return SceneSummary(
+        scene=str(df["scene"][0]),
+        dataset=str(df["dataset"][0]),
+        site=str(df["site"][0]),
+        ego_frames=df.select("scene", "ego_id", "frame").n_unique(),
+        agent_frames=df.height,
+        positives={p: int(important(df, [p]).sum()) for p in planners} | {"union": int(imp.sum())},
+        minima=minima,
+    )
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class SceneKeeps:
+    """What one cascade keeps of one scene (pass 2): the agent-frames kept and, per group
+    (``union`` and each planner), ``(positives, dropped, units with a positive, units
+    with one dropped)``."""
+
+    kept: int
+    groups: dict[str, tuple[int, int, int, int]]
+
+
+def scene_keeps(
+    df: pl.DataFrame, config: CascadeConfig, planners: Sequence[str], unit: str
+) -> SceneKeeps:
+    """The :class:`SceneKeeps` of ``config`` on one scene's scores table."""
+    keep = cascade_keeps(df, config)
+    units = units_of(df, unit)
+    groups = {}
+    for name, who in [("union", list(planners)), *((p, [p]) for p in planners)]:
+        imp = important(df, who)
+        missed = imp & ~keep
+        groups[name] = (
+            int(imp.sum()),
+            int(missed.sum()),
+            int(np.unique(units[imp]).size),
+            int(np.unique(units[missed]).size),
+        )
+    return SceneKeeps(int(keep.sum()), groups)
+
+
+def _share_of_sums(hits: Sequence[int], n: Sequence[int], n_boot: int, seed: int) -> dict[str, Any]:
+    """:func:`share_with_interval` from per-scene sums, the scenes in key order (sorted,
+    as its clusters are) and only those with ``n > 0``: the same draws, so the same
+    interval (every sum it forms is an exact integer)."""
+    total = int(sum(n))
+    if total == 0:
+        return {"share": None, "ci95": None, "n": 0, "count": 0}
+    counts = scene_draws(len(n), n_boot=n_boot, seed=seed)
+    num = counts @ np.asarray(hits, dtype=np.float64)
+    den = counts @ np.asarray(n, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        reps = num / den
+    lo, hi = percentile_interval(reps)
+    count = int(sum(hits))
+    return {"share": float(np.float64(count) / total), "ci95": [lo, hi], "n": total, "count": count}
+
+
+def summaries_report(
+    summaries: Sequence[SceneSummary],
+    keeps: dict[str, SceneKeeps],
+    planners: Sequence[str],
+    *,
+    n_boot: int = 1000,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """:func:`held_out_report` from the scenes' summaries and what the cascade kept of
+    each (``keeps`` by scene)."""
+    out: dict[str, Any] = {}
+    for dataset in ["all", *sorted({s.dataset for s in summaries})]:
+        chosen = sorted(
+            (s for s in summaries if dataset == "all" or s.dataset == dataset),
+            key=lambda s: s.scene,
+        )
+        frames = sum(s.ego_frames for s in chosen)
+        entry: dict[str, Any] = {
+            "scenes": len(chosen),
+            "ego_frames": frames,
+            "mean_others": sum(s.agent_frames for s in chosen) / max(frames, 1),
+            "mean_kept": float(sum(keeps[s.scene].kept for s in chosen)) / max(frames, 1),
+        }
+        for name in ["union", *planners]:
+            g = [keeps[s.scene].groups[name] for s in chosen]
+            g = [x for x in g if x[0] > 0]  # the bootstrap's clusters: scenes with a positive
+            entry[name] = {
+                "positives": sum(x[0] for x in g),
+                "dropped": _share_of_sums([x[1] for x in g], [x[0] for x in g], n_boot, seed),
+                "units_missed": _share_of_sums([x[3] for x in g], [x[2] for x in g], n_boot, seed),
+            }
+        out[dataset] = entry
+    return out
+
+
+def _describe_summaries(
+    summaries: Sequence[SceneSummary], planners: Sequence[str]
+) -> dict[str, Any]:
+    """:func:`describe` from the scenes' summaries."""
+    return {
+        "scenes": len(summaries),
+        "datasets": sorted({s.dataset for s in summaries}),
+        "sites": sorted({s.site for s in summaries}),
+        "ego_frames": sum(s.ego_frames for s in summaries),
+        "agent_frames": sum(s.agent_frames for s in summaries),
+        "positives": {p: sum(s.positives[p] for s in summaries) for p in [*planners, "union"]},
+    }
+
+
+def _calibrate_summaries(
+    summaries: Sequence[SceneSummary],
+    models: Sequence[str],
+    *,
+    planners: Sequence[str],
+    miss_rate: float,
+    confidence: float,
+    unit: str,
+    corridor: CorridorSettings | None,
+    tiers: Sequence[Tier],
+    baseline_threshold: float = BASELINE_THRESHOLD,
+) -> tuple[CascadeConfig, GuaranteedCalibration]:
+    """:func:`calibrated_planner_config` from the scenes' summaries; each stage's
+    ``agents_dropped`` is 0 until the second pass counts it."""
+    minima = (
+        np.concatenate([s.minima for s in summaries], axis=1)
+        if summaries
+        else np.empty((len(models), 0))
+    )
+    try:
+        cal = calibrate_unit_minima(
+            minima, models=models, miss_rate=miss_rate, confidence=confidence, unit=unit,
+            positives=sum(s.positives["union"] for s in summaries),
+        )  # fmt: skip
+    except CalibrationError as exc:
+        raise ReplayError(str(exc)) from None
+    return _guaranteed_config(cal, planners, corridor, tiers, baseline_threshold), cal
+
+
+def streamed_planner_calibration(
+    parts: Sequence[ScorePart],
+    models: Sequence[str],
+    *,
+    planners: Sequence[str],
+    miss_rate: float,
+    confidence: float,
+    unit: str,
+    corridor: CorridorSettings | None,
+    tiers: Sequence[Tier],
+    holdout: Sequence[str] | str | None = None,
+    lodo: bool = False,
+    n_boot: int = 1000,
+) -> PlannerCalibration:
+    """:func:`planner_calibration` over the scenes' parts, one scene at a time (see the
+    section comment): the same thresholds, guarantee and figures, in any order of the
+    parts, without holding the corpus's rows."""
+    shielded = corridor is not None
+    summaries = [
+        summarize_scene(part.read(), models, planners=planners, unit=unit, corridor=shielded)
+        for part in parts
+    ]
+    held: set[str] = set()
+    if holdout is not None:
+        table = pl.DataFrame(
+            {
+                "dataset": [s.dataset for s in summaries],
+                "site": [s.site for s in summaries],
+                "scene": [s.scene for s in summaries],
+            },
+            schema={"dataset": pl.String, "site": pl.String, "scene": pl.String},
+        )
+        held = held_out_sites(table, holdout)
+    calibration = [s for s in summaries if s.site not in held]
+    reported = [s for s in summaries if s.site in held]
+    settings = dict(planners=planners, miss_rate=miss_rate, confidence=confidence, unit=unit,
+                    corridor=corridor, tiers=tiers)  # fmt: skip
+    config, cal = _calibrate_summaries(calibration, models, **settings)  # type: ignore[arg-type]
+    others: dict[str, tuple[CascadeConfig, GuaranteedCalibration] | str] = {}
+    if lodo:
+        for dataset in sorted({s.dataset for s in summaries}):
+            rest = [s for s in summaries if s.dataset != dataset]
+            try:
+                others[dataset] = _calibrate_summaries(rest, models, **settings)  # type: ignore[arg-type]
+            except ReplayError as exc:
+                others[dataset] = str(exc)
+    # pass 2: what the chosen cascades keep, one scene at a time
+    dropped = np.zeros(len(models), dtype=np.int64)
+    held_keeps: dict[str, SceneKeeps] = {}
+    lodo_keeps: dict[str, SceneKeeps] = {}
+    for part, summary in zip(parts, summaries, strict=True):
+        df = part.read()
+        if summary.site in held:
+            held_keeps[summary.scene] = scene_keeps(df, config, planners, unit)
+        else:
+            scores = stage_scores(df, models, corridor=shielded)
+            dropped += important_dropped(scores, important(df, planners), cal.thresholds)
+        other = others.get(summary.dataset)
+        if isinstance(other, tuple):
+            lodo_keeps[summary.scene] = scene_keeps(df, other[0], planners, unit)
+    cal = with_agents_dropped(cal, dropped.tolist())
+    loo: dict[str, Any] | None = None
+    if lodo:
+        loo = {}
+        for dataset, other in others.items():
+            if isinstance(other, str):
+                loo[dataset] = {"error": other}
+                continue
+            mine = [s for s in summaries if s.dataset == dataset]
+            report = summaries_report(mine, lodo_keeps, planners, n_boot=n_boot)
+            loo[dataset] = {
+                "calibrated_units": other[1].units,
+                "thresholds": {s.model: s.threshold for s in other[1].stages},
+                **report[dataset],
+            }
+    return PlannerCalibration(
+        config=config,
+        calibration=cal,
+        calibrated_on=_describe_summaries(calibration, planners),
+        held_out=summaries_report(reported, held_keeps, planners, n_boot=n_boot)
+        if reported
+        else None,
+        held_out_sites=tuple(sorted(held)),
         leave_one_dataset_out=loo,
     )
 

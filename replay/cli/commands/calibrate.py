@@ -21,13 +21,12 @@ from replay.analysis.scene_calibration import (
     DEFAULT_STAGES,
     DEFAULT_TIER_COUNTS,
     DEFAULT_TIERS,
-    CalibrationData,
-    calibrated_config,
-    collect,
+    CalibrationCorpus,
     model_parameters,
     provenance,
+    risk_parts,
     seed_ranges,
-    tier_means,
+    streamed_calibration,
 )
 from replay.cli.engine_options import check_engine_options, engine_options
 from replay.cli.limits import FiniteRange
@@ -201,7 +200,8 @@ def calibrate(
     The scenes run as jobs on --engine (local processes or Ray; docs/batch.md), their
     parts in --scores-cache (default: OUTPUT.parts/). Scenes that fail are listed in
     its failures.csv and left out, and the command says so; it exits non-zero when
-    every scene failed.
+    every scene failed. The thresholds come from the parts read back one scene at a
+    time (per-scene summaries), never from all agent-frames at once.
 
     \b
     Example (the shipped planner cascade, recalibrated for your own scenes):
@@ -272,10 +272,10 @@ def _calibrate_survival(
     scenes = tuple(distinct_files(scenes))
     with OutputGuard(inputs=(*scenes, base), files=(output,), folders=(place.out_dir,)):
         with shared_engine(place, len(scenes)) as where:
-            data = collect(scenes, models, place=where, reports=reports)
-        config, cal = calibrated_config(data, models, max_fn_rate=max_fn_rate, tiers=tiers,
-                                        tier_counts=counts)  # fmt: skip
-        means = tier_means(config, data)
+            parts = risk_parts(scenes, models, where, reports=reports)
+        config, cal, data, means = streamed_calibration(
+            parts, models, max_fn_rate=max_fn_rate, tiers=tiers, tier_counts=counts
+        )
         command = _command_line(scenes, output, max_fn_rate, models, counts, base)
         config = CascadeConfig(
             stages=config.stages, tiers=config.tiers,
@@ -299,7 +299,7 @@ def _command_line(scenes, output, max_fn_rate, models, counts, base) -> str:
     return " ".join(parts)
 
 
-def _report(config: CascadeConfig, cal: Calibration, data: CalibrationData, means) -> str:
+def _report(config: CascadeConfig, cal: Calibration, data: CalibrationCorpus, means) -> str:
     w = max(len(s.model) for s in cal.stages) + 2
     lines = [
         f"Calibrated on {data.scenes} scenes, {data.frames} frames, {cal.agent_frames} "
@@ -354,9 +354,9 @@ def _calibrate_planner(
 
     from replay.analysis.planner_calibration import (
         ScoreSettings,
-        collect_scores,
         format_report,
-        planner_calibration,
+        score_parts,
+        streamed_planner_calibration,
     )
     from replay.analysis.planner_eval.study import json_safe
     from replay.planning.registry import available_planners, make_planner
@@ -390,9 +390,9 @@ def _calibrate_planner(
     scenes = tuple(distinct_files(scenes))
     reports: list[JobReport] = []
     with OutputGuard(inputs=(*scenes, base), files=files, folders=(place.out_dir,)):
-        df = collect_scores(scenes, settings, place=place, reports=reports)
-        result = planner_calibration(
-            df, models, planners=settings.planners, miss_rate=miss_rate, confidence=confidence,
+        parts = score_parts(scenes, settings, place, reports=reports)
+        result = streamed_planner_calibration(
+            parts, models, planners=settings.planners, miss_rate=miss_rate, confidence=confidence,
             unit=unit, corridor=settings.corridor, tiers=tiers, holdout=split,
             lodo=leave_one_dataset_out,
         )  # fmt: skip
