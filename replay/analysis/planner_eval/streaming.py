@@ -213,7 +213,7 @@ class Tally:
         self.stats: dict[Key, OrderStatistics] = {}
         self.names: dict[Key, list[Any]] = {}
         self.firsts: dict[Key, Any] = {}
-        self.points: dict[Key, list[np.ndarray]] = {}
+        self.points: dict[Key, list[list[np.ndarray]]] = {}  # per column, its pieces
         self._seen: dict[Key, int] = {}
 
     def add(self, key: Key, n: float) -> None:
@@ -255,9 +255,14 @@ class Tally:
         start = self._seen.get(key, 0)
         self._seen[key] = start + n
         take = np.arange((-start) % step, n, step)
-        kept = self.points.setdefault(key, [np.empty(0) for _ in columns])
-        self.points[key] = [
-            np.concatenate([k, c[take]]) for k, c in zip(kept, columns, strict=True)
+        kept = self.points.setdefault(key, [[] for _ in columns])
+        for pieces, column in zip(kept, columns, strict=True):
+            pieces.append(column[take])
+
+    def sampled(self, key: Key, columns: int) -> list[np.ndarray]:
+        """The plot points of ``key``: one array per column."""
+        return [
+            np.concatenate(p) if p else np.empty(0) for p in self.points.get(key, [[]] * columns)
         ]
 
     def second_pass(self) -> None:
@@ -496,10 +501,7 @@ def summarize_plans(
         }
     points = PlotPoints(
         planner=out["planner"],
-        filters=tuple(
-            (name, *t.points.get((name,), [np.empty(0), np.empty(0)]))
-            for name in t.names.get(("plotted",), [])
-        ),
+        filters=tuple((name, *t.sampled((name,), 2)) for name in t.names.get(("plotted",), [])),
     )
     return out, points
 
