@@ -65,6 +65,14 @@ SPEED_SCALED_S = 0.1
 #: deterministic subsample, the same on any engine and in any finishing order.
 PLOT_POINTS = 20_000
 
+#: Rows per row group of a merged table: what its writer holds at once (polars' default,
+#: 512**2 rows, would hold a corpus of that many rows whole).
+MERGED_ROW_GROUP_ROWS = 20_000
+#: At most this many grid bins per summarised quantity (medians and p95: about 35 per
+#: planner and filter): ~320 kB of counts each; a bin is then at least 2**-10 of its
+#: value wide over eight powers of two, and the second pass keeps the values of the bins
+#: that hold the medians and p95s only.
+VALUE_BINS = 1 << 13
 #: The plans table's columns a summary reads.
 PLAN_SUMMARY_COLUMNS = (
     "scene", "dataset", "planner", "ego_id", "frame", "filter", "n_others", "n_agents",
@@ -84,13 +92,9 @@ class TableParts:
     def is_empty(self) -> bool:
         return not self.files
 
-    def schema(self) -> dict[str, pl.DataType]:
-        """Every part's columns (the files' schemas only), in order of first appearance."""
-        union: dict[str, pl.DataType] = {}
-        for path in self.files:
-            for name, dtype in pl.read_parquet_schema(path).items():
-                union.setdefault(name, dtype)
-        return union
+    def schema(self) -> pl.Schema:
+        """The columns and types of :meth:`scan` (from the files' schemas only)."""
+        return self.scan().collect_schema()
 
     def scan(self) -> pl.LazyFrame:
         """The parts as one lazy table (columns a part lacks are null; types widened), as
@@ -105,21 +109,28 @@ class TableParts:
 
     def frames(self, columns: Sequence[str] | None) -> Iterator[pl.DataFrame]:
         """One part at a time, ``columns`` only (None: all; those no part has are left
-        out; a part without one that others have reads it as nulls)."""
+        out), with :meth:`scan`'s types: a part without a column that others have reads
+        it as nulls, as the concatenation does."""
         union = self.schema()
         wanted = list(union) if columns is None else [c for c in columns if c in union]
         for path in self.files:
             own = pl.read_parquet_schema(path)
             df = pl.read_parquet(path, columns=[c for c in wanted if c in own])
-            missing = [pl.lit(None, dtype=union[c]).alias(c) for c in wanted if c not in own]
-            yield df.with_columns(missing).select(wanted) if missing else df
+            yield df.select(
+                pl.col(c).cast(union[c]) if c in own else pl.lit(None, dtype=union[c]).alias(c)
+                for c in wanted
+            )
 
     def write(self, path: pathlib.Path) -> pathlib.Path:
-        """The table into ``path``, streamed part by part (never collected), atomically:
-        a temporary file beside it, renamed into place when complete."""
+        """The table into ``path`` (:meth:`scan`'s rows), streamed (never collected),
+        atomically: a temporary file beside it, renamed into place when complete. The
+        writer holds one row group (:data:`MERGED_ROW_GROUP_ROWS` rows) at a time."""
         if not self.files:
             return atomic_write(path, pl.DataFrame().write_parquet)
-        return atomic_write(path, lambda tmp: self.scan().sink_parquet(tmp))
+        lazy = self.scan()
+        return atomic_write(
+            path, lambda tmp: lazy.sink_parquet(tmp, row_group_size=MERGED_ROW_GROUP_ROWS)
+        )
 
 
 def frames_of(df: pl.DataFrame) -> Frames:
@@ -128,7 +139,7 @@ def frames_of(df: pl.DataFrame) -> Frames:
 
 
 # ---------------------------------------------------------------------- per-scene sums
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=2)  # most shares resample the same scenes; (B, S) each
 def _draws(n_scenes: int, n_boot: int, seed: int) -> np.ndarray:
     draws = scene_draws(n_scenes, n_boot=n_boot, seed=seed)
     draws.setflags(write=False)
@@ -231,7 +242,7 @@ class Tally:
         v = np.asarray(values, dtype=np.float64)
         v = v[np.isfinite(v)]  # as the full table's quantiles
         if not self.second:
-            self.stats.setdefault(key, OrderStatistics()).count(v)
+            self.stats.setdefault(key, OrderStatistics(VALUE_BINS)).count(v)
         elif key in self.stats:
             self.stats[key].keep(v)
 
