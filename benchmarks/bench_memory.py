@@ -203,11 +203,22 @@ def _calibrate_argv(folder: pathlib.Path, out: pathlib.Path, args: argparse.Name
     ]  # fmt: skip
 
 
+def _plan_argv(folder: pathlib.Path, out: pathlib.Path, args: argparse.Namespace) -> list[str]:
+    """``replay plan``'s open loop (summary, merged plans.parquet and its plots), every
+    moving agent as the ego once a second, IDM, the cascade against all agents."""
+    return [
+        "plan", str(folder), "-o", str(out), "--ego", "all", "--every", "1s",
+        "--planner", "idm", "--filter", "cascade", "--no-progress",
+        "--workers", str(args.workers), *args.extra,
+    ]  # fmt: skip
+
+
 # The corpus commands measured (issue 38): each maps (replica folder, output folder, the
 # parsed options) to the arguments of ``python -m replay``. ``--extra`` appends options.
 COMMANDS: dict[str, Callable[[pathlib.Path, pathlib.Path, argparse.Namespace], list[str]]] = {
     "evaluate": _evaluate_argv,
     "calibrate": _calibrate_argv,
+    "plan": _plan_argv,
 }
 
 

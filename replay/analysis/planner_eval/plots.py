@@ -1,9 +1,15 @@
 """The plots of ``replay plan``: planning time against agent count, and the share of
-changed plans per filter (matplotlib, imported only here: about 1 s)."""
+changed plans per filter (matplotlib, imported only here: about 1 s).
+
+The planning-time scatter draws a deterministic subsample of the rows where the plan
+exists: at most :data:`~replay.analysis.planner_eval.streaming.PLOT_POINTS` per planner
+and filter, every k-th row in key order (all of them below the cap), collected while
+the summary passes over the part files (:class:`~replay.analysis.planner_eval.streaming.PlotPoints`)."""
 
 from __future__ import annotations
 
 import pathlib
+from collections.abc import Sequence
 from typing import Any
 
 import matplotlib
@@ -11,38 +17,35 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-import polars as pl
 
 from outputs.atomic import atomic_write
 from replay.analysis.planner_eval.open_loop import ALL_AGENTS
+from replay.analysis.planner_eval.streaming import PlotPoints
 
 
 def write_plots(
-    plans: pl.DataFrame, summary: dict[str, Any], out_dir: pathlib.Path
+    points: Sequence[PlotPoints], summary: dict[str, Any], out_dir: pathlib.Path
 ) -> dict[str, pathlib.Path]:
     """``plan_time[_<planner>].png`` and ``plan_changed.png`` into ``out_dir`` (one
     time plot per planner when there are several)."""
-    names = plans["planner"].unique(maintain_order=True).to_list()
     files = {}
-    for name in names:
-        file = "plan_time.png" if len(names) == 1 else f"plan_time_{name}.png"
-        files[file] = _plan_time(plans.filter(pl.col("planner") == name), out_dir / file)
+    for scatter in points:
+        name = scatter.planner
+        file = "plan_time.png" if len(points) == 1 else f"plan_time_{name}.png"
+        files[file] = _plan_time(scatter, out_dir / file)
     files["plan_changed.png"] = _changed(summary, out_dir / "plan_changed.png")
     return files
 
 
-def _plan_time(plans: pl.DataFrame, path: pathlib.Path) -> pathlib.Path:
+def _plan_time(points: PlotPoints, path: pathlib.Path) -> pathlib.Path:
     fig, ax = plt.subplots(figsize=(7.5, 4.5), dpi=110)
-    ok = plans.filter(pl.col("plan_ok"))
-    for k, name in enumerate(ok["filter"].unique(maintain_order=True).to_list()):
-        rows = ok.filter(pl.col("filter") == name)
-        total = (rows["filter_ms"] + rows["plan_ms"]).to_numpy()
+    for k, (name, others, total) in enumerate(points.filters):
         label = "all agents (plan)" if name == ALL_AGENTS else f"{name} (filter + plan)"
-        ax.scatter(rows["n_others"].to_numpy() + 0.15 * k, total, s=5, alpha=0.35, label=label)
+        ax.scatter(others + 0.15 * k, total, s=5, alpha=0.35, label=label)
     ax.set_xlabel("other agents in the frame")
     ax.set_ylabel("time per frame (ms)")
     ax.set_yscale("log")
-    ax.set_title(f"Planning time, {plans['planner'][0]}: all agents vs each filter")
+    ax.set_title(f"Planning time, {points.planner}: all agents vs each filter")
     ax.legend(markerscale=3, fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()

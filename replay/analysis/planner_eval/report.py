@@ -13,12 +13,12 @@ from __future__ import annotations
 import datetime
 import math
 import pathlib
+from collections.abc import Sequence
 from typing import Any
-
-import polars as pl
 
 from outputs.atomic import write_text
 from replay.analysis.planner_eval.plots import write_plots
+from replay.analysis.planner_eval.streaming import PlotPoints
 
 #: The changed share (upper 95 % bound) below which a filter "keeps the plan".
 KEEPS_PLAN_SHARE = 0.01
@@ -295,17 +295,18 @@ def verdict(summary: dict[str, Any], *, keeps_plan_share: float = KEEPS_PLAN_SHA
 def write_report(
     path: pathlib.Path,
     summary: dict[str, Any],
-    plans: pl.DataFrame,
+    points: Sequence[PlotPoints],
     *,
     command: str,
 ) -> dict[str, pathlib.Path]:
-    """The report at ``path``, its plots drawn into the folder of the same name."""
+    """The report at ``path``, its plots drawn into the folder of the same name
+    (``points``: each planner's planning-time scatter, from the study's summary pass)."""
     folder = path.with_suffix("")
     folder.mkdir(parents=True, exist_ok=True)
     written: dict[str, pathlib.Path] = {}
     relative: dict[str, str] = {}
-    if not plans.is_empty():
-        for key, target in write_plots(plans, summary, folder).items():
+    if points:
+        for key, target in write_plots(points, summary, folder).items():
             written[f"report:{key}"] = target
             relative[key] = f"{folder.name}/{target.name}"
     per_planner = {}

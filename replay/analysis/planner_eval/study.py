@@ -5,13 +5,16 @@ filter save (median and p95 of the filter's time plus the filtered plan against 
 all-agents plan, overall and by agent-count bins), and how often does the plan change
 (share of comparable ego-frames, with a 95 % scene-bootstrap interval: frames of one scene
 are not independent, so scenes are resampled whole).
+
+The study's driver never holds the corpus's rows (issue 38): the summaries, the merged
+tables and the plot points come from the per-scene part files, one at a time
+(:mod:`replay.analysis.planner_eval.streaming`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import itertools
 import json
 import math
 import os
@@ -24,8 +27,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from outputs.atomic import atomic_write, write_text
-from replay.analysis.planner_eval import metrics
+from outputs.atomic import write_text
 from replay.analysis.planner_eval.closed_loop import (
     DEFAULT_AGENTS,
     DEFAULT_TRACKER,
@@ -46,7 +48,24 @@ from replay.analysis.planner_eval.jobs import (
     plans_table,
     truth_table,
 )
-from replay.analysis.planner_eval.open_loop import ALL_AGENTS, PlanSettings
+from replay.analysis.planner_eval.open_loop import PlanSettings
+from replay.analysis.planner_eval.streaming import (  # the first four: this module's before
+    COUNT_BINS as COUNT_BINS,
+)
+from replay.analysis.planner_eval.streaming import (
+    SHIFT_TOLERANCES_M as SHIFT_TOLERANCES_M,
+)
+from replay.analysis.planner_eval.streaming import (
+    SPEED_SCALED_S as SPEED_SCALED_S,
+)
+from replay.analysis.planner_eval.streaming import (
+    PlotPoints,
+    TableParts,
+    frames_of,
+    summarize_closed_loop,
+    summarize_plans,
+)
+from replay.analysis.planner_eval.streaming import share_with_interval as share_with_interval
 from replay.core.engine import Stride
 from replay.jobs import Failure, JobReport, SceneRef
 from replay.jobs.place import (
@@ -58,16 +77,7 @@ from replay.jobs.place import (
     write_all_failures,
 )
 from replay.jobs.scenes import Inputs, distinct_files, scene_refs
-from risk.evaluation import bootstrap_weights, percentile_interval
-
-#: Agent-count bins of the timing table (others in the frame).
-COUNT_BINS = (0, 10, 25, 50, 100, 10**9)
-#: The changed share is also reported at these tolerances (m) ...
-SHIFT_TOLERANCES_M = (0.5, 1.0, 2.0)
-#: ... and at a speed-scaled one: the distance the ego travels in this time (one
-#: re-planning period at 10 Hz), at least the run's tolerance. A plan shifted by less is
-#: the same plan executed a re-planning period earlier or later.
-SPEED_SCALED_S = 0.1
+from risk.order_statistics import OrderStatistics
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,6 +95,10 @@ class PlanTables:
     skipped_egos: dict[str, int] = dataclasses.field(default_factory=dict)
     ego_kinds: str = "vehicles"
     jobs: JobReport | None = None  # where the scenes ran, what failed
+    #: The part files of the plans and (with truth) agents tables; ``plans`` and
+    #: ``truth`` are empty when the rows were not read (``run_open_loop(read=False)``).
+    parts: TableParts = dataclasses.field(default_factory=TableParts)
+    truth_parts: TableParts = dataclasses.field(default_factory=TableParts)
 
 
 def _refs(scenes: Sequence[pathlib.Path]) -> list[SceneRef]:
@@ -104,13 +118,6 @@ def _place_or_temp(place: JobPlace | None, workers: int, progress: bool) -> Iter
         yield JobPlace(pathlib.Path(tmp), "local", workers, None, progress)
 
 
-def read_table(report: JobReport, table: str) -> pl.DataFrame:
-    """Every complete scene's ``table``, in key order (empty when no scene has rows)."""
-    if not report.parts(table):
-        return pl.DataFrame()
-    return report.scan(table).collect()
-
-
 def run_open_loop(
     scenes: Sequence[pathlib.Path],
     settings: PlanSettings,
@@ -120,17 +127,22 @@ def run_open_loop(
     workers: int = 1,
     progress: bool = True,
     place: JobPlace | None = None,
+    read: bool = True,
 ) -> PlanTables:
     """Every scene in open loop (:func:`plan_scene`), one job per scene on the engine of
     ``place`` (default: ``workers`` local processes). Scenes that fail are listed in
-    ``PlanTables.jobs``' failures and left out."""
+    ``PlanTables.jobs``' failures and left out. ``read``: read the rows back into
+    ``plans`` and ``truth``; else only the part files are named (``parts``; they live in
+    ``place``)."""
     settings.make_filters()  # a bad spec fails here, before any worker starts
     job = open_loop_job(OpenLoopSettings(settings, ego, Stride.of(every)))
     with _place_or_temp(place, workers, progress) as where:
         report = run_job(job, _refs(scenes), where, f"plan ({settings.planner})")
         every_done(report)
-        plans = read_table(report, plans_table(settings.planner))
-        truth = read_table(report, truth_table(settings.planner)) if settings.truth else None
+        parts = TableParts(tuple(report.parts(plans_table(settings.planner))))
+        truth_parts = TableParts(tuple(report.parts(truth_table(settings.planner))))
+        plans = parts.collect() if read else pl.DataFrame()
+        truth = truth_parts.collect() if read and settings.truth else None
     partials = [d.partial for d in report.done]
     return PlanTables(
         plans=plans,
@@ -143,6 +155,8 @@ def run_open_loop(
         skipped_egos=_add_counts(p["skipped_egos"] for p in partials),
         ego_kinds=settings.ego_kinds,
         jobs=report,
+        parts=parts,
+        truth_parts=truth_parts,
     )
 
 
@@ -189,17 +203,35 @@ def matched_cuts(
         # with at least mean_kept * frames distances at or below it.
         need = math.ceil(mean_kept * frames - 1e-9)
         radius = 0.0
-        if need > 0 and report.parts("match_distances"):
-            column = report.scan("match_distances").select("distance_m")
-            if column.select(pl.len()).collect().item() >= need:
-                nearest = column.select(pl.col("distance_m").bottom_k(need).max())
-                radius = float(nearest.collect().item())
+        if need > 0:
+            parts = TableParts(tuple(report.parts("match_distances")))
+            radius = _kth_smallest(parts, "distance_m", need)
     return {
         "ego_frames": frames,
         "cascade_mean_kept": mean_kept,
         "nearest_k": round(mean_kept),
         "radius_m": math.ceil(radius * 100.0) / 100.0,  # cm: never below the match
     }
+
+
+def _kth_smallest(parts: TableParts, column: str, k: int) -> float:
+    """The ``k``-th smallest (1 = the smallest) of ``column`` over the parts, 0.0 when
+    there are fewer values: two passes, one part at a time, holding the value counts and
+    one grid bin's values (:class:`risk.order_statistics.OrderStatistics`)."""
+    stats = OrderStatistics()
+
+    def values(df: pl.DataFrame) -> np.ndarray:
+        v = df[column].drop_nulls().to_numpy().astype(np.float64)
+        return v[~np.isnan(v)]
+
+    for df in parts.frames([column]):
+        stats.count(values(df))
+    if stats.n < k:
+        return 0.0
+    stats.want([k - 1])
+    for df in parts.frames([column]):
+        stats.keep(values(df))
+    return stats.value(k - 1)
 
 
 def resolve_matched(settings: PlanSettings, matched: dict[str, Any]) -> PlanSettings:
@@ -221,195 +253,26 @@ def wants_matching(settings: PlanSettings) -> bool:
 
 
 # ---------------------------------------------------------------------- summary
-def share_with_interval(
-    hits: np.ndarray, scenes: np.ndarray, *, n_boot: int, seed: int
-) -> dict[str, Any]:
-    """Share of True in ``hits`` with a 95 % scene-bootstrap interval."""
-    n = int(hits.size)
-    if n == 0:
-        return {"share": None, "ci95": None, "n": 0, "count": 0}
-    codes, counts = bootstrap_weights(scenes, n_boot=n_boot, seed=seed)
-    per_scene_hits = np.bincount(codes, weights=hits.astype(np.float64), minlength=counts.shape[1])
-    per_scene_n = np.bincount(codes, minlength=counts.shape[1]).astype(np.float64)
-    num = counts @ per_scene_hits
-    den = counts @ per_scene_n
-    with np.errstate(invalid="ignore", divide="ignore"):
-        reps = num / den
-    lo, hi = percentile_interval(reps)
+def _base(tables: PlanTables) -> dict[str, Any]:
+    """The summary's first keys: what the jobs' partials add up to."""
     return {
-        "share": float(hits.mean()),
-        "ci95": [lo, hi],
-        "n": n,
-        "count": int(hits.sum()),
-    }
-
-
-def _quantiles(values: np.ndarray) -> dict[str, float | None]:
-    v = values[np.isfinite(values)]
-    if v.size == 0:
-        return {"median": None, "p95": None}
-    return {"median": float(np.median(v)), "p95": float(np.quantile(v, 0.95))}
-
-
-def summarize(tables: PlanTables, *, n_boot: int = 1000, seed: int = 0) -> dict[str, Any]:
-    """Per filter: kept agents, plan success, changed share (scene-bootstrap 95 %), times
-    (all agents vs the filter's time plus the filtered plan) overall and by agent-count
-    bins, and how often the filter dropped the agent that constrained the full plan."""
-    df = tables.plans
-    out: dict[str, Any] = {
         "scenes": len(tables.scenes),
         "ego_frames": tables.ego_frames,
         "ego_frames_without_path": tables.no_path,
         "ego_kinds": tables.ego_kinds,
         "skipped_ego_frames_by_kind": tables.skipped_ego_frames,
         "skipped_egos_by_kind": tables.skipped_egos,
-        "distinct_egos": 0,
-        "filters": {},
-        "by_agent_count": {},
-    }
-    if df.is_empty():
-        return out
-    out["planner"] = str(df["planner"][0])
-    out["distinct_egos"] = df.select(["scene", "ego_id"]).unique().height
-    key = ["scene", "ego_id", "frame"]
-    reference = df.filter(pl.col("filter") == ALL_AGENTS).select(
-        [*key, pl.col("plan_ms").alias("all_plan_ms"), pl.col("plan_ok").alias("all_ok"),
-         pl.col("n_agents").alias("all_agents")]
-    )  # fmt: skip
-    out["all_agents"] = {
-        "plan_ok_share": _float(reference["all_ok"].mean() or 0.0),
-        "mean_agents": _float(reference["all_agents"].mean() or 0.0),
-        "plan_ms": _quantiles(reference.filter(pl.col("all_ok"))["all_plan_ms"].to_numpy()),
-    }
-    for name in df["filter"].unique(maintain_order=True).to_list():
-        if name == ALL_AGENTS:
-            continue
-        rows = df.filter(pl.col("filter") == name).join(reference, on=key, how="left")
-        comparable = rows.filter(pl.col("changed").is_not_null())
-        both_ok = rows.filter(pl.col("plan_ok") & pl.col("all_ok"))
-        total_ms = (both_ok["filter_ms"] + both_ok["plan_ms"]).to_numpy()
-        all_ms = both_ok["all_plan_ms"].to_numpy()
-        blocking = rows.filter(pl.col("blocking_dropped").is_not_null())
-        ratio = None
-        if total_ms.size:
-            ratio = (
-                float(np.median(total_ms) / np.median(all_ms)) if np.median(all_ms) > 0 else None
-            )
-        out["filters"][name] = {
-            "ego_frames": rows.height,
-            "mean_kept": _float(rows["n_agents"].mean() or 0.0),
-            "plan_ok_share": _float(rows["plan_ok"].mean() or 0.0),
-            "not_comparable": rows.height - comparable.height,
-            "changed": share_with_interval(
-                comparable["changed"].to_numpy().astype(bool),
-                comparable["scene"].to_numpy(),
-                n_boot=n_boot,
-                seed=seed,
-            ),
-            **_safety_shares(rows, comparable, n_boot=n_boot, seed=seed),
-            "changed_scenes": comparable.filter(pl.col("changed"))["scene"].n_unique(),
-            "changed_why": _why_counts(comparable.filter(pl.col("changed"))),
-            "changed_shift_m": _quantiles(
-                comparable.filter(pl.col("changed") & pl.col("why").str.starts_with("shift"))[
-                    "max_shift_m"
-                ].to_numpy()
-            ),
-            "changed_egos": comparable.filter(pl.col("changed"))
-            .select(["scene", "ego_id"])
-            .unique()
-            .height,
-            "blocking_agent_dropped": share_with_interval(
-                blocking["blocking_dropped"].to_numpy().astype(bool),
-                blocking["scene"].to_numpy(),
-                n_boot=n_boot,
-                seed=seed,
-            ),
-            "filter_ms": _quantiles(rows["filter_ms"].to_numpy()),
-            "filtered_plan_ms": _quantiles(both_ok["plan_ms"].to_numpy()),
-            "filter_plus_plan_ms": _quantiles(total_ms),
-            "all_agents_plan_ms": _quantiles(all_ms),
-            "median_time_ratio": ratio,
-        }
-        out["by_agent_count"][name] = _by_bins(both_ok)
-        out.setdefault("by_dataset", {})[name] = {
-            str(d["dataset"]): {
-                "ego_frames": int(d["n"]),
-                "changed_share": None if d["share"] is None else float(d["share"]),
-                "mean_kept": float(d["kept"]),
-                "mean_others": float(d["others"]),
-            }
-            for d in rows.group_by("dataset")
-            .agg(
-                pl.len().alias("n"),
-                pl.col("changed").cast(pl.Float64).mean().alias("share"),
-                pl.col("n_agents").mean().alias("kept"),
-                pl.col("n_others").mean().alias("others"),
-            )
-            .sort("dataset")
-            .iter_rows(named=True)
-        }
-    return out
-
-
-def _safety_shares(
-    rows: pl.DataFrame, comparable: pl.DataFrame, *, n_boot: int, seed: int
-) -> dict[str, Any]:
-    """The changed share at other tolerances (``changed_at``: 0.5, 1, 2 m and
-    ``speed_scaled``), ``changed_1s`` and ``unsafe``, each with a scene-bootstrap 95 %
-    interval; empty for tables without those columns (runs before issue 37)."""
-    if "unsafe" not in rows.columns or comparable.is_empty():
-        return {}
-    scenes = comparable["scene"].to_numpy()
-    changed = comparable["changed"].to_numpy().astype(bool)
-    decision = ~comparable["why"].fill_null("").str.starts_with("shift").to_numpy()
-    shift = np.nan_to_num(comparable["max_shift_m"].to_numpy().astype(np.float64), nan=np.inf)
-    tolerance = SHIFT_TOLERANCES_M[0]
-    speed = comparable["ego_speed_mps"].to_numpy().astype(np.float64)
-    scaled = np.maximum(tolerance, SPEED_SCALED_S * np.nan_to_num(speed))
-
-    def share(hits: np.ndarray, where: np.ndarray) -> dict[str, Any]:
-        return share_with_interval(hits, where, n_boot=n_boot, seed=seed)
-
-    at = {
-        f"{tol:g}": share(changed & (decision | (shift > tol)), scenes)
-        for tol in SHIFT_TOLERANCES_M
-    }
-    at["speed_scaled"] = share(changed & (decision | (shift > scaled)), scenes)
-    first = rows.filter(pl.col("changed_1s").is_not_null())
-    judged = rows.filter(pl.col("unsafe").is_not_null())
-    return {
-        "changed_at": at,
-        "changed_1s": share(first["changed_1s"].to_numpy().astype(bool), first["scene"].to_numpy()),
-        "unsafe": share(judged["unsafe"].to_numpy().astype(bool), judged["scene"].to_numpy()),
     }
 
 
-def _why_counts(changed: pl.DataFrame) -> dict[str, int]:
-    """How many changed frames each rule caught first: shift, stop/go, lane, success."""
-    kinds = changed["why"].str.split(" ").list.first().str.strip_chars(":")
-    return {str(k): int(n) for k, n in kinds.value_counts(sort=True).iter_rows()}
-
-
-def _by_bins(rows: pl.DataFrame) -> list[dict[str, Any]]:
-    bins = []
-    counts = rows["n_others"].to_numpy() if rows.height else np.zeros(0)
-    for lo, hi in itertools.pairwise(COUNT_BINS):
-        inside = (counts >= lo) & (counts < hi)
-        if not inside.any():
-            continue
-        part = rows.filter(pl.Series(inside))
-        total = (part["filter_ms"] + part["plan_ms"]).to_numpy()
-        all_ms = part["all_plan_ms"].to_numpy()
-        bins.append(
-            {
-                "agents": f"{lo}-{hi - 1}" if hi < 10**9 else f"{lo}+",
-                "ego_frames": int(inside.sum()),
-                "all_agents_plan_ms": _quantiles(all_ms),
-                "filter_plus_plan_ms": _quantiles(total),
-                "changed_share": _float(part["changed"].cast(pl.Float64).mean() or 0.0),
-            }
-        )
-    return bins
+def summarize(tables: PlanTables, *, n_boot: int = 1000, seed: int = 0) -> dict[str, Any]:
+    """Per filter: kept agents, plan success, changed share (scene-bootstrap 95 %), times
+    (all agents vs the filter's time plus the filtered plan) overall and by agent-count
+    bins, and how often the filter dropped the agent that constrained the full plan.
+    From the part files one at a time (or the rows in memory, when read):
+    :func:`replay.analysis.planner_eval.streaming.summarize_plans`."""
+    frames = tables.parts.frames if not tables.parts.is_empty() else frames_of(tables.plans)
+    return summarize_plans(frames, _base(tables), n_boot=n_boot, seed=seed)[0]
 
 
 def format_summary(summary: dict[str, Any]) -> str:
@@ -463,9 +326,10 @@ def _ms(value: float | None) -> str:
 class ClosedLoopRuns:
     """The closed-loop rows and the egos they came from: ``vehicle_egos`` found in the
     scenes, ``skipped_egos`` that were pedestrians, cyclists or objects (no car-planner
-    egos), ``sampled`` egos driven."""
+    egos), ``sampled`` egos driven. ``runs``: the rows' part files (in the job place's
+    folder: give ``run_closed_loop`` a place to keep them)."""
 
-    runs: pl.DataFrame
+    runs: TableParts
     vehicle_egos: int
     skipped_egos: int
     sampled: int
@@ -565,115 +429,11 @@ def run_closed_loop(
         ref_of = {r.key: r for r in refs}
         task_refs = [dataclasses.replace(ref_of[k], key=t) for t, k, _ in tasks]
         report = run_job(job, task_refs, where, desc)
-        runs = read_table(report, closed_loop_table(settings.planner))
+        runs = TableParts(tuple(report.parts(closed_loop_table(settings.planner))))
     return ClosedLoopRuns(
         runs=runs, vehicle_egos=vehicles, skipped_egos=skipped, sampled=len(picks),
         jobs=(found, report),
     )  # fmt: skip
-
-
-def _mean_with_interval(
-    values: np.ndarray, scenes: np.ndarray, *, n_boot: int, seed: int
-) -> dict[str, Any]:
-    """Mean of ``values`` with a 95 % scene-bootstrap interval (scenes resampled whole)."""
-    n = int(values.size)
-    if n == 0:
-        return {"mean": None, "ci95": None, "n": 0}
-    codes, counts = bootstrap_weights(scenes, n_boot=n_boot, seed=seed)
-    per_scene = np.bincount(codes, weights=values.astype(np.float64), minlength=counts.shape[1])
-    per_scene_n = np.bincount(codes, minlength=counts.shape[1]).astype(np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        reps = (counts @ per_scene) / (counts @ per_scene_n)
-    lo, hi = percentile_interval(reps)
-    return {"mean": float(values.mean()), "ci95": [lo, hi], "n": n}
-
-
-def summarize_closed_loop(df: pl.DataFrame, *, n_boot: int = 1000, seed: int = 0) -> dict[str, Any]:
-    """Per filter: collisions by class, at-fault collisions (runs with one, with a 95 %
-    scene-bootstrap interval), score, progress, TTC, comfort, planning time; and the
-    paired differences against the all-agents run of the same ego (at-fault collisions,
-    score, progress ratio) with 95 % scene-bootstrap intervals."""
-    if df.is_empty():
-        return {"runs": 0, "filters": {}}
-    key = ["scene", "ego_id"]
-    reference = df.filter(pl.col("filter") == ALL_AGENTS)
-    out: dict[str, Any] = {
-        "runs": reference.height,
-        "distinct_egos": reference.select(key).unique().height,
-        "scenes": reference["scene"].n_unique(),
-        "datasets": {
-            str(d): int(n) for d, n in reference["dataset"].value_counts(sort=True).iter_rows()
-        },
-        "agents": str(df["agents"][0]) if "agents" in df.columns else "log",
-        "tracker": str(df["tracker"][0]) if "tracker" in df.columns else "perfect",
-        "filters": {},
-    }
-    for name in df["filter"].unique(maintain_order=True).to_list():
-        rows = df.filter(pl.col("filter") == name)
-        scenes = rows["scene"].to_numpy()
-        entry: dict[str, Any] = {
-            "runs": rows.height,
-            "collisions": int(rows["collisions"].sum()),
-            "rear_end_collisions": int(rows["rear_end_collisions"].sum()),
-            "collisions_by_class": {
-                c: int(rows[f"{c}_collisions"].sum())
-                for c in ("stopped_ego", "stopped_track", "front", "rear_end", "lateral")
-            },
-            "at_fault_collisions": int(rows["at_fault_collisions"].sum()),
-            "runs_with_collision": int((rows["collisions"] > 0).sum()),
-            "runs_at_fault": share_with_interval(
-                (rows["at_fault_collisions"] > 0).to_numpy(), scenes, n_boot=n_boot, seed=seed
-            ),
-            "score": _mean_with_interval(
-                rows["score"].to_numpy(), scenes, n_boot=n_boot, seed=seed
-            ),
-            "progress_ratio": _quantiles(rows["progress_ratio"].to_numpy()),
-            "drivable_area_fails": int((rows["drivable_area_ok"] == False).sum()),  # noqa: E712
-            "ttc_below_bound": int((rows["min_ttc_s"] < metrics.LEAST_TTC_S).sum()),
-            "uncomfortable": int((~rows["comfortable"]).sum()),
-            "min_gap_m": _quantiles(rows["min_gap_m"].to_numpy()),
-            "time_headway_below_1s_s": float(rows["time_headway_below_1s_s"].sum()),
-            "progress_m": _quantiles(rows["progress_m"].to_numpy()),
-            "plan_ms_median": _quantiles(rows["plan_ms_median"].to_numpy())["median"],
-            "plan_ms_p95": _quantiles(rows["plan_ms_p95"].to_numpy())["median"],
-            "mean_agents": _float(rows["mean_agents"].mean() or 0.0),
-            "plan_failures": int(rows["plan_failures"].sum()),
-        }
-        if name != ALL_AGENTS:
-            paired = rows.join(reference, on=key, suffix="_all")
-            pair_scenes = paired["scene"].to_numpy()
-            differences = {
-                column: _mean_with_interval(
-                    (paired[column] - paired[f"{column}_all"]).cast(pl.Float64).to_numpy(),
-                    pair_scenes,
-                    n_boot=n_boot,
-                    seed=seed,
-                )
-                for column in ("at_fault_collisions", "score", "progress_ratio")
-            }
-
-            entry["paired"] = {
-                "runs": paired.height,
-                "more_collisions": int((paired["collisions"] > paired["collisions_all"]).sum()),
-                "fewer_collisions": int((paired["collisions"] < paired["collisions_all"]).sum()),
-                "more_at_fault": int(
-                    (paired["at_fault_collisions"] > paired["at_fault_collisions_all"]).sum()
-                ),
-                "fewer_at_fault": int(
-                    (paired["at_fault_collisions"] < paired["at_fault_collisions_all"]).sum()
-                ),
-                "at_fault_difference": differences["at_fault_collisions"],
-                "score_difference": differences["score"],
-                "progress_ratio_difference": differences["progress_ratio"],
-                "progress_change_m": _quantiles(
-                    (paired["progress_m"] - paired["progress_m_all"]).to_numpy()
-                ),
-                "min_gap_change_m": _quantiles(
-                    (paired["min_gap_m"] - paired["min_gap_m_all"]).to_numpy()
-                ),
-            }
-        out["filters"][name] = entry
-    return out
 
 
 def _interval(d: dict[str, Any], *, signed: bool = True, digits: int = 3) -> str:
@@ -738,12 +498,16 @@ class StudyResult:
     """Everything one ``replay plan`` run computed: the tables of every planner (told
     apart by their ``planner`` column) and the summary (``summary["planners"][name]``)."""
 
-    plans: pl.DataFrame
-    truth: pl.DataFrame | None
-    closed_loop: pl.DataFrame | None
+    plans: TableParts
+    truth: TableParts | None
+    closed_loop: TableParts | None
     summary: dict[str, Any]
     jobs: tuple[JobReport, ...] = ()  # every pass's report
     failures: tuple[Failure, ...] = ()  # the scenes that failed in any pass
+    #: Each planner's planning-time scatter (a capped sample; in planner order).
+    points: tuple[PlotPoints, ...] = ()
+    #: Without a job place: the temporary folder of the parts, kept with the result.
+    scratch: tempfile.TemporaryDirectory[str] | None = None
 
 
 def run_study(
@@ -768,14 +532,19 @@ def run_study(
     job per scene on the engine of ``place`` (one engine for them all; default:
     ``workers`` local processes and a temporary folder), its parts in
     ``place.out_dir/parts`` (a rerun skips complete scenes); the scenes that failed in
-    any pass go to ``place.out_dir/failures.csv`` and ``summary["failed_scenes"]``."""
+    any pass go to ``place.out_dir/failures.csv`` and ``summary["failed_scenes"]``.
+    The result names the tables' part files, never their rows (issue 38)."""
     summary: dict[str, Any] = {"planners": {}, "time_s": {}}
     reports: list[JobReport] = []
-    plans, truths, closed = [], [], []
-    with (
-        _place_or_temp(place, workers, progress) as given,
-        shared_engine(given, len(scenes)) as where,
-    ):
+    plans: list[pathlib.Path] = []
+    truths: list[pathlib.Path] = []
+    closed: list[pathlib.Path] = []
+    points: list[PlotPoints] = []
+    scratch = None
+    if place is None:  # the parts must outlive this call: write_study streams them
+        scratch = tempfile.TemporaryDirectory(prefix="replay-plan-")
+        place = JobPlace(pathlib.Path(scratch.name), "local", workers, None, progress)
+    with shared_engine(place, len(scenes)) as where:
         if wants_matching(settings):
             start = time.perf_counter()
             matched = matched_cuts(
@@ -792,14 +561,15 @@ def run_study(
         for name in planners:
             own = dataclasses.replace(settings, planner=name)
             start = time.perf_counter()
-            tables = run_open_loop(scenes, own, ego=ego, every=every, place=where)
+            tables = run_open_loop(scenes, own, ego=ego, every=every, place=where, read=False)
             assert tables.jobs is not None
             reports.append(tables.jobs)
-            entry = summarize(tables)
+            entry, scatter = summarize_plans(tables.parts.frames, _base(tables))
             summary["time_s"][f"open_loop:{name}"] = time.perf_counter() - start
-            plans.append(tables.plans)
-            if tables.truth is not None:
-                truths.append(tables.truth)
+            plans += tables.parts.files
+            truths += tables.truth_parts.files
+            if scatter is not None:
+                points.append(scatter)
             if closed_loop:
                 start = time.perf_counter()
                 runs = run_closed_loop(
@@ -807,17 +577,17 @@ def run_study(
                     sample=closed_loop_sample, agents=agents, tracker=tracker, place=where,
                 )  # fmt: skip
                 reports += runs.jobs
-                entry["closed_loop"] = summarize_closed_loop(runs.runs)
+                entry["closed_loop"] = summarize_closed_loop(runs.runs.frames)
                 entry["closed_loop"]["egos"] = {
                     "vehicle_egos": runs.vehicle_egos,
                     "skipped_not_vehicles": runs.skipped_egos,
                     "sampled": runs.sampled,
                 }
                 summary["time_s"][f"closed_loop:{name}"] = time.perf_counter() - start
-                closed.append(runs.runs)
+                closed += runs.runs.files
             summary["planners"][name] = entry
         failures = all_failures(reports)
-        if place is not None:  # every pass wrote its own; the study's lists them all
+        if scratch is None:  # every pass wrote its own; the study's lists them all
             write_all_failures(place.out_dir, reports)
     if closed_loop:
         summary["closed_loop_selection"] = (
@@ -835,12 +605,14 @@ def run_study(
     summary["horizon_s"] = settings.horizon_s
     summary["failed_scenes"] = sorted({f.scene for f in failures})
     return StudyResult(
-        plans=_concat(plans),
-        truth=_concat(truths) if settings.truth else None,
-        closed_loop=_concat(closed) if closed_loop else None,
+        plans=TableParts(tuple(plans)),
+        truth=TableParts(tuple(truths)) if settings.truth else None,
+        closed_loop=TableParts(tuple(closed)) if closed_loop else None,
         summary=summary,
         jobs=tuple(reports),
         failures=tuple(failures),
+        points=tuple(points),
+        scratch=scratch,
     )
 
 
@@ -848,11 +620,6 @@ def describe_jobs(result: StudyResult) -> str:
     """The end-of-run lines on the scenes: per pass, what was computed, skipped and
     failed; where the failures are listed."""
     return "\n".join(f"  {r.job}: {r.describe()}" for r in result.jobs)
-
-
-def _concat(frames: list[pl.DataFrame]) -> pl.DataFrame:
-    frames = [f for f in frames if not f.is_empty()]
-    return pl.concat(frames, how="diagonal_relaxed") if frames else pl.DataFrame()
 
 
 def format_study(summary: dict[str, Any]) -> str:
@@ -869,24 +636,24 @@ def write_study(
     result: StudyResult, out_dir: pathlib.Path, *, plots: bool = True
 ) -> dict[str, pathlib.Path]:
     """``plans.parquet``, ``agents.parquet`` (with truth), ``closed_loop.parquet`` (with
-    a closed loop), ``summary.json`` and the plots into ``out_dir``."""
+    a closed loop), ``summary.json`` and the plots into ``out_dir``. The tables are
+    streamed from the part files, each into a temporary file renamed into place when
+    complete (:meth:`TableParts.write`)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     files: dict[str, pathlib.Path] = {}
-    files["plans"] = atomic_write(out_dir / "plans.parquet", result.plans.write_parquet)
+    files["plans"] = result.plans.write(out_dir / "plans.parquet")
     if result.closed_loop is not None:
-        files["closed_loop"] = atomic_write(
-            out_dir / "closed_loop.parquet", result.closed_loop.write_parquet
-        )
+        files["closed_loop"] = result.closed_loop.write(out_dir / "closed_loop.parquet")
     if result.truth is not None:
-        files["agents"] = atomic_write(out_dir / "agents.parquet", result.truth.write_parquet)
+        files["agents"] = result.truth.write(out_dir / "agents.parquet")
     files["summary"] = write_text(
         out_dir / "summary.json",
         json.dumps(json_safe(result.summary), indent=2, allow_nan=False) + "\n",
     )
-    if plots and not result.plans.is_empty():
+    if plots and result.points:
         from replay.analysis.planner_eval import plots as planner_plots  # matplotlib: about 1 s
 
-        files.update(planner_plots.write_plots(result.plans, result.summary, out_dir))
+        files.update(planner_plots.write_plots(result.points, result.summary, out_dir))
     return files
 
 

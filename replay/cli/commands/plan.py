@@ -226,7 +226,7 @@ def plan(
         if report_path is not None:
             words = ["replay", "plan", *sys.argv[2:]] if len(sys.argv) > 2 else ["replay plan"]
             files.update(
-                write_report(report_path, result.summary, result.plans, command=shlex.join(words))
+                write_report(report_path, result.summary, result.points, command=shlex.join(words))
             )
     click.echo(format_study(result.summary))
     click.echo("Scenes:\n" + describe_jobs(result))
