@@ -178,7 +178,7 @@ def main() -> None:
         "part given --factors times (as that many scenes); no scene is replayed.",
     )  # fmt: skip
     args = ap.parse_args()
-    with recorded("memory", "Driver memory of `replay evaluate` (issue 38)"):
+    with recorded("memory", "Driver memory of the corpus commands (issue 38)"):
         if args.streamed_parts is not None:
             streamed_only(args)
         else:
