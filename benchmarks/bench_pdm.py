@@ -106,7 +106,7 @@ def stages(pdm: PdmPlanner, request: PlanRequest) -> dict[str, float]:
     """CPU ms of pdm's stages on one request (one run each, after the timed rounds)."""
     out: dict[str, float] = {}
     t = time.process_time()
-    line, agents, proposals, relevant, candidates = pdm._relevant(request)
+    line, scored, proposals, _, candidates = pdm._relevant(request)
     out["relevance + IDM + simulation"] = (time.process_time() - t) * 1e3
     t = time.process_time()
     pdm._simulate(request, proposals.states, request.dt_s)
@@ -118,7 +118,7 @@ def stages(pdm: PdmPlanner, request: PlanRequest) -> dict[str, float]:
     pdm._score(
         request,
         line,
-        agents.subset(relevant),
+        scored,
         sim,
         _centres(sim, proposals.wheelbase_m),
         candidates,

@@ -21,7 +21,10 @@ One call (:meth:`PdmPlanner.plan`), every stage vectorised over proposals ``P``,
 4. **Scoring** as PDM (:class:`MultiMetric`, :class:`WeightedMetric` rows ``(M, P)``):
    multiplicative at-fault collision (0, or 0.5 for objects of kind OTHER), drivable area,
    driving direction; weighted progress (5), time to collision (5), comfort (2);
-   ``score = product * weighted mean``.
+   ``score = product * weighted mean``. Every agent is scored under two forecasts, its
+   map-path one (the request's) and constant velocity along its current heading
+   (PDM-Closed's; :class:`_Hypotheses`, extra rows of the scored agents): a proposal
+   collides at fault when it does under either.
 5. **Decision**: the best proposal (its IDM trajectory, as PDM: the simulation is for the
    scores; among proposals that all score 0, the one that collides at fault latest), or
    an emergency brake when it collides at fault within 2 s while the ego drives at 5 m/s
@@ -116,6 +119,13 @@ class PdmSettings:
     sideways proposal then wins by trifles: 1e-6 more progress on a straight road, or, in
     closed loop creeping up to a standing car, 0.03 m of 4.7 m (0.0025 of the score), so
     that the ego weaved from one side to the other.
+    ``constant_velocity_s``: besides its map-path forecast, every agent is scored under a
+    second hypothesis, straight on at its current speed and heading (PDM-Closed's only
+    forecast), up to this many seconds ahead (0: none); a proposal collides at fault when
+    it does so under either. ``constant_velocity_tolerance_m``: an agent whose
+    constant-velocity forecast stays this close to its map-path forecast over that window
+    (centres, plus half its length times the heading difference) gets no second
+    hypothesis: it would find the same contacts.
     """
 
     target_fractions: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8, 1.0)
@@ -147,6 +157,8 @@ class PdmSettings:
     merge_time_s: float = 2.0
     merge_min_m: float = 5.0
     score_tie: float = 0.01
+    constant_velocity_s: float = 5.0
+    constant_velocity_tolerance_m: float = 0.1
     # nuPlan's comfort bounds
     max_lon_accel_mps2: float = 2.40
     min_lon_accel_mps2: float = -4.05
@@ -294,6 +306,73 @@ def _velocities(agents: AgentForecasts) -> np.ndarray:
     return np.concatenate([v, v[:, -1:]], axis=1)
 
 
+def _current_speed(agents: AgentForecasts) -> np.ndarray:
+    """``(K,)`` each agent's speed now: the request's when it carries it, else the
+    forecast's mean speed (its polyline's length over the forecast's duration)."""
+    if agents.speed_mps is not None:
+        return np.maximum(agents.speed_mps, 0.0)
+    duration = float(agents.times_s[-1] - agents.times_s[0]) if agents.times_s.size > 1 else 0.0
+    if duration <= 0.0:
+        return np.zeros(agents.n)
+    step = np.hypot(*np.moveaxis(np.diff(agents.xy, axis=1), -1, 0))
+    return np.asarray(step.sum(axis=1) / duration)
+
+
+@dataclass(frozen=True, eq=False)
+class _Hypotheses:
+    """The agents as the scorer sees them: rows ``(R,)``, first every agent's map-path
+    forecast, then a constant-velocity twin of the agents whose straight-on forecast
+    departs from it (:meth:`of`). ``owner`` ``(R,)``: the agent (row of the forecasts)
+    of each row; ``last_step`` ``(R,)``: the last time index a row is checked at."""
+
+    agents: AgentForecasts
+    owner: np.ndarray
+    last_step: np.ndarray
+
+    @classmethod
+    def of(cls, agents: AgentForecasts, settings: PdmSettings) -> _Hypotheses:
+        n_t = agents.times_s.size
+        window = int(np.searchsorted(agents.times_s, settings.constant_velocity_s + 1e-9)) - 1
+        window = min(window, n_t - 1)
+        owner = np.arange(agents.n)
+        last = np.full(agents.n, n_t - 1)
+        if window < 1 or agents.n == 0:
+            return cls(agents=agents, owner=owner, last_step=last)
+        heading0 = agents.heading_rad[:, 0]
+        travel = _current_speed(agents)[:, None] * (agents.times_s - agents.times_s[0])[None, :]
+        direction = np.stack([np.cos(heading0), np.sin(heading0)], axis=-1)  # (K, 2)
+        xy = agents.xy[:, :1] + travel[..., None] * direction[:, None, :]  # (K, T, 2)
+        heading = np.broadcast_to(heading0[:, None], agents.heading_rad.shape)
+        turned = np.abs(lqr.wrap_angle(heading - agents.heading_rad))
+        apart = np.hypot(*np.moveaxis(xy - agents.xy, -1, 0))
+        apart = apart + agents.length_m[:, None] / 2.0 * turned
+        twin = np.flatnonzero(
+            (apart[:, : window + 1] > settings.constant_velocity_tolerance_m).any(axis=1)
+        )
+        if twin.size == 0:
+            return cls(agents=agents, owner=owner, last_step=last)
+        rows = np.r_[owner, twin]
+        both = AgentForecasts(
+            ids=agents.ids[rows],
+            kinds=agents.kinds[rows],
+            length_m=agents.length_m[rows],
+            width_m=agents.width_m[rows],
+            times_s=agents.times_s,
+            xy=np.concatenate([agents.xy, xy[twin]]),
+            heading_rad=np.concatenate([agents.heading_rad, heading[twin]]),
+            speed_mps=None if agents.speed_mps is None else agents.speed_mps[rows],
+        )
+        return cls(agents=both, owner=rows, last_step=np.r_[last, np.full(twin.size, window)])
+
+    def rows(self, which: np.ndarray) -> _Hypotheses:
+        """The rows selected by a mask or index array ``(R,)``."""
+        return _Hypotheses(
+            agents=self.agents.subset(which),
+            owner=self.owner[which],
+            last_step=self.last_step[which],
+        )
+
+
 # ---------------------------------------------------------------------- scores
 @dataclass(frozen=True, eq=False)
 class ProposalScores:
@@ -384,12 +463,12 @@ class PdmPlanner:
         start = time.perf_counter()
         if not _usable(request.reference):
             return Plan.failed("the reference path has fewer than two distinct points")
-        line, agents, proposals, relevant, candidates = self._relevant(request)
-        agents = agents.subset(relevant)
+        line, scored, proposals, _, candidates = self._relevant(request)
+        agents = scored.agents  # the scorer's rows: ids repeat for the second hypotheses
         p = self.settings
         sim = proposals.simulated
         sim_xy = _centres(sim, proposals.wheelbase_m)
-        scores = self._score(request, line, agents, sim, sim_xy, candidates)
+        scores = self._score(request, line, scored, sim, sim_xy, candidates)
         total = scores.total
         best = _choose(scores, proposals.fraction > 0.0, proposals.offset_m, p.score_tie)
         ego = request.ego
@@ -452,11 +531,13 @@ class PdmPlanner:
 
     def _relevant(
         self, request: PlanRequest
-    ) -> tuple[_Centreline, AgentForecasts, _Proposals, np.ndarray, np.ndarray | None]:
-        """The centreline, the agents on the plan's times, the simulated proposals (built
-        on the agents the leader search can read), the mask ``(K,)`` of agents read
-        anywhere (the leader search, or a bounding-circle candidate of the scorer) and the
-        scorer's candidates ``(P, T, D, K')`` of those agents (None without agents).
+    ) -> tuple[_Centreline, _Hypotheses, _Proposals, np.ndarray, np.ndarray | None]:
+        """The centreline, the scorer's rows of the agents read anywhere (their map-path
+        forecasts on the plan's times and constant-velocity twins, :class:`_Hypotheses`),
+        the simulated proposals (built on the agents the leader search can read), the
+        mask ``(K,)`` of agents read anywhere (the leader search, or a bounding-circle
+        candidate of the scorer under either hypothesis) and the scorer's candidates
+        ``(P, T, D, R')`` of those rows (None without agents).
 
         Two distance bounds from the ego's position keep the work in proportion to the
         agents near the ego, never dropping one that either test would read: a leader's
@@ -488,8 +569,9 @@ class PdmPlanner:
                 leaders[maybe[reach]] = True
                 leaders_along = along.rows(reach) if reach.any() else None
         proposals = self._proposals(request, line, leaders_along, agents.ids[leaders], s0, d0)
+        hypotheses = _Hypotheses.of(agents, self.settings)
         if agents.n == 0:
-            return line, agents, proposals, leaders, None
+            return line, hypotheses, proposals, leaders, None
         sim = proposals.simulated
         sim_xy = _centres(sim, proposals.wheelbase_m)
         look = self._lookahead_steps(request.dt_s)
@@ -497,21 +579,30 @@ class PdmPlanner:
         farthest += float(sim[..., lqr.StateIndex.SPEED].max()) * float(look.max()) * request.dt_s
         ego_half_diagonal = math.hypot(ego.length_m, ego.width_m) / 2.0
         near_bound = farthest + ego_half_diagonal + half_diagonal + 1e-6
-        maybe_near = np.flatnonzero((distance <= near_bound[:, None]).any(axis=1))
-        near = np.zeros(agents.n, dtype=bool)
+        owner = hypotheses.owner
+        rows_xy = hypotheses.agents.xy
+        row_distance = np.hypot(rows_xy[..., 0] - ego.xy[0], rows_xy[..., 1] - ego.xy[1])
+        maybe_near = np.flatnonzero((row_distance <= near_bound[owner][:, None]).any(axis=1))
+        near_row = np.zeros(owner.size, dtype=bool)
         cand = np.zeros((*sim.shape[:2], look.size, 0), dtype=bool)
         if maybe_near.size:
-            cand = _candidates(request, agents.subset(maybe_near), sim, sim_xy, look)
-            near[maybe_near] = cand.any(axis=(0, 1, 2))
+            cand = _candidates(
+                request, hypotheses.agents.subset(maybe_near), sim, sim_xy, look,
+                last_step=hypotheses.last_step[maybe_near],
+            )  # fmt: skip
+            near_row[maybe_near] = cand.any(axis=(0, 1, 2))
+        near = np.zeros(agents.n, dtype=bool)
+        near[owner[near_row]] = True
         relevant = leaders | near
-        # the candidates of the relevant agents, in their order (leaders far from every
-        # simulated box have none)
-        column = np.full(agents.n, -1)
+        # the candidates of the relevant agents' rows, in their order (leaders far from
+        # every simulated box have none)
+        kept = relevant[owner]
+        column = np.full(owner.size, -1)
         column[maybe_near] = np.arange(maybe_near.size)
-        columns = column[relevant]
+        columns = column[kept]
         relevant_cand = np.zeros((*cand.shape[:3], columns.size), dtype=bool)
         relevant_cand[..., columns >= 0] = cand[..., columns[columns >= 0]]
-        return line, agents, proposals, relevant, relevant_cand
+        return line, hypotheses.rows(kept), proposals, relevant, relevant_cand
 
     def _search_steps(self, request: PlanRequest) -> np.ndarray:
         """The steps at which the IDM searches for leaders (the last step plans nothing)."""
@@ -675,21 +766,24 @@ class PdmPlanner:
         """The scores of simulated proposals ``(P, T, N_STATE)`` (bicycle states, rear
         axle, on the request's times) against the request's agents and lanes."""
         line = _Centreline.of(request.reference)
-        agents = request.agents.on_times(request.times_s)
+        scored = _Hypotheses.of(request.agents.on_times(request.times_s), self.settings)
         wheelbase = float(lqr.wheelbase_m(request.ego.length_m))
-        return self._score(request, line, agents, simulated, _centres(simulated, wheelbase))
+        return self._score(request, line, scored, simulated, _centres(simulated, wheelbase))
 
     def _score(
         self,
         request: PlanRequest,
         line: _Centreline,
-        agents: AgentForecasts,
+        scored: _Hypotheses,
         sim: np.ndarray,
         sim_xy: np.ndarray,
         candidates: np.ndarray | None = None,
     ) -> ProposalScores:
-        """Metric rows and scores of the simulated proposals (see :class:`ProposalScores`);
-        ``candidates``: the bounding-circle candidates of these agents when known."""
+        """Metric rows and scores of the simulated proposals (see :class:`ProposalScores`)
+        against the scorer's rows ``scored`` (each agent under either hypothesis: a row's
+        at-fault collision is its agent's); ``candidates``: the bounding-circle candidates
+        of these rows when known. ``collision_row`` is a row of ``scored``."""
+        agents = scored.agents
         p = self.settings
         ego = request.ego
         dt = request.dt_s
@@ -734,7 +828,10 @@ class PdmPlanner:
             ego.xy[0], ego.xy[1], np.asarray(ego.heading_rad), np.asarray(ego.length_m), np.asarray(ego.width_m),
             agents.xy[:, 0, 0], agents.xy[:, 0, 1], agents.heading_rad[:, 0], agents.length_m, agents.width_m,
         )  # fmt: skip
-        c = contacts(request, agents, sim, sim_xy, look, ignore=now, candidates=candidates)
+        c = contacts(
+            request, agents, sim, sim_xy, look, ignore=now, candidates=candidates,
+            last_step=scored.last_step,
+        )  # fmt: skip
         ip, it, idd, ik, ta, cx, cy = (
             c.proposal,
             c.step,
@@ -892,10 +989,12 @@ def _candidates(
     sim: np.ndarray,
     sim_xy: np.ndarray,
     look: np.ndarray,
+    last_step: np.ndarray | None = None,
 ) -> np.ndarray:
     """``(P, T, D, K)``: the ego's box at step ``t`` of proposal ``p``, moved ahead by its
     speed times look-ahead ``d``, and agent ``k``'s box at step ``t + d`` could touch (their
-    bounding circles do). Pairs whose ``t + d`` lies beyond the forecast are not checked."""
+    bounding circles do). Pairs whose ``t + d`` lies beyond the forecast, or beyond the
+    agent's ``last_step`` ``(K,)``, are not checked."""
     ego = request.ego
     n_t = sim.shape[1]
     heading = sim[..., lqr.StateIndex.HEADING]
@@ -914,9 +1013,11 @@ def _candidates(
     # centre); only what passes is tested per proposal.
     mx, my = cx.mean(axis=0), cy.mean(axis=0)  # (T, D)
     radius = np.sqrt(((cx - mx) ** 2 + (cy - my) ** 2).max(axis=0))
-    within = np.arange(n_t)[:, None] + look[None, :] <= n_t - 1
+    agent_step = np.arange(n_t)[:, None] + look[None, :]  # (T, D)
+    last = np.full(agents.n, n_t - 1) if last_step is None else np.minimum(last_step, n_t - 1)
+    within = agent_step[None] <= last[:, None, None]  # (K, T, D)
     wide = radius[None] + reach[:, None, None] + 1e-6
-    coarse = ((ax - mx) ** 2 + (ay - my) ** 2 <= wide * wide) & within[None]
+    coarse = ((ax - mx) ** 2 + (ay - my) ** 2 <= wide * wide) & within
     ik, it, idd = np.nonzero(coarse)
     dx = cx[:, it, idd] - ax[ik, it, idd]  # (P, m)
     dy = cy[:, it, idd] - ay[ik, it, idd]
@@ -948,18 +1049,23 @@ def contacts(
     look: np.ndarray,
     ignore: np.ndarray | None = None,
     candidates: np.ndarray | None = None,
+    last_step: np.ndarray | None = None,
 ) -> Contacts:
     """Every ``(proposal, step, look-ahead, agent)`` whose boxes overlap (separating axes,
     :func:`risk.hindsight.boxes_overlap`), the ego's box at ``sim_xy`` with the simulated
     heading, moved ahead by speed times ``look * dt``, against the agent's box at
     ``step + look``; only the pairs whose bounding circles touch are tested
     (:func:`_candidates`, or ``candidates`` ``(P, T, D, K)`` when already computed).
-    ``ignore`` ``(K,)``: agents left out."""
+    ``ignore`` ``(K,)``: agents left out; ``last_step`` ``(K,)``: each agent's last time
+    index checked (default: the forecast's end)."""
     ego = request.ego
     dt = request.dt_s
     heading = sim[..., lqr.StateIndex.HEADING]
     speed = sim[..., lqr.StateIndex.SPEED]
-    cand = _candidates(request, agents, sim, sim_xy, look) if candidates is None else candidates
+    if candidates is None:
+        cand = _candidates(request, agents, sim, sim_xy, look, last_step=last_step)
+    else:
+        cand = candidates
     if ignore is not None:
         cand = cand & ~ignore[None, None, None, :]
     ip, it, idd, ik = np.nonzero(cand)
