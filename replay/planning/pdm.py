@@ -319,6 +319,40 @@ def _current_speed(agents: AgentForecasts) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False)
+class _ConstantVelocity:
+    """Every agent's constant-velocity forecast: straight on along its heading now at its
+    speed now, boxes ``xy`` ``(K, T, 2)`` and ``heading_rad`` ``(K, T)``; ``twins``
+    ``(J,)`` the agents whose forecast departs from their map-path one by more than
+    ``constant_velocity_tolerance_m`` within the window (they get a second row);
+    ``last_step``: the window's last time index (0: no second hypothesis)."""
+
+    xy: np.ndarray
+    heading_rad: np.ndarray
+    twins: np.ndarray
+    last_step: int
+
+    @classmethod
+    def of(cls, agents: AgentForecasts, settings: PdmSettings) -> _ConstantVelocity:
+        n_t = agents.times_s.size
+        window = int(np.searchsorted(agents.times_s, settings.constant_velocity_s + 1e-9)) - 1
+        window = min(window, n_t - 1)
+        if window < 1 or agents.n == 0:
+            return cls(xy=agents.xy, heading_rad=agents.heading_rad, twins=np.zeros(0, np.int64),
+                       last_step=0)  # fmt: skip
+        heading0 = agents.heading_rad[:, 0]
+        travel = _current_speed(agents)[:, None] * (agents.times_s - agents.times_s[0])[None, :]
+        direction = np.stack([np.cos(heading0), np.sin(heading0)], axis=-1)  # (K, 2)
+        xy = agents.xy[:, :1] + travel[..., None] * direction[:, None, :]  # (K, T, 2)
+        heading = np.broadcast_to(heading0[:, None], agents.heading_rad.shape)
+        ahead = slice(0, window + 1)
+        turned = np.abs(lqr.wrap_angle(heading[:, ahead] - agents.heading_rad[:, ahead]))
+        apart = np.hypot(*np.moveaxis(xy[:, ahead] - agents.xy[:, ahead], -1, 0))
+        apart = apart + agents.length_m[:, None] / 2.0 * turned
+        twins = np.flatnonzero((apart > settings.constant_velocity_tolerance_m).any(axis=1))
+        return cls(xy=xy, heading_rad=heading, twins=twins, last_step=window)
+
+
+@dataclass(frozen=True, eq=False)
 class _Hypotheses:
     """The agents as the scorer sees them: rows ``(R,)``, first every agent's map-path
     forecast, then a constant-velocity twin of the agents whose straight-on forecast
@@ -331,46 +365,37 @@ class _Hypotheses:
 
     @classmethod
     def of(cls, agents: AgentForecasts, settings: PdmSettings) -> _Hypotheses:
-        n_t = agents.times_s.size
-        window = int(np.searchsorted(agents.times_s, settings.constant_velocity_s + 1e-9)) - 1
-        window = min(window, n_t - 1)
-        owner = np.arange(agents.n)
-        last = np.full(agents.n, n_t - 1)
-        if window < 1 or agents.n == 0:
-            return cls(agents=agents, owner=owner, last_step=last)
-        heading0 = agents.heading_rad[:, 0]
-        travel = _current_speed(agents)[:, None] * (agents.times_s - agents.times_s[0])[None, :]
-        direction = np.stack([np.cos(heading0), np.sin(heading0)], axis=-1)  # (K, 2)
-        xy = agents.xy[:, :1] + travel[..., None] * direction[:, None, :]  # (K, T, 2)
-        heading = np.broadcast_to(heading0[:, None], agents.heading_rad.shape)
-        turned = np.abs(lqr.wrap_angle(heading - agents.heading_rad))
-        apart = np.hypot(*np.moveaxis(xy - agents.xy, -1, 0))
-        apart = apart + agents.length_m[:, None] / 2.0 * turned
-        twin = np.flatnonzero(
-            (apart[:, : window + 1] > settings.constant_velocity_tolerance_m).any(axis=1)
-        )
-        if twin.size == 0:
-            return cls(agents=agents, owner=owner, last_step=last)
-        rows = np.r_[owner, twin]
-        both = AgentForecasts(
-            ids=agents.ids[rows],
-            kinds=agents.kinds[rows],
-            length_m=agents.length_m[rows],
-            width_m=agents.width_m[rows],
-            times_s=agents.times_s,
-            xy=np.concatenate([agents.xy, xy[twin]]),
-            heading_rad=np.concatenate([agents.heading_rad, heading[twin]]),
-            speed_mps=None if agents.speed_mps is None else agents.speed_mps[rows],
-        )
-        return cls(agents=both, owner=rows, last_step=np.r_[last, np.full(twin.size, window)])
+        """Every agent's map-path row, then the twins of all agents that have one."""
+        cv = _ConstantVelocity.of(agents, settings)
+        return cls.join(agents, np.arange(agents.n), cv, cv.twins)
 
-    def rows(self, which: np.ndarray) -> _Hypotheses:
-        """The rows selected by a mask or index array ``(R,)``."""
-        return _Hypotheses(
-            agents=self.agents.subset(which),
-            owner=self.owner[which],
-            last_step=self.last_step[which],
-        )
+    @classmethod
+    def join(
+        cls,
+        agents: AgentForecasts,
+        originals: np.ndarray,
+        cv: _ConstantVelocity,
+        twins: np.ndarray,
+    ) -> _Hypotheses:
+        """The map-path rows of the agents ``originals`` then the constant-velocity rows
+        of the agents ``twins`` (index arrays into ``agents``), as one set of rows."""
+        n_t = agents.times_s.size
+        rows = np.r_[originals, twins].astype(np.int64)
+        if twins.size == 0:
+            forecasts = agents.subset(rows)
+        else:
+            forecasts = AgentForecasts(
+                ids=agents.ids[rows],
+                kinds=agents.kinds[rows],
+                length_m=agents.length_m[rows],
+                width_m=agents.width_m[rows],
+                times_s=agents.times_s,
+                xy=np.concatenate([agents.xy[originals], cv.xy[twins]]),
+                heading_rad=np.concatenate([agents.heading_rad[originals], cv.heading_rad[twins]]),
+                speed_mps=None if agents.speed_mps is None else agents.speed_mps[rows],
+            )
+        last = np.r_[np.full(originals.size, n_t - 1), np.full(twins.size, cv.last_step)]
+        return cls(agents=forecasts, owner=rows, last_step=last.astype(np.int64))
 
 
 # ---------------------------------------------------------------------- scores
@@ -569,9 +594,8 @@ class PdmPlanner:
                 leaders[maybe[reach]] = True
                 leaders_along = along.rows(reach) if reach.any() else None
         proposals = self._proposals(request, line, leaders_along, agents.ids[leaders], s0, d0)
-        hypotheses = _Hypotheses.of(agents, self.settings)
         if agents.n == 0:
-            return line, hypotheses, proposals, leaders, None
+            return line, _Hypotheses.of(agents, self.settings), proposals, leaders, None
         sim = proposals.simulated
         sim_xy = _centres(sim, proposals.wheelbase_m)
         look = self._lookahead_steps(request.dt_s)
@@ -579,30 +603,36 @@ class PdmPlanner:
         farthest += float(sim[..., lqr.StateIndex.SPEED].max()) * float(look.max()) * request.dt_s
         ego_half_diagonal = math.hypot(ego.length_m, ego.width_m) / 2.0
         near_bound = farthest + ego_half_diagonal + half_diagonal + 1e-6
-        owner = hypotheses.owner
-        rows_xy = hypotheses.agents.xy
-        row_distance = np.hypot(rows_xy[..., 0] - ego.xy[0], rows_xy[..., 1] - ego.xy[1])
-        maybe_near = np.flatnonzero((row_distance <= near_bound[owner][:, None]).any(axis=1))
-        near_row = np.zeros(owner.size, dtype=bool)
+        maybe_near = np.flatnonzero((distance <= near_bound[:, None]).any(axis=1))
+        # the constant-velocity rows (within their window) that come as near
+        cv = _ConstantVelocity.of(agents, self.settings)
+        cv_xy = cv.xy[cv.twins, : cv.last_step + 1]
+        cv_distance = np.hypot(cv_xy[..., 0] - ego.xy[0], cv_xy[..., 1] - ego.xy[1])
+        maybe_twins = cv.twins[(cv_distance <= near_bound[cv.twins, None]).any(axis=1)]
+        tested = _Hypotheses.join(agents, maybe_near, cv, maybe_twins)
+        near_row = np.zeros(tested.owner.size, dtype=bool)
         cand = np.zeros((*sim.shape[:2], look.size, 0), dtype=bool)
-        if maybe_near.size:
+        if tested.owner.size:
             cand = _candidates(
-                request, hypotheses.agents.subset(maybe_near), sim, sim_xy, look,
-                last_step=hypotheses.last_step[maybe_near],
-            )  # fmt: skip
-            near_row[maybe_near] = cand.any(axis=(0, 1, 2))
+                request, tested.agents, sim, sim_xy, look, last_step=tested.last_step
+            )
+            near_row = cand.any(axis=(0, 1, 2))
         near = np.zeros(agents.n, dtype=bool)
-        near[owner[near_row]] = True
+        near[tested.owner[near_row]] = True
         relevant = leaders | near
-        # the candidates of the relevant agents' rows, in their order (leaders far from
-        # every simulated box have none)
-        kept = relevant[owner]
-        column = np.full(owner.size, -1)
+        # The scorer's rows: the relevant agents' map-path rows (in their order; leaders
+        # far from every simulated box have no candidates), then the twins that have some
+        # (a twin without candidates has no contact: leaving it out changes nothing).
+        kept_twins = near_row[maybe_near.size :]
+        scored = _Hypotheses.join(agents, np.flatnonzero(relevant), cv, maybe_twins[kept_twins])
+        column = np.full(agents.n, -1)
         column[maybe_near] = np.arange(maybe_near.size)
-        columns = column[kept]
+        columns = np.r_[column[relevant], maybe_near.size + np.flatnonzero(kept_twins)].astype(
+            np.int64
+        )
         relevant_cand = np.zeros((*cand.shape[:3], columns.size), dtype=bool)
         relevant_cand[..., columns >= 0] = cand[..., columns[columns >= 0]]
-        return line, hypotheses.rows(kept), proposals, relevant, relevant_cand
+        return line, scored, proposals, relevant, relevant_cand
 
     def _search_steps(self, request: PlanRequest) -> np.ndarray:
         """The steps at which the IDM searches for leaders (the last step plans nothing)."""
