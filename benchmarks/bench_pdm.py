@@ -153,6 +153,20 @@ print(json.dumps(out))
 """
 
 
+def _commit(tree: pathlib.Path) -> str:
+    """The tree's commit, or "not a git tree" (e.g. a ``git archive`` snapshot)."""
+    done = subprocess.run(
+        ["git", "-C", str(tree), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+    )
+    dirty = subprocess.run(
+        ["git", "-C", str(tree), "status", "--porcelain", "--untracked-files=no"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    if done.returncode != 0 or not (tree / ".git").exists():
+        return "not a git tree"
+    return done.stdout.strip() + (" with changes" if dirty.stdout.strip() else "")
+
+
 def compare_trees(
     trees: list[tuple[str, pathlib.Path]], reqs: list[PlanRequest], rounds: int
 ) -> list[str]:
@@ -178,7 +192,7 @@ def compare_trees(
     first = trees[0][0]
     lines = [
         f"- trees, in turns ({rounds} rounds, one process per tree and round): "
-        + ", ".join(f"{n} = `{t}`" for n, t in trees),
+        + ", ".join(f"{n} = `{t}` ({_commit(t)})" for n, t in trees),
         f"- load average {load_before[0]:.1f} before, {load_after[0]:.1f} after",
         "",
         f"| tree | wall median ms | CPU median ms | CPU p95 ms | CPU median / {first} "
