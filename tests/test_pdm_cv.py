@@ -37,8 +37,9 @@ def _turner(start: np.ndarray = START, *, speed_known: bool = True) -> AgentFore
     xy = start[None, :] + np.outer(SPEED * times, [1.0, 0.0])
     heading = np.where(times > 0.0, 0.0, math.pi / 2)
     return AgentForecasts(
-        ids=[7], kinds=[int(Kind.VEHICLE)], length_m=[4.5], width_m=[1.8], times_s=times,
-        xy=xy[None], heading_rad=heading[None], speed_mps=[SPEED] if speed_known else None,
+        ids=np.array([7]), kinds=np.array([int(Kind.VEHICLE)]), length_m=np.array([4.5]),
+        width_m=np.array([1.8]), times_s=times, xy=xy[None], heading_rad=heading[None],
+        speed_mps=np.array([SPEED]) if speed_known else None,
     )  # fmt: skip
 
 

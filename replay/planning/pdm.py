@@ -616,7 +616,7 @@ class PdmPlanner:
             cand = _candidates(
                 request, tested.agents, sim, sim_xy, look, last_step=tested.last_step
             )
-            near_row = cand.any(axis=(0, 1, 2))
+            near_row = np.asarray(cand.any(axis=(0, 1, 2)))
         near = np.zeros(agents.n, dtype=bool)
         near[tested.owner[near_row]] = True
         relevant = leaders | near
