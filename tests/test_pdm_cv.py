@@ -153,3 +153,27 @@ def test_may_matter_reads_the_twin():
     assert PdmPlanner().may_matter(req).all()
     assert not PdmPlanner(PdmSettings(constant_velocity_s=0.0)).may_matter(req).any()
     assert ps.EGO_SPEED_MPS > 0  # the road module is the shared one
+
+
+def test_a_constant_velocity_row_that_no_proposal_escapes_is_left_out():
+    """A car 3 m ahead and 4 m to the right pointing across the ego's lane at 10 m/s: straight
+    on it crosses the ego's front within 0.3 s, whatever the ego does (even the 8 m/s^2
+    brake is still moving); its map path turns away along +x. That row cannot tell the
+    proposals apart, so it is left out: the plan is the map-path one, bit for bit. Kept,
+    it zeroes every proposal."""
+    times = np.arange(51) * 0.1
+    start = np.array([3.0, -4.0])
+    forecast = AgentForecasts(
+        ids=np.array([9]), kinds=np.array([int(Kind.VEHICLE)]), length_m=np.array([4.5]),
+        width_m=np.array([1.8]), times_s=times,
+        xy=(start[None, :] + np.outer(10.0 * times, [1.0, 0.0]))[None],
+        heading_rad=np.where(times > 0.0, 0.0, math.pi / 2)[None], speed_mps=np.array([10.0]),
+    )  # fmt: skip
+    req = dataclasses.replace(hand_request(), agents=forecast)
+    plan = PdmPlanner().plan(req)
+    path_only = PdmPlanner(PdmSettings(constant_velocity_s=0.0)).plan(req)
+    np.testing.assert_array_equal(plan.xy, path_only.xy)
+    np.testing.assert_array_equal(plan.speed_mps, path_only.speed_mps)
+    assert plan.extras == path_only.extras and plan.extras["score"] > 0.0
+    kept = PdmPlanner(PdmSettings(drop_unavoidable_twins=False)).plan(req)
+    assert kept.extras["score"] == 0.0

@@ -125,7 +125,10 @@ class PdmSettings:
     it does so under either. ``constant_velocity_tolerance_m``: an agent whose
     constant-velocity forecast stays this close to its map-path forecast over that window
     (centres, plus half its length times the heading difference) gets no second
-    hypothesis: it would find the same contacts.
+    hypothesis: it would find the same contacts. ``drop_unavoidable_twins``: a
+    constant-velocity row that every proposal, the braking ones included, hits at fault
+    is left out of the collision and TTC metrics (it cannot tell the proposals apart; with
+    it every proposal scored 0 and the choice among zeros drove on into a standing car).
     """
 
     target_fractions: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8, 1.0)
@@ -159,6 +162,7 @@ class PdmSettings:
     score_tie: float = 0.01
     constant_velocity_s: float = 5.0
     constant_velocity_tolerance_m: float = 0.1
+    drop_unavoidable_twins: bool = True
     # nuPlan's comfort bounds
     max_lon_accel_mps2: float = 2.40
     min_lon_accel_mps2: float = -4.05
@@ -362,6 +366,7 @@ class _Hypotheses:
     agents: AgentForecasts
     owner: np.ndarray
     last_step: np.ndarray
+    twin: np.ndarray  # (R,) bool: a constant-velocity row
 
     @classmethod
     def of(cls, agents: AgentForecasts, settings: PdmSettings) -> _Hypotheses:
@@ -395,7 +400,8 @@ class _Hypotheses:
                 speed_mps=None if agents.speed_mps is None else agents.speed_mps[rows],
             )
         last = np.r_[np.full(originals.size, n_t - 1), np.full(twins.size, cv.last_step)]
-        return cls(agents=forecasts, owner=rows, last_step=last.astype(np.int64))
+        twin = np.r_[np.zeros(originals.size, dtype=bool), np.ones(twins.size, dtype=bool)]
+        return cls(agents=forecasts, owner=rows, last_step=last.astype(np.int64), twin=twin)
 
 
 # ---------------------------------------------------------------------- scores
@@ -906,6 +912,12 @@ class PdmPlanner:
             it[collision],
             at_fault[collision],
         )
+        # A constant-velocity row that every proposal (the braking ones included) hits
+        # at fault says nothing about which to choose: it would zero them all, and the
+        # choice among zeros would then ignore the map-path forecasts' differences.
+        unavoidable = scored.twin & collision_score.all(axis=0)
+        if p.drop_unavoidable_twins and unavoidable.any():
+            collision_score = collision_score & ~unavoidable
         factor = np.where(agents.kinds == Kind.OTHER, p.static_collision_score, 0.0)
         multi[MultiMetric.NO_AT_FAULT_COLLISION] = np.where(
             collision_score, factor[np.maximum(collision_agent, 0)], 1.0
@@ -921,6 +933,8 @@ class PdmPlanner:
         ttc_counts, _, _ = _first_contact(
             n_p, agents.n, ip[moving], ik[moving], order[moving], it[moving], ttc_fault[moving]
         )
+        if p.drop_unavoidable_twins and unavoidable.any():
+            ttc_counts = ttc_counts & ~unavoidable
         weighted[WeightedMetric.TTC] = np.where(ttc_counts.any(axis=1), 0.0, 1.0)
         return ProposalScores.of(multi, weighted, step, collision_row, p)
 
