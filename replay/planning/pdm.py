@@ -24,8 +24,7 @@ One call (:meth:`PdmPlanner.plan`), every stage vectorised over proposals ``P``,
    ``score = product * weighted mean``. Every agent is scored under two forecasts, its
    map-path one (the request's) and constant velocity along its current heading
    (PDM-Closed's; :class:`_Hypotheses`, extra rows of the scored agents): a proposal
-   collides at fault when it does under either (a constant-velocity row that no proposal
-   escapes is left out, and when they zero every proposal the map-path rows decide).
+   collides at fault when it does under either.
 5. **Decision**: the best proposal (its IDM trajectory, as PDM: the simulation is for the
    scores; among proposals that all score 0, the one that collides at fault latest), or
    an emergency brake when it collides at fault within 2 s while the ego drives at 5 m/s
