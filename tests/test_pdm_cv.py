@@ -175,9 +175,5 @@ def test_a_constant_velocity_row_that_no_proposal_escapes_is_left_out():
     np.testing.assert_array_equal(plan.xy, path_only.xy)
     np.testing.assert_array_equal(plan.speed_mps, path_only.speed_mps)
     assert plan.extras == path_only.extras and plan.extras["score"] > 0.0
-    kept = PdmPlanner(PdmSettings(drop_unavoidable_twins=False, twin_fallback=False)).plan(req)
+    kept = PdmPlanner(PdmSettings(drop_unavoidable_twins=False)).plan(req)
     assert kept.extras["score"] == 0.0
-    # kept, but with every proposal at 0 the map-path rows alone decide: the same plan
-    fallback = PdmPlanner(PdmSettings(drop_unavoidable_twins=False)).plan(req)
-    np.testing.assert_array_equal(fallback.xy, path_only.xy)
-    assert fallback.extras == path_only.extras

@@ -129,10 +129,6 @@ class PdmSettings:
     constant-velocity row that every proposal, the braking ones included, hits at fault
     is left out of the collision and TTC metrics (it cannot tell the proposals apart; with
     it every proposal scored 0 and the choice among zeros drove on into a standing car).
-    ``twin_fallback``: when every proposal scores 0 with the constant-velocity rows and
-    some proposal scores above 0 without them, the scores without them decide (PDM's
-    choice among zeros is no choice; ours, the latest collision, drove on in those
-    spells).
     """
 
     target_fractions: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8, 1.0)
@@ -167,7 +163,6 @@ class PdmSettings:
     constant_velocity_s: float = 5.0
     constant_velocity_tolerance_m: float = 0.1
     drop_unavoidable_twins: bool = True
-    twin_fallback: bool = True
     # nuPlan's comfort bounds
     max_lon_accel_mps2: float = 2.40
     min_lon_accel_mps2: float = -4.05
@@ -924,6 +919,13 @@ class PdmPlanner:
         if p.drop_unavoidable_twins and unavoidable.any():
             collision_score = collision_score & ~unavoidable
         factor = np.where(agents.kinds == Kind.OTHER, p.static_collision_score, 0.0)
+        multi[MultiMetric.NO_AT_FAULT_COLLISION] = np.where(
+            collision_score, factor[np.maximum(collision_agent, 0)], 1.0
+        ).min(axis=1)
+        first_fault = np.where(collision_score, collision_step, np.inf)
+        worst = np.argmin(first_fault, axis=1)
+        step = first_fault[np.arange(n_p), worst]
+        collision_row = np.where(np.isfinite(step), worst, -1)
 
         # TTC: contacts while the ego stands are skipped (not ignored for later, as PDM).
         moving = speed[ip, it] >= p.ttc_stopped_speed_mps
@@ -933,27 +935,8 @@ class PdmPlanner:
         )
         if p.drop_unavoidable_twins and unavoidable.any():
             ttc_counts = ttc_counts & ~unavoidable
-
-        def scores(counted: np.ndarray, ttc: np.ndarray) -> ProposalScores:
-            """The scores with the ``(P, R)`` at-fault collisions and TTC contacts."""
-            multi[MultiMetric.NO_AT_FAULT_COLLISION] = np.where(
-                counted, factor[np.maximum(collision_agent, 0)], 1.0
-            ).min(axis=1)
-            first_fault = np.where(counted, collision_step, np.inf)
-            worst = np.argmin(first_fault, axis=1)
-            step = first_fault[np.arange(n_p), worst]
-            collision_row = np.where(np.isfinite(step), worst, -1)
-            weighted[WeightedMetric.TTC] = np.where(ttc.any(axis=1), 0.0, 1.0)
-            return ProposalScores.of(multi.copy(), weighted.copy(), step, collision_row, p)
-
-        both = scores(collision_score, ttc_counts)
-        if p.twin_fallback and both.total.max() <= 0.0 and scored.twin.any():
-            # every proposal scores 0 with the constant-velocity rows: the map-path rows
-            # alone decide, when they leave some proposal a score
-            path_only = scores(collision_score & ~scored.twin, ttc_counts & ~scored.twin)
-            if path_only.total.max() > 0.0:
-                return path_only
-        return both
+        weighted[WeightedMetric.TTC] = np.where(ttc_counts.any(axis=1), 0.0, 1.0)
+        return ProposalScores.of(multi, weighted, step, collision_row, p)
 
     def _direction(self, sim_xy: np.ndarray, rel_heading: np.ndarray) -> np.ndarray:
         """Driving direction ``(P,)``: the longest stretch (m) driven against the
