@@ -127,8 +127,9 @@ class PdmSettings:
     (centres, plus half its length times the heading difference) gets no second
     hypothesis: it would find the same contacts. ``drop_unavoidable_twins``: a
     constant-velocity row that every proposal, the braking ones included, hits at fault
-    is left out of the collision and TTC metrics (it cannot tell the proposals apart; with
-    it every proposal scored 0 and the choice among zeros drove on into a standing car).
+    is left out of the collision and TTC metrics (it cannot tell the proposals apart: it
+    would zero them all, and the choice among zeros would ignore what the map-path
+    forecasts say).
     """
 
     target_fractions: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8, 1.0)
