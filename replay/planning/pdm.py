@@ -336,24 +336,38 @@ class _ConstantVelocity:
     twins: np.ndarray
     last_step: int
 
+    @staticmethod
+    def window(agents: AgentForecasts, settings: PdmSettings) -> int:
+        """The last time index of the constant-velocity hypothesis (0: none)."""
+        last = int(np.searchsorted(agents.times_s, settings.constant_velocity_s + 1e-9)) - 1
+        return max(min(last, agents.times_s.size - 1), 0)
+
     @classmethod
-    def of(cls, agents: AgentForecasts, settings: PdmSettings) -> _ConstantVelocity:
-        n_t = agents.times_s.size
-        window = int(np.searchsorted(agents.times_s, settings.constant_velocity_s + 1e-9)) - 1
-        window = min(window, n_t - 1)
+    def of(
+        cls, agents: AgentForecasts, settings: PdmSettings, among: np.ndarray | None = None
+    ) -> _ConstantVelocity:
+        """The forecasts of the agents ``among`` (an index array; default all); the rows
+        of the others are left unset and none of them is a twin."""
+        window = cls.window(agents, settings)
         if window < 1 or agents.n == 0:
             return cls(xy=agents.xy, heading_rad=agents.heading_rad, twins=np.zeros(0, np.int64),
                        last_step=0)  # fmt: skip
-        heading0 = agents.heading_rad[:, 0]
-        travel = _current_speed(agents)[:, None] * (agents.times_s - agents.times_s[0])[None, :]
-        direction = np.stack([np.cos(heading0), np.sin(heading0)], axis=-1)  # (K, 2)
-        xy = agents.xy[:, :1] + travel[..., None] * direction[:, None, :]  # (K, T, 2)
-        heading = np.broadcast_to(heading0[:, None], agents.heading_rad.shape)
+        rows = np.arange(agents.n) if among is None else np.asarray(among, dtype=np.int64)
+        xy = np.zeros(agents.xy.shape)
+        heading = np.zeros(agents.heading_rad.shape)
+        if rows.size == 0:
+            return cls(xy=xy, heading_rad=heading, twins=rows, last_step=window)
+        chosen = agents.subset(rows) if among is not None else agents
+        heading0 = chosen.heading_rad[:, 0]
+        travel = _current_speed(chosen)[:, None] * (chosen.times_s - chosen.times_s[0])[None, :]
+        direction = np.stack([np.cos(heading0), np.sin(heading0)], axis=-1)  # (K', 2)
+        xy[rows] = chosen.xy[:, :1] + travel[..., None] * direction[:, None, :]  # (K', T, 2)
+        heading[rows] = heading0[:, None]
         ahead = slice(0, window + 1)
-        turned = np.abs(lqr.wrap_angle(heading[:, ahead] - agents.heading_rad[:, ahead]))
-        apart = np.hypot(*np.moveaxis(xy[:, ahead] - agents.xy[:, ahead], -1, 0))
-        apart = apart + agents.length_m[:, None] / 2.0 * turned
-        twins = np.flatnonzero((apart > settings.constant_velocity_tolerance_m).any(axis=1))
+        turned = np.abs(lqr.wrap_angle(heading[rows, ahead] - chosen.heading_rad[:, ahead]))
+        apart = np.hypot(*np.moveaxis(xy[rows, ahead] - chosen.xy[:, ahead], -1, 0))
+        apart = apart + chosen.length_m[:, None] / 2.0 * turned
+        twins = rows[(apart > settings.constant_velocity_tolerance_m).any(axis=1)]
         return cls(xy=xy, heading_rad=heading, twins=twins, last_step=window)
 
 
@@ -612,7 +626,12 @@ class PdmPlanner:
         near_bound = farthest + ego_half_diagonal + half_diagonal + 1e-6
         maybe_near = np.flatnonzero((distance <= near_bound[:, None]).any(axis=1))
         # the constant-velocity rows (within their window) that come as near
-        cv = _ConstantVelocity.of(agents, self.settings)
+        # only an agent whose straight-on travel within the window can bring it that near
+        window_s = float(agents.times_s[_ConstantVelocity.window(agents, self.settings)])
+        reach_cv = distance[:, 0] - _current_speed(agents) * window_s
+        cv = _ConstantVelocity.of(
+            agents, self.settings, among=np.flatnonzero(reach_cv <= near_bound + 1e-6)
+        )
         cv_xy = cv.xy[cv.twins, : cv.last_step + 1]
         cv_distance = np.hypot(cv_xy[..., 0] - ego.xy[0], cv_xy[..., 1] - ego.xy[1])
         maybe_twins = cv.twins[(cv_distance <= near_bound[cv.twins, None]).any(axis=1)]
