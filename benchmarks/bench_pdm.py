@@ -5,6 +5,7 @@ Usage::
 
     .venv/bin/python benchmarks/bench_pdm.py            # 2 scenes, 40 requests, 5 rounds
     .venv/bin/python benchmarks/bench_pdm.py --quick    # 12 requests, 2 rounds
+    .venv/bin/python benchmarks/bench_pdm.py --tree main=/tmp/main --tree new=.  # trees in turns
 
 The scenes: two MONA scenes of ../shared/data/recorded (36-43 valid agents a frame; the
 exiD scenes there have 16 or fewer), converted with
@@ -20,14 +21,21 @@ percentiles of the wall time (``time.perf_counter``) and of the process CPU time
 (``time.process_time``, less disturbed by other processes on the 2 shared cores), the
 ratio to ``idm`` on the same requests, and pdm's stages (CPU medians). Results are
 appended, dated, to ``benchmarks/results/pdm.md``.
+
+With ``--tree NAME=PATH`` (twice or more) the same requests (built once, by this tree)
+are planned by each tree's own ``pdm`` instead, one process per tree and round, the trees
+in turns round after round; the table gives each tree's medians and the ratios to the
+first tree (of the medians, and the median of the per-request ratios).
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
 import pathlib
+import pickle
 import platform
 import subprocess
 import sys
@@ -106,7 +114,7 @@ def stages(pdm: PdmPlanner, request: PlanRequest) -> dict[str, float]:
     """CPU ms of pdm's stages on one request (one run each, after the timed rounds)."""
     out: dict[str, float] = {}
     t = time.process_time()
-    line, agents, proposals, relevant, candidates = pdm._relevant(request)
+    line, scored, proposals, _, candidates = pdm._relevant(request)
     out["relevance + IDM + simulation"] = (time.process_time() - t) * 1e3
     t = time.process_time()
     pdm._simulate(request, proposals.states, request.dt_s)
@@ -118,7 +126,7 @@ def stages(pdm: PdmPlanner, request: PlanRequest) -> dict[str, float]:
     pdm._score(
         request,
         line,
-        agents.subset(relevant),
+        scored,
         sim,
         _centres(sim, proposals.wheelbase_m),
         candidates,
@@ -127,11 +135,90 @@ def stages(pdm: PdmPlanner, request: PlanRequest) -> dict[str, float]:
     return out
 
 
+#: What one tree's process runs (cwd and PYTHONPATH the tree): its own ``pdm`` on the
+#: pickled requests, 3 warm-up calls, then wall and CPU ms per request as JSON.
+_TREE_WORKER = """
+import json, pickle, sys, time
+from replay.planning.pdm import PdmPlanner
+reqs = pickle.load(open(sys.argv[1], "rb"))
+pdm = PdmPlanner()
+for r in reqs[:3]:
+    pdm.plan(r)
+out = []
+for r in reqs:
+    w, c = time.perf_counter(), time.process_time()
+    pdm.plan(r)
+    out.append(((time.perf_counter() - w) * 1e3, (time.process_time() - c) * 1e3))
+print(json.dumps(out))
+"""
+
+
+def _commit(tree: pathlib.Path) -> str:
+    """The tree's commit, or "not a git tree" (e.g. a ``git archive`` snapshot)."""
+    done = subprocess.run(
+        ["git", "-C", str(tree), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+    )
+    dirty = subprocess.run(
+        ["git", "-C", str(tree), "status", "--porcelain", "--untracked-files=no"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    if done.returncode != 0 or not (tree / ".git").exists():
+        return "not a git tree"
+    return done.stdout.strip() + (" with changes" if dirty.stdout.strip() else "")
+
+
+def compare_trees(
+    trees: list[tuple[str, pathlib.Path]], reqs: list[PlanRequest], rounds: int
+) -> list[str]:
+    """Each tree's ``pdm`` on the same requests, one process per tree and round, in turns:
+    the table's lines (medians, and ratios to the first tree)."""
+    wall: dict[str, list[np.ndarray]] = {name: [] for name, _ in trees}
+    cpu: dict[str, list[np.ndarray]] = {name: [] for name, _ in trees}
+    load_before = os.getloadavg()
+    with tempfile.TemporaryDirectory() as folder:
+        path = pathlib.Path(folder) / "requests.pkl"
+        path.write_bytes(pickle.dumps(reqs))
+        for _ in range(rounds):
+            for name, tree in trees:
+                env = {**os.environ, "PYTHONPATH": str(tree)}
+                done = subprocess.run(
+                    [sys.executable, "-c", _TREE_WORKER, str(path)],
+                    cwd=tree, env=env, check=True, capture_output=True, text=True,
+                )  # fmt: skip
+                times = np.array(json.loads(done.stdout.strip().splitlines()[-1]))
+                wall[name].append(times[:, 0])
+                cpu[name].append(times[:, 1])
+    load_after = os.getloadavg()
+    first = trees[0][0]
+    lines = [
+        f"- trees, in turns ({rounds} rounds, one process per tree and round): "
+        + ", ".join(f"{n} = `{t}` ({_commit(t)})" for n, t in trees),
+        f"- load average {load_before[0]:.1f} before, {load_after[0]:.1f} after",
+        "",
+        f"| tree | wall median ms | CPU median ms | CPU p95 ms | CPU median / {first} "
+        f"| per-request CPU ratio to {first} (median) |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    base_cpu = np.stack(cpu[first])
+    for name, _ in trees:
+        c, w = np.stack(cpu[name]), np.stack(wall[name])
+        per_request = np.median(c, axis=0) / np.median(base_cpu, axis=0)
+        lines.append(
+            f"| {name} | {np.median(w):.2f} | {np.median(c):.2f} | {np.percentile(c, 95):.2f} "
+            f"| {np.median(c) / np.median(base_cpu):.3f} | {np.median(per_request):.3f} |"
+        )
+    return lines
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--requests", type=int, default=40)
     parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument(
+        "--tree", action="append", default=[], metavar="NAME=PATH",
+        help="compare these trees' pdm in turns (twice or more)",
+    )  # fmt: skip
     args = parser.parse_args()
     limit, rounds = (12, 2) if args.quick else (args.requests, args.rounds)
     with tempfile.TemporaryDirectory() as folder:
@@ -139,6 +226,28 @@ def main() -> int:
     if not reqs:
         print("no scenes found under ../shared/data/recorded: nothing measured", file=sys.stderr)
         return 1
+    if args.tree:
+        trees = [
+            (n, pathlib.Path(p).resolve()) for n, _, p in (t.partition("=") for t in args.tree)
+        ]
+        if len(trees) < 2 or any(not p.is_dir() for _, p in trees):
+            print("Error: --tree NAME=PATH needs two or more existing folders", file=sys.stderr)
+            return 2
+        agents = np.array([r.agents.n for _, r in reqs])
+        text = "\n".join(
+            [
+                f"\n## {datetime.datetime.now().astimezone():%Y-%m-%d %H:%M %Z}: "
+                f"`python benchmarks/bench_pdm.py --tree ...`\n",
+                f"- requests: {len(reqs)} frames, other agents {agents.min()}-{agents.max()} "
+                f"(median {np.median(agents):.0f}); noisy shared machine: compare ratios",
+                *compare_trees(trees, [r for _, r in reqs], rounds),
+                "",
+            ]
+        )
+        print(text)
+        with RESULTS.open("a") as f:
+            f.write(text)
+        return 0
     pdm, idm = PdmPlanner(), IdmPlanner()
     for _, r in reqs[:3]:  # warm-up: imports, cached filter matrices
         pdm.plan(r)

@@ -254,6 +254,7 @@ def forecasts_for(frame: Frame, indices: np.ndarray, times_s: np.ndarray) -> Age
         times_s=times,
         xy=xy,
         heading_rad=heading_kt,
+        speed_mps=speed,
     )
 
 

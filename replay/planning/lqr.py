@@ -90,6 +90,8 @@ class StateIndex(IntEnum):
 N_STATE = len(StateIndex)
 # Plain ints for the per-step code (indexing with an IntEnum member costs twice as much).
 _X, _Y, _HEADING, _SPEED, _ACCEL, _STEER = (int(i) for i in StateIndex)
+#: The state rows in the order simulate unpacks them.
+_STATE_ROWS = [_X, _Y, _HEADING, _SPEED, _ACCEL, _STEER]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -502,14 +504,84 @@ def simulate(
     steps of ``settings.dt_s`` along ``reference`` (time index 0 = ``initial``'s time):
     states ``(B, n_steps + 1, N_STATE)``."""
     problem = TrackingProblem.of(reference, wheelbase, settings)
-    out = np.empty((n_steps + 1, initial.shape[0], N_STATE))  # time-major while stepping
-    out[0] = initial
+    # The per-step work of lqr_commands then bicycle_step, fused: the same operations in
+    # the same order (bit for bit the same states, tests/test_lqr_fused.py keeps the
+    # two-call loop as the oracle), on state rows (time, state, batch) that need no
+    # column slicing, with the moments' reordering done once for all steps: the batch
+    # is small (17 proposals), so the step costs its number of numpy calls.
+    p, s = problem, settings
+    n, dt = s.horizon_steps, s.dt_s
+    out = np.empty((n_steps + 1, N_STATE, initial.shape[0]))
+    out[0] = initial.T
+    coef = _response_coefficients(n, dt)
+    affine = _affine_sum(dt)
+    wheelbase_b = p.wheelbase
+    wheelbase_col = np.reshape(wheelbase_b, (-1, 1))
+    moments = p.moments[:, :, _MOMENT_ORDER]
+    speed_gain, position_gain = p.speed_gain, p.position_gain
+    accel_share = dt / (dt + s.accel_lag_s)
+    steer_share = dt * dt / (dt + s.steer_lag_s)
+    last = p.heading.shape[0] - 1
+    basis = np.empty((initial.shape[0], 5))  # v^2, v alpha, alpha^2, v, alpha
     for k in range(n_steps):  # time steps only; the batch is vectorised
-        accel, steer_rate = lqr_commands(out[k], problem, k)
-        out[k + 1] = bicycle_step(
-            out[k], accel, steer_rate, settings.dt_s, problem.wheelbase, settings
+        r = min(k, last)
+        x, y, heading, speed, accel, steer = out[k, _STATE_ROWS]
+        # -- lqr_commands
+        local = (x + 1j * y - p.rear[r]) * p.unrotate[r]
+        accel_cmd = p.base_accel[r] - speed_gain * speed - position_gain * local.real
+        psi0 = wrap_angle(heading - p.heading[r])
+        alpha = basis[:, 4]
+        np.multiply(accel_cmd, dt, out=alpha)
+        basis[:, 3] = speed
+        np.multiply(speed, speed, out=basis[:, 0])
+        np.multiply(speed, alpha, out=basis[:, 1])
+        np.multiply(alpha, alpha, out=basis[:, 2])
+        free = basis @ coef
+        free[:, 1:] /= wheelbase_col
+        basis *= moments[r]
+        g = basis @ affine
+        e_n = local.imag + free[:, 0] * psi0 + free[:, 1] * steer + g[:, 0]
+        psi_n = psi0 + free[:, 2] * steer + g[:, 1]
+        b0, b1 = free[:, 3], free[:, 4]
+        num = s.q_lateral_error * b0 * e_n + s.q_heading_error * b1 * psi_n
+        den = s.q_lateral_error * b0 * b0 + s.q_heading_error * b1 * b1 + s.r_steer_rate
+        if s.q_steer:
+            b2 = n * dt
+            num = num + s.q_steer * b2 * steer
+            den = den + s.q_steer * b2 * b2
+        steer_rate = -num / den
+        stopping = p.stopping_ref[r] & (speed <= s.stop_speed_mps)
+        if stopping.any():
+            accel_cmd = np.where(stopping, -s.stop_gain * (speed - p.v_ref_ahead[r]), accel_cmd)
+            steer_rate = np.where(stopping, 0.0, steer_rate)
+        # -- bicycle_step
+        new = out[k + 1]
+        new_accel = new[_ACCEL]
+        np.multiply(accel_cmd - accel, accel_share, out=new_accel)
+        new_accel += accel
+        np.minimum(
+            np.maximum(new_accel, -s.max_decel_mps2, out=new_accel),
+            s.max_accel_mps2,
+            out=new_accel,
         )
-    return np.ascontiguousarray(np.moveaxis(out, 0, 1))
+        new_steer = new[_STEER]
+        np.multiply(steer_rate, steer_share, out=new_steer)
+        new_steer += steer
+        np.minimum(
+            np.maximum(new_steer, -s.max_steer_rad, out=new_steer), s.max_steer_rad, out=new_steer
+        )
+        travel = dt * speed
+        np.add(x, travel * np.cos(heading), out=new[_X])
+        np.add(y, travel * np.sin(heading), out=new[_Y])
+        np.add(heading, travel * np.tan(steer) / wheelbase_b, out=new[_HEADING])
+        new_speed = new[_SPEED]
+        np.multiply(new_accel, dt, out=new_speed)
+        new_speed += speed
+        stops = new_speed < 0.0  # comes to rest within the step: no reversing
+        if stops.any():
+            new_accel[stops] = -speed[stops] / dt
+            new_speed[stops] = 0.0
+    return np.ascontiguousarray(np.transpose(out, (2, 0, 1)))
 
 
 # ---------------------------------------------------------------------- the Tracker

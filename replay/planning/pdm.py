@@ -21,7 +21,10 @@ One call (:meth:`PdmPlanner.plan`), every stage vectorised over proposals ``P``,
 4. **Scoring** as PDM (:class:`MultiMetric`, :class:`WeightedMetric` rows ``(M, P)``):
    multiplicative at-fault collision (0, or 0.5 for objects of kind OTHER), drivable area,
    driving direction; weighted progress (5), time to collision (5), comfort (2);
-   ``score = product * weighted mean``.
+   ``score = product * weighted mean``. Every agent is scored under two forecasts, its
+   map-path one (the request's) and constant velocity along its current heading
+   (PDM-Closed's; :class:`_Hypotheses`, extra rows of the scored agents): a proposal
+   collides at fault when it does under either.
 5. **Decision**: the best proposal (its IDM trajectory, as PDM: the simulation is for the
    scores; among proposals that all score 0, the one that collides at fault latest), or
    an emergency brake when it collides at fault within 2 s while the ego drives at 5 m/s
@@ -116,6 +119,17 @@ class PdmSettings:
     sideways proposal then wins by trifles: 1e-6 more progress on a straight road, or, in
     closed loop creeping up to a standing car, 0.03 m of 4.7 m (0.0025 of the score), so
     that the ego weaved from one side to the other.
+    ``constant_velocity_s``: besides its map-path forecast, every agent is scored under a
+    second hypothesis, straight on at its current speed and heading (PDM-Closed's only
+    forecast), up to this many seconds ahead (0: none); a proposal collides at fault when
+    it does so under either. ``constant_velocity_tolerance_m``: an agent whose
+    constant-velocity forecast stays this close to its map-path forecast over that window
+    (centres, plus half its length times the heading difference) gets no second
+    hypothesis: it would find the same contacts. ``drop_unavoidable_twins``: a
+    constant-velocity row that every proposal, the braking ones included, hits at fault
+    is left out of the collision and TTC metrics (it cannot tell the proposals apart: it
+    would zero them all, and the choice among zeros would ignore what the map-path
+    forecasts say).
     """
 
     target_fractions: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8, 1.0)
@@ -147,6 +161,9 @@ class PdmSettings:
     merge_time_s: float = 2.0
     merge_min_m: float = 5.0
     score_tie: float = 0.01
+    constant_velocity_s: float = 5.0
+    constant_velocity_tolerance_m: float = 0.1
+    drop_unavoidable_twins: bool = True
     # nuPlan's comfort bounds
     max_lon_accel_mps2: float = 2.40
     min_lon_accel_mps2: float = -4.05
@@ -294,6 +311,114 @@ def _velocities(agents: AgentForecasts) -> np.ndarray:
     return np.concatenate([v, v[:, -1:]], axis=1)
 
 
+def _current_speed(agents: AgentForecasts) -> np.ndarray:
+    """``(K,)`` each agent's speed now: the request's when it carries it, else the
+    forecast's mean speed (its polyline's length over the forecast's duration)."""
+    if agents.speed_mps is not None:
+        return np.maximum(agents.speed_mps, 0.0)
+    duration = float(agents.times_s[-1] - agents.times_s[0]) if agents.times_s.size > 1 else 0.0
+    if duration <= 0.0:
+        return np.zeros(agents.n)
+    step = np.hypot(*np.moveaxis(np.diff(agents.xy, axis=1), -1, 0))
+    return np.asarray(step.sum(axis=1) / duration)
+
+
+@dataclass(frozen=True, eq=False)
+class _ConstantVelocity:
+    """Every agent's constant-velocity forecast: straight on along its heading now at its
+    speed now, boxes ``xy`` ``(K, T, 2)`` and ``heading_rad`` ``(K, T)``; ``twins``
+    ``(J,)`` the agents whose forecast departs from their map-path one by more than
+    ``constant_velocity_tolerance_m`` within the window (they get a second row);
+    ``last_step``: the window's last time index (0: no second hypothesis)."""
+
+    xy: np.ndarray
+    heading_rad: np.ndarray
+    twins: np.ndarray
+    last_step: int
+
+    @staticmethod
+    def window(agents: AgentForecasts, settings: PdmSettings) -> int:
+        """The last time index of the constant-velocity hypothesis (0: none)."""
+        last = int(np.searchsorted(agents.times_s, settings.constant_velocity_s + 1e-9)) - 1
+        return max(min(last, agents.times_s.size - 1), 0)
+
+    @classmethod
+    def of(
+        cls, agents: AgentForecasts, settings: PdmSettings, among: np.ndarray | None = None
+    ) -> _ConstantVelocity:
+        """The forecasts of the agents ``among`` (an index array; default all); the rows
+        of the others are left unset and none of them is a twin."""
+        window = cls.window(agents, settings)
+        if window < 1 or agents.n == 0:
+            return cls(xy=agents.xy, heading_rad=agents.heading_rad, twins=np.zeros(0, np.int64),
+                       last_step=0)  # fmt: skip
+        rows = np.arange(agents.n) if among is None else np.asarray(among, dtype=np.int64)
+        xy = np.zeros(agents.xy.shape)
+        heading = np.zeros(agents.heading_rad.shape)
+        if rows.size == 0:
+            return cls(xy=xy, heading_rad=heading, twins=rows, last_step=window)
+        chosen = agents.subset(rows) if among is not None else agents
+        heading0 = chosen.heading_rad[:, 0]
+        travel = _current_speed(chosen)[:, None] * (chosen.times_s - chosen.times_s[0])[None, :]
+        direction = np.stack([np.cos(heading0), np.sin(heading0)], axis=-1)  # (K', 2)
+        xy[rows] = chosen.xy[:, :1] + travel[..., None] * direction[:, None, :]  # (K', T, 2)
+        heading[rows] = heading0[:, None]
+        ahead = slice(0, window + 1)
+        turned = np.abs(lqr.wrap_angle(heading[rows, ahead] - chosen.heading_rad[:, ahead]))
+        apart = np.hypot(*np.moveaxis(xy[rows, ahead] - chosen.xy[:, ahead], -1, 0))
+        apart = apart + chosen.length_m[:, None] / 2.0 * turned
+        twins = rows[(apart > settings.constant_velocity_tolerance_m).any(axis=1)]
+        return cls(xy=xy, heading_rad=heading, twins=twins, last_step=window)
+
+
+@dataclass(frozen=True, eq=False)
+class _Hypotheses:
+    """The agents as the scorer sees them: rows ``(R,)``, first every agent's map-path
+    forecast, then a constant-velocity twin of the agents whose straight-on forecast
+    departs from it (:meth:`of`). ``owner`` ``(R,)``: the agent (row of the forecasts)
+    of each row; ``last_step`` ``(R,)``: the last time index a row is checked at."""
+
+    agents: AgentForecasts
+    owner: np.ndarray
+    last_step: np.ndarray
+    twin: np.ndarray  # (R,) bool: a constant-velocity row
+
+    @classmethod
+    def of(cls, agents: AgentForecasts, settings: PdmSettings) -> _Hypotheses:
+        """Every agent's map-path row, then the twins of all agents that have one."""
+        cv = _ConstantVelocity.of(agents, settings)
+        return cls.join(agents, np.arange(agents.n), cv, cv.twins)
+
+    @classmethod
+    def join(
+        cls,
+        agents: AgentForecasts,
+        originals: np.ndarray,
+        cv: _ConstantVelocity,
+        twins: np.ndarray,
+    ) -> _Hypotheses:
+        """The map-path rows of the agents ``originals`` then the constant-velocity rows
+        of the agents ``twins`` (index arrays into ``agents``), as one set of rows."""
+        n_t = agents.times_s.size
+        rows = np.r_[originals, twins].astype(np.int64)
+        if twins.size == 0:
+            forecasts = agents.subset(rows)
+        else:
+            forecasts = AgentForecasts(
+                ids=agents.ids[rows],
+                kinds=agents.kinds[rows],
+                length_m=agents.length_m[rows],
+                width_m=agents.width_m[rows],
+                times_s=agents.times_s,
+                xy=np.concatenate([agents.xy[originals], cv.xy[twins]]),
+                heading_rad=np.concatenate([agents.heading_rad[originals], cv.heading_rad[twins]]),
+                speed_mps=None if agents.speed_mps is None else agents.speed_mps[rows],
+            )
+        last = np.r_[np.full(originals.size, n_t - 1), np.full(twins.size, cv.last_step)]
+        twin = np.r_[np.zeros(originals.size, dtype=bool), np.ones(twins.size, dtype=bool)]
+        return cls(agents=forecasts, owner=rows, last_step=last.astype(np.int64), twin=twin)
+
+
 # ---------------------------------------------------------------------- scores
 @dataclass(frozen=True, eq=False)
 class ProposalScores:
@@ -384,12 +509,12 @@ class PdmPlanner:
         start = time.perf_counter()
         if not _usable(request.reference):
             return Plan.failed("the reference path has fewer than two distinct points")
-        line, agents, proposals, relevant, candidates = self._relevant(request)
-        agents = agents.subset(relevant)
+        line, scored, proposals, _, candidates = self._relevant(request)
+        agents = scored.agents  # the scorer's rows: ids repeat for the second hypotheses
         p = self.settings
         sim = proposals.simulated
         sim_xy = _centres(sim, proposals.wheelbase_m)
-        scores = self._score(request, line, agents, sim, sim_xy, candidates)
+        scores = self._score(request, line, scored, sim, sim_xy, candidates)
         total = scores.total
         best = _choose(scores, proposals.fraction > 0.0, proposals.offset_m, p.score_tie)
         ego = request.ego
@@ -452,11 +577,13 @@ class PdmPlanner:
 
     def _relevant(
         self, request: PlanRequest
-    ) -> tuple[_Centreline, AgentForecasts, _Proposals, np.ndarray, np.ndarray | None]:
-        """The centreline, the agents on the plan's times, the simulated proposals (built
-        on the agents the leader search can read), the mask ``(K,)`` of agents read
-        anywhere (the leader search, or a bounding-circle candidate of the scorer) and the
-        scorer's candidates ``(P, T, D, K')`` of those agents (None without agents).
+    ) -> tuple[_Centreline, _Hypotheses, _Proposals, np.ndarray, np.ndarray | None]:
+        """The centreline, the scorer's rows of the agents read anywhere (their map-path
+        forecasts on the plan's times and constant-velocity twins, :class:`_Hypotheses`),
+        the simulated proposals (built on the agents the leader search can read), the
+        mask ``(K,)`` of agents read anywhere (the leader search, or a bounding-circle
+        candidate of the scorer under either hypothesis) and the scorer's candidates
+        ``(P, T, D, R')`` of those rows (None without agents).
 
         Two distance bounds from the ego's position keep the work in proportion to the
         agents near the ego, never dropping one that either test would read: a leader's
@@ -489,7 +616,7 @@ class PdmPlanner:
                 leaders_along = along.rows(reach) if reach.any() else None
         proposals = self._proposals(request, line, leaders_along, agents.ids[leaders], s0, d0)
         if agents.n == 0:
-            return line, agents, proposals, leaders, None
+            return line, _Hypotheses.of(agents, self.settings), proposals, leaders, None
         sim = proposals.simulated
         sim_xy = _centres(sim, proposals.wheelbase_m)
         look = self._lookahead_steps(request.dt_s)
@@ -498,20 +625,40 @@ class PdmPlanner:
         ego_half_diagonal = math.hypot(ego.length_m, ego.width_m) / 2.0
         near_bound = farthest + ego_half_diagonal + half_diagonal + 1e-6
         maybe_near = np.flatnonzero((distance <= near_bound[:, None]).any(axis=1))
-        near = np.zeros(agents.n, dtype=bool)
+        # the constant-velocity rows (within their window) that come as near
+        # only an agent whose straight-on travel within the window can bring it that near
+        window_s = float(agents.times_s[_ConstantVelocity.window(agents, self.settings)])
+        reach_cv = distance[:, 0] - _current_speed(agents) * window_s
+        cv = _ConstantVelocity.of(
+            agents, self.settings, among=np.flatnonzero(reach_cv <= near_bound + 1e-6)
+        )
+        cv_xy = cv.xy[cv.twins, : cv.last_step + 1]
+        cv_distance = np.hypot(cv_xy[..., 0] - ego.xy[0], cv_xy[..., 1] - ego.xy[1])
+        maybe_twins = cv.twins[(cv_distance <= near_bound[cv.twins, None]).any(axis=1)]
+        tested = _Hypotheses.join(agents, maybe_near, cv, maybe_twins)
+        near_row = np.zeros(tested.owner.size, dtype=bool)
         cand = np.zeros((*sim.shape[:2], look.size, 0), dtype=bool)
-        if maybe_near.size:
-            cand = _candidates(request, agents.subset(maybe_near), sim, sim_xy, look)
-            near[maybe_near] = cand.any(axis=(0, 1, 2))
+        if tested.owner.size:
+            cand = _candidates(
+                request, tested.agents, sim, sim_xy, look, last_step=tested.last_step
+            )
+            near_row = np.asarray(cand.any(axis=(0, 1, 2)))
+        near = np.zeros(agents.n, dtype=bool)
+        near[tested.owner[near_row]] = True
         relevant = leaders | near
-        # the candidates of the relevant agents, in their order (leaders far from every
-        # simulated box have none)
+        # The scorer's rows: the relevant agents' map-path rows (in their order; leaders
+        # far from every simulated box have no candidates), then the twins that have some
+        # (a twin without candidates has no contact: leaving it out changes nothing).
+        kept_twins = near_row[maybe_near.size :]
+        scored = _Hypotheses.join(agents, np.flatnonzero(relevant), cv, maybe_twins[kept_twins])
         column = np.full(agents.n, -1)
         column[maybe_near] = np.arange(maybe_near.size)
-        columns = column[relevant]
+        columns = np.r_[column[relevant], maybe_near.size + np.flatnonzero(kept_twins)].astype(
+            np.int64
+        )
         relevant_cand = np.zeros((*cand.shape[:3], columns.size), dtype=bool)
         relevant_cand[..., columns >= 0] = cand[..., columns[columns >= 0]]
-        return line, agents, proposals, relevant, relevant_cand
+        return line, scored, proposals, relevant, relevant_cand
 
     def _search_steps(self, request: PlanRequest) -> np.ndarray:
         """The steps at which the IDM searches for leaders (the last step plans nothing)."""
@@ -675,21 +822,24 @@ class PdmPlanner:
         """The scores of simulated proposals ``(P, T, N_STATE)`` (bicycle states, rear
         axle, on the request's times) against the request's agents and lanes."""
         line = _Centreline.of(request.reference)
-        agents = request.agents.on_times(request.times_s)
+        scored = _Hypotheses.of(request.agents.on_times(request.times_s), self.settings)
         wheelbase = float(lqr.wheelbase_m(request.ego.length_m))
-        return self._score(request, line, agents, simulated, _centres(simulated, wheelbase))
+        return self._score(request, line, scored, simulated, _centres(simulated, wheelbase))
 
     def _score(
         self,
         request: PlanRequest,
         line: _Centreline,
-        agents: AgentForecasts,
+        scored: _Hypotheses,
         sim: np.ndarray,
         sim_xy: np.ndarray,
         candidates: np.ndarray | None = None,
     ) -> ProposalScores:
-        """Metric rows and scores of the simulated proposals (see :class:`ProposalScores`);
-        ``candidates``: the bounding-circle candidates of these agents when known."""
+        """Metric rows and scores of the simulated proposals (see :class:`ProposalScores`)
+        against the scorer's rows ``scored`` (each agent under either hypothesis: a row's
+        at-fault collision is its agent's); ``candidates``: the bounding-circle candidates
+        of these rows when known. ``collision_row`` is a row of ``scored``."""
+        agents = scored.agents
         p = self.settings
         ego = request.ego
         dt = request.dt_s
@@ -734,7 +884,10 @@ class PdmPlanner:
             ego.xy[0], ego.xy[1], np.asarray(ego.heading_rad), np.asarray(ego.length_m), np.asarray(ego.width_m),
             agents.xy[:, 0, 0], agents.xy[:, 0, 1], agents.heading_rad[:, 0], agents.length_m, agents.width_m,
         )  # fmt: skip
-        c = contacts(request, agents, sim, sim_xy, look, ignore=now, candidates=candidates)
+        c = contacts(
+            request, agents, sim, sim_xy, look, ignore=now, candidates=candidates,
+            last_step=scored.last_step,
+        )  # fmt: skip
         ip, it, idd, ik, ta, cx, cy = (
             c.proposal,
             c.step,
@@ -779,6 +932,12 @@ class PdmPlanner:
             it[collision],
             at_fault[collision],
         )
+        # A constant-velocity row that every proposal (the braking ones included) hits
+        # at fault says nothing about which to choose: it would zero them all, and the
+        # choice among zeros would then ignore the map-path forecasts' differences.
+        unavoidable = scored.twin & collision_score.all(axis=0)
+        if p.drop_unavoidable_twins and unavoidable.any():
+            collision_score = collision_score & ~unavoidable
         factor = np.where(agents.kinds == Kind.OTHER, p.static_collision_score, 0.0)
         multi[MultiMetric.NO_AT_FAULT_COLLISION] = np.where(
             collision_score, factor[np.maximum(collision_agent, 0)], 1.0
@@ -794,6 +953,8 @@ class PdmPlanner:
         ttc_counts, _, _ = _first_contact(
             n_p, agents.n, ip[moving], ik[moving], order[moving], it[moving], ttc_fault[moving]
         )
+        if p.drop_unavoidable_twins and unavoidable.any():
+            ttc_counts = ttc_counts & ~unavoidable
         weighted[WeightedMetric.TTC] = np.where(ttc_counts.any(axis=1), 0.0, 1.0)
         return ProposalScores.of(multi, weighted, step, collision_row, p)
 
@@ -892,10 +1053,12 @@ def _candidates(
     sim: np.ndarray,
     sim_xy: np.ndarray,
     look: np.ndarray,
+    last_step: np.ndarray | None = None,
 ) -> np.ndarray:
     """``(P, T, D, K)``: the ego's box at step ``t`` of proposal ``p``, moved ahead by its
     speed times look-ahead ``d``, and agent ``k``'s box at step ``t + d`` could touch (their
-    bounding circles do). Pairs whose ``t + d`` lies beyond the forecast are not checked."""
+    bounding circles do). Pairs whose ``t + d`` lies beyond the forecast, or beyond the
+    agent's ``last_step`` ``(K,)``, are not checked."""
     ego = request.ego
     n_t = sim.shape[1]
     heading = sim[..., lqr.StateIndex.HEADING]
@@ -914,9 +1077,11 @@ def _candidates(
     # centre); only what passes is tested per proposal.
     mx, my = cx.mean(axis=0), cy.mean(axis=0)  # (T, D)
     radius = np.sqrt(((cx - mx) ** 2 + (cy - my) ** 2).max(axis=0))
-    within = np.arange(n_t)[:, None] + look[None, :] <= n_t - 1
+    agent_step = np.arange(n_t)[:, None] + look[None, :]  # (T, D)
+    last = np.full(agents.n, n_t - 1) if last_step is None else np.minimum(last_step, n_t - 1)
+    within = agent_step[None] <= last[:, None, None]  # (K, T, D)
     wide = radius[None] + reach[:, None, None] + 1e-6
-    coarse = ((ax - mx) ** 2 + (ay - my) ** 2 <= wide * wide) & within[None]
+    coarse = ((ax - mx) ** 2 + (ay - my) ** 2 <= wide * wide) & within
     ik, it, idd = np.nonzero(coarse)
     dx = cx[:, it, idd] - ax[ik, it, idd]  # (P, m)
     dy = cy[:, it, idd] - ay[ik, it, idd]
@@ -948,18 +1113,23 @@ def contacts(
     look: np.ndarray,
     ignore: np.ndarray | None = None,
     candidates: np.ndarray | None = None,
+    last_step: np.ndarray | None = None,
 ) -> Contacts:
     """Every ``(proposal, step, look-ahead, agent)`` whose boxes overlap (separating axes,
     :func:`risk.hindsight.boxes_overlap`), the ego's box at ``sim_xy`` with the simulated
     heading, moved ahead by speed times ``look * dt``, against the agent's box at
     ``step + look``; only the pairs whose bounding circles touch are tested
     (:func:`_candidates`, or ``candidates`` ``(P, T, D, K)`` when already computed).
-    ``ignore`` ``(K,)``: agents left out."""
+    ``ignore`` ``(K,)``: agents left out; ``last_step`` ``(K,)``: each agent's last time
+    index checked (default: the forecast's end)."""
     ego = request.ego
     dt = request.dt_s
     heading = sim[..., lqr.StateIndex.HEADING]
     speed = sim[..., lqr.StateIndex.SPEED]
-    cand = _candidates(request, agents, sim, sim_xy, look) if candidates is None else candidates
+    if candidates is None:
+        cand = _candidates(request, agents, sim, sim_xy, look, last_step=last_step)
+    else:
+        cand = candidates
     if ignore is not None:
         cand = cand & ~ignore[None, None, None, :]
     ip, it, idd, ik = np.nonzero(cand)

@@ -56,6 +56,9 @@ class AgentForecasts:
     ``times_s`` (T,) s from now (``times_s[0] == 0``: the present); ``xy`` (K, T, 2) m,
     predicted box centres; ``heading_rad`` (K, T); ``length_m``, ``width_m`` (K,) m;
     ``ids`` (K,) int64 agent ids; ``kinds`` (K,) int8 :class:`risk.Kind` codes.
+    ``speed_mps`` (K,) m/s or None: each agent's speed now, along ``heading_rad[:, 0]``
+    (what a constant-velocity forecast needs; :func:`replay.planning.inputs.forecasts_for`
+    fills it, None where a caller does not know it).
     """
 
     ids: np.ndarray  # (K,) int64
@@ -65,8 +68,11 @@ class AgentForecasts:
     times_s: np.ndarray  # (T,) float64, s
     xy: np.ndarray  # (K, T, 2) float64, m
     heading_rad: np.ndarray  # (K, T) float64, rad
+    speed_mps: np.ndarray | None = None  # (K,) float64, m/s: the speed now
 
     def __post_init__(self) -> None:
+        if self.speed_mps is not None:
+            object.__setattr__(self, "speed_mps", np.asarray(self.speed_mps, dtype=np.float64))
         for name, dtype in (
             ("ids", np.int64),
             ("kinds", np.int8),
@@ -85,6 +91,8 @@ class AgentForecasts:
             _shape(f"AgentForecasts.{name}", getattr(self, name), (k,))
         _shape("AgentForecasts.xy", self.xy, (k, t, 2))
         _shape("AgentForecasts.heading_rad", self.heading_rad, (k, t))
+        if self.speed_mps is not None:
+            _shape("AgentForecasts.speed_mps", self.speed_mps, (k,))
 
     @property
     def n(self) -> int:
@@ -104,6 +112,7 @@ class AgentForecasts:
             times_s=self.times_s,
             xy=self.xy[sel],
             heading_rad=self.heading_rad[sel],
+            speed_mps=None if self.speed_mps is None else self.speed_mps[sel],
         )
 
     def on_times(self, times_s: np.ndarray) -> AgentForecasts:
@@ -127,6 +136,7 @@ class AgentForecasts:
             times_s=new,
             xy=self.xy[:, j] * (1 - w)[None, :, None] + self.xy[:, j1] * w[None, :, None],
             heading_rad=heading[:, j] * (1 - w)[None, :] + heading[:, j1] * w[None, :],
+            speed_mps=self.speed_mps,
         )
 
     @classmethod
