@@ -126,7 +126,8 @@ OUTPUT_TABLES = ("roc", "errors", "funnel", "per_frame", "per_scene")
 
 def write_stats(stats: DatasetStats, out_dir: str | os.PathLike[str]) -> dict[str, pathlib.Path]:
     """Write every table as Parquet and CSV and the summary as JSON into ``out_dir``
-    (created if needed); each file atomically. Returns name -> path."""
+    (created if needed); each file atomically (a lazy table is streamed into its
+    temporary file). Returns name -> path."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written: dict[str, pathlib.Path] = {}
@@ -166,5 +167,16 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-def _write_table(df: pl.DataFrame, tmp: str, *, target: pathlib.Path) -> None:
-    table_file.write_dataframe(df, tmp, target)
+def _write_table(df: pl.DataFrame | pl.LazyFrame, tmp: str, *, target: pathlib.Path) -> None:
+    if isinstance(df, pl.DataFrame):
+        table_file.write_dataframe(df, tmp, target)
+        return
+    # A lazy table (the streamed per-frame pieces, issue 38): written part by part.
+    try:
+        if target.suffix.lower() == ".csv":
+            df.sink_csv(tmp)
+        else:
+            df.sink_parquet(tmp, compression="zstd")
+    except pl.exceptions.PolarsError as exc:
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise StatsError(f"could not write {target}: {first}") from None
