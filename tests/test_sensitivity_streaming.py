@@ -73,7 +73,11 @@ def test_variant_parts_equal_the_in_memory_replacement(tmp_path):
     whole_new = pl.concat([scenes[k][1] for k in sorted(scenes)])
     assert_frame_equal(got, replace_risks(whole_base, whole_new, ["circles"]))
     # one scene per part file, in key order
-    assert [pl.read_parquet(p)["scene"].unique().to_list() for p in merged] == [["k0"], ["k1"], ["k2"]]
+    assert [pl.read_parquet(p)["scene"].unique().to_list() for p in merged] == [
+        ["k0"],
+        ["k1"],
+        ["k2"],
+    ]
 
 
 def test_variant_parts_refuse_a_missing_scene(tmp_path):

@@ -491,10 +491,13 @@ class DatasetStats:
     roc: pl.DataFrame  # all models' mean curves
     errors: pl.DataFrame  # FN/FP over threshold of the errors model
     funnel: pl.DataFrame
-    per_frame: pl.DataFrame | pl.LazyFrame  # lazy: streamed from per-scene pieces
+    per_frame: pl.DataFrame
     per_scene: pl.DataFrame
     stage_names: tuple[str, ...]
     tier_names: tuple[str, ...]
+    # The streamed statistics' per-frame table, scanned from per-scene pieces on disk
+    # (``per_frame`` then holds its columns only): written by write_stats part by part.
+    per_frame_pieces: pl.LazyFrame | None = None
 
 
 def compute_stats(

@@ -131,11 +131,11 @@ def write_stats(stats: DatasetStats, out_dir: str | os.PathLike[str]) -> dict[st
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written: dict[str, pathlib.Path] = {}
-    tables = {
+    tables: dict[str, pl.DataFrame | pl.LazyFrame] = {
         "roc": stats.roc,
         "errors": stats.errors,
         "funnel": stats.funnel,
-        "per_frame": stats.per_frame,
+        "per_frame": stats.per_frame if stats.per_frame_pieces is None else stats.per_frame_pieces,
         "per_scene": stats.per_scene,
     }
     assert tuple(tables) == OUTPUT_TABLES

@@ -14,7 +14,8 @@ does not depend on the order the parts are given in:
    in the bins of the medians;
 3. at the exact thresholds: every situation's TPR, FPR and kept agents (summed; the
    ``tpr_0.95`` ones go to the per-frame table, written part by part to a scratch folder
-   and streamed into ``per_frame`` by :func:`replay.analysis.stats.files.write_stats`).
+   and streamed into ``per_frame`` by :func:`replay.analysis.stats.files.write_stats`:
+   ``DatasetStats.per_frame_pieces``).
 
 Exact against :func:`replay.analysis.stats.compute.compute_stats` (the full-rows
 computation, kept as the tests' oracle), to the rounding of sums taken in another order:
@@ -283,7 +284,8 @@ def stream_stats(
     """The statistics of the scenes in ``parts`` (as
     :func:`replay.analysis.stats.compute.compute_stats`; see the module docstring).
     ``scratch``: an empty folder for the per-frame pieces, which the returned
-    ``per_frame`` scans lazily (keep it until the tables are written)."""
+    ``per_frame_pieces`` scans lazily (keep it until the tables are written; ``per_frame``
+    holds only the table's columns)."""
     if not parts:
         raise StatsError("no scene to summarise")
     ordered = ordered_parts(parts)
@@ -299,7 +301,9 @@ def stream_stats(
     for col in ("frame", "baseline"):
         if col not in a_union:
             raise StatsError(f"the agents table has no {col!r} column")
-    a_cols = {c: a_union[c] for c in ("scene", "ego_id", "frame", "baseline") if c in a_union}
+    a_cols: dict[str, pl.DataType] = {
+        c: a_union[c] for c in ("scene", "ego_id", "frame", "baseline") if c in a_union
+    }
     a_cols.update({f"risk_{m}": a_union[f"risk_{m}"] for m in swept})
     f_union = _schema_union([p.frames for p in ordered])
     stages, tiers = list(stage_names), list(tier_names)
@@ -368,10 +372,10 @@ def stream_stats(
     if found_rows or median_bins:
         for part in read_parts():
             if median_bins:
-                values = _time_values(part.frames, stages)
+                times = _time_values(part.frames, stages)
                 for key, where in median_bins.items():
                     h = histograms.merged[key]
-                    x = values[key[1]]
+                    x = times[key[1]]
                     middle = np.isin(score_bins(x, h.level), h.bins[[i for i, _ in where]])
                     found_times[key].append(x[middle])
             if part.agents is None or not found_rows:
@@ -478,7 +482,8 @@ def stream_stats(
         roc=pl.concat([s.curve() for s in per_model.values()]),
         errors=errors,
         funnel=funnel_table(cascade),
-        per_frame=per_frame_lazy,
+        per_frame=per_frame_lazy.head(0).collect(),  # the schema; the rows stay on disk
+        per_frame_pieces=per_frame_lazy,
         per_scene=per_scene,
         stage_names=tuple(stages),
         tier_names=tuple(tiers),
