@@ -31,12 +31,13 @@ from risk.hindsight import HindsightSettings
 
 @pytest.fixture(scope="module")
 def corpus(tmp_path_factory):
+    """test_sensitivity's three scenes in two folders."""
     root = tmp_path_factory.mktemp("sweep_streamed")
-    (root / "setA").mkdir()
-    (root / "setB").mkdir()
-    write_scene(root / "setA" / "S_A-1_1.mcap", scene(crossing=True))
-    write_scene(root / "setA" / "S_A-1_2.mcap", scene(crossing=False))
-    write_scene(root / "setB" / "S_B-1_1.mcap", scene(crossing=True))
+    for folder, name, crossing in (
+        ("setA", "S_A-1_1", True), ("setA", "S_A-1_2", False), ("setB", "S_B-1_1", True),
+    ):  # fmt: skip
+        (root / folder).mkdir(exist_ok=True)
+        write_scene(root / folder / f"{name}.mcap", scene(crossing=crossing))
     return root
 
 
