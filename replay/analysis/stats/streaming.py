@@ -425,6 +425,8 @@ def stream_stats(
             piece.write_parquet(path)
             pieces.append((str(scene), k, path))
             scene_rows.append(per_scene_table(piece, stages, tiers))
+        if len(scene_rows) >= MERGE_BATCH:  # one frame, not one per scene
+            scene_rows = [pl.concat(scene_rows, how="diagonal_relaxed")]
     pieces.sort(key=lambda x: (x[0], x[1]))
     per_frame_lazy = pl.concat(
         [pl.scan_parquet(p) for _, _, p in pieces], how="diagonal_relaxed"
