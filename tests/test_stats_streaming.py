@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from polars.testing import assert_frame_equal
 
-from replay.analysis.stats import compute_stats, frames_from_agents
+from replay.analysis.stats import StatsError, compute_stats, frames_from_agents
 from replay.analysis.stats.files import write_stats
 from replay.analysis.stats.streaming import StatsPart, stream_stats
 from replay.core.stats_sink import time_columns
@@ -255,3 +255,46 @@ def test_exact_sweep_is_what_the_weights_add_up_to():
         keep = rows.scores >= t
         tpr = rows.tpr[keep].sum() / rows.tpr.sum()
         assert tpr == pytest.approx(exact.mean_tpr[k], abs=1e-12)
+
+
+def test_a_model_without_any_score_is_one_error(tmp_path):
+    rng = np.random.default_rng(7)
+    agents, frames = scene_tables(rng, "s0", 4, None, timed=False)
+    agents = agents.with_columns(pl.lit(float("nan")).alias("risk_gaussian"))
+    with pytest.raises(StatsError, match="risk_gaussian"):
+        streamed(write_parts(tmp_path / "p", [(agents, frames)]), tmp_path / "scratch")
+
+
+def test_replay_stats_command_streams_and_matches_the_oracle(tmp_path):
+    from click.testing import CliRunner
+
+    from replay.cli.app import main
+
+    rng = np.random.default_rng(8)
+    tiers = ["behavior", "interactive", "cooperative"]  # the default cascade's
+    tables = []
+    (tmp_path / "in").mkdir()
+    for k in range(3):
+        agents, _ = scene_tables(rng, f"s{k}", 6, None, timed=False)
+        agents = agents.with_columns(
+            pl.col("tier").replace({"near": "behavior", "far": "interactive"}).cast(pl.Enum(tiers))
+        )
+        agents.write_parquet(tmp_path / "in" / f"t{k}.parquet")
+        tables.append(agents)
+    out = tmp_path / "out"
+    result = CliRunner().invoke(
+        main, ["stats", str(tmp_path / "in"), "-o", str(out), "--no-plots", "--no-progress",
+               "--workers", "1"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["sweep"].startswith("binned")
+    whole = pl.concat(tables)
+    o = compute_stats(whole, frames_from_agents(whole, STAGES, tiers), stage_names=STAGES,
+                      tier_names=tiers)  # fmt: skip
+    written = pl.read_parquet(out / "per_frame.parquet")
+    assert_frame_equal(o.per_frame, written, check_dtypes=False, rel_tol=1e-9)
+    for m, block in o.summary["models"].items():
+        got = summary["models"][m]
+        assert abs(got["auc"] - block["auc"]) <= got["auc_error_bound"] + 1e-12
+        assert got["points"]["tpr_0.95"]["threshold"] == block["points"]["tpr_0.95"]["threshold"]

@@ -350,6 +350,9 @@ def stream_stats(
         raise StatsError("no frames to summarise")
     if n_sit == 0:
         raise StatsError("no agent-frames: every frame is empty (no agent besides the ego)")
+    for m in swept:
+        if m not in running.merged or not running.merged[m].rates.bins.size:
+            raise StatsError(f"no agent has a risk_{m} value (every score is NaN)")
     binned = {m: binned_sweep(running.merged[m], n_sit) for m in swept}
 
     # Pass 2: the rows of the bins the operating thresholds fall in; the median bins.
