@@ -20,7 +20,8 @@ binned points differs from the exact one by at most ``auc_error_bound``
 **Exact points inside a bin** (:func:`points_in_bin`): the rows of the bin (a second pass
 over the parts, :func:`rows_in_bins`) with the merged weights of every bin above give the
 exact curve at each distinct score of the bin; the operating thresholds are found there
-(:func:`threshold_for_mean_tpr`, :func:`youden_threshold`, :func:`tpr_above_lowest`).
+(:func:`threshold_for_mean_tpr`, :func:`youden_threshold`, :func:`tpr_above_lowest`);
+the rows are kept merged per distinct score (:func:`collapse`).
 
 Pure numpy; no I/O.
 """
@@ -81,6 +82,23 @@ class SweepRows:
             *(np.concatenate([getattr(p, k) for p in parts])
               for k in ("scores", "tpr", "fpr", "square", "positive"))
         )  # fmt: skip
+
+
+def collapse(rows: SweepRows) -> SweepRows:
+    """The rows merged per distinct score, their weights summed (``positive``: the score
+    has a positive row): the exact points need no more, and ties (a mass of zero scores)
+    then cost one entry."""
+    if rows.scores.size == 0:
+        return rows
+    values, code = np.unique(rows.scores, return_inverse=True)
+    n = values.size
+    return SweepRows(
+        values,
+        np.bincount(code, weights=rows.tpr, minlength=n),
+        np.bincount(code, weights=rows.fpr, minlength=n),
+        np.bincount(code, weights=rows.square, minlength=n),
+        np.bincount(code, weights=rows.positive, minlength=n) > 0,
+    )
 
 
 def sweep_rows(scores: np.ndarray, situation: np.ndarray, positive: np.ndarray) -> SweepRows:

@@ -69,6 +69,7 @@ from risk.sweep_counts import (
     SweepCounts,
     SweepRows,
     binned_sweep,
+    collapse,
     crossing_bin,
     merge_sweeps,
     points_in_bin,
@@ -386,7 +387,11 @@ def stream_stats(
             sits = situations_of(part.agents)
             for m in found_rows:
                 rows = sweep_rows(part.scores(m), sits.situation, sits.baseline)
-                found_rows[m].append(rows_in_bins(rows, running.merged[m], sorted(refine[m])))
+                found_rows[m].append(
+                    collapse(rows_in_bins(rows, running.merged[m], sorted(refine[m])))
+                )
+                if len(found_rows[m]) >= MERGE_BATCH:  # one entry per distinct score
+                    found_rows[m] = [collapse(SweepRows.concat(found_rows[m]))]
     medians = _medians(found_times, histograms.merged, median_bins)
     thresholds: dict[str, dict[str, float]] = {}
     above_min: dict[str, float] = {}
