@@ -52,6 +52,7 @@ Choices the spec leaves open (documented here and in ``docs/statistics.md``):
 from __future__ import annotations
 
 import math
+import pathlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -495,9 +496,10 @@ class DatasetStats:
     per_scene: pl.DataFrame
     stage_names: tuple[str, ...]
     tier_names: tuple[str, ...]
-    # The streamed statistics' per-frame table, scanned from per-scene pieces on disk
-    # (``per_frame`` then holds its columns only): written by write_stats part by part.
-    per_frame_pieces: pl.LazyFrame | None = None
+    # The streamed statistics' per-frame table: per-scene Parquet pieces on disk, in
+    # order (``per_frame`` then holds its columns only); write_stats writes them piece
+    # by piece.
+    per_frame_pieces: tuple[pathlib.Path, ...] | None = None
 
 
 def compute_stats(

@@ -285,7 +285,7 @@ def stream_stats(
     """The statistics of the scenes in ``parts`` (as
     :func:`replay.analysis.stats.compute.compute_stats`; see the module docstring).
     ``scratch``: an empty folder for the per-frame pieces, which the returned
-    ``per_frame_pieces`` scans lazily (keep it until the tables are written; ``per_frame``
+    ``per_frame_pieces`` lists (keep it until the tables are written; ``per_frame``
     holds only the table's columns)."""
     if not parts:
         raise StatsError("no scene to summarise")
@@ -436,9 +436,7 @@ def stream_stats(
         if len(scene_rows) >= MERGE_BATCH:  # one frame, not one per scene
             scene_rows = [pl.concat(scene_rows, how="diagonal_relaxed")]
     pieces.sort(key=lambda x: (x[0], x[1]))
-    per_frame_lazy = pl.concat(
-        [pl.scan_parquet(p) for _, _, p in pieces], how="diagonal_relaxed"
-    )  # fmt: skip
+    piece_files = tuple(p for _, _, p in pieces)
     per_scene = pl.concat(scene_rows, how="diagonal_relaxed").sort("scene", maintain_order=True)
 
     per_model: dict[str, ModelStats] = {}
@@ -492,8 +490,8 @@ def stream_stats(
         roc=pl.concat([s.curve() for s in per_model.values()]),
         errors=errors,
         funnel=funnel_table(cascade),
-        per_frame=per_frame_lazy.head(0).collect(),  # the schema; the rows stay on disk
-        per_frame_pieces=per_frame_lazy,
+        per_frame=pl.read_parquet(piece_files[0]).head(0),  # the columns; rows stay on disk
+        per_frame_pieces=piece_files,
         per_scene=per_scene,
         stage_names=tuple(stages),
         tier_names=tuple(tiers),
