@@ -213,12 +213,31 @@ def _plan_argv(folder: pathlib.Path, out: pathlib.Path, args: argparse.Namespace
     ]  # fmt: skip
 
 
+def _stats_argv(folder: pathlib.Path, out: pathlib.Path, args: argparse.Namespace) -> list[str]:
+    return [
+        "stats", str(folder), "-o", str(out), "--no-plots", "--no-progress",
+        "--workers", str(args.workers), *args.extra,
+    ]  # fmt: skip
+
+
+def _sensitivity_argv(
+    folder: pathlib.Path, out: pathlib.Path, args: argparse.Namespace
+) -> list[str]:
+    return [
+        "evaluate", str(folder), "-o", str(out), "--bootstrap", str(args.bootstrap),
+        "--no-plots", "--no-progress", "--workers", str(args.workers), "--sensitivity",
+        "--sensitivity-bootstrap", str(args.bootstrap), *args.extra,
+    ]  # fmt: skip
+
+
 # The corpus commands measured (issue 38): each maps (replica folder, output folder, the
 # parsed options) to the arguments of ``python -m replay``. ``--extra`` appends options.
 COMMANDS: dict[str, Callable[[pathlib.Path, pathlib.Path, argparse.Namespace], list[str]]] = {
     "evaluate": _evaluate_argv,
     "calibrate": _calibrate_argv,
     "plan": _plan_argv,
+    "stats": _stats_argv,
+    "sensitivity": _sensitivity_argv,
 }
 
 

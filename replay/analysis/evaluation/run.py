@@ -23,7 +23,6 @@ from outputs.transaction import OutputGuard
 from replay.analysis.evaluation.collect import (
     EVALUATION_TABLES,
     check_tables_hindsight,
-    evaluation_agents,
 )
 from replay.analysis.evaluation.corpus import EvaluationError, EvaluationSettings
 from replay.analysis.evaluation.files import format_evaluation, write_evaluation
@@ -175,17 +174,16 @@ def run_evaluation(
                 and sensitivity.every in (None, every)
                 and not report.failures
             )
-            # The sweep evaluates every variant on rows in memory (its own, smaller job):
-            # it is given the defaults' rows rather than replaying them.
-            agents = evaluation_agents(parts.agents) if same else None
+            # The sweep streams every variant's parts (issue 38); it is given the
+            # defaults' part files rather than replaying them.
             run.sweep = run_sweep(
-                subset, default_agents=agents,
+                subset, defaults=report if same else None,
                 datasets=datasets if same else None, cascade=cascade, hindsight=hs,
                 settings=replace(settings, n_boot=sensitivity.bootstrap),
-                workers=workers, progress=progress, ego=ego,
-                every=sensitivity.every or every,
+                workers=engine.workers or workers, progress=progress, ego=ego,
+                every=sensitivity.every or every, engine=engine.name,
+                ray_address=engine.address,
             )  # fmt: skip
-            del agents
             summary["sensitivity"] = {
                 "scenes": len(subset), "every": str(sensitivity.every or every),
                 "bootstrap": sensitivity.bootstrap, "time_s": run.sweep.time_s,

@@ -2,9 +2,11 @@
 choices (issue 12 part 3), and which findings flip.
 
 Each variant is a set of :mod:`risk.settings` keys on top of the defaults. A variant that
-only moves ``baseline.threshold`` re-thresholds the default agents table (no replay); any
+only moves ``baseline.threshold`` re-thresholds the defaults' part files (no replay); any
 other variant replays the scenes evaluating only the models its keys change
-(:func:`affected_models`) and takes every other model's risks from the default table.
+(:func:`affected_models`) and takes every other model's risks from the defaults' parts.
+Every variant is evaluated by the streamed evaluation, one scene's rows at a time: the
+driver never holds a variant's whole table (issue 38).
 ``docs/evaluation.md`` (Sensitivity) describes the output.
 """
 
@@ -13,6 +15,8 @@ from __future__ import annotations
 import math
 import os
 import pathlib
+import shutil
+import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -23,15 +27,16 @@ import polars as pl
 from scipy import stats as scipy_stats
 
 from outputs.atomic import atomic_output
-from replay.analysis.evaluation.collect import collect_agents
 from replay.analysis.evaluation.corpus import (
     REFERENCES,
     EvaluationError,
     EvaluationSettings,
 )
 from replay.analysis.evaluation.plots import plot_sensitivity
-from replay.analysis.evaluation.streaming import evaluate_frame
+from replay.analysis.evaluation.streaming import StreamSettings, evaluate_parts
+from replay.analysis.stats.collect import TablesSettings, tables_job
 from replay.core.engine import Stride
+from replay.jobs import JobReport, SceneRef, resolve_inputs, run_jobs, scene_refs
 from risk.cascade import CascadeConfig
 from risk.hindsight import HindsightSettings
 from risk.registry import BASELINE_MODEL, MODELS
@@ -263,7 +268,7 @@ def sweep_table(
 def run_sweep(
     paths: Sequence[Any],
     *,
-    default_agents: pl.DataFrame | None = None,
+    defaults: JobReport | None = None,
     cascade: CascadeConfig | None = None,
     hindsight: HindsightSettings | None = None,
     settings: EvaluationSettings | None = None,
@@ -273,55 +278,121 @@ def run_sweep(
     ego: int | str | None = None,
     every: int | Stride = 1,
     datasets: Mapping[str, str] | None = None,
+    engine: str = "local",
+    ray_address: str | None = None,
 ) -> SweepResult:
-    """Evaluate the defaults and every variant on the same inputs.
+    """Evaluate the defaults and every variant on the same inputs, each by the streamed
+    evaluation (:func:`replay.analysis.evaluation.streaming.evaluate_parts`: one scene's
+    rows at a time, issue 38).
 
-    ``default_agents`` (with ``datasets``): the defaults' agents table when the caller
-    already has it (``replay evaluate`` does), else the scenes are replayed once."""
+    ``defaults`` (with ``datasets``): the defaults' run when the caller already has it
+    (``replay evaluate`` does: its part files are read, not replayed), else the scenes
+    are replayed once. A variant that changes models replays the scenes on ``engine``
+    into a scratch folder, and each scene's part is the defaults' part with those
+    models' risks replaced (:func:`variant_parts`)."""
     cascade = cascade or CascadeConfig.default()
     settings = settings or EvaluationSettings()
     variants = list(default_variants() if variants is None else variants)
+    hs = hindsight or HindsightSettings()
     times: dict[str, float] = {}
-    start = time.perf_counter()
-    if default_agents is None:
-        default_agents, datasets, hindsight = collect_agents(
-            paths, cascade=cascade, hindsight=hindsight, workers=workers, progress=progress,
-            ego=ego, every=every,
-        )  # fmt: skip
-    times["defaults"] = time.perf_counter() - start
-    base_threshold = settings.baseline_threshold
+    with tempfile.TemporaryDirectory(prefix="replay-sweep-") as scratch:
+        work = pathlib.Path(scratch)
 
-    def evaluate(agents: pl.DataFrame, threshold: float) -> dict[str, Any]:
-        return evaluate_frame(
-            agents, settings=replace(settings, baseline_threshold=threshold),
-            datasets=datasets, hindsight=hindsight,
-        )  # fmt: skip
-
-    defaults = Variant("defaults", "paper", {})
-    done: list[tuple[Variant, Mapping[str, Any], Sequence[str]]] = [
-        (defaults, evaluate(default_agents, base_threshold), [])
-    ]
-    for variant in variants:
-        start = time.perf_counter()
-        parsed = parse_settings(variant.settings)
-        models = affected_models(variant.settings)
-        agents = default_agents
-        if models:
-            variant_cascade = cascade.with_settings(
-                {k: v for k, v in variant.settings.items() if k != BASELINE_KEY}
-            )
-            new, _, _ = collect_agents(
-                paths, cascade=variant_cascade, hindsight=hindsight, workers=workers,
-                progress=progress, ego=ego, every=every, models=models,
+        def replay(
+            job_cascade: CascadeConfig,
+            models: Sequence[str] | None,
+            name: str,
+            refs: Sequence[SceneRef],
+        ) -> JobReport:
+            job = tables_job(TablesSettings(
+                cascade=job_cascade, models=None if models is None else tuple(models), ego=ego,
+                every=Stride.of(every), hindsight=hs,
+            ))  # fmt: skip
+            report = run_jobs(
+                job, refs, work / name, engine=engine, workers=workers,
+                ray_address=ray_address, progress=progress, desc=f"sensitivity: {name}",
             )  # fmt: skip
-            agents = replace_risks(default_agents, new, models)
-        threshold = (
-            parsed.baseline_threshold if BASELINE_KEY in variant.settings else base_threshold
-        )
-        done.append((variant, evaluate(agents, threshold), models))
-        times[f"{variant.group}: {variant.label}"] = time.perf_counter() - start
+            if report.failures:
+                first = report.failures[0]
+                raise EvaluationError(f"sensitivity ({name}): {first.scene} failed: {first.reason}")
+            return report
+
+        start = time.perf_counter()
+        if defaults is None:
+            found = resolve_inputs([pathlib.Path(p) for p in paths])
+            if found.tables:
+                raise EvaluationError("the sensitivity sweep replays scenes; give .mcap scenes")
+            refs = scene_refs(found)
+            if not refs:
+                raise EvaluationError("no scene to replay")
+            defaults = replay(cascade, None, "defaults", refs)
+            datasets = {r.key: r.dataset for r in refs}
+        default_parts = {d.ref.key: pathlib.Path(d.tables["agents"]) for d in defaults.done}
+        refs = [d.ref for d in defaults.done]
+        times["defaults"] = time.perf_counter() - start
+        base_threshold = settings.baseline_threshold
+
+        def evaluate(parts: Sequence[pathlib.Path], threshold: float) -> dict[str, Any]:
+            variant_settings = replace(settings, baseline_threshold=threshold)
+            return evaluate_parts(
+                parts, StreamSettings.of(variant_settings, hs), datasets=datasets,
+                hindsight=hs, evaluation=variant_settings,
+            ).summary  # fmt: skip
+
+        ordered = [default_parts[k] for k in sorted(default_parts)]
+        defaults_variant = Variant("defaults", "paper", {})
+        done: list[tuple[Variant, Mapping[str, Any], Sequence[str]]] = [
+            (defaults_variant, evaluate(ordered, base_threshold), [])
+        ]
+        for k, variant in enumerate(variants):
+            start = time.perf_counter()
+            parsed = parse_settings(variant.settings)
+            models = affected_models(variant.settings)
+            threshold = (
+                parsed.baseline_threshold if BASELINE_KEY in variant.settings else base_threshold
+            )
+            if not models:
+                summary = evaluate(ordered, threshold)
+            else:
+                variant_cascade = cascade.with_settings(
+                    {key: v for key, v in variant.settings.items() if key != BASELINE_KEY}
+                )
+                name = f"variant-{k}"
+                report = replay(variant_cascade, models, name, refs)
+                merged = variant_parts(
+                    default_parts,
+                    {d.ref.key: pathlib.Path(d.tables["agents"]) for d in report.done},
+                    models, work / name / "merged",
+                )  # fmt: skip
+                summary = evaluate(merged, threshold)
+                shutil.rmtree(work / name, ignore_errors=True)  # disk: one variant at a time
+            done.append((variant, summary, models))
+            times[f"{variant.group}: {variant.label}"] = time.perf_counter() - start
     rows, per_variant, findings = sweep_table(done)
     return SweepResult(rows, per_variant, findings, times)
+
+
+def variant_parts(
+    defaults: Mapping[str, pathlib.Path],
+    variant: Mapping[str, pathlib.Path],
+    models: Sequence[str],
+    folder: pathlib.Path,
+) -> list[pathlib.Path]:
+    """Per scene (key order): the defaults' part with the ``risk_<model>`` columns of
+    the variant's part (:func:`replace_risks`), written into ``folder``, one scene in
+    memory at a time."""
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for j, key in enumerate(sorted(defaults)):
+        if key not in variant:
+            raise EvaluationError(f"the variant's replay has no scene {key}")
+        base = pl.read_parquet(defaults[key])
+        cols = [c for c in (*KEYS, *(f"risk_{m}" for m in models)) if c in base.columns]
+        new = pl.read_parquet(variant[key], columns=cols)
+        path = folder / f"{j}.parquet"
+        replace_risks(base, new, models).write_parquet(path)
+        out.append(path)
+    return out
 
 
 def write_sweep(

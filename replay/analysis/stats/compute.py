@@ -52,6 +52,7 @@ Choices the spec leaves open (documented here and in ``docs/statistics.md``):
 from __future__ import annotations
 
 import math
+import pathlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -336,16 +337,28 @@ def errors_over_threshold(
     """Mean false negatives, false positives and kept agents per situation over the
     thresholds ``(K,)`` of one model (the paper's Fig. 5), one row per threshold."""
     counts = confusion_counts(np.asarray(scores, dtype=np.float64), sits.baseline, thresholds)
-    n = sits.n
+    return errors_table(model, thresholds, counts.tp, counts.fp, counts.fn, sits.n)
+
+
+def errors_table(
+    model: str,
+    thresholds: np.ndarray,
+    tp: np.ndarray,
+    fp: np.ndarray,
+    fn: np.ndarray,
+    n_situations: int,
+) -> pl.DataFrame:
+    """The FN/FP-over-threshold rows from the counts ``(K,)`` at each threshold."""
+    n = n_situations
     return pl.DataFrame(
         {
             "model": [model] * len(thresholds),
             "threshold": np.asarray(thresholds, dtype=np.float64),
-            "mean_false_negatives": counts.fn / n,
-            "mean_false_positives": counts.fp / n,
-            "mean_kept": (counts.tp + counts.fp) / n,
-            "false_negatives": counts.fn,
-            "false_positives": counts.fp,
+            "mean_false_negatives": fn / n,
+            "mean_false_positives": fp / n,
+            "mean_kept": (tp + fp) / n,
+            "false_negatives": np.asarray(fn, dtype=np.int64),
+            "false_positives": np.asarray(fp, dtype=np.int64),
         }
     )
 
@@ -483,6 +496,10 @@ class DatasetStats:
     per_scene: pl.DataFrame
     stage_names: tuple[str, ...]
     tier_names: tuple[str, ...]
+    # The streamed statistics' per-frame table: per-scene Parquet pieces on disk, in
+    # order (``per_frame`` then holds its columns only); write_stats writes them piece
+    # by piece.
+    per_frame_pieces: tuple[pathlib.Path, ...] | None = None
 
 
 def compute_stats(
@@ -525,29 +542,21 @@ def compute_stats(
     )
     cascade = cascade_summary(frames, stages, tier_names)
     per_frame = _per_frame(frames, sits, per_model)
-    summary = {
-        "inputs": list(inputs),
-        # how "auc" is computed (replay evaluate pools instead; issue 31)
-        "auc_method": "mean of the per-situation ROC curves (the paper's)",
-        "situations": _situation_counts(frames, sits),
-        "baseline": {
+    summary = stats_summary(
+        inputs=inputs,
+        situations=_situation_counts(frames, sits),
+        baseline={
             "model": BASELINE_MODEL,
             "threshold": baseline_threshold,
             "important_agent_frames": int(sits.baseline.sum()),
             "agent_frames": int(sits.situation.size),
             "mean_important_per_situation": float(sits.n_positive.mean()),
         },
-        "sweep": "exact: every distinct score of the model is a threshold",
-        "operating_points": {
-            "tpr_0.9": "highest threshold where the mean TPR reaches 0.9",
-            "tpr_0.95": "highest threshold where the mean TPR reaches 0.95",
-            "tpr_1": "highest threshold where the mean TPR is 1 (std of TPR 0 by construction)",
-            "youden": "threshold with the largest mean TPR - mean FPR",
-        },
-        "models": {m: _model_summary(s) for m, s in per_model.items()},
-        "errors_model": errors_model,
-        "cascade": {"stage_names": stages, "tier_names": list(tier_names), **cascade},
-    }
+        sweep="exact: every distinct score of the model is a threshold",
+        models={m: model_summary(s) for m, s in per_model.items()},
+        errors_model=errors_model,
+        cascade={"stage_names": stages, "tier_names": list(tier_names), **cascade},
+    )
     return DatasetStats(
         summary=summary,
         models=per_model,
@@ -555,10 +564,40 @@ def compute_stats(
         errors=errors,
         funnel=funnel_table(cascade),
         per_frame=per_frame,
-        per_scene=_per_scene(per_frame, stages, tier_names),
+        per_scene=per_scene_table(per_frame, stages, tier_names),
         stage_names=tuple(stages),
         tier_names=tuple(tier_names),
     )
+
+
+def stats_summary(
+    *,
+    inputs: Iterable[str],
+    situations: dict[str, int],
+    baseline: dict[str, Any],
+    sweep: str,
+    models: dict[str, Any],
+    errors_model: str,
+    cascade: dict[str, Any],
+) -> dict[str, Any]:
+    """``summary.json``'s content, in its order."""
+    return {
+        "inputs": list(inputs),
+        # how "auc" is computed (replay evaluate pools instead; issue 31)
+        "auc_method": "mean of the per-situation ROC curves (the paper's)",
+        "situations": situations,
+        "baseline": baseline,
+        "sweep": sweep,
+        "operating_points": {
+            "tpr_0.9": "highest threshold where the mean TPR reaches 0.9",
+            "tpr_0.95": "highest threshold where the mean TPR reaches 0.95",
+            "tpr_1": "highest threshold where the mean TPR is 1 (std of TPR 0 by construction)",
+            "youden": "threshold with the largest mean TPR - mean FPR",
+        },
+        "models": models,
+        "errors_model": errors_model,
+        "cascade": cascade,
+    }
 
 
 def _situation_counts(frames: pl.DataFrame, sits: Situations) -> dict[str, int]:
@@ -574,7 +613,7 @@ def _situation_counts(frames: pl.DataFrame, sits: Situations) -> dict[str, int]:
     }
 
 
-def _model_summary(s: ModelStats) -> dict[str, Any]:
+def model_summary(s: ModelStats) -> dict[str, Any]:
     return {
         "auc": s.roc.auc,
         "n_thresholds": int(s.roc.thresholds.size),
@@ -600,11 +639,24 @@ def _per_frame(
     frames: pl.DataFrame, sits: Situations, per_model: Mapping[str, ModelStats]
 ) -> pl.DataFrame:
     """The frames table plus, per model, TPR and kept agents at its tpr_0.95 threshold."""
+    tpr = {m: s.per_situation_tpr["tpr_0.95"] for m, s in per_model.items()}
+    kept = {m: s.per_situation_kept["tpr_0.95"] for m, s in per_model.items()}
+    return per_frame_table(frames, sits.keys, tpr, kept)
+
+
+def per_frame_table(
+    frames: pl.DataFrame,
+    keys: pl.DataFrame,
+    tpr: Mapping[str, np.ndarray],
+    kept: Mapping[str, np.ndarray],
+) -> pl.DataFrame:
+    """``frames`` with each model's TPR and kept agents per situation (``keys``' rows,
+    model -> ``(S,)``) and each frame's degenerate status, sorted by situation."""
     cols: dict[str, Any] = {}
-    for m, s in per_model.items():
-        cols[f"tpr95_{m}"] = s.per_situation_tpr["tpr_0.95"]
-        cols[f"kept95_{m}"] = s.per_situation_kept["tpr_0.95"].astype(np.int64)
-    extra = sits.keys.with_columns(pl.Series(k, v) for k, v in cols.items())
+    for m in tpr:
+        cols[f"tpr95_{m}"] = tpr[m]
+        cols[f"kept95_{m}"] = kept[m].astype(np.int64)
+    extra = keys.with_columns(pl.Series(k, v) for k, v in cols.items())
     out = frames.join(extra, on=list(SITUATION_KEY), how="left")
     status = (
         pl.when(pl.col("n_others") == 0)
@@ -618,7 +670,7 @@ def _per_frame(
     return out.with_columns(status.alias("degenerate")).sort(SITUATION_KEY)
 
 
-def _per_scene(
+def per_scene_table(
     per_frame: pl.DataFrame, stage_names: Sequence[str], tier_names: Sequence[str]
 ) -> pl.DataFrame:
     """One row per scene: frame counts, mean agents, degenerate frames, the cascade."""

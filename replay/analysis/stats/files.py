@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 import polars as pl
+import pyarrow as pa
+import pyarrow.parquet as pq
 
 from outputs.atomic import atomic_write, write_text
 from replay.analysis.stats.compute import DatasetStats
@@ -126,15 +128,16 @@ OUTPUT_TABLES = ("roc", "errors", "funnel", "per_frame", "per_scene")
 
 def write_stats(stats: DatasetStats, out_dir: str | os.PathLike[str]) -> dict[str, pathlib.Path]:
     """Write every table as Parquet and CSV and the summary as JSON into ``out_dir``
-    (created if needed); each file atomically. Returns name -> path."""
+    (created if needed); each file atomically (the per-frame table of the streamed
+    statistics is written piece by piece into its temporary file). Returns name -> path."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written: dict[str, pathlib.Path] = {}
-    tables = {
+    tables: dict[str, pl.DataFrame | Sequence[pathlib.Path]] = {
         "roc": stats.roc,
         "errors": stats.errors,
         "funnel": stats.funnel,
-        "per_frame": stats.per_frame,
+        "per_frame": stats.per_frame if stats.per_frame_pieces is None else stats.per_frame_pieces,
         "per_scene": stats.per_scene,
     }
     assert tuple(tables) == OUTPUT_TABLES
@@ -166,5 +169,44 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-def _write_table(df: pl.DataFrame, tmp: str, *, target: pathlib.Path) -> None:
-    table_file.write_dataframe(df, tmp, target)
+def _write_table(
+    df: pl.DataFrame | Sequence[pathlib.Path], tmp: str, *, target: pathlib.Path
+) -> None:
+    if isinstance(df, pl.DataFrame):
+        table_file.write_dataframe(df, tmp, target)
+        return
+    try:
+        _write_pieces(df, tmp, csv=target.suffix.lower() == ".csv")
+    except (pl.exceptions.PolarsError, pa.ArrowException, OSError) as exc:
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise StatsError(f"could not write {target}: {first}") from None
+
+
+def _write_pieces(pieces: Sequence[pathlib.Path], tmp: str, *, csv: bool) -> None:
+    """Parquet piece files, in order, as one table file (CSV or zstd Parquet) at ``tmp``,
+    one piece in memory at a time (the streamed per-frame table, issue 38); columns a
+    piece lacks are nulls, each column has its first piece's type."""
+    schema: dict[str, pl.DataType] = {}
+    for path in pieces:
+        for name, dtype in pl.read_parquet_schema(path).items():
+            schema.setdefault(name, dtype)
+    writer: pq.ParquetWriter | None = None
+    with open(tmp, "wb") as out:
+        for k, path in enumerate(pieces):
+            piece = pl.read_parquet(path)
+            piece = piece.select(
+                pl.col(c).cast(t) if c in piece.columns else pl.lit(None, dtype=t).alias(c)
+                for c, t in schema.items()
+            )
+            if csv:
+                piece.write_csv(out, include_header=k == 0)
+                continue
+            table = piece.to_arrow()
+            if writer is None:
+                writer = pq.ParquetWriter(out, table.schema, compression="zstd")
+            writer.write_table(table)
+        if writer is not None:
+            writer.close()
+        elif not pieces:
+            empty = pl.DataFrame(schema=schema)
+            empty.write_csv(out) if csv else empty.write_parquet(out)

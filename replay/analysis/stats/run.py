@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -18,6 +19,7 @@ from replay.analysis.stats.collect import TablesSettings, collected_parts, table
 from replay.analysis.stats.compute import DatasetStats, compute_stats
 from replay.analysis.stats.files import OUTPUT_TABLES, write_stats
 from replay.analysis.stats.plots import plot_all
+from replay.analysis.stats.streaming import StatsPart, stream_stats
 from replay.core.engine import Stride
 from replay.jobs import JobReport, resolve_inputs, run_jobs, scene_refs
 from replay.jobs.scenes import check_not_outputs
@@ -59,6 +61,14 @@ def run_stats(
         inputs=inputs,
     )
     times["statistics"] = time.perf_counter() - start
+    return write_and_plot(stats, out_dir, plots=plots, times=times)
+
+
+def write_and_plot(
+    stats: DatasetStats, out_dir: pathlib.Path, *, plots: bool, times: dict[str, float]
+) -> StatsRun:
+    """Write the tables and (``plots``) the plots of ``stats`` into ``out_dir``; adds
+    each step's wall time to ``times``."""
     start = time.perf_counter()
     files = write_stats(stats, out_dir)
     times["write tables"] = time.perf_counter() - start
@@ -115,20 +125,25 @@ def stats_of_inputs(
         if show is not None and report.failures and report.done:  # the stats may yet fail
             show(report.describe())
         parts = collected_parts(report, cascade)
-        # The statistics (per-situation sweeps, funnel, per-scene tables) take the
-        # tables whole; the evaluation reads only its columns (evaluation_agents).
-        agents = parts.agents.collect(engine="streaming")
-        frames = parts.frames.collect(engine="streaming")
         times["replay / read"] = time.perf_counter() - start
         # the inputs as given (scenes first), without those that failed
         given = {pathlib.Path(os.path.abspath(p)): p for p in (*found.scenes, *found.tables)}
         complete = {d.ref.path for d in report.done}
         done = [str(p) for a, p in given.items() if a in complete]
-        result = run_stats(
-            agents, frames, out_dir, models=models, errors_model=errors_model,
-            stage_names=parts.stage_names, tier_names=parts.tier_names, cascade=cascade,
-            inputs=done, plots=plots, times=times,
-        )  # fmt: skip
+        # One part at a time (issue 38): the driver never holds the corpus's rows.
+        pairs = [
+            StatsPart(pathlib.Path(d.tables["agents"]), pathlib.Path(d.tables["frames"]))
+            for d in report.done
+        ]
+        with tempfile.TemporaryDirectory(prefix="replay-stats-") as scratch:
+            start = time.perf_counter()
+            stats = stream_stats(
+                pairs, pathlib.Path(scratch), models=models, errors_model=errors_model,
+                stage_names=parts.stage_names, tier_names=parts.tier_names,
+                baseline_threshold=cascade.baseline_threshold, inputs=done,
+            )  # fmt: skip
+            times["statistics"] = time.perf_counter() - start
+            result = write_and_plot(stats, out_dir, plots=plots, times=times)
     return StatsRun(result.stats, result.files, report), times
 
 
