@@ -341,6 +341,23 @@ def test_local_run_statistics_cover_every_good_scene(local_run):
     per_scene = pl.read_csv(out / "stats" / "per_scene.csv")
     assert per_scene["scene"].to_list() == [f"scene_{i}" for i in range(N_GOOD)]
     assert (out / "stats" / "roc.parquet").is_file()
+    # Streamed one scene at a time, the statistics equal the whole-table computation's
+    # (the oracle) in every exact figure: the baseline, the funnel and the per-scene table.
+    from replay.analysis.stats import DEFAULT_ERRORS_MODEL, concat_agents
+    from replay.analysis.stats.compute import compute_stats
+
+    cascade = CascadeConfig.default()
+    oracle = compute_stats(
+        concat_agents([pl.read_parquet(t) for t in tables]),
+        pl.concat([pl.read_parquet(t) for t in sorted((out / "frames").glob("*.parquet"))],
+                  how="vertical_relaxed"),
+        models=None, errors_model=DEFAULT_ERRORS_MODEL, stage_names=cascade.stage_names,
+        tier_names=[t.name for t in cascade.tiers],
+        baseline_threshold=cascade.baseline_threshold, inputs=[],
+    )  # fmt: skip
+    assert summary["baseline"]["agent_frames"] == oracle.summary["baseline"]["agent_frames"]
+    assert summary["situations"] == _drop_times(json.loads(json.dumps(oracle.summary["situations"])))
+    assert per_scene.height == oracle.per_scene.height
 
 
 @pytest.mark.slow

@@ -10,20 +10,20 @@ import os
 import pathlib
 import re
 import sys
+import tempfile
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import polars as pl
 from tqdm import tqdm
 
 from converters import sources
 from converters.clock import TimeStep
 from outputs.atomic import safe_name, write_text
 from replay import __version__
-from replay.analysis.stats import DEFAULT_ERRORS_MODEL, concat_agents
+from replay.analysis.stats import DEFAULT_ERRORS_MODEL
 from replay.batch.markers import (
     MARKER_FORMAT,
     completed_conversion,
@@ -568,21 +568,18 @@ def dataset_stats(
     # Imported here, not at the top: replay.analysis.stats.run loads matplotlib (about 1 s with
     # ``python -X importtime``), and every spawned worker imports this package to run
     # replay_one; only the driver ever gets here.
-    from replay.analysis.stats.run import run_stats  # the tail shared with ``replay stats``
+    from replay.analysis.stats.run import write_and_plot  # the tail shared with ``replay stats``
+    from replay.analysis.stats.streaming import StatsPart, stream_stats
 
-    agents = concat_agents([pl.read_parquet(d.table) for d in done])
-    frames = pl.concat([pl.read_parquet(d.frames_table) for d in done], how="vertical_relaxed")
-    result = run_stats(
-        agents,
-        frames,
-        out_dir,
-        models=None,
-        errors_model=DEFAULT_ERRORS_MODEL,
-        stage_names=cascade.stage_names,
-        tier_names=[t.name for t in cascade.tiers],
-        cascade=cascade,
-        inputs=sorted({d.input for d in done}),
-        plots=True,
-        times={},
-    )
+    # One scene's tables at a time, as ``replay stats`` reads its parts (issue 38): the
+    # driver never holds the corpus's rows.
+    parts = [StatsPart(pathlib.Path(d.table), pathlib.Path(d.frames_table)) for d in done]
+    with tempfile.TemporaryDirectory(prefix="replay-batch-stats-") as scratch:
+        stats = stream_stats(
+            parts, pathlib.Path(scratch), models=None, errors_model=DEFAULT_ERRORS_MODEL,
+            stage_names=cascade.stage_names, tier_names=[t.name for t in cascade.tiers],
+            baseline_threshold=cascade.baseline_threshold,
+            inputs=sorted({d.input for d in done}),
+        )  # fmt: skip
+        result = write_and_plot(stats, out_dir, plots=True, times={})
     return sorted(result.files.values())
