@@ -356,7 +356,9 @@ def test_local_run_statistics_cover_every_good_scene(local_run):
         baseline_threshold=cascade.baseline_threshold, inputs=[],
     )  # fmt: skip
     assert summary["baseline"]["agent_frames"] == oracle.summary["baseline"]["agent_frames"]
-    assert summary["situations"] == _drop_times(json.loads(json.dumps(oracle.summary["situations"])))
+    assert summary["situations"] == _drop_times(
+        json.loads(json.dumps(oracle.summary["situations"]))
+    )
     assert per_scene.height == oracle.per_scene.height
 
 
