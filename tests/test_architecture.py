@@ -61,6 +61,7 @@ ALLOWED_INNER_IMPORTS = {
     ("replay/jobs/failures.py", "recordings.errors"),
     # matplotlib (about 1 s) only in the driver, not in every spawned worker
     ("replay/batch/driver.py", "replay.analysis.stats.run"),
+    ("replay/batch/driver.py", "replay.analysis.stats.streaming"),
     ("replay/analysis/experiment/report.py", "replay.analysis.stats.plots"),
     # importlib.metadata (about 25 ms of every command's start-up) only for __version__
     ("replay/__init__.py", "importlib.metadata"),

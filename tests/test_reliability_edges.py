@@ -158,11 +158,12 @@ def _replay_until_started(args: list[str], cwd: pathlib.Path, marker: str):
 
 @pytest.fixture(scope="module")
 def long_scene(tmp_path_factory) -> pathlib.Path:
-    """A scene whose replay with a recording takes a few seconds."""
+    """A scene whose replay with a recording takes many seconds: a signal sent half a
+    second after it started must find it running, also on a loaded machine."""
     from converters.synthetic import SyntheticSettings, generate_scene
 
     path = tmp_path_factory.mktemp("long") / "long.mcap"
-    settings = SyntheticSettings(n_agents=120, duration_s=60.0, frame_period_s=0.05)
+    settings = SyntheticSettings(n_agents=120, duration_s=180.0, frame_period_s=0.05)
     return write_scene(path, generate_scene(settings, seed=2))
 
 
