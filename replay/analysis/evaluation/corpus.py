@@ -75,6 +75,20 @@ def default_calibration_sites(sites: Sequence[str]) -> list[str]:
     return distinct[::2] if len(distinct) >= 2 else []
 
 
+def calibration_sites(asked: Sequence[str] | None, sites: Sequence[str]) -> list[str]:
+    """The sites the evaluation treats as calibration sites: those ``asked``, or by
+    default :func:`default_calibration_sites`; raises EvaluationError for a site that is
+    not among ``sites``."""
+    chosen = list(asked) if asked is not None else default_calibration_sites(sites)
+    unknown = sorted(set(chosen) - set(sites))
+    if unknown:
+        raise EvaluationError(
+            f"unknown calibration site {unknown[0]!r}; the sites are: "
+            f"{', '.join(sorted(set(sites)))}"
+        )
+    return chosen
+
+
 # ---------------------------------------------------------------------- arrays
 @dataclass(frozen=True)
 class EvaluationSettings:
@@ -252,17 +266,7 @@ def evaluate_table(
     stages = [c.removeprefix("kept_") for c in df.columns if c.startswith("kept_")]
     kept = np.column_stack([df[f"kept_{s}"].to_numpy() for s in stages]) if stages else None
     groups = {"dataset": dataset, "kind": kind, "site": site}
-    calibration = (
-        list(settings.calibration_sites)
-        if settings.calibration_sites is not None
-        else default_calibration_sites(site_names)
-    )
-    unknown_sites = sorted(set(calibration) - set(site_names))
-    if unknown_sites:
-        raise EvaluationError(
-            f"unknown calibration site {unknown_sites[0]!r}; the sites are: "
-            f"{', '.join(sorted(set(site_names)))}"
-        )
+    calibration = calibration_sites(settings.calibration_sites, site_names)
     scores = {m: df[f"risk_{m}"].to_numpy().astype(np.float64, copy=False) for m in models}
     situations = (
         df.select(pl.struct("scene", "ego_id", "frame").rank("dense")).to_series().to_numpy()

@@ -54,8 +54,8 @@ from replay.analysis.evaluation.corpus import (
     EvaluationError,
     EvaluationSettings,
     agreement,
+    calibration_sites,
     check_groupings,
-    default_calibration_sites,
     no_positive_message,
     reference_arrays,
     site_of,
@@ -520,16 +520,7 @@ def evaluate_parts(
     present = [c.removeprefix("risk_") for c in columns if c.startswith("risk_")]
     models = [m for m in (present if st.models is None else st.models) if m in present]
     sites = sorted({site_of(name) for name, _ in units})
-    calibration = (
-        list(st.calibration_sites)
-        if st.calibration_sites is not None
-        else default_calibration_sites(sites)
-    )
-    unknown_sites = sorted(set(calibration) - set(sites))
-    if unknown_sites:
-        raise EvaluationError(
-            f"unknown calibration site {unknown_sites[0]!r}; the sites are: {', '.join(sites)}"
-        )
+    calibration = calibration_sites(st.calibration_sites, sites)
     cal = frozenset(calibration)
 
     def scenes(models: Sequence[str] | None = None) -> Iterator[SceneRows]:
