@@ -155,6 +155,8 @@ def test_ray_gives_the_local_answers_for_evaluate_and_stats(corpus, tmp_path):
         r = invoke("evaluate", corpus, "-o", ev, "--bootstrap", "50", *common)
         assert r.exit_code == 0, r.output
         assert f"{engine} engine" in r.output
+        # a local Ray instance keeps Ray's default authentication, without a warning about it
+        assert "Token authentication" not in r.output
         r = invoke("stats", corpus, "-o", st, *common)
         assert r.exit_code == 0, r.output
         runs[engine] = (ev, st)

@@ -21,6 +21,8 @@ ENGINES: tuple[str, ...] = ("local", "ray")
 RAY_MISSING = "Ray is not installed; install it with: pip install 'riskreplay[ray]'"
 #: The environment variable the raylet reads its workers' niceness from (default 15).
 WORKER_NICENESS = "RAY_worker_niceness"
+#: Ray's logger of its token-authentication default (Ray 2.5x and later).
+RAY_AUTH_LOGGER = "ray._private.authentication.authentication_token_setup"
 
 
 class Engine(Protocol):
@@ -78,6 +80,10 @@ class RayEngine:
                     # priority, as the local engine's processes do. On a busy machine nice
                     # 15 gave the workers a fraction of the CPU (measured: 5x slower).
                     os.environ.setdefault(WORKER_NICENESS, "0")
+                    # Ray keeps its default (token authentication on for a new local
+                    # instance) but would print a warning saying so into every command's
+                    # output; only that logger is quietened, and only for this instance.
+                    logging.getLogger(RAY_AUTH_LOGGER).setLevel(logging.ERROR)
                     ray.init(num_cpus=cpus, include_dashboard=False, **kwargs)
             except Exception as exc:  # Ray raises ConnectionError, RuntimeError, ...
                 where = f"the Ray cluster at {address}" if address else "a local Ray instance"
