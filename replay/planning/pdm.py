@@ -45,6 +45,7 @@ from __future__ import annotations
 import functools
 import math
 import time
+import types
 from dataclasses import dataclass, replace
 from enum import IntEnum
 
@@ -185,9 +186,10 @@ class _Centreline:
     arc_m: np.ndarray
     vertex_heading: np.ndarray
     segment_heading: np.ndarray
+    compiled: bool = True  # project with pdm_kernel.project (False: numpy, the oracle)
 
     @classmethod
-    def of(cls, reference: np.ndarray) -> _Centreline:
+    def of(cls, reference: np.ndarray, compiled: bool = True) -> _Centreline:
         keep = np.r_[True, np.any(np.diff(reference, axis=0) != 0.0, axis=1)]
         ref = reference[keep]
         d = np.diff(ref, axis=0)
@@ -201,13 +203,18 @@ class _Centreline:
         # a vertex's tangent: the mean of its two segments' directions (unwrapped)
         vertex = np.r_[seg_heading[0], 0.5 * (seg_heading[:-1] + seg_heading[1:]), seg_heading[-1]]
         arc = geometry.cumulative_lengths(xy[None])[0] - REFERENCE_EXTENSION_M
-        return cls(xy=xy, arc_m=arc, vertex_heading=vertex, segment_heading=seg_heading)
+        return cls(
+            xy=xy, arc_m=arc, vertex_heading=vertex, segment_heading=seg_heading, compiled=compiled
+        )
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Arc length, signed lateral offset (+ left) and the path's heading there, each
         ``points.shape[:-1]``, of points ``(..., 2)``."""
         shape = points.shape[:-1]
         flat = points.reshape(-1, 2)
+        if self.compiled:
+            arc, lateral, h = _kernel().project(flat, self.xy, self.arc_m, self.segment_heading)
+            return arc.reshape(shape), lateral.reshape(shape), h.reshape(shape)
         dist, arc = geometry.project_points(flat, self.xy, self.arc_m)
         seg = np.clip(
             np.searchsorted(self.arc_m, arc, side="right") - 1, 0, len(self.segment_heading) - 1
@@ -489,10 +496,17 @@ class PdmPlanner:
     name = "pdm"
 
     def __init__(
-        self, settings: PdmSettings | None = None, tracker: lqr.TrackerSettings | None = None
+        self,
+        settings: PdmSettings | None = None,
+        tracker: lqr.TrackerSettings | None = None,
+        *,
+        compiled: bool = True,
     ) -> None:
         self.settings = PdmSettings() if settings is None else settings
         self.tracker = lqr.TrackerSettings() if tracker is None else tracker
+        #: The per-step loops compiled with numba (:mod:`replay.planning.pdm_kernel`);
+        #: False: their numpy forms, the oracles the tests compare them with.
+        self.compiled = compiled
 
     # ------------------------------------------------------------------ may_matter
     def may_matter(self, request: PlanRequest) -> np.ndarray:
@@ -593,7 +607,7 @@ class PdmPlanner:
         farthest simulated box centre (moved ahead by the largest look-ahead) plus both
         half diagonals.
         """
-        line = _Centreline.of(request.reference)
+        line = _Centreline.of(request.reference, self.compiled)
         agents = request.agents.on_times(request.times_s)
         ego = request.ego
         s0_arr, d0_arr, _ = line.project(ego.xy[None])
@@ -688,22 +702,10 @@ class PdmPlanner:
         fractions = np.tile(
             np.asarray(p.target_fractions, dtype=np.float64), len(p.lateral_offsets_m)
         )
-        n_p = offsets.size
         target = np.maximum(fractions * max(request.target_speed_mps, 0.0), 0.1)
         half_len, half_wid = ego.length_m / 2.0, ego.width_m / 2.0
-        sqrt_ab = 2.0 * math.sqrt(p.idm_accel_mps2 * p.idm_decel_mps2)
         merge_m = max(p.merge_time_s * max(ego.speed_mps, 0.0), p.merge_min_m)
 
-        # Time-major arrays (row k is contiguous): the loop runs over steps only.
-        s = np.empty((n_t, n_p))
-        v = np.empty((n_t, n_p))
-        s[0] = s0
-        v[0] = max(ego.speed_mps, 0.0)
-        # Per step, for the leader bookkeeping after the loop: free-road and with-leader
-        # accelerations, and the nearest agent's row in the corridor ahead.
-        a_free_t = np.zeros((n_t, n_p))
-        a_lead_t = np.zeros((n_t, n_p))
-        lead_t = np.zeros((n_t, n_p), dtype=np.int64)
         corridor = None
         if leaders is not None:  # (L, S): the leaders at the search steps
             arc_t = np.ascontiguousarray(leaders.arc_m.T)  # (S, L)
@@ -716,44 +718,12 @@ class PdmPlanner:
             end = s0 + self._corridor_length(request)
             corridor &= (arc_t - leaders.half_along_m.T < end)[:, None, :]
             speed_t = np.ascontiguousarray(leaders.speed_along_mps.T)
-            any_t = np.asarray(corridor.any(axis=(1, 2)))
-        proposal_rows = np.arange(n_p)
-        inv_target = 1.0 / target
-        a_max, b_max = p.idm_accel_mps2, p.idm_decel_mps2
-        every = p.leader_update_steps
-        # The leader found at the last search, held until the next (as PDM): where its
-        # rear is along the path (inf: none), its speed along the path, its row.
-        held_back = np.full(n_p, np.inf)
-        held_speed = np.zeros(n_p)
-        held_row = np.zeros(n_p, dtype=np.int64)
-        for k in range(n_t - 1):  # time steps only: proposals and agents vectorised
-            vk, sk = v[k], s[k]
-            a_free = a_max - a_max * (vk * inv_target) ** p.idm_exponent
-            accel = a_free
-            if corridor is not None:
-                i, search = divmod(k, every)
-                if search == 0:
-                    if any_t[i]:
-                        masked = np.where(corridor[i] & (arc_t[i] > sk[:, None]), back_t[i], np.inf)
-                        held_row = np.argmin(masked, axis=1)
-                        held_back = masked[proposal_rows, held_row]
-                        held_speed = speed_t[i, held_row]
-                    else:
-                        held_back = np.full(n_p, np.inf)
-                if np.isfinite(held_back).any():
-                    # no leader: the gap is inf, its IDM term 0, accel the free-road one
-                    gap = held_back - sk
-                    s_star = p.idm_min_gap_m + vk * (p.idm_headway_s + (vk - held_speed) / sqrt_ab)
-                    accel = a_free - a_max * (s_star / np.maximum(gap, p.idm_min_gap_m)) ** 2
-                    a_free_t[k], a_lead_t[k], lead_t[k] = a_free, accel, held_row
-            accel = np.minimum(np.maximum(accel, -b_max), a_max)
-            v_next = vk + accel * dt
-            s[k + 1] = sk + (vk + 0.5 * dt * accel) * dt
-            v[k + 1] = v_next
-            stops = v_next < 0.0
-            if stops.any():  # stops within the step: no reversing
-                s[k + 1, stops] = sk[stops] + vk[stops] ** 2 / (2.0 * -accel[stops])
-                v[k + 1, stops] = 0.0
+        # IDM over the time steps: compiled, or the numpy loop (the oracle)
+        rollout = _kernel().idm_rollout if self.compiled else _idm_rollout
+        s, v, a_free_t, a_lead_t, lead_t = rollout(
+            n_t, s0, max(ego.speed_mps, 0.0), target,
+            None if corridor is None else (corridor, arc_t, back_t, speed_t), p, dt,
+        )  # fmt: skip
         s, v = s.T, v.T
         # a leader limits a step where it lowers the acceleration by the margin (a step
         # without a leader has a_lead = a_free = 0 here)
@@ -815,13 +785,14 @@ class PdmPlanner:
         # curvature now (a logged ego does), which avoids a steering step on curves.
         initial[:, lqr.StateIndex.STEER] = np.arctan(wb * reference.curvature_per_m[0, 0])
         settings = self.tracker if self.tracker.dt_s == dt else replace(self.tracker, dt_s=dt)
-        return lqr.simulate(initial, reference, n_t - 1, wheelbase, settings), wb
+        simulate = _kernel().simulate if self.compiled else lqr.simulate
+        return simulate(initial, reference, n_t - 1, wheelbase, settings), wb
 
     # ------------------------------------------------------------------ scoring
     def score(self, request: PlanRequest, simulated: np.ndarray) -> ProposalScores:
         """The scores of simulated proposals ``(P, T, N_STATE)`` (bicycle states, rear
         axle, on the request's times) against the request's agents and lanes."""
-        line = _Centreline.of(request.reference)
+        line = _Centreline.of(request.reference, self.compiled)
         scored = _Hypotheses.of(request.agents.on_times(request.times_s), self.settings)
         wheelbase = float(lqr.wheelbase_m(request.ego.length_m))
         return self._score(request, line, scored, simulated, _centres(simulated, wheelbase))
@@ -1003,7 +974,88 @@ class PdmPlanner:
         return ok.astype(np.float64)
 
 
+def _idm_rollout(
+    n_t: int,
+    s0: float,
+    v0: float,
+    target: np.ndarray,
+    leaders: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
+    settings: PdmSettings,
+    dt: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """IDM along every proposal ``(P,)`` (target speeds ``target``) from arc ``s0`` at speed
+    ``v0`` over ``n_t`` times, in numpy (the oracle of :func:`pdm_kernel.idm_rollout`):
+    arc and speed ``(n_t, P)``, and per step the free-road and with-leader accelerations
+    and the held leader's row ``(n_t, P)`` (zeros at steps without a held leader).
+    ``leaders``: ``corridor`` ``(S, P, L)``, the leaders' arcs, rears (less the ego's half
+    length) and speeds along the path ``(S, L)`` at the search steps; None: none."""
+    p = settings
+    n_p = target.size
+    sqrt_ab = 2.0 * math.sqrt(p.idm_accel_mps2 * p.idm_decel_mps2)
+    # Time-major arrays (row k is contiguous): the loop runs over steps only.
+    s = np.empty((n_t, n_p))
+    v = np.empty((n_t, n_p))
+    s[0] = s0
+    v[0] = v0
+    # Per step, for the leader bookkeeping after the loop: free-road and with-leader
+    # accelerations, and the nearest agent's row in the corridor ahead.
+    a_free_t = np.zeros((n_t, n_p))
+    a_lead_t = np.zeros((n_t, n_p))
+    lead_t = np.zeros((n_t, n_p), dtype=np.int64)
+    corridor = None
+    if leaders is not None:
+        corridor, arc_t, back_t, speed_t = leaders
+        any_t = np.asarray(corridor.any(axis=(1, 2)))
+    proposal_rows = np.arange(n_p)
+    inv_target = 1.0 / target
+    a_max, b_max = p.idm_accel_mps2, p.idm_decel_mps2
+    every = p.leader_update_steps
+    # The leader found at the last search, held until the next (as PDM): where its
+    # rear is along the path (inf: none), its speed along the path, its row.
+    held_back = np.full(n_p, np.inf)
+    held_speed = np.zeros(n_p)
+    held_row = np.zeros(n_p, dtype=np.int64)
+    for k in range(n_t - 1):  # time steps only: proposals and agents vectorised
+        vk, sk = v[k], s[k]
+        a_free = a_max - a_max * (vk * inv_target) ** p.idm_exponent
+        accel = a_free
+        if corridor is not None:
+            i, search = divmod(k, every)
+            if search == 0:
+                if any_t[i]:
+                    masked = np.where(corridor[i] & (arc_t[i] > sk[:, None]), back_t[i], np.inf)
+                    held_row = np.argmin(masked, axis=1)
+                    held_back = masked[proposal_rows, held_row]
+                    held_speed = speed_t[i, held_row]
+                else:
+                    held_back = np.full(n_p, np.inf)
+            if np.isfinite(held_back).any():
+                # no leader: the gap is inf, its IDM term 0, accel the free-road one
+                gap = held_back - sk
+                s_star = p.idm_min_gap_m + vk * (p.idm_headway_s + (vk - held_speed) / sqrt_ab)
+                accel = a_free - a_max * (s_star / np.maximum(gap, p.idm_min_gap_m)) ** 2
+                a_free_t[k], a_lead_t[k], lead_t[k] = a_free, accel, held_row
+        accel = np.minimum(np.maximum(accel, -b_max), a_max)
+        v_next = vk + accel * dt
+        s[k + 1] = sk + (vk + 0.5 * dt * accel) * dt
+        v[k + 1] = v_next
+        stops = v_next < 0.0
+        if stops.any():  # stops within the step: no reversing
+            s[k + 1, stops] = sk[stops] + vk[stops] ** 2 / (2.0 * -accel[stops])
+            v[k + 1, stops] = 0.0
+    return s, v, a_free_t, a_lead_t, lead_t
+
+
 # ---------------------------------------------------------------------- helpers
+def _kernel() -> types.ModuleType:
+    """:mod:`replay.planning.pdm_kernel`, imported on first use: numba and the compiled
+    code (about 0.3 s in a fresh process, loaded from numba's cache) only in processes
+    that plan with ``pdm``, not in every one that imports the planners."""
+    import replay.planning.pdm_kernel as pdm_kernel
+
+    return pdm_kernel
+
+
 def _usable(reference: np.ndarray) -> bool:
     """The reference has two distinct points (a direction to extend it along)."""
     return reference.shape[0] >= 2 and bool(np.any(np.diff(reference, axis=0)))
