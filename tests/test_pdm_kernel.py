@@ -27,7 +27,15 @@ from test_lqr_fused import random_case
 from test_pdm import hand_request, road_request
 
 from replay.planning import AgentForecasts, EgoState, PlanRequest, lqr, pdm_kernel
-from replay.planning.pdm import PdmPlanner, PdmSettings, _Centreline, _centres, _idm_rollout
+from replay.planning.pdm import (
+    PdmPlanner,
+    PdmSettings,
+    _candidates,
+    _Centreline,
+    _centres,
+    _idm_rollout,
+    contacts,
+)
 from risk import Kind
 
 ATOL = 1e-9
@@ -113,6 +121,59 @@ def test_compiled_idm_matches_numpy(seed):
             # (a leader within the least gap asks for millions of m/s^2: relative)
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=ATOL)
         np.testing.assert_array_equal(fast[4], slow[4])  # the held leader's rows
+
+
+def _crowd(seed: int):
+    """Proposals and agents crowded into 16 m: many candidate pairs, many contacts, and
+    boxes that touch exactly (axis-aligned, bumper to bumper)."""
+    rng = np.random.default_rng(seed)
+    n_p, n_t, n_k = 5, 12, 7
+    times = np.arange(n_t) * 0.1
+    xy = rng.uniform(-8, 8, (n_k, n_t, 2))
+    heading = rng.uniform(-np.pi, np.pi, (n_k, n_t))
+    xy[0], heading[0] = [4.5, 0.0], 0.0  # touches an ego standing at the origin
+    agents = AgentForecasts(
+        ids=np.arange(n_k), kinds=np.zeros(n_k), length_m=np.r_[4.5, rng.uniform(0.3, 12, n_k - 1)],
+        width_m=np.r_[1.8, rng.uniform(0.3, 3, n_k - 1)], times_s=times, xy=xy, heading_rad=heading,
+    )  # fmt: skip
+    req = PlanRequest(
+        ego=EgoState(xy=np.zeros(2), heading_rad=0.0, speed_mps=5.0),
+        reference=np.array([[0.0, 0.0], [50.0, 0.0]]),
+        target_speed_mps=5.0,
+        agents=agents,
+        horizon_s=1.1,
+    )
+    sim = np.zeros((n_p, n_t, lqr.N_STATE))
+    sim[..., lqr.StateIndex.REAR_X] = rng.uniform(-6, 6, (n_p, n_t))
+    sim[..., lqr.StateIndex.REAR_Y] = rng.uniform(-6, 6, (n_p, n_t))
+    sim[..., lqr.StateIndex.HEADING] = rng.uniform(-np.pi, np.pi, (n_p, n_t))
+    sim[..., lqr.StateIndex.SPEED] = rng.uniform(0, 15, (n_p, n_t))
+    sim[0, :, : lqr.StateIndex.SPEED + 1] = 0.0  # standing at the origin, heading 0
+    wheelbase = float(lqr.wheelbase_m(req.ego.length_m))
+    sim[0, :, lqr.StateIndex.REAR_X] = -wheelbase / 2.0
+    return req, sim, _centres(sim, wheelbase), rng
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_candidates_and_contacts_match_numpy(seed):
+    req, sim, sim_xy, rng = _crowd(seed)
+    look = np.array([0, 3, 6, 9])
+    last = rng.integers(0, sim.shape[1], req.agents.n)
+    ignore = rng.random(req.agents.n) < 0.2
+    fast = _candidates(req, req.agents, sim, sim_xy, look, last, compiled=True)
+    slow = _candidates(req, req.agents, sim, sim_xy, look, last)
+    np.testing.assert_array_equal(fast, slow)
+    assert slow.any() and not slow.all()
+    for ignored in (None, ignore):
+        a = contacts(req, req.agents, sim, sim_xy, look, ignored, last_step=last, compiled=True)
+        b = contacts(req, req.agents, sim, sim_xy, look, ignored, last_step=last)
+        for name in ("proposal", "step", "lookahead", "agent", "agent_step"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+        np.testing.assert_allclose(a.x, b.x, rtol=0, atol=ATOL)
+        np.testing.assert_allclose(a.y, b.y, rtol=0, atol=ATOL)
+    # bumper to bumper (0 m apart) is a contact at every step
+    touching = contacts(req, req.agents, sim, sim_xy, look[:1], compiled=True)
+    assert ((touching.proposal == 0) & (touching.agent == 0)).sum() == sim.shape[1]
 
 
 # ---------------------------------------------------------------------- whole plans

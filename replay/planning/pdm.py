@@ -56,7 +56,7 @@ from replay.planning import lqr
 from replay.planning.types import STOP_SPEED_MPS, AgentForecasts, Plan, PlanRequest
 from risk import geometry
 from risk.frame import Kind
-from risk.hindsight import boxes_overlap
+from risk.hindsight import TOUCH_M, boxes_overlap
 
 #: The reference is extended straight by this much at both ends (m): agents beyond its
 #: ends project onto the extension instead of onto its end points.
@@ -186,10 +186,10 @@ class _Centreline:
     arc_m: np.ndarray
     vertex_heading: np.ndarray
     segment_heading: np.ndarray
-    compiled: bool = True  # project with pdm_kernel.project (False: numpy, the oracle)
+    compiled: bool = False  # project with pdm_kernel.project (else numpy, the oracle)
 
     @classmethod
-    def of(cls, reference: np.ndarray, compiled: bool = True) -> _Centreline:
+    def of(cls, reference: np.ndarray, compiled: bool = False) -> _Centreline:
         keep = np.r_[True, np.any(np.diff(reference, axis=0) != 0.0, axis=1)]
         ref = reference[keep]
         d = np.diff(ref, axis=0)
@@ -654,8 +654,9 @@ class PdmPlanner:
         cand = np.zeros((*sim.shape[:2], look.size, 0), dtype=bool)
         if tested.owner.size:
             cand = _candidates(
-                request, tested.agents, sim, sim_xy, look, last_step=tested.last_step
-            )
+                request, tested.agents, sim, sim_xy, look, last_step=tested.last_step,
+                compiled=self.compiled,
+            )  # fmt: skip
             near_row = np.asarray(cand.any(axis=(0, 1, 2)))
         near = np.zeros(agents.n, dtype=bool)
         near[tested.owner[near_row]] = True
@@ -857,7 +858,7 @@ class PdmPlanner:
         )  # fmt: skip
         c = contacts(
             request, agents, sim, sim_xy, look, ignore=now, candidates=candidates,
-            last_step=scored.last_step,
+            last_step=scored.last_step, compiled=self.compiled,
         )  # fmt: skip
         ip, it, idd, ik, ta, cx, cy = (
             c.proposal,
@@ -1106,31 +1107,41 @@ def _candidates(
     sim_xy: np.ndarray,
     look: np.ndarray,
     last_step: np.ndarray | None = None,
+    *,
+    compiled: bool = False,
 ) -> np.ndarray:
     """``(P, T, D, K)``: the ego's box at step ``t`` of proposal ``p``, moved ahead by its
     speed times look-ahead ``d``, and agent ``k``'s box at step ``t + d`` could touch (their
     bounding circles do). Pairs whose ``t + d`` lies beyond the forecast, or beyond the
-    agent's ``last_step`` ``(K,)``, are not checked."""
+    agent's ``last_step`` ``(K,)``, are not checked. ``compiled``: the same test by
+    :func:`pdm_kernel.candidates` (else numpy, the oracle)."""
     ego = request.ego
     n_t = sim.shape[1]
     heading = sim[..., lqr.StateIndex.HEADING]
+    reach = (
+        math.hypot(ego.length_m, ego.width_m) / 2.0
+        + np.hypot(agents.length_m, agents.width_m) / 2.0
+    )
+    last = np.full(agents.n, n_t - 1) if last_step is None else np.minimum(last_step, n_t - 1)
+    if compiled:
+        return np.asarray(
+            _kernel().candidates(
+                sim_xy, heading, sim[..., lqr.StateIndex.SPEED], look, request.dt_s,
+                agents.xy, reach, last,
+            )
+        )  # fmt: skip
     shift = sim[..., lqr.StateIndex.SPEED][..., None] * (look * request.dt_s)  # (P, T, D)
     cx = sim_xy[..., 0, None] + shift * np.cos(heading)[..., None]
     cy = sim_xy[..., 1, None] + shift * np.sin(heading)[..., None]
     ta = np.minimum(np.arange(n_t)[:, None] + look[None, :], n_t - 1)  # (T, D)
     ax = agents.xy[:, ta, 0]  # (K, T, D)
     ay = agents.xy[:, ta, 1]
-    reach = (
-        math.hypot(ego.length_m, ego.width_m) / 2.0
-        + np.hypot(agents.length_m, agents.width_m) / 2.0
-    )
     # Coarse, (K, T, D): the agent against the circle around all P ego centres at (t, d)
     # (a centre within r of the agent puts the agent within radius + r of the circle's
     # centre); only what passes is tested per proposal.
     mx, my = cx.mean(axis=0), cy.mean(axis=0)  # (T, D)
     radius = np.sqrt(((cx - mx) ** 2 + (cy - my) ** 2).max(axis=0))
     agent_step = np.arange(n_t)[:, None] + look[None, :]  # (T, D)
-    last = np.full(agents.n, n_t - 1) if last_step is None else np.minimum(last_step, n_t - 1)
     within = agent_step[None] <= last[:, None, None]  # (K, T, D)
     wide = radius[None] + reach[:, None, None] + 1e-6
     coarse = ((ax - mx) ** 2 + (ay - my) ** 2 <= wide * wide) & within
@@ -1166,6 +1177,8 @@ def contacts(
     ignore: np.ndarray | None = None,
     candidates: np.ndarray | None = None,
     last_step: np.ndarray | None = None,
+    *,
+    compiled: bool = False,
 ) -> Contacts:
     """Every ``(proposal, step, look-ahead, agent)`` whose boxes overlap (separating axes,
     :func:`risk.hindsight.boxes_overlap`), the ego's box at ``sim_xy`` with the simulated
@@ -1173,17 +1186,26 @@ def contacts(
     ``step + look``; only the pairs whose bounding circles touch are tested
     (:func:`_candidates`, or ``candidates`` ``(P, T, D, K)`` when already computed).
     ``ignore`` ``(K,)``: agents left out; ``last_step`` ``(K,)``: each agent's last time
-    index checked (default: the forecast's end)."""
+    index checked (default: the forecast's end). ``compiled``: the candidates and the box
+    tests by :mod:`pdm_kernel` (the same tests term by term; else numpy, the oracle)."""
     ego = request.ego
     dt = request.dt_s
     heading = sim[..., lqr.StateIndex.HEADING]
     speed = sim[..., lqr.StateIndex.SPEED]
     if candidates is None:
-        cand = _candidates(request, agents, sim, sim_xy, look, last_step=last_step)
+        cand = _candidates(
+            request, agents, sim, sim_xy, look, last_step=last_step, compiled=compiled
+        )
     else:
         cand = candidates
     if ignore is not None:
         cand = cand & ~ignore[None, None, None, :]
+    if compiled:
+        found = _kernel().box_contacts(
+            cand, sim_xy, heading, speed, look, dt, ego.length_m, ego.width_m,
+            agents.xy, agents.heading_rad, agents.length_m, agents.width_m, TOUCH_M,
+        )  # fmt: skip
+        return Contacts(*found)
     ip, it, idd, ik = np.nonzero(cand)
     shift = look[idd] * dt * speed[ip, it]
     h = heading[ip, it]

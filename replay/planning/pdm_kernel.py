@@ -358,3 +358,157 @@ def project(
     return _project(  # type: ignore[no-any-return]
         np.ascontiguousarray(points, dtype=np.float64), xy, arc_m, segment_heading
     )
+
+
+# ---------------------------------------------------------------------- the scorer's boxes
+@_jit
+def _candidate_pairs(
+    sim_x: np.ndarray,
+    sim_y: np.ndarray,
+    heading: np.ndarray,
+    speed: np.ndarray,
+    look_s: np.ndarray,
+    look: np.ndarray,
+    agent_xy: np.ndarray,
+    reach: np.ndarray,
+    last: np.ndarray,
+) -> np.ndarray:
+    n_p, n_t = heading.shape
+    n_d = look.shape[0]
+    n_k = agent_xy.shape[0]
+    out = np.zeros((n_p, n_t, n_d, n_k), dtype=np.bool_)
+    for p in range(n_p):
+        for t in range(n_t):
+            c, s = math.cos(heading[p, t]), math.sin(heading[p, t])
+            for d in range(n_d):
+                shift = speed[p, t] * look_s[d]
+                cx = sim_x[p, t] + shift * c
+                cy = sim_y[p, t] + shift * s
+                ta = t + look[d]
+                for k in range(n_k):
+                    if ta > last[k]:
+                        continue
+                    dx = cx - agent_xy[k, ta, 0]
+                    dy = cy - agent_xy[k, ta, 1]
+                    out[p, t, d, k] = dx * dx + dy * dy <= reach[k] * reach[k]
+    return out
+
+
+def candidates(
+    sim_xy: np.ndarray,
+    heading: np.ndarray,
+    speed: np.ndarray,
+    look: np.ndarray,
+    dt: float,
+    agent_xy: np.ndarray,
+    reach: np.ndarray,
+    last: np.ndarray,
+) -> np.ndarray:
+    """``(P, T, D, K)``: the compiled ``_candidates`` of :mod:`replay.planning.pdm` (its
+    bounding-circle test, without the coarse pre-test, which only saves numpy work):
+    the ego's box centre ``sim_xy`` ``(P, T, 2)`` moved ahead by ``speed`` times look-ahead
+    ``look * dt`` along ``heading`` ``(P, T)``, against agent ``k``'s centre ``agent_xy``
+    ``(K, T, 2)`` at ``t + look`` up to its ``last`` ``(K,)`` index, within ``reach``
+    ``(K,)`` (the sum of the two half diagonals)."""
+    return _candidate_pairs(  # type: ignore[no-any-return]
+        np.ascontiguousarray(sim_xy[..., 0]), np.ascontiguousarray(sim_xy[..., 1]),
+        np.ascontiguousarray(heading), np.ascontiguousarray(speed), look * dt,
+        np.ascontiguousarray(look, dtype=np.int64), np.ascontiguousarray(agent_xy),
+        np.ascontiguousarray(reach, dtype=np.float64),
+        np.ascontiguousarray(last, dtype=np.int64),
+    )  # fmt: skip
+
+
+@_jit
+def _box_contacts(
+    cand: np.ndarray,
+    sim_x: np.ndarray,
+    sim_y: np.ndarray,
+    heading: np.ndarray,
+    speed: np.ndarray,
+    look_s: np.ndarray,
+    look: np.ndarray,
+    ego_length: float,
+    ego_width: float,
+    agent_xy: np.ndarray,
+    agent_heading: np.ndarray,
+    agent_length: np.ndarray,
+    agent_width: np.ndarray,
+    touch: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    n_p, n_t, n_d, n_k = cand.shape
+    n = 0
+    for p in range(n_p):
+        for t in range(n_t):
+            for d in range(n_d):
+                for k in range(n_k):
+                    if cand[p, t, d, k]:
+                        n += 1
+    ip = np.empty(n, np.int64)
+    it = np.empty(n, np.int64)
+    idd = np.empty(n, np.int64)
+    ik = np.empty(n, np.int64)
+    ta_out = np.empty(n, np.int64)
+    x_out = np.empty(n)
+    y_out = np.empty(n)
+    hla, hwa = ego_length / 2.0, ego_width / 2.0
+    m = 0
+    for p in range(n_p):
+        for t in range(n_t):
+            h = heading[p, t]
+            ca, sa = math.cos(h), math.sin(h)
+            for d in range(n_d):
+                shift = look_s[d] * speed[p, t]
+                cx = sim_x[p, t] + shift * ca
+                cy = sim_y[p, t] + shift * sa
+                ta = t + look[d]
+                for k in range(n_k):
+                    if not cand[p, t, d, k]:
+                        continue
+                    # the separating-axis test of risk.boxes.boxes_overlap, term by term
+                    dx = agent_xy[k, ta, 0] - cx
+                    dy = agent_xy[k, ta, 1] - cy
+                    hb = agent_heading[k, ta]
+                    cb, sb = math.cos(hb), math.sin(hb)
+                    hlb, hwb = agent_length[k] / 2.0, agent_width[k] / 2.0
+                    uu = abs(ca * cb + sa * sb)
+                    uv = abs(-ca * sb + sa * cb)
+                    if (
+                        abs(dx * ca + dy * sa) <= hla + hlb * uu + hwb * uv + touch
+                        and abs(-dx * sa + dy * ca) <= hwa + hlb * uv + hwb * uu + touch
+                        and abs(dx * cb + dy * sb) <= hlb + hla * uu + hwa * uv + touch
+                        and abs(-dx * sb + dy * cb) <= hwb + hla * uv + hwa * uu + touch
+                    ):
+                        ip[m], it[m], idd[m], ik[m], ta_out[m] = p, t, d, k, ta
+                        x_out[m], y_out[m] = cx, cy
+                        m += 1
+    return ip[:m], it[:m], idd[:m], ik[:m], ta_out[:m], x_out[:m], y_out[:m]
+
+
+def box_contacts(
+    cand: np.ndarray,
+    sim_xy: np.ndarray,
+    heading: np.ndarray,
+    speed: np.ndarray,
+    look: np.ndarray,
+    dt: float,
+    ego_length_m: float,
+    ego_width_m: float,
+    agent_xy: np.ndarray,
+    agent_heading: np.ndarray,
+    agent_length_m: np.ndarray,
+    agent_width_m: np.ndarray,
+    touch_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The compiled box tests of ``contacts`` (:mod:`replay.planning.pdm`): of the
+    candidate pairs ``cand`` ``(P, T, D, K)``, in their C order, those whose boxes overlap:
+    proposal, step, look-ahead and agent indices, the agent's step, and the moved ego
+    box's centre."""
+    return _box_contacts(  # type: ignore[no-any-return]
+        np.ascontiguousarray(cand), np.ascontiguousarray(sim_xy[..., 0]),
+        np.ascontiguousarray(sim_xy[..., 1]), np.ascontiguousarray(heading),
+        np.ascontiguousarray(speed), look * dt, np.ascontiguousarray(look, dtype=np.int64),
+        float(ego_length_m), float(ego_width_m), np.ascontiguousarray(agent_xy),
+        np.ascontiguousarray(agent_heading), np.ascontiguousarray(agent_length_m, np.float64),
+        np.ascontiguousarray(agent_width_m, np.float64), float(touch_m),
+    )  # fmt: skip
