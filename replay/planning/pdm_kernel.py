@@ -154,7 +154,7 @@ def idm_rollout(
     else:
         corridor, arc_t, back_t, speed_t = leaders
     any_t = np.ascontiguousarray(corridor.any(axis=(1, 2)))
-    return _idm_loop(  # type: ignore[no-any-return]
+    return _idm_loop(
         int(n_t), float(s0), float(v0), 1.0 / target_mps,
         np.ascontiguousarray(corridor), np.ascontiguousarray(arc_t),
         np.ascontiguousarray(back_t), np.ascontiguousarray(speed_t), any_t,
@@ -355,9 +355,7 @@ def project(
     headings ``(V - 1,)``): the compiled ``_Centreline.project`` of
     :mod:`replay.planning.pdm` (the nearest point of :func:`risk.geometry.project_points`,
     the first of equally near ones)."""
-    return _project(  # type: ignore[no-any-return]
-        np.ascontiguousarray(points, dtype=np.float64), xy, arc_m, segment_heading
-    )
+    return _project(np.ascontiguousarray(points, dtype=np.float64), xy, arc_m, segment_heading)
 
 
 # ---------------------------------------------------------------------- the scorer's boxes
@@ -410,7 +408,7 @@ def candidates(
     ``look * dt`` along ``heading`` ``(P, T)``, against agent ``k``'s centre ``agent_xy``
     ``(K, T, 2)`` at ``t + look`` up to its ``last`` ``(K,)`` index, within ``reach``
     ``(K,)`` (the sum of the two half diagonals)."""
-    return _candidate_pairs(  # type: ignore[no-any-return]
+    return _candidate_pairs(
         np.ascontiguousarray(sim_xy[..., 0]), np.ascontiguousarray(sim_xy[..., 1]),
         np.ascontiguousarray(heading), np.ascontiguousarray(speed), look * dt,
         np.ascontiguousarray(look, dtype=np.int64), np.ascontiguousarray(agent_xy),
@@ -504,7 +502,7 @@ def box_contacts(
     candidate pairs ``cand`` ``(P, T, D, K)``, in their C order, those whose boxes overlap:
     proposal, step, look-ahead and agent indices, the agent's step, and the moved ego
     box's centre."""
-    return _box_contacts(  # type: ignore[no-any-return]
+    return _box_contacts(
         np.ascontiguousarray(cand), np.ascontiguousarray(sim_xy[..., 0]),
         np.ascontiguousarray(sim_xy[..., 1]), np.ascontiguousarray(heading),
         np.ascontiguousarray(speed), look * dt, np.ascontiguousarray(look, dtype=np.int64),
