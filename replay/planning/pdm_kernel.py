@@ -322,20 +322,27 @@ def _project(
     arc = np.empty(n)
     lateral = np.empty(n)
     heading = np.empty(n)
+    ax = np.ascontiguousarray(xy[:-1, 0])
+    ay = np.ascontiguousarray(xy[:-1, 1])
+    d2 = np.empty(n_seg)
+    along = np.empty(n_seg)
     for i in range(n):
         px, py = points[i, 0], points[i, 1]
-        best_d2 = np.inf
-        best_t = 0.0
-        best = 0
-        for j in range(n_seg):  # the nearest segment, the first of equals
-            rx = px - xy[j, 0]
-            ry = py - xy[j, 1]
+        for j in range(n_seg):  # every segment (a loop without branches: vectorised)
+            rx = px - ax[j]
+            ry = py - ay[j]
             t = min(max((rx * abx[j] + ry * aby[j]) * inv2[j], 0.0), 1.0)
             rx -= t * abx[j]
             ry -= t * aby[j]
-            d2 = rx * rx + ry * ry
-            if d2 < best_d2:
-                best_d2, best_t, best = d2, t, j
+            d2[j] = rx * rx + ry * ry
+            along[j] = t
+        best = 0  # the nearest segment, the first of equals
+        best_d2 = d2[0]
+        for j in range(1, n_seg):
+            if d2[j] < best_d2:
+                best_d2 = d2[j]
+                best = j
+        best_t = along[best]
         a = arc_m[best] + best_t * seg_len[best]
         # the segment the arc length falls in (searchsorted right, less one, clipped)
         seg = min(max(np.searchsorted(arc_m, a, side="right") - 1, 0), n_seg - 1)
