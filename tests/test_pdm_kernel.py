@@ -355,3 +355,16 @@ def test_compiled_plans_match_numpy_on_real_frames(mona_requests):
     assert mona_requests
     for request in mona_requests:
         assert_same_plans(request)
+
+
+def test_warm_up_compiles_every_kernel_with_the_types_of_real_requests():
+    """What the warm-up compiles (or loads) is what later plans use: no second compile in
+    a worker. The numpy planner has nothing to warm up."""
+    kernels = ("_idm_loop", "_tracking_loop", "_project", "_candidate_pairs", "_box_contacts")
+    PdmPlanner().warm_up()
+    warmed = {name: list(getattr(pdm_kernel, name).signatures) for name in kernels}
+    assert all(len(signatures) >= 1 for signatures in warmed.values())
+    for request in HAND_MADE.values():
+        FAST.plan(request)
+    assert {name: list(getattr(pdm_kernel, name).signatures) for name in kernels} == warmed
+    PdmPlanner(compiled=False).warm_up()

@@ -53,7 +53,14 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from replay.planning import lqr
-from replay.planning.types import STOP_SPEED_MPS, AgentForecasts, Plan, PlanRequest
+from replay.planning.types import (
+    STOP_SPEED_MPS,
+    AgentForecasts,
+    EgoState,
+    Plan,
+    PlanRequest,
+    plan_times,
+)
 from risk import geometry
 from risk.frame import Kind
 from risk.hindsight import TOUCH_M, boxes_overlap
@@ -507,6 +514,30 @@ class PdmPlanner:
         #: The per-step loops compiled with numba (:mod:`replay.planning.pdm_kernel`);
         #: False: their numpy forms, the oracles the tests compare them with.
         self.compiled = compiled
+
+    def warm_up(self) -> None:
+        """Compile the per-step loops (or load them from numba's cache) now, by planning
+        a small made-up request: call it once in a parent process before starting
+        workers, so that on a cold cache they load what it compiled (about 5 s of CPU)
+        instead of each compiling it."""
+        if not self.compiled:
+            return
+        times = plan_times(5.0, 0.1)
+        ahead = np.stack([30.0 + 0.0 * times, np.zeros_like(times)], axis=-1)
+        crossing = np.stack([20.0 + 0.0 * times, -10.0 + 4.0 * times], axis=-1)
+        agents = AgentForecasts(
+            ids=[1, 2], kinds=[Kind.VEHICLE, Kind.PEDESTRIAN], length_m=[4.5, 0.6],
+            width_m=[1.8, 0.6], times_s=times, xy=np.stack([ahead, crossing]),
+            heading_rad=np.stack([0.0 * times, np.full(times.size, math.pi / 2)]),
+        )  # fmt: skip
+        self.plan(
+            PlanRequest(
+                ego=EgoState(xy=np.zeros(2), heading_rad=0.0, speed_mps=8.0),
+                reference=np.array([[0.0, 0.0], [50.0, 0.0], [100.0, 5.0]]),
+                target_speed_mps=10.0,
+                agents=agents,
+            )
+        )
 
     # ------------------------------------------------------------------ may_matter
     def may_matter(self, request: PlanRequest) -> np.ndarray:

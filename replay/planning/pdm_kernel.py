@@ -294,7 +294,7 @@ def simulate(
         np.ascontiguousarray(p.moments[:, :, lqr._MOMENT_ORDER]),
         p.stopping_ref,
         p.v_ref_ahead,
-        np.ascontiguousarray(p.wheelbase, dtype=np.float64),
+        np.array(p.wheelbase, dtype=np.float64),  # (a writable copy: one compiled type)
         lqr._response_coefficients(n, dt),
         lqr._affine_sum(dt),
         gains,
