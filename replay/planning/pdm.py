@@ -1,7 +1,10 @@
 """``pdm``: a PDM-Closed-style planner in numpy (after Dauner et al., CoRL 2023).
 
 One call (:meth:`PdmPlanner.plan`), every stage vectorised over proposals ``P``, agents
-``K`` and time ``T`` (the only Python loops run over time steps):
+``K`` and time ``T`` (the only Python loops run over time steps; those loops, the
+projections onto the centreline and the scorer's box tests run compiled,
+:mod:`replay.planning.pdm_kernel`, unless ``PdmPlanner(compiled=False)``: the numpy forms,
+kept as the oracles):
 
 1. **Centreline**: the request's reference (the ego's route), extended straight at both
    ends so that no projection is clamped at its ends (the phantom of issue 35).
