@@ -38,6 +38,9 @@ from replay.planning.pdm import (
 )
 from risk import Kind
 
+#: .ci/run runs these again under numpy's baseline dispatch and a generic numba CPU.
+pytestmark = pytest.mark.exactness
+
 ATOL = 1e-9
 FAST, SLOW = PdmPlanner(), PdmPlanner(compiled=False)
 
