@@ -529,8 +529,9 @@ class PdmPlanner:
         ahead = np.stack([30.0 + 0.0 * times, np.zeros_like(times)], axis=-1)
         crossing = np.stack([20.0 + 0.0 * times, -10.0 + 4.0 * times], axis=-1)
         agents = AgentForecasts(
-            ids=[1, 2], kinds=[Kind.VEHICLE, Kind.PEDESTRIAN], length_m=[4.5, 0.6],
-            width_m=[1.8, 0.6], times_s=times, xy=np.stack([ahead, crossing]),
+            ids=np.array([1, 2]), kinds=np.array([Kind.VEHICLE, Kind.PEDESTRIAN]),
+            length_m=np.array([4.5, 0.6]), width_m=np.array([1.8, 0.6]), times_s=times,
+            xy=np.stack([ahead, crossing]),
             heading_rad=np.stack([0.0 * times, np.full(times.size, math.pi / 2)]),
         )  # fmt: skip
         self.plan(
