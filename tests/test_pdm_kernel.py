@@ -14,13 +14,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import subprocess
 import sys
 
 import numpy as np
 import planner_scenes as ps
 import pytest
-from conftest import SHARED_DATA
+from conftest import ROOT, SHARED_DATA
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_lqr_fused import random_case
@@ -318,40 +317,17 @@ def test_compiled_plans_match_numpy_on_random_requests(request_):
 
 @pytest.fixture(scope="module")
 def mona_requests(tmp_path_factory) -> list[PlanRequest]:
-    """Requests of a real MONA scene (36-43 agents a frame), as benchmarks/bench_pdm.py
-    builds them: every moving vehicle as the ego, one frame in 2 s, up to 12."""
-    source = SHARED_DATA / "recorded" / "mona" / "C-DEU_MONAEast-2_400_T-479.xml"
-    if not source.is_file():
-        pytest.skip(f"real data sample not found: {source} (clone ../shared beside the project)")
-    from replay.analysis.planner_eval.open_loop import ego_frames
-    from replay.core.egos import load_scene
-    from replay.core.engine import Stride
-    from replay.planning.errors import NoReferencePath
-    from replay.planning.inputs import plan_request
-    from replay.planning.truth import target_speed
+    """12 requests of two real MONA scenes (35-40 agents a frame), built as
+    benchmarks/bench_pdm.py builds them (its own function)."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real data samples not found at {SHARED_DATA} (clone ../shared beside it)")
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_pdm
 
-    target = tmp_path_factory.mktemp("mona") / "scene.mcap"
-    subprocess.run(
-        [sys.executable, "-m", "replay", "convert", "commonroad", str(source), "-o", str(target)],
-        check=True, capture_output=True,
-    )  # fmt: skip
-    scene = load_scene(target)
-    tracks = scene.tracks()
-    column_of = {int(i): c for c, i in enumerate(tracks.ids)}
-    first = scene.indexed[0][1]
-    egos = [int(i) for i, k, v in zip(first.ids, first.kinds, first.speed, strict=True)
-            if k == Kind.VEHICLE and v > 1.0]  # fmt: skip
-    found = []
-    for ego_id, _, frame in ego_frames(scene, egos, Stride(seconds=2.0)):
-        row = round((frame.t - tracks.t0_s) / tracks.dt_s)
-        speed = float(frame.speed[frame.ego])
-        goal = target_speed(tracks, row, column_of[ego_id], 5.0, speed)
-        try:
-            found.append(plan_request(frame, scene.map, target_speed_mps=goal))
-        except NoReferencePath:
-            continue
-    pick = np.linspace(0, len(found) - 1, min(12, len(found))).round().astype(int)
-    return [found[i] for i in sorted(set(pick.tolist()))]
+    found = bench_pdm.requests(tmp_path_factory.mktemp("mona"), 12)
+    if not found:
+        pytest.skip(f"the MONA scenes of benchmarks/bench_pdm.py are not in {bench_pdm.RECORDED}")
+    return [request for _, request in found]
 
 
 def test_compiled_plans_match_numpy_on_real_frames(mona_requests):
