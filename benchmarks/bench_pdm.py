@@ -288,7 +288,8 @@ def main() -> int:
         f"agents pdm may read (`may_matter`): median {np.median(relevant):.0f}; "
         f"{rounds} rounds in turns with idm; emergency brakes: {brakes}",
         f"- pdm settings: {len(pdm.settings.target_fractions) * len(pdm.settings.lateral_offsets_m)} "
-        f"IDM and {len(pdm.settings.brake_proposals_mps2)} braking proposals, horizon 5 s at 0.1 s, LQR look-ahead {lqr.TrackerSettings().horizon_steps} steps",
+        f"IDM and {len(pdm.settings.brake_proposals_mps2)} braking proposals, horizon 5 s at 0.1 s, LQR look-ahead {lqr.TrackerSettings().horizon_steps} steps; "
+        f"per-step loops {'compiled (numba)' if getattr(pdm, 'compiled', False) else 'numpy'}",
         "",
         "| | median ms | p95 ms |",
         "|---|---:|---:|",

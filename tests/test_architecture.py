@@ -47,6 +47,8 @@ ALLOWED_INNER_IMPORTS = {
     # optional dependency, installed with the 'planner' extra (fiss-planner's Frenet
     # planners); a missing extra is a one-line error naming it
     ("replay/planning/frenet.py", "fiss_planner"),
+    # pdm's compiled loops (numba, about 0.3 s) only in processes that plan with pdm
+    ("replay/planning/pdm.py", "replay.planning.pdm_kernel"),
     # the LQR tracker imports the tracker interface: loaded when that tracker is asked for
     ("replay/planning/tracking.py", "replay.planning.lqr"),
     # rerun (about 1 s) only for workers that write a recording / on a failure

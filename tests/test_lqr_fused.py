@@ -76,7 +76,8 @@ def test_the_case_reaches_the_limits_and_stops():
 
 
 def test_pdm_proposals_on_the_road_are_simulated_as_before():
-    planner = PdmPlanner()
+    # pdm's numpy form (its compiled twin: tests/test_pdm_kernel.py)
+    planner = PdmPlanner(compiled=False)
     req = road_request()
     _, _, proposals, _, _ = planner._relevant(req)
     ego = req.ego

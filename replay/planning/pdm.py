@@ -1,7 +1,10 @@
 """``pdm``: a PDM-Closed-style planner in numpy (after Dauner et al., CoRL 2023).
 
 One call (:meth:`PdmPlanner.plan`), every stage vectorised over proposals ``P``, agents
-``K`` and time ``T`` (the only Python loops run over time steps):
+``K`` and time ``T`` (the only Python loops run over time steps; those loops, the
+projections onto the centreline and the scorer's box tests run compiled,
+:mod:`replay.planning.pdm_kernel`, unless ``PdmPlanner(compiled=False)``: the numpy forms,
+kept as the oracles):
 
 1. **Centreline**: the request's reference (the ego's route), extended straight at both
    ends so that no projection is clamped at its ends (the phantom of issue 35).
@@ -45,6 +48,7 @@ from __future__ import annotations
 import functools
 import math
 import time
+import types
 from dataclasses import dataclass, replace
 from enum import IntEnum
 
@@ -52,10 +56,17 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from replay.planning import lqr
-from replay.planning.types import STOP_SPEED_MPS, AgentForecasts, Plan, PlanRequest
+from replay.planning.types import (
+    STOP_SPEED_MPS,
+    AgentForecasts,
+    EgoState,
+    Plan,
+    PlanRequest,
+    plan_times,
+)
 from risk import geometry
 from risk.frame import Kind
-from risk.hindsight import boxes_overlap
+from risk.hindsight import TOUCH_M, boxes_overlap
 
 #: The reference is extended straight by this much at both ends (m): agents beyond its
 #: ends project onto the extension instead of onto its end points.
@@ -185,9 +196,10 @@ class _Centreline:
     arc_m: np.ndarray
     vertex_heading: np.ndarray
     segment_heading: np.ndarray
+    compiled: bool = False  # project with pdm_kernel.project (else numpy, the oracle)
 
     @classmethod
-    def of(cls, reference: np.ndarray) -> _Centreline:
+    def of(cls, reference: np.ndarray, compiled: bool = False) -> _Centreline:
         keep = np.r_[True, np.any(np.diff(reference, axis=0) != 0.0, axis=1)]
         ref = reference[keep]
         d = np.diff(ref, axis=0)
@@ -201,13 +213,18 @@ class _Centreline:
         # a vertex's tangent: the mean of its two segments' directions (unwrapped)
         vertex = np.r_[seg_heading[0], 0.5 * (seg_heading[:-1] + seg_heading[1:]), seg_heading[-1]]
         arc = geometry.cumulative_lengths(xy[None])[0] - REFERENCE_EXTENSION_M
-        return cls(xy=xy, arc_m=arc, vertex_heading=vertex, segment_heading=seg_heading)
+        return cls(
+            xy=xy, arc_m=arc, vertex_heading=vertex, segment_heading=seg_heading, compiled=compiled
+        )
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Arc length, signed lateral offset (+ left) and the path's heading there, each
         ``points.shape[:-1]``, of points ``(..., 2)``."""
         shape = points.shape[:-1]
         flat = points.reshape(-1, 2)
+        if self.compiled:
+            arc, lateral, h = _kernel().project(flat, self.xy, self.arc_m, self.segment_heading)
+            return arc.reshape(shape), lateral.reshape(shape), h.reshape(shape)
         dist, arc = geometry.project_points(flat, self.xy, self.arc_m)
         seg = np.clip(
             np.searchsorted(self.arc_m, arc, side="right") - 1, 0, len(self.segment_heading) - 1
@@ -489,10 +506,42 @@ class PdmPlanner:
     name = "pdm"
 
     def __init__(
-        self, settings: PdmSettings | None = None, tracker: lqr.TrackerSettings | None = None
+        self,
+        settings: PdmSettings | None = None,
+        tracker: lqr.TrackerSettings | None = None,
+        *,
+        compiled: bool = True,
     ) -> None:
         self.settings = PdmSettings() if settings is None else settings
         self.tracker = lqr.TrackerSettings() if tracker is None else tracker
+        #: The per-step loops compiled with numba (:mod:`replay.planning.pdm_kernel`);
+        #: False: their numpy forms, the oracles the tests compare them with.
+        self.compiled = compiled
+
+    def warm_up(self) -> None:
+        """Compile the per-step loops (or load them from numba's cache) now, by planning
+        a small made-up request: call it once in a parent process before starting
+        workers, so that on a cold cache they load what it compiled (about 5 s of CPU)
+        instead of each compiling it."""
+        if not self.compiled:
+            return
+        times = plan_times(5.0, 0.1)
+        ahead = np.stack([30.0 + 0.0 * times, np.zeros_like(times)], axis=-1)
+        crossing = np.stack([20.0 + 0.0 * times, -10.0 + 4.0 * times], axis=-1)
+        agents = AgentForecasts(
+            ids=np.array([1, 2]), kinds=np.array([Kind.VEHICLE, Kind.PEDESTRIAN]),
+            length_m=np.array([4.5, 0.6]), width_m=np.array([1.8, 0.6]), times_s=times,
+            xy=np.stack([ahead, crossing]),
+            heading_rad=np.stack([0.0 * times, np.full(times.size, math.pi / 2)]),
+        )  # fmt: skip
+        self.plan(
+            PlanRequest(
+                ego=EgoState(xy=np.zeros(2), heading_rad=0.0, speed_mps=8.0),
+                reference=np.array([[0.0, 0.0], [50.0, 0.0], [100.0, 5.0]]),
+                target_speed_mps=10.0,
+                agents=agents,
+            )
+        )
 
     # ------------------------------------------------------------------ may_matter
     def may_matter(self, request: PlanRequest) -> np.ndarray:
@@ -593,7 +642,7 @@ class PdmPlanner:
         farthest simulated box centre (moved ahead by the largest look-ahead) plus both
         half diagonals.
         """
-        line = _Centreline.of(request.reference)
+        line = _Centreline.of(request.reference, self.compiled)
         agents = request.agents.on_times(request.times_s)
         ego = request.ego
         s0_arr, d0_arr, _ = line.project(ego.xy[None])
@@ -640,8 +689,9 @@ class PdmPlanner:
         cand = np.zeros((*sim.shape[:2], look.size, 0), dtype=bool)
         if tested.owner.size:
             cand = _candidates(
-                request, tested.agents, sim, sim_xy, look, last_step=tested.last_step
-            )
+                request, tested.agents, sim, sim_xy, look, last_step=tested.last_step,
+                compiled=self.compiled,
+            )  # fmt: skip
             near_row = np.asarray(cand.any(axis=(0, 1, 2)))
         near = np.zeros(agents.n, dtype=bool)
         near[tested.owner[near_row]] = True
@@ -688,22 +738,10 @@ class PdmPlanner:
         fractions = np.tile(
             np.asarray(p.target_fractions, dtype=np.float64), len(p.lateral_offsets_m)
         )
-        n_p = offsets.size
         target = np.maximum(fractions * max(request.target_speed_mps, 0.0), 0.1)
         half_len, half_wid = ego.length_m / 2.0, ego.width_m / 2.0
-        sqrt_ab = 2.0 * math.sqrt(p.idm_accel_mps2 * p.idm_decel_mps2)
         merge_m = max(p.merge_time_s * max(ego.speed_mps, 0.0), p.merge_min_m)
 
-        # Time-major arrays (row k is contiguous): the loop runs over steps only.
-        s = np.empty((n_t, n_p))
-        v = np.empty((n_t, n_p))
-        s[0] = s0
-        v[0] = max(ego.speed_mps, 0.0)
-        # Per step, for the leader bookkeeping after the loop: free-road and with-leader
-        # accelerations, and the nearest agent's row in the corridor ahead.
-        a_free_t = np.zeros((n_t, n_p))
-        a_lead_t = np.zeros((n_t, n_p))
-        lead_t = np.zeros((n_t, n_p), dtype=np.int64)
         corridor = None
         if leaders is not None:  # (L, S): the leaders at the search steps
             arc_t = np.ascontiguousarray(leaders.arc_m.T)  # (S, L)
@@ -716,44 +754,12 @@ class PdmPlanner:
             end = s0 + self._corridor_length(request)
             corridor &= (arc_t - leaders.half_along_m.T < end)[:, None, :]
             speed_t = np.ascontiguousarray(leaders.speed_along_mps.T)
-            any_t = np.asarray(corridor.any(axis=(1, 2)))
-        proposal_rows = np.arange(n_p)
-        inv_target = 1.0 / target
-        a_max, b_max = p.idm_accel_mps2, p.idm_decel_mps2
-        every = p.leader_update_steps
-        # The leader found at the last search, held until the next (as PDM): where its
-        # rear is along the path (inf: none), its speed along the path, its row.
-        held_back = np.full(n_p, np.inf)
-        held_speed = np.zeros(n_p)
-        held_row = np.zeros(n_p, dtype=np.int64)
-        for k in range(n_t - 1):  # time steps only: proposals and agents vectorised
-            vk, sk = v[k], s[k]
-            a_free = a_max - a_max * (vk * inv_target) ** p.idm_exponent
-            accel = a_free
-            if corridor is not None:
-                i, search = divmod(k, every)
-                if search == 0:
-                    if any_t[i]:
-                        masked = np.where(corridor[i] & (arc_t[i] > sk[:, None]), back_t[i], np.inf)
-                        held_row = np.argmin(masked, axis=1)
-                        held_back = masked[proposal_rows, held_row]
-                        held_speed = speed_t[i, held_row]
-                    else:
-                        held_back = np.full(n_p, np.inf)
-                if np.isfinite(held_back).any():
-                    # no leader: the gap is inf, its IDM term 0, accel the free-road one
-                    gap = held_back - sk
-                    s_star = p.idm_min_gap_m + vk * (p.idm_headway_s + (vk - held_speed) / sqrt_ab)
-                    accel = a_free - a_max * (s_star / np.maximum(gap, p.idm_min_gap_m)) ** 2
-                    a_free_t[k], a_lead_t[k], lead_t[k] = a_free, accel, held_row
-            accel = np.minimum(np.maximum(accel, -b_max), a_max)
-            v_next = vk + accel * dt
-            s[k + 1] = sk + (vk + 0.5 * dt * accel) * dt
-            v[k + 1] = v_next
-            stops = v_next < 0.0
-            if stops.any():  # stops within the step: no reversing
-                s[k + 1, stops] = sk[stops] + vk[stops] ** 2 / (2.0 * -accel[stops])
-                v[k + 1, stops] = 0.0
+        # IDM over the time steps: compiled, or the numpy loop (the oracle)
+        rollout = _kernel().idm_rollout if self.compiled else _idm_rollout
+        s, v, a_free_t, a_lead_t, lead_t = rollout(
+            n_t, s0, max(ego.speed_mps, 0.0), target,
+            None if corridor is None else (corridor, arc_t, back_t, speed_t), p, dt,
+        )  # fmt: skip
         s, v = s.T, v.T
         # a leader limits a step where it lowers the acceleration by the margin (a step
         # without a leader has a_lead = a_free = 0 here)
@@ -815,13 +821,14 @@ class PdmPlanner:
         # curvature now (a logged ego does), which avoids a steering step on curves.
         initial[:, lqr.StateIndex.STEER] = np.arctan(wb * reference.curvature_per_m[0, 0])
         settings = self.tracker if self.tracker.dt_s == dt else replace(self.tracker, dt_s=dt)
-        return lqr.simulate(initial, reference, n_t - 1, wheelbase, settings), wb
+        simulate = _kernel().simulate if self.compiled else lqr.simulate
+        return simulate(initial, reference, n_t - 1, wheelbase, settings), wb
 
     # ------------------------------------------------------------------ scoring
     def score(self, request: PlanRequest, simulated: np.ndarray) -> ProposalScores:
         """The scores of simulated proposals ``(P, T, N_STATE)`` (bicycle states, rear
         axle, on the request's times) against the request's agents and lanes."""
-        line = _Centreline.of(request.reference)
+        line = _Centreline.of(request.reference, self.compiled)
         scored = _Hypotheses.of(request.agents.on_times(request.times_s), self.settings)
         wheelbase = float(lqr.wheelbase_m(request.ego.length_m))
         return self._score(request, line, scored, simulated, _centres(simulated, wheelbase))
@@ -886,7 +893,7 @@ class PdmPlanner:
         )  # fmt: skip
         c = contacts(
             request, agents, sim, sim_xy, look, ignore=now, candidates=candidates,
-            last_step=scored.last_step,
+            last_step=scored.last_step, compiled=self.compiled,
         )  # fmt: skip
         ip, it, idd, ik, ta, cx, cy = (
             c.proposal,
@@ -1003,7 +1010,88 @@ class PdmPlanner:
         return ok.astype(np.float64)
 
 
+def _idm_rollout(
+    n_t: int,
+    s0: float,
+    v0: float,
+    target: np.ndarray,
+    leaders: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
+    settings: PdmSettings,
+    dt: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """IDM along every proposal ``(P,)`` (target speeds ``target``) from arc ``s0`` at speed
+    ``v0`` over ``n_t`` times, in numpy (the oracle of :func:`pdm_kernel.idm_rollout`):
+    arc and speed ``(n_t, P)``, and per step the free-road and with-leader accelerations
+    and the held leader's row ``(n_t, P)`` (zeros at steps without a held leader).
+    ``leaders``: ``corridor`` ``(S, P, L)``, the leaders' arcs, rears (less the ego's half
+    length) and speeds along the path ``(S, L)`` at the search steps; None: none."""
+    p = settings
+    n_p = target.size
+    sqrt_ab = 2.0 * math.sqrt(p.idm_accel_mps2 * p.idm_decel_mps2)
+    # Time-major arrays (row k is contiguous): the loop runs over steps only.
+    s = np.empty((n_t, n_p))
+    v = np.empty((n_t, n_p))
+    s[0] = s0
+    v[0] = v0
+    # Per step, for the leader bookkeeping after the loop: free-road and with-leader
+    # accelerations, and the nearest agent's row in the corridor ahead.
+    a_free_t = np.zeros((n_t, n_p))
+    a_lead_t = np.zeros((n_t, n_p))
+    lead_t = np.zeros((n_t, n_p), dtype=np.int64)
+    corridor = None
+    if leaders is not None:
+        corridor, arc_t, back_t, speed_t = leaders
+        any_t = np.asarray(corridor.any(axis=(1, 2)))
+    proposal_rows = np.arange(n_p)
+    inv_target = 1.0 / target
+    a_max, b_max = p.idm_accel_mps2, p.idm_decel_mps2
+    every = p.leader_update_steps
+    # The leader found at the last search, held until the next (as PDM): where its
+    # rear is along the path (inf: none), its speed along the path, its row.
+    held_back = np.full(n_p, np.inf)
+    held_speed = np.zeros(n_p)
+    held_row = np.zeros(n_p, dtype=np.int64)
+    for k in range(n_t - 1):  # time steps only: proposals and agents vectorised
+        vk, sk = v[k], s[k]
+        a_free = a_max - a_max * (vk * inv_target) ** p.idm_exponent
+        accel = a_free
+        if corridor is not None:
+            i, search = divmod(k, every)
+            if search == 0:
+                if any_t[i]:
+                    masked = np.where(corridor[i] & (arc_t[i] > sk[:, None]), back_t[i], np.inf)
+                    held_row = np.argmin(masked, axis=1)
+                    held_back = masked[proposal_rows, held_row]
+                    held_speed = speed_t[i, held_row]
+                else:
+                    held_back = np.full(n_p, np.inf)
+            if np.isfinite(held_back).any():
+                # no leader: the gap is inf, its IDM term 0, accel the free-road one
+                gap = held_back - sk
+                s_star = p.idm_min_gap_m + vk * (p.idm_headway_s + (vk - held_speed) / sqrt_ab)
+                accel = a_free - a_max * (s_star / np.maximum(gap, p.idm_min_gap_m)) ** 2
+                a_free_t[k], a_lead_t[k], lead_t[k] = a_free, accel, held_row
+        accel = np.minimum(np.maximum(accel, -b_max), a_max)
+        v_next = vk + accel * dt
+        s[k + 1] = sk + (vk + 0.5 * dt * accel) * dt
+        v[k + 1] = v_next
+        stops = v_next < 0.0
+        if stops.any():  # stops within the step: no reversing
+            s[k + 1, stops] = sk[stops] + vk[stops] ** 2 / (2.0 * -accel[stops])
+            v[k + 1, stops] = 0.0
+    return s, v, a_free_t, a_lead_t, lead_t
+
+
 # ---------------------------------------------------------------------- helpers
+def _kernel() -> types.ModuleType:
+    """:mod:`replay.planning.pdm_kernel`, imported on first use: numba and the compiled
+    code (about 0.3 s in a fresh process, loaded from numba's cache) only in processes
+    that plan with ``pdm``, not in every one that imports the planners."""
+    import replay.planning.pdm_kernel as pdm_kernel
+
+    return pdm_kernel
+
+
 def _usable(reference: np.ndarray) -> bool:
     """The reference has two distinct points (a direction to extend it along)."""
     return reference.shape[0] >= 2 and bool(np.any(np.diff(reference, axis=0)))
@@ -1054,31 +1142,41 @@ def _candidates(
     sim_xy: np.ndarray,
     look: np.ndarray,
     last_step: np.ndarray | None = None,
+    *,
+    compiled: bool = False,
 ) -> np.ndarray:
     """``(P, T, D, K)``: the ego's box at step ``t`` of proposal ``p``, moved ahead by its
     speed times look-ahead ``d``, and agent ``k``'s box at step ``t + d`` could touch (their
     bounding circles do). Pairs whose ``t + d`` lies beyond the forecast, or beyond the
-    agent's ``last_step`` ``(K,)``, are not checked."""
+    agent's ``last_step`` ``(K,)``, are not checked. ``compiled``: the same test by
+    :func:`pdm_kernel.candidates` (else numpy, the oracle)."""
     ego = request.ego
     n_t = sim.shape[1]
     heading = sim[..., lqr.StateIndex.HEADING]
+    reach = (
+        math.hypot(ego.length_m, ego.width_m) / 2.0
+        + np.hypot(agents.length_m, agents.width_m) / 2.0
+    )
+    last = np.full(agents.n, n_t - 1) if last_step is None else np.minimum(last_step, n_t - 1)
+    if compiled:
+        return np.asarray(
+            _kernel().candidates(
+                sim_xy, heading, sim[..., lqr.StateIndex.SPEED], look, request.dt_s,
+                agents.xy, reach, last,
+            )
+        )  # fmt: skip
     shift = sim[..., lqr.StateIndex.SPEED][..., None] * (look * request.dt_s)  # (P, T, D)
     cx = sim_xy[..., 0, None] + shift * np.cos(heading)[..., None]
     cy = sim_xy[..., 1, None] + shift * np.sin(heading)[..., None]
     ta = np.minimum(np.arange(n_t)[:, None] + look[None, :], n_t - 1)  # (T, D)
     ax = agents.xy[:, ta, 0]  # (K, T, D)
     ay = agents.xy[:, ta, 1]
-    reach = (
-        math.hypot(ego.length_m, ego.width_m) / 2.0
-        + np.hypot(agents.length_m, agents.width_m) / 2.0
-    )
     # Coarse, (K, T, D): the agent against the circle around all P ego centres at (t, d)
     # (a centre within r of the agent puts the agent within radius + r of the circle's
     # centre); only what passes is tested per proposal.
     mx, my = cx.mean(axis=0), cy.mean(axis=0)  # (T, D)
     radius = np.sqrt(((cx - mx) ** 2 + (cy - my) ** 2).max(axis=0))
     agent_step = np.arange(n_t)[:, None] + look[None, :]  # (T, D)
-    last = np.full(agents.n, n_t - 1) if last_step is None else np.minimum(last_step, n_t - 1)
     within = agent_step[None] <= last[:, None, None]  # (K, T, D)
     wide = radius[None] + reach[:, None, None] + 1e-6
     coarse = ((ax - mx) ** 2 + (ay - my) ** 2 <= wide * wide) & within
@@ -1114,6 +1212,8 @@ def contacts(
     ignore: np.ndarray | None = None,
     candidates: np.ndarray | None = None,
     last_step: np.ndarray | None = None,
+    *,
+    compiled: bool = False,
 ) -> Contacts:
     """Every ``(proposal, step, look-ahead, agent)`` whose boxes overlap (separating axes,
     :func:`risk.hindsight.boxes_overlap`), the ego's box at ``sim_xy`` with the simulated
@@ -1121,17 +1221,26 @@ def contacts(
     ``step + look``; only the pairs whose bounding circles touch are tested
     (:func:`_candidates`, or ``candidates`` ``(P, T, D, K)`` when already computed).
     ``ignore`` ``(K,)``: agents left out; ``last_step`` ``(K,)``: each agent's last time
-    index checked (default: the forecast's end)."""
+    index checked (default: the forecast's end). ``compiled``: the candidates and the box
+    tests by :mod:`pdm_kernel` (the same tests term by term; else numpy, the oracle)."""
     ego = request.ego
     dt = request.dt_s
     heading = sim[..., lqr.StateIndex.HEADING]
     speed = sim[..., lqr.StateIndex.SPEED]
     if candidates is None:
-        cand = _candidates(request, agents, sim, sim_xy, look, last_step=last_step)
+        cand = _candidates(
+            request, agents, sim, sim_xy, look, last_step=last_step, compiled=compiled
+        )
     else:
         cand = candidates
     if ignore is not None:
         cand = cand & ~ignore[None, None, None, :]
+    if compiled:
+        found = _kernel().box_contacts(
+            cand, sim_xy, heading, speed, look, dt, ego.length_m, ego.width_m,
+            agents.xy, agents.heading_rad, agents.length_m, agents.width_m, TOUCH_M,
+        )  # fmt: skip
+        return Contacts(*found)
     ip, it, idd, ik = np.nonzero(cand)
     shift = look[idd] * dt * speed[ip, it]
     h = heading[ip, it]

@@ -205,7 +205,10 @@ def plan(
     )  # fmt: skip
     resolve_matched(settings, {"nearest_k": 1, "radius_m": 1.0}).make_filters()  # bad specs
     for name in planners:
-        make_planner(name)  # a missing optional extra fails before anything is read
+        planner = make_planner(name)  # a missing optional extra fails before anything is read
+        warm_up = getattr(planner, "warm_up", None)
+        if warm_up is not None:
+            warm_up()  # compiled code: compile or load it here once, not in every worker
     if closed_loop:
         load_tracker(tracker)  # so does a tracker that is not installed
     found = scene_files(scenes)
