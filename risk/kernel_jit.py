@@ -14,6 +14,7 @@ import importlib.util
 import logging
 import pathlib
 import sys
+from typing import ClassVar
 
 import numba
 import numpy as np
@@ -74,27 +75,40 @@ _answer_numba_blas_probe()
 
 
 class _CompileNotice(event.Listener):
-    """Logs once per process that the kernels are being compiled (a cache miss)."""
+    """Logs once per process and module of kernels that they are being compiled (a cache
+    miss): the risk kernels, or another module's that compiles with :data:`_jit`."""
 
-    said = False
+    said: ClassVar[set[str]] = set()
 
     def on_start(self, ev: event.Event) -> None:
-        if not _CompileNotice.said:
-            _CompileNotice.said = True
-            if CACHE_PROBLEM is None:
-                log.warning(
-                    "riskreplay: compiling the risk kernels once (about 20-25 s on two cores); "
-                    "later runs load them from %s",
-                    CACHE_DIR,
-                )
-            else:
-                log.warning(
-                    "riskreplay: compiling the risk kernels (about 20-25 s on two cores) in "
-                    "every run: the cache folder %s cannot be written (%s); set "
-                    "NUMBA_CACHE_DIR to a writable folder",
-                    CACHE_DIR,
-                    CACHE_PROBLEM,
-                )
+        data = ev.data if isinstance(ev.data, dict) else {}
+        module = getattr(getattr(data.get("dispatcher"), "py_func", None), "__module__", "")
+        module = str(module)
+        if module.startswith("risk"):
+            what, how_long = "the risk kernels", "about 20-25 s on two cores"
+        elif module.startswith(("replay.", "converters.")):
+            what, how_long = f"the kernels of {module}", "a few seconds"
+        else:  # numba's own helpers, compiled for one of the above
+            return
+        if what in _CompileNotice.said:
+            return
+        _CompileNotice.said.add(what)
+        if CACHE_PROBLEM is None:
+            log.warning(
+                "riskreplay: compiling %s once (%s); later runs load them from %s",
+                what,
+                how_long,
+                CACHE_DIR,
+            )
+        else:
+            log.warning(
+                "riskreplay: compiling %s (%s) in every run: the cache folder %s cannot be "
+                "written (%s); set NUMBA_CACHE_DIR to a writable folder",
+                what,
+                how_long,
+                CACHE_DIR,
+                CACHE_PROBLEM,
+            )
 
     def on_end(self, ev: event.Event) -> None:
         pass

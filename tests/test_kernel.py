@@ -409,3 +409,33 @@ def test_the_parameter_vectors_follow_the_registry_layout():
     assert sorted(at.values()) == list(range(len(at)))
     assert [n for n, _ in at] == sorted((n for n, _ in at), key=list(registry.MODELS).index)
     assert tuple(registry.MODELS) == kernel.SLOTS
+
+
+def test_the_compile_notice_names_whose_kernels_compile(caplog, monkeypatch):
+    """One notice per family of kernels and process: the risk kernels, another module's
+    compiled with the same decorator (pdm's), never numba's own helpers."""
+    from types import SimpleNamespace
+
+    from numba.core import event
+
+    from risk import kernel_jit
+
+    monkeypatch.setattr(kernel_jit._CompileNotice, "said", set())
+
+    def compiled(module: str) -> event.Event:
+        py_func = SimpleNamespace(__module__=module)
+        return event.Event(
+            "numba:compile",
+            event.EventStatus.START,
+            {"dispatcher": SimpleNamespace(py_func=py_func)},
+        )
+
+    notice = kernel_jit._CompileNotice()
+    with caplog.at_level("WARNING", logger="risk"):
+        for module in ("numba.np.arraymath", "replay.planning.pdm_kernel", "risk.kernel_numba"):
+            notice.on_start(compiled(module))
+            notice.on_start(compiled(module))  # the second of a family says nothing
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 2, said
+    assert "compiling the kernels of replay.planning.pdm_kernel once" in said[0]
+    assert "compiling the risk kernels once" in said[1]

@@ -28,6 +28,15 @@ def make_planner(name: str) -> Planner:
     raise UnknownPlanner(f"unknown planner {name!r}; expected one of {', '.join(PLANNERS)}")
 
 
+def warm_up(planner: Planner) -> None:
+    """Compile (or load from the cache) a planner's compiled code in this process, before
+    worker processes start: they then load it instead of each compiling it. A planner
+    without compiled code (no ``warm_up`` method) is left alone."""
+    prepare = getattr(planner, "warm_up", None)
+    if prepare is not None:
+        prepare()
+
+
 def available_planners() -> tuple[str, ...]:
     """The names that can run here (the Frenet planners only with fiss-planner installed)."""
     try:

@@ -359,15 +359,16 @@ def _calibrate_planner(
         streamed_planner_calibration,
     )
     from replay.analysis.planner_eval.study import json_safe
-    from replay.planning.registry import available_planners, make_planner
+    from replay.planning.registry import available_planners, make_planner, warm_up
     from risk.cascade import CorridorSettings
 
     if not planners:
         raise click.BadParameter("give at least one --planner NAME", param_hint="--planner")
     for name in planners:
-        make_planner(name)  # an unknown name is an error listing the valid ones
+        planner = make_planner(name)  # an unknown name is an error listing the valid ones
         if name not in available_planners():
             raise ReplayError(f"planner {name!r} needs an optional extra: see 'replay plan --help'")
+        warm_up(planner)  # compiled code once here, not in every worker
     models = _parse_list(stages or ",".join(DEFAULT_PLANNER_STAGES), "stage model")
     resolve_models(models)
     if len(set(models)) != len(models):

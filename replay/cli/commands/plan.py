@@ -32,7 +32,7 @@ from replay.cli.settings_option import CASCADE_NAMES_HELP, CascadeFile, load_cas
 from replay.core.engine import Stride
 from replay.errors import ReplayError
 from replay.jobs.place import JobPlace
-from replay.planning.registry import PLANNERS, make_planner
+from replay.planning.registry import PLANNERS, make_planner, warm_up
 from replay.planning.tracking import TRACKERS
 from risk.filtering import FILTER_FORMS
 
@@ -205,10 +205,9 @@ def plan(
     )  # fmt: skip
     resolve_matched(settings, {"nearest_k": 1, "radius_m": 1.0}).make_filters()  # bad specs
     for name in planners:
-        planner = make_planner(name)  # a missing optional extra fails before anything is read
-        warm_up = getattr(planner, "warm_up", None)
-        if warm_up is not None:
-            warm_up()  # compiled code: compile or load it here once, not in every worker
+        # a missing optional extra fails before anything is read; compiled code is
+        # compiled (or loaded) here once, not in every worker
+        warm_up(make_planner(name))
     if closed_loop:
         load_tracker(tracker)  # so does a tracker that is not installed
     found = scene_files(scenes)
