@@ -81,10 +81,11 @@ class _CompileNotice(event.Listener):
     said: ClassVar[set[str]] = set()
 
     def on_start(self, ev: event.Event) -> None:
-        data = ev.data if isinstance(ev.data, dict) else {}
+        data = getattr(ev, "data", None)
+        data = data if isinstance(data, dict) else {}
         module = getattr(getattr(data.get("dispatcher"), "py_func", None), "__module__", "")
         module = str(module)
-        if module.startswith("risk"):
+        if not module or module.startswith("risk"):  # unnamed: the risk kernels' notice
             what, how_long = "the risk kernels", "about 20-25 s on two cores"
         elif module.startswith(("replay.", "converters.")):
             what, how_long = f"the kernels of {module}", "a few seconds"

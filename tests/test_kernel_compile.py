@@ -78,7 +78,7 @@ def test_an_unwritable_cache_is_named_in_the_notice_and_compiles_nothing_beside(
     # (kernel_jit holds the notice; kernel_numba, which gathers the kernel, names the same)
     monkeypatch.setattr(kernel_jit, "CACHE_PROBLEM", "Permission denied")
     monkeypatch.setattr(kernel_numba, "CACHE_PROBLEM", "Permission denied")
-    monkeypatch.setattr(kernel_numba._CompileNotice, "said", False)
+    monkeypatch.setattr(kernel_numba._CompileNotice, "said", set())
     monkeypatch.setattr(kernel, "_cache_is_cold", lambda dispatcher: True)
     with caplog.at_level("WARNING", logger="risk"):
         kernel_numba._CompileNotice().on_start(None)
