@@ -817,9 +817,14 @@ class PdmPlanner:
         initial[:, lqr.StateIndex.HEADING] = ego.heading_rad
         initial[:, lqr.StateIndex.SPEED] = max(ego.speed_mps, 0.0)
         initial[:, lqr.StateIndex.ACCEL] = ego.accel_mps2
-        # The request carries no steering angle: the ego is taken to follow its route's
-        # curvature now (a logged ego does), which avoids a steering step on curves.
-        initial[:, lqr.StateIndex.STEER] = np.arctan(wb * reference.curvature_per_m[0, 0])
+        # The vehicle's own steering angle when the request carries it (a closed loop's);
+        # else the ego is taken to follow its route's curvature now (a logged ego does),
+        # which avoids a steering step on curves.
+        initial[:, lqr.StateIndex.STEER] = (
+            np.arctan(wb * reference.curvature_per_m[0, 0])
+            if ego.steer_rad is None
+            else ego.steer_rad
+        )
         settings = self.tracker if self.tracker.dt_s == dt else replace(self.tracker, dt_s=dt)
         simulate = _kernel().simulate if self.compiled else lqr.simulate
         return simulate(initial, reference, n_t - 1, wheelbase, settings), wb

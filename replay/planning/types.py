@@ -35,7 +35,9 @@ def _shape(name: str, a: np.ndarray, shape: tuple[int | None, ...]) -> None:
 @dataclass(frozen=True, eq=False, kw_only=True)
 class EgoState:
     """The ego now: centre ``xy`` (2,) in m, heading in rad (counter-clockwise from +x),
-    speed and acceleration along its path, box size."""
+    speed and acceleration along its path, box size; ``steer_rad``: its front-wheel
+    steering angle when known (a closed loop's tracked vehicle), else None (a planner that
+    simulates the ego then assumes it follows its path's curvature)."""
 
     xy: np.ndarray  # (2,) float64, m
     heading_rad: float
@@ -43,6 +45,7 @@ class EgoState:
     accel_mps2: float = 0.0
     length_m: float = 4.5
     width_m: float = 1.8
+    steer_rad: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "xy", np.asarray(self.xy, dtype=np.float64))

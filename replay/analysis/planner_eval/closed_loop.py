@@ -49,9 +49,9 @@ from replay.planning import reactive
 from replay.planning.errors import NoReferencePath
 from replay.planning.inputs import plan_request
 from replay.planning.registry import make_planner
-from replay.planning.tracking import Tracker, VehicleState, make_tracker
+from replay.planning.tracking import PerfectTracker, Tracker, VehicleState, make_tracker
 from replay.planning.truth import target_speed
-from replay.planning.types import Plan, Planner
+from replay.planning.types import Plan, Planner, PlanRequest
 from risk.filtering import Filter, KeepAll
 from risk.frame import KIND_NAMES, Frame, Kind
 from risk.geometry import cumulative_lengths, extend_paths, project_points
@@ -317,6 +317,18 @@ def _planner_frame(
         ego=n,
         t=log.t,
     )  # fmt: skip
+
+
+def _with_actuators(request: PlanRequest, state: VehicleState, tracker: Tracker) -> PlanRequest:
+    """``request`` with the simulated ego's actuator state: its acceleration and, from a
+    tracker that steers (not ``perfect``), its steering angle. The request is built from a
+    frame, which carries neither (acceleration 0, steering unknown): a planner that
+    simulates its proposals from the ego's state (``pdm``) would otherwise start them from
+    actuators the vehicle does not have, and judge proposals the vehicle cannot drive
+    (under ``lqr`` the acceleration lags its command by 0.2 s)."""
+    steer = None if isinstance(tracker, PerfectTracker) else state.steer_rad
+    ego = dataclasses.replace(request.ego, accel_mps2=state.accel_mps2, steer_rad=steer)
+    return dataclasses.replace(request, ego=ego)
 
 
 def _shifted(plan: Plan, dt: float) -> Plan | None:
@@ -617,6 +629,7 @@ def drive_all(
                     frame, scene.map, target_speed_mps=target,
                     horizon_s=settings.plan.horizon_s, dt_s=settings.plan.dt_s,
                 )  # fmt: skip
+                request = _with_actuators(request, state, tracker)
             except NoReferencePath:
                 request = None
             plans: list[Plan | None] = []
