@@ -215,3 +215,21 @@ def test_calibrate_rejects_unknown_stage_model(tmp_path, scene_file):
     )
     assert result.exit_code == 1 and "unknown risk model 'nope'" in result.output
     assert not (tmp_path / "c.toml").exists()
+
+
+def test_a_compiled_planner_is_warmed_up_before_its_first_timed_plan(scene, tmp_path, monkeypatch):
+    """``replay run --planner pdm`` loads pdm's compiled code before the first plan, so that
+    the first frame's plan time in the recording and the table is a plan, not a compile."""
+    from replay.planning.pdm import PdmPlanner
+
+    calls: list[str] = []
+    plan, warm_up = PdmPlanner.plan, PdmPlanner.warm_up
+    monkeypatch.setattr(
+        PdmPlanner, "warm_up", lambda self: calls.append("warm_up") or warm_up(self)
+    )
+    monkeypatch.setattr(PdmPlanner, "plan", lambda self, r: calls.append("plan") or plan(self, r))
+    table = tmp_path / "t.parquet"
+    result = invoke("run", str(scene), "--planner", "pdm", "--no-rrd", "--table", str(table))
+    assert result.exit_code == 0, result.output
+    assert calls[0] == "warm_up" and calls.count("warm_up") == 1
+    assert "plan" in calls

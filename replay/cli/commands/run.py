@@ -19,7 +19,7 @@ from replay.core.scene_run import (
 )
 from replay.core.tally import HindsightTally, format_counts
 from replay.planning.annotator import PlannerAnnotator
-from replay.planning.registry import PLANNERS, make_planner
+from replay.planning.registry import PLANNERS, make_planner, warm_up
 
 
 @click.command("run")
@@ -88,8 +88,9 @@ def run(
     """
     cascade = load_cascade(cascade_file, sets)
     annotators = []
-    if planner is not None:
-        annotators.append(PlannerAnnotator(make_planner(planner), truth=table is not None))
+    planners = [] if planner is None else [make_planner(planner)]
+    for chosen in planners:
+        annotators.append(PlannerAnnotator(chosen, truth=table is not None))
     if no_rrd and output is not None:
         raise click.UsageError("--output names the recording; it cannot go with --no-rrd")
     if no_rrd and table is None and keep_lists is None and ego != ALL_EGOS:
@@ -97,6 +98,8 @@ def run(
             "--no-rrd without --table would write nothing; add --table FILE (or --table"
             " /dev/null to print the summary only)"
         )
+    for chosen in planners:  # compiled code loaded now, not inside the first plan's time
+        warm_up(chosen)
     if ego == ALL_EGOS:
         if output is not None:
             raise click.UsageError(
