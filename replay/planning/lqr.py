@@ -114,7 +114,6 @@ class TrackerSettings:
     q_heading_error: float = 10.0
     q_steer: float = 0.0
     r_steer_rate: float = 1.0
-    stop_gain: float = 0.5
     stop_speed_mps: float = 0.2
     accel_lag_s: float = 0.2
     steer_lag_s: float = 0.05
@@ -387,6 +386,8 @@ class TrackingProblem:
     unrotate: np.ndarray  # (R, B) complex: exp(-i heading), into the reference's frame
     heading: np.ndarray  # (R, B) rad
     base_accel: np.ndarray  # (R, B): the longitudinal command's reference part
+    speed_gain: np.ndarray  # (R, B): how much the command drops per m/s of speed
+    position_gain: np.ndarray  # (R, B): ... per m the vehicle is ahead of the reference
     moments: np.ndarray  # (R, B, 5): curvature moments of the look-ahead window
     stopping_ref: np.ndarray  # (R, B) bool: the reference speed ahead is a stop
     v_ref_ahead: np.ndarray  # (R, B) m/s: the reference speed n steps ahead
@@ -397,33 +398,47 @@ class TrackingProblem:
     ) -> TrackingProblem:
         s = settings
         n = s.horizon_steps
-        r = reference.speed_mps.shape[1]
+        b, r = reference.speed_mps.shape
         rows = np.arange(r)
         ahead = np.minimum(rows + n, r - 1)
         v_ahead = reference.speed_mps[:, ahead]  # (B, R)
-        # Longitudinal: a = c_v (v_ref - v) + c_s (to_go), to_go = the reference's travel
-        # to n steps ahead (past its end at its last speed, the Tracker contract) minus
-        # how far the vehicle is ahead of the reference now minus n dt v.
-        gain_v = n * s.dt_s
-        gain_s = s.dt_s * s.dt_s * n * (n - 1) / 2.0
-        den = s.q_speed * gain_v * gain_v + s.q_position * gain_s * gain_s + s.r_accel
+        # Longitudinal look-ahead m (B, R): n steps, or fewer when the reference comes to
+        # rest (speed <= stop_speed_mps) sooner: m = steps to the first such index after k
+        # (past the reference's end its last speed holds, hence the repeated last column).
+        at_rest = reference.speed_mps <= s.stop_speed_mps
+        at_rest = np.concatenate([at_rest, at_rest[:, -1:]], axis=1)
+        rest_index = np.where(at_rest, np.arange(r + 1)[None, :], r + n)
+        next_rest = np.minimum.accumulate(rest_index[:, ::-1], axis=1)[:, ::-1][:, 1:]
+        m = np.clip(next_rest - rows[None, :], 1, n).astype(np.float64)
+        target = rows[None, :] + m.astype(np.int64)
+        target_row = np.minimum(target, r - 1)
+        v_target = np.take_along_axis(reference.speed_mps, target_row, axis=1)
+        # a = c_v (v_ref - v) + c_s (to_go), to_go = the reference's travel to m steps
+        # ahead (past its end at its last speed, the Tracker contract) minus how far the
+        # vehicle is ahead of the reference now minus m dt v; the input weight r is on
+        # the speed change the held input makes over the look-ahead (r (m / n)^2: PDM's
+        # r a^2 when m = n).
+        gain_v = m * s.dt_s
+        gain_s = s.dt_s * s.dt_s * m * (m - 1.0) / 2.0
+        r_eff = s.r_accel * (m / n) ** 2
+        den = s.q_speed * gain_v * gain_v + s.q_position * gain_s * gain_s + r_eff
         c_v, c_s = s.q_speed * gain_v / den, s.q_position * gain_s / den
         arc = reference.arc_m
-        beyond = (rows + n - ahead)[None, :] * s.dt_s * reference.speed_mps[:, -1:]
-        travel = arc[:, ahead] + beyond - arc
-        base = c_v * v_ahead + c_s * travel
+        beyond = (target - target_row) * s.dt_s * reference.speed_mps[:, -1:]
+        travel = np.take_along_axis(arc, target_row, axis=1) + beyond - arc
+        base = c_v * v_target + c_s * travel
         heading = reference.heading_rad
         return cls(
             settings=s,
-            wheelbase=np.broadcast_to(
-                np.asarray(wheelbase, dtype=np.float64), (reference.speed_mps.shape[0],)
-            ),
+            wheelbase=np.broadcast_to(np.asarray(wheelbase, dtype=np.float64), (b,)),
             rear=np.ascontiguousarray(
                 (reference.rear_xy[..., 0] + 1j * reference.rear_xy[..., 1]).T
             ),
             unrotate=np.ascontiguousarray(np.exp(-1j * heading).T),
             heading=np.ascontiguousarray(heading.T),
             base_accel=np.ascontiguousarray(base.T),
+            speed_gain=np.ascontiguousarray((c_v + c_s * gain_v).T),
+            position_gain=np.ascontiguousarray(c_s.T),
             moments=np.ascontiguousarray(
                 np.moveaxis(curvature_moments(reference.curvature_per_m, n), 1, 0)
             ),
@@ -432,24 +447,11 @@ class TrackingProblem:
         )
 
     @property
-    def speed_gain(self) -> float:
-        """How much the command drops per m/s of the vehicle's speed (``c_v + c_s n dt``)."""
+    def rest_within(self) -> float:
+        """``-1 / ((n - 1) dt)``: with ``a >= rest_within * v`` the lateral prediction's
+        speeds ``v + a dt i`` stay >= 0 over the look-ahead (its acceleration is limited so)."""
         s = self.settings
-        n = s.horizon_steps
-        gain_v = n * s.dt_s
-        gain_s = s.dt_s * s.dt_s * n * (n - 1) / 2.0
-        den = s.q_speed * gain_v * gain_v + s.q_position * gain_s * gain_s + s.r_accel
-        return (s.q_speed * gain_v + s.q_position * gain_s * gain_v) / den
-
-    @property
-    def position_gain(self) -> float:
-        """How much the command drops per m the vehicle is ahead of the reference."""
-        s = self.settings
-        n = s.horizon_steps
-        gain_v = n * s.dt_s
-        gain_s = s.dt_s * s.dt_s * n * (n - 1) / 2.0
-        den = s.q_speed * gain_v * gain_v + s.q_position * gain_s * gain_s + s.r_accel
-        return s.q_position * gain_s / den
+        return -1.0 / (max(s.horizon_steps - 1, 1) * s.dt_s)
 
 
 def lqr_commands(
@@ -467,13 +469,15 @@ def lqr_commands(
     rear = states[:, _X] + 1j * states[:, _Y]
     local = (rear - p.rear[k]) * p.unrotate[k]
     # Longitudinal: one-step LQR on speed and position n steps ahead (TrackingProblem.of).
-    accel = p.base_accel[k] - p.speed_gain * speed - p.position_gain * local.real
+    accel = p.base_accel[k] - p.speed_gain[k] * speed - p.position_gain[k] * local.real
 
     # Lateral: error state (e, psi, delta) now, and n steps ahead with u = 0.
     e0 = local.imag
     psi0 = wrap_angle(states[:, _HEADING] - p.heading[k])
     delta0 = states[:, _STEER]
-    free, g = _lateral_response(speed, accel, p.moments[k], s.dt_s, p.wheelbase, n)
+    free, g = _lateral_response(
+        speed, np.maximum(accel, speed * p.rest_within), p.moments[k], s.dt_s, p.wheelbase, n
+    )
     e_n = e0 + free[:, 0] * psi0 + free[:, 1] * delta0 + g[:, 0]
     psi_n = psi0 + free[:, 2] * delta0 + g[:, 1]  # small: PDM's wrap would not change it
     b0, b1 = free[:, 3], free[:, 4]
@@ -488,7 +492,7 @@ def lqr_commands(
     # Near standstill: a proportional speed controller, steering held.
     stopping = p.stopping_ref[k] & (speed <= s.stop_speed_mps)
     if stopping.any():
-        accel = np.where(stopping, -s.stop_gain * (speed - p.v_ref_ahead[k]), accel)
+        accel = np.where(stopping, (p.v_ref_ahead[k] - speed) / s.dt_s, accel)
         steer_rate = np.where(stopping, 0.0, steer_rate)
     return accel, steer_rate
 
@@ -518,7 +522,7 @@ def simulate(
     wheelbase_b = p.wheelbase
     wheelbase_col = np.reshape(wheelbase_b, (-1, 1))
     moments = p.moments[:, :, _MOMENT_ORDER]
-    speed_gain, position_gain = p.speed_gain, p.position_gain
+    rest_within = p.rest_within
     accel_share = dt / (dt + s.accel_lag_s)
     steer_share = dt * dt / (dt + s.steer_lag_s)
     last = p.heading.shape[0] - 1
@@ -528,10 +532,11 @@ def simulate(
         x, y, heading, speed, accel, steer = out[k, _STATE_ROWS]
         # -- lqr_commands
         local = (x + 1j * y - p.rear[r]) * p.unrotate[r]
-        accel_cmd = p.base_accel[r] - speed_gain * speed - position_gain * local.real
+        accel_cmd = p.base_accel[r] - p.speed_gain[r] * speed - p.position_gain[r] * local.real
         psi0 = wrap_angle(heading - p.heading[r])
         alpha = basis[:, 4]
-        np.multiply(accel_cmd, dt, out=alpha)
+        np.maximum(accel_cmd, speed * rest_within, out=alpha)
+        alpha *= dt
         basis[:, 3] = speed
         np.multiply(speed, speed, out=basis[:, 0])
         np.multiply(speed, alpha, out=basis[:, 1])
@@ -552,7 +557,7 @@ def simulate(
         steer_rate = -num / den
         stopping = p.stopping_ref[r] & (speed <= s.stop_speed_mps)
         if stopping.any():
-            accel_cmd = np.where(stopping, -s.stop_gain * (speed - p.v_ref_ahead[r]), accel_cmd)
+            accel_cmd = np.where(stopping, (p.v_ref_ahead[r] - speed) / dt, accel_cmd)
             steer_rate = np.where(stopping, 0.0, steer_rate)
         # -- bicycle_step
         new = out[k + 1]
