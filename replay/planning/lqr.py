@@ -27,12 +27,28 @@ constant over it, as nuPlan's and PDM's trackers):
 - longitudinal: state (position along the reference, speed), input acceleration; ``N``
   steps ahead the speed is ``v + B_v a`` (``B_v = N dt``) and the distance travelled
   ``N dt v + B_s a`` (``B_s = dt^2 N (N - 1) / 2``, Euler); the cost
-  ``q_v (v_N - v_ref)^2 + q_s (s_N - s_ref)^2 + r a^2`` against the reference ``N``
-  steps ahead gives ``a = (q_v B_v (v_ref - v) + q_s B_s d) / (q_v B_v^2 + q_s B_s^2 + r)``
+  ``q_v (v_N - v_ref)^2 + q_s (s_N - s_ref)^2 + r (N / n)^2 a^2`` against the reference
+  ``N`` steps ahead gives
+  ``a = (q_v B_v (v_ref - v) + q_s B_s d) / (q_v B_v^2 + q_s B_s^2 + r (N / n)^2)``
   with ``d`` the distance still to go. PDM's tracker has ``q_s = 0`` (speed only): it
   then runs 0.4 m/s above a plan braking at 4 m/s^2 and stops 4 m beyond it, and PDM's
   scorer saw every IDM proposal that stops 1 m behind a standing car collide with it.
   ``q_position = 100`` keeps a stop within 0.6 m of its plan (tests/test_tracker.py);
+- **the stop horizon** (our departure from PDM-Closed, which always looks ``n`` = 10
+  steps, 1 s, ahead): ``N`` is ``n``, or the number of steps until the reference comes
+  to rest (its speed at or below ``stop_speed_mps``) when that is sooner. Holding one
+  input over 1 s against a reference that stops within it asks for about the speed over
+  1 s, whatever the plan's deceleration: re-planned every 0.1 s, PDM's 4.05 m/s^2
+  emergency brake took the vehicle from 1 m/s to below 0.05 m/s in 1.5 s over 0.65 m
+  (the plan: 0.25 s, 0.12 m), and nuPlan counts an ego that still moves when another car
+  drives into it at fault. Past the reference's stop there is nothing to track, so the
+  look-ahead ends there: the target is the reference's stop (its speed and position) at
+  its time to rest, and the command the deceleration that reaches it (from 1 m/s the
+  vehicle is below 0.05 m/s in 0.5 s over 0.31 m; the rest is the 0.2 s actuator lag).
+  The input weight is on the speed change the held input makes over the look-ahead
+  (``r a^2 (N / n)^2``: PDM's ``r a^2`` when ``N = n``), so a shorter look-ahead pursues
+  the same share of the error (``q_v B_v^2 / (q_v B_v^2 + r (N/n)^2)``: 10/11 with speed
+  alone) instead of an ever smaller one as the stop nears;
 - lateral: state (lateral error, heading error, steering angle) of the rear axle against
   the reference pose at the current time, input steering rate ``u``; linearised
   (small angles) with the speed profile of the chosen acceleration and the reference's
@@ -44,9 +60,17 @@ constant over it, as nuPlan's and PDM's trackers):
 
   PDM multiplies the ``N`` Euler step matrices with ``einsum`` in a loop; the products
   of these upper-triangular steps have a closed form in prefix sums, used here
-  (:func:`_lateral_response`; the tests check it against the matrix products);
-- below :attr:`TrackerSettings.stop_speed_mps` (reference and vehicle) a proportional
-  speed controller brings the vehicle to rest with the steering held.
+  (:func:`_lateral_response`; the tests check it against the matrix products). The
+  lateral look-ahead stays ``n`` steps; its speed profile is limited to come to rest at
+  its end at the latest (the acceleration at least ``-v / ((n - 1) dt)``), so a hard
+  brake does not predict the vehicle reversing;
+- below :attr:`TrackerSettings.stop_speed_mps` (reference ``n`` steps ahead and vehicle)
+  a speed controller brings the vehicle to rest with the steering held: it asks for the
+  reference's speed within one step, ``(v_ref - v) / dt`` (the actuator's lag spreads
+  that over about 0.3 s), and a standing vehicle behind a standing plan is asked for
+  nothing and stands. PDM's proportional controller (gain 0.5 /s) let the vehicle creep:
+  from 0.19 m/s it was still above 0.05 m/s after 2.5 s, while nuPlan judges an ego
+  above 0.05 m/s as moving (at fault when hit from the front or side).
 
 Past a plan's end the reference continues at the plan's last speed along its last
 heading (the :class:`~replay.planning.tracking.Tracker` contract).
@@ -98,9 +122,11 @@ _STATE_ROWS = [_X, _Y, _HEADING, _SPEED, _ACCEL, _STEER]
 class TrackerSettings:
     """The bicycle's limits and lags and the LQR weights.
 
-    Weights, horizon, lags and the stopping controller are PDM-Closed's
-    (tuplan_garage ``batch_lqr.py``, ``batch_kinematic_bicycle.py``) except
-    ``q_position`` (PDM: 0; see the module docstring). ``max_steer_rad``
+    Weights, horizon, lags and the stop speed are PDM-Closed's (tuplan_garage
+    ``batch_lqr.py``, ``batch_kinematic_bicycle.py``) except ``q_position`` (PDM: 0);
+    the longitudinal look-ahead ending where the reference comes to rest and the stop
+    controller's gain ``1 / dt_s`` (PDM: 0.5 /s) are ours (see the module docstring).
+    ``max_steer_rad``
     is PDM's pi / 3; ``max_accel_mps2`` / ``max_decel_mps2`` are physical limits of a car
     (PDM leaves acceleration unclipped): 8 m/s^2 is IdmSettings' braking limit.
     """
@@ -468,7 +494,8 @@ def lqr_commands(
     # The rear axle in the reference pose's frame: along (ahead of it) and lateral error.
     rear = states[:, _X] + 1j * states[:, _Y]
     local = (rear - p.rear[k]) * p.unrotate[k]
-    # Longitudinal: one-step LQR on speed and position n steps ahead (TrackingProblem.of).
+    # Longitudinal: one-step LQR on speed and position n steps ahead, or at the
+    # reference's rest when sooner (TrackingProblem.of).
     accel = p.base_accel[k] - p.speed_gain[k] * speed - p.position_gain[k] * local.real
 
     # Lateral: error state (e, psi, delta) now, and n steps ahead with u = 0.
@@ -489,7 +516,8 @@ def lqr_commands(
         den = den + s.q_steer * b2 * b2
     steer_rate = -num / den
 
-    # Near standstill: a proportional speed controller, steering held.
+    # Near standstill: the reference's speed within one step (the lag smooths it),
+    # steering held.
     stopping = p.stopping_ref[k] & (speed <= s.stop_speed_mps)
     if stopping.any():
         accel = np.where(stopping, (p.v_ref_ahead[k] - speed) / s.dt_s, accel)
