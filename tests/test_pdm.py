@@ -117,21 +117,28 @@ def test_may_matter_keeps_the_standing_car_and_drops_far_agents():
 
 
 def test_emergency_brake_when_a_collision_is_near_at_low_speed():
-    """4 m/s, a standing car 2 m ahead (bumper to bumper): every proposal, braking at
-    IDM's 3 m/s^2, hits it within 2 s; the brake at 4.05 m/s^2 stops in 1.98 m."""
+    """4 m/s, a standing car 2 m ahead (bumper to bumper): every IDM proposal, braking at
+    IDM's 3 m/s^2, hits it within 2 s; the brake at 4.05 m/s^2 stops in 1.98 m. PDM as
+    published (no braking proposals) brakes so; ours keeps its 8 m/s^2 braking proposal,
+    which the tracker follows to rest short of the car."""
     frame = ps.road_frame([ps.STOPPED])
     frame_req = plan_request(frame, ps.road_map(), target_speed_mps=4.0)
     ego = EgoState(xy=np.array([40.0 - 4.5 - 2.0, 0.0]), heading_rad=0.0, speed_mps=4.0)
     req = dataclasses.replace(
         frame_req, ego=ego, reference=np.array([[ego.xy[0], 0.0], [200.0, 0.0]])
     )
-    plan = PdmPlanner().plan(req)
+    ours = PdmPlanner().plan(req)
+    assert ours.extras["brake_proposal"] == 1.0 and ours.extras["emergency_brake"] == 0.0
+    assert ours.stops and not ego_hits(ours, req, ps.STOPPED)
+    plan = PdmPlanner(PdmSettings(brake_proposals_mps2=())).plan(req)
     assert plan.extras["emergency_brake"] == 1.0
     assert plan.blocking_id == ps.STOPPED
     assert plan.stops and not ego_hits(plan, req, ps.STOPPED)
     np.testing.assert_allclose(np.diff(plan.speed_mps)[:9], -0.405, atol=1e-9)
     # faster than 5 m/s PDM does not brake: it keeps the best proposal
-    fast = PdmPlanner().plan(dataclasses.replace(req, ego=dataclasses.replace(ego, speed_mps=6.0)))
+    fast = PdmPlanner(PdmSettings(brake_proposals_mps2=())).plan(
+        dataclasses.replace(req, ego=dataclasses.replace(ego, speed_mps=6.0))
+    )
     assert fast.extras["emergency_brake"] == 0.0
 
 

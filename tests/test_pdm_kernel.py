@@ -214,8 +214,9 @@ def assert_same_plans(request: PlanRequest) -> None:
 
 
 def _brake_request() -> PlanRequest:
-    """4 m/s, 2 m behind a standing car: the emergency brake (tests/test_pdm.py)."""
-    ego = EgoState(xy=np.array([40.0 - 4.5 - 2.0, 0.0]), heading_rad=0.0, speed_mps=4.0)
+    """4 m/s, 1.5 m behind a standing car: the emergency brake (at 2 m, tests/test_pdm.py,
+    the 8 m/s^2 braking proposal stops short of it instead)."""
+    ego = EgoState(xy=np.array([40.0 - 4.5 - 1.5, 0.0]), heading_rad=0.0, speed_mps=4.0)
     base = road_request(agents=[ps.STOPPED], target_speed_mps=4.0)
     return dataclasses.replace(base, ego=ego, reference=np.array([[ego.xy[0], 0.0], [200, 0]]))
 

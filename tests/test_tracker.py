@@ -31,11 +31,14 @@ from replay.planning.lqr import (
     LqrTracker,
     StateIndex,
     TrackerSettings,
+    TrackingProblem,
     _lateral_response,
     bicycle_step,
     centre_xy,
     curvature_moments,
+    lqr_commands,
     rear_axle_xy,
+    reference_from_centres,
     wheelbase_m,
 )
 from replay.planning.tracking import PerfectTracker, Tracker, VehicleState, make_tracker
@@ -294,3 +297,100 @@ def test_state_carries_over_between_calls():
     two = LqrTracker().follow(half, shifted, 0.5)
     np.testing.assert_allclose(two.xy, one.xy, atol=1e-9)
     assert two.steer_rad == pytest.approx(one.steer_rad, abs=1e-12)
+
+
+# ---------------------------------------------------------------------- stopping
+EMERGENCY_DECEL = 4.05  # PDM's emergency brake (m/s^2)
+
+
+def brake_from(state: VehicleState, decel: float = EMERGENCY_DECEL) -> Plan:
+    """A plan braking at ``decel`` from ``state`` (its pose, its speed) to rest, then
+    standing: PDM's emergency brake as the closed loop re-plans it every 0.1 s."""
+    t = np.arange(41) * 0.1
+    v = np.maximum(state.speed_mps - decel * t, 0.0)
+    s = np.r_[0.0, np.cumsum((v[1:] + v[:-1]) / 2.0 * 0.1)]
+    ahead = np.array([math.cos(state.heading_rad), math.sin(state.heading_rad)])
+    return Plan(
+        ok=True, times_s=t, xy=state.xy[None, :] + s[:, None] * ahead[None, :],
+        heading_rad=np.full(t.size, state.heading_rad), speed_mps=v, plan_ms=0.0,
+    )  # fmt: skip
+
+
+def stop_time_and_distance(v0: float, replan: bool) -> tuple[float, float, VehicleState]:
+    """Time (s) and distance (m) until the lqr vehicle, from ``v0`` with no acceleration
+    yet, is below nuPlan's stopped speed (0.05 m/s) on an emergency-brake plan followed
+    in steps of 0.1 s: re-planned from the vehicle's state at every step (the closed
+    loop), or the first plan throughout; and the state then."""
+    start = VehicleState(xy=np.array([3.0, -2.0]), heading_rad=0.4, speed_mps=v0)
+    first, state, tracker = brake_from(start), start, LqrTracker()
+    for k in range(1, 60):
+        plan = brake_from(state) if replan else first
+        state = tracker.follow(state if replan else start, plan, 0.1 if replan else 0.1 * k)
+        if state.speed_mps < 0.05:
+            return 0.1 * k, float(np.hypot(*(state.xy - start.xy))), state
+    raise AssertionError("never stopped")
+
+
+@pytest.mark.parametrize("replan", [True, False])
+@pytest.mark.parametrize("v0", [1.0, 3.2])
+def test_an_emergency_brake_is_followed_to_rest_within_the_actuator_lag(v0, replan):
+    """The plan stops in v0 / 4.05 s over v0^2 / 8.1 m; the vehicle, its acceleration
+    lagging 0.2 s behind the command, is below 0.05 m/s within 0.3 s more (the lag and one
+    re-planning step) and v0 * 0.3 m further. Measured: from 1 m/s 0.5 s, 0.31 m re-planned
+    (0.4 s, 0.27 m on one plan); from 3.2 m/s 1.0 s, 1.95 m (0.8 s, 1.68 m). The tracker
+    before the stop horizon (the look-ahead held at 1 s, a stop gain of 0.5 /s) took
+    1.5 s, 0.65 m and 1.7 s, 2.39 m re-planned."""
+    time_s, distance_m, _ = stop_time_and_distance(v0, replan)
+    assert time_s <= v0 / EMERGENCY_DECEL + 0.3 + 1e-9
+    assert distance_m <= v0 * v0 / (2.0 * EMERGENCY_DECEL) + 0.3 * v0
+
+
+@pytest.mark.parametrize("v0", [1.0, 3.2])
+def test_once_stopped_it_holds_still(v0):
+    """Re-planned on after it is below 0.05 m/s, the vehicle is at rest (speed exactly 0)
+    within 0.2 s and then stands for 2 s without moving (the former stop controller, from
+    1 m/s, was still at 0.008 m/s 2 s later and crept on 37 mm)."""
+    _, _, state = stop_time_and_distance(v0, replan=True)
+    tracker = LqrTracker()
+    for _ in range(2):
+        state = tracker.follow(state, brake_from(state), 0.1)
+    assert state.speed_mps == 0.0
+    stopped_at = state.xy
+    for _ in range(20):
+        state = tracker.follow(state, brake_from(state), 0.1)
+        assert state.speed_mps == 0.0
+    np.testing.assert_array_equal(state.xy, stopped_at)
+
+
+def test_a_slow_vehicle_on_a_standing_plan_stops_at_once():
+    """At 0.19 m/s (below the stop controller's 0.2 m/s) behind a plan that stands, the
+    vehicle is at rest within 0.3 s (the former proportional controller, gain 0.5 /s, was
+    still above 0.05 m/s after 2.5 s)."""
+    start = VehicleState(xy=np.zeros(2), heading_rad=0.0, speed_mps=0.19)
+    plan = braking_plan(0.0, 1.0)  # standing at the start
+    assert LqrTracker().follow(start, plan, 0.3).speed_mps == 0.0
+
+
+def test_a_stop_horizon_shorter_than_the_look_ahead_is_the_lqr_over_it():
+    """The longitudinal command when the reference comes to rest m < n steps ahead is the
+    one-step LQR over m steps (speed and position at the rest index, input weight
+    r (m / n)^2), by hand: 1 m/s, the plan at rest from index 3 (v = 1, 0.595, 0.19, 0)."""
+    s = TrackerSettings()
+    plan = brake_from(VehicleState(xy=np.zeros(2), heading_rad=0.0, speed_mps=1.0))
+    grid = np.arange(20) * 0.1
+    xy = np.stack([np.interp(grid, plan.times_s, plan.xy[:, 0]), np.zeros(20)], 1)
+    v = np.interp(grid, plan.times_s, plan.speed_mps)
+    ref = reference_from_centres(xy[None], np.zeros((1, 20)), v[None], np.array([WHEELBASE]))
+    problem = TrackingProblem.of(ref, np.array([WHEELBASE]), s)
+    state = np.zeros((1, N_STATE))
+    state[0, :2] = ref.rear_xy[0, 0]
+    state[0, StateIndex.SPEED] = 1.0
+    accel, _ = lqr_commands(state, problem, 0)
+    m = 2  # v[2] = 0.19 <= stop_speed_mps: the reference is at rest (for the tracker) there
+    assert v[2] <= s.stop_speed_mps < v[1]
+    b_v, b_s = m * s.dt_s, s.dt_s**2 * m * (m - 1) / 2
+    to_go = (xy[m, 0] - xy[0, 0]) - m * s.dt_s * 1.0
+    num = s.q_speed * b_v * (v[m] - 1.0) + s.q_position * b_s * to_go
+    den = s.q_speed * b_v**2 + s.q_position * b_s**2 + s.r_accel * (m / s.horizon_steps) ** 2
+    assert accel[0] == pytest.approx(num / den, rel=1e-12)
+    assert accel[0] < -3.5  # near the plan's 4.05 m/s^2 (-3.78; the 1 s look-ahead: -1.57)

@@ -27,12 +27,28 @@ constant over it, as nuPlan's and PDM's trackers):
 - longitudinal: state (position along the reference, speed), input acceleration; ``N``
   steps ahead the speed is ``v + B_v a`` (``B_v = N dt``) and the distance travelled
   ``N dt v + B_s a`` (``B_s = dt^2 N (N - 1) / 2``, Euler); the cost
-  ``q_v (v_N - v_ref)^2 + q_s (s_N - s_ref)^2 + r a^2`` against the reference ``N``
-  steps ahead gives ``a = (q_v B_v (v_ref - v) + q_s B_s d) / (q_v B_v^2 + q_s B_s^2 + r)``
+  ``q_v (v_N - v_ref)^2 + q_s (s_N - s_ref)^2 + r (N / n)^2 a^2`` against the reference
+  ``N`` steps ahead gives
+  ``a = (q_v B_v (v_ref - v) + q_s B_s d) / (q_v B_v^2 + q_s B_s^2 + r (N / n)^2)``
   with ``d`` the distance still to go. PDM's tracker has ``q_s = 0`` (speed only): it
   then runs 0.4 m/s above a plan braking at 4 m/s^2 and stops 4 m beyond it, and PDM's
   scorer saw every IDM proposal that stops 1 m behind a standing car collide with it.
   ``q_position = 100`` keeps a stop within 0.6 m of its plan (tests/test_tracker.py);
+- **the stop horizon** (our departure from PDM-Closed, which always looks ``n`` = 10
+  steps, 1 s, ahead): ``N`` is ``n``, or the number of steps until the reference comes
+  to rest (its speed at or below ``stop_speed_mps``) when that is sooner. Holding one
+  input over 1 s against a reference that stops within it asks for about the speed over
+  1 s, whatever the plan's deceleration: re-planned every 0.1 s, PDM's 4.05 m/s^2
+  emergency brake took the vehicle from 1 m/s to below 0.05 m/s in 1.5 s over 0.65 m
+  (the plan: 0.25 s, 0.12 m), and nuPlan counts an ego that still moves when another car
+  drives into it at fault. Past the reference's stop there is nothing to track, so the
+  look-ahead ends there: the target is the reference's stop (its speed and position) at
+  its time to rest, and the command the deceleration that reaches it (from 1 m/s the
+  vehicle is below 0.05 m/s in 0.5 s over 0.31 m; the rest is the 0.2 s actuator lag).
+  The input weight is on the speed change the held input makes over the look-ahead
+  (``r a^2 (N / n)^2``: PDM's ``r a^2`` when ``N = n``), so a shorter look-ahead pursues
+  the same share of the error (``q_v B_v^2 / (q_v B_v^2 + r (N/n)^2)``: 10/11 with speed
+  alone) instead of an ever smaller one as the stop nears;
 - lateral: state (lateral error, heading error, steering angle) of the rear axle against
   the reference pose at the current time, input steering rate ``u``; linearised
   (small angles) with the speed profile of the chosen acceleration and the reference's
@@ -44,9 +60,17 @@ constant over it, as nuPlan's and PDM's trackers):
 
   PDM multiplies the ``N`` Euler step matrices with ``einsum`` in a loop; the products
   of these upper-triangular steps have a closed form in prefix sums, used here
-  (:func:`_lateral_response`; the tests check it against the matrix products);
-- below :attr:`TrackerSettings.stop_speed_mps` (reference and vehicle) a proportional
-  speed controller brings the vehicle to rest with the steering held.
+  (:func:`_lateral_response`; the tests check it against the matrix products). The
+  lateral look-ahead stays ``n`` steps; its speed profile is limited to come to rest at
+  its end at the latest (the acceleration at least ``-v / ((n - 1) dt)``), so a hard
+  brake does not predict the vehicle reversing;
+- below :attr:`TrackerSettings.stop_speed_mps` (reference ``n`` steps ahead and vehicle)
+  a speed controller brings the vehicle to rest with the steering held: it asks for the
+  reference's speed within one step, ``(v_ref - v) / dt`` (the actuator's lag spreads
+  that over about 0.3 s), and a standing vehicle behind a standing plan is asked for
+  nothing and stands. PDM's proportional controller (gain 0.5 /s) let the vehicle creep:
+  from 0.19 m/s it was still above 0.05 m/s after 2.5 s, while nuPlan judges an ego
+  above 0.05 m/s as moving (at fault when hit from the front or side).
 
 Past a plan's end the reference continues at the plan's last speed along its last
 heading (the :class:`~replay.planning.tracking.Tracker` contract).
@@ -98,9 +122,11 @@ _STATE_ROWS = [_X, _Y, _HEADING, _SPEED, _ACCEL, _STEER]
 class TrackerSettings:
     """The bicycle's limits and lags and the LQR weights.
 
-    Weights, horizon, lags and the stopping controller are PDM-Closed's
-    (tuplan_garage ``batch_lqr.py``, ``batch_kinematic_bicycle.py``) except
-    ``q_position`` (PDM: 0; see the module docstring). ``max_steer_rad``
+    Weights, horizon, lags and the stop speed are PDM-Closed's (tuplan_garage
+    ``batch_lqr.py``, ``batch_kinematic_bicycle.py``) except ``q_position`` (PDM: 0);
+    the longitudinal look-ahead ending where the reference comes to rest and the stop
+    controller's gain ``1 / dt_s`` (PDM: 0.5 /s) are ours (see the module docstring).
+    ``max_steer_rad``
     is PDM's pi / 3; ``max_accel_mps2`` / ``max_decel_mps2`` are physical limits of a car
     (PDM leaves acceleration unclipped): 8 m/s^2 is IdmSettings' braking limit.
     """
@@ -114,7 +140,6 @@ class TrackerSettings:
     q_heading_error: float = 10.0
     q_steer: float = 0.0
     r_steer_rate: float = 1.0
-    stop_gain: float = 0.5
     stop_speed_mps: float = 0.2
     accel_lag_s: float = 0.2
     steer_lag_s: float = 0.05
@@ -387,6 +412,8 @@ class TrackingProblem:
     unrotate: np.ndarray  # (R, B) complex: exp(-i heading), into the reference's frame
     heading: np.ndarray  # (R, B) rad
     base_accel: np.ndarray  # (R, B): the longitudinal command's reference part
+    speed_gain: np.ndarray  # (R, B): how much the command drops per m/s of speed
+    position_gain: np.ndarray  # (R, B): ... per m the vehicle is ahead of the reference
     moments: np.ndarray  # (R, B, 5): curvature moments of the look-ahead window
     stopping_ref: np.ndarray  # (R, B) bool: the reference speed ahead is a stop
     v_ref_ahead: np.ndarray  # (R, B) m/s: the reference speed n steps ahead
@@ -397,33 +424,47 @@ class TrackingProblem:
     ) -> TrackingProblem:
         s = settings
         n = s.horizon_steps
-        r = reference.speed_mps.shape[1]
+        b, r = reference.speed_mps.shape
         rows = np.arange(r)
         ahead = np.minimum(rows + n, r - 1)
         v_ahead = reference.speed_mps[:, ahead]  # (B, R)
-        # Longitudinal: a = c_v (v_ref - v) + c_s (to_go), to_go = the reference's travel
-        # to n steps ahead (past its end at its last speed, the Tracker contract) minus
-        # how far the vehicle is ahead of the reference now minus n dt v.
-        gain_v = n * s.dt_s
-        gain_s = s.dt_s * s.dt_s * n * (n - 1) / 2.0
-        den = s.q_speed * gain_v * gain_v + s.q_position * gain_s * gain_s + s.r_accel
+        # Longitudinal look-ahead m (B, R): n steps, or fewer when the reference comes to
+        # rest (speed <= stop_speed_mps) sooner: m = steps to the first such index after k
+        # (past the reference's end its last speed holds, hence the repeated last column).
+        at_rest = reference.speed_mps <= s.stop_speed_mps
+        at_rest = np.concatenate([at_rest, at_rest[:, -1:]], axis=1)
+        rest_index = np.where(at_rest, np.arange(r + 1)[None, :], r + n)
+        next_rest = np.minimum.accumulate(rest_index[:, ::-1], axis=1)[:, ::-1][:, 1:]
+        m = np.clip(next_rest - rows[None, :], 1, n).astype(np.float64)
+        target = rows[None, :] + m.astype(np.int64)
+        target_row = np.minimum(target, r - 1)
+        v_target = np.take_along_axis(reference.speed_mps, target_row, axis=1)
+        # a = c_v (v_ref - v) + c_s (to_go), to_go = the reference's travel to m steps
+        # ahead (past its end at its last speed, the Tracker contract) minus how far the
+        # vehicle is ahead of the reference now minus m dt v; the input weight r is on
+        # the speed change the held input makes over the look-ahead (r (m / n)^2: PDM's
+        # r a^2 when m = n).
+        gain_v = m * s.dt_s
+        gain_s = s.dt_s * s.dt_s * m * (m - 1.0) / 2.0
+        r_eff = s.r_accel * (m / n) ** 2
+        den = s.q_speed * gain_v * gain_v + s.q_position * gain_s * gain_s + r_eff
         c_v, c_s = s.q_speed * gain_v / den, s.q_position * gain_s / den
         arc = reference.arc_m
-        beyond = (rows + n - ahead)[None, :] * s.dt_s * reference.speed_mps[:, -1:]
-        travel = arc[:, ahead] + beyond - arc
-        base = c_v * v_ahead + c_s * travel
+        beyond = (target - target_row) * s.dt_s * reference.speed_mps[:, -1:]
+        travel = np.take_along_axis(arc, target_row, axis=1) + beyond - arc
+        base = c_v * v_target + c_s * travel
         heading = reference.heading_rad
         return cls(
             settings=s,
-            wheelbase=np.broadcast_to(
-                np.asarray(wheelbase, dtype=np.float64), (reference.speed_mps.shape[0],)
-            ),
+            wheelbase=np.broadcast_to(np.asarray(wheelbase, dtype=np.float64), (b,)),
             rear=np.ascontiguousarray(
                 (reference.rear_xy[..., 0] + 1j * reference.rear_xy[..., 1]).T
             ),
             unrotate=np.ascontiguousarray(np.exp(-1j * heading).T),
             heading=np.ascontiguousarray(heading.T),
             base_accel=np.ascontiguousarray(base.T),
+            speed_gain=np.ascontiguousarray((c_v + c_s * gain_v).T),
+            position_gain=np.ascontiguousarray(c_s.T),
             moments=np.ascontiguousarray(
                 np.moveaxis(curvature_moments(reference.curvature_per_m, n), 1, 0)
             ),
@@ -432,24 +473,11 @@ class TrackingProblem:
         )
 
     @property
-    def speed_gain(self) -> float:
-        """How much the command drops per m/s of the vehicle's speed (``c_v + c_s n dt``)."""
+    def rest_within(self) -> float:
+        """``-1 / ((n - 1) dt)``: with ``a >= rest_within * v`` the lateral prediction's
+        speeds ``v + a dt i`` stay >= 0 over the look-ahead (its acceleration is limited so)."""
         s = self.settings
-        n = s.horizon_steps
-        gain_v = n * s.dt_s
-        gain_s = s.dt_s * s.dt_s * n * (n - 1) / 2.0
-        den = s.q_speed * gain_v * gain_v + s.q_position * gain_s * gain_s + s.r_accel
-        return (s.q_speed * gain_v + s.q_position * gain_s * gain_v) / den
-
-    @property
-    def position_gain(self) -> float:
-        """How much the command drops per m the vehicle is ahead of the reference."""
-        s = self.settings
-        n = s.horizon_steps
-        gain_v = n * s.dt_s
-        gain_s = s.dt_s * s.dt_s * n * (n - 1) / 2.0
-        den = s.q_speed * gain_v * gain_v + s.q_position * gain_s * gain_s + s.r_accel
-        return s.q_position * gain_s / den
+        return -1.0 / (max(s.horizon_steps - 1, 1) * s.dt_s)
 
 
 def lqr_commands(
@@ -466,14 +494,17 @@ def lqr_commands(
     # The rear axle in the reference pose's frame: along (ahead of it) and lateral error.
     rear = states[:, _X] + 1j * states[:, _Y]
     local = (rear - p.rear[k]) * p.unrotate[k]
-    # Longitudinal: one-step LQR on speed and position n steps ahead (TrackingProblem.of).
-    accel = p.base_accel[k] - p.speed_gain * speed - p.position_gain * local.real
+    # Longitudinal: one-step LQR on speed and position n steps ahead, or at the
+    # reference's rest when sooner (TrackingProblem.of).
+    accel = p.base_accel[k] - p.speed_gain[k] * speed - p.position_gain[k] * local.real
 
     # Lateral: error state (e, psi, delta) now, and n steps ahead with u = 0.
     e0 = local.imag
     psi0 = wrap_angle(states[:, _HEADING] - p.heading[k])
     delta0 = states[:, _STEER]
-    free, g = _lateral_response(speed, accel, p.moments[k], s.dt_s, p.wheelbase, n)
+    free, g = _lateral_response(
+        speed, np.maximum(accel, speed * p.rest_within), p.moments[k], s.dt_s, p.wheelbase, n
+    )
     e_n = e0 + free[:, 0] * psi0 + free[:, 1] * delta0 + g[:, 0]
     psi_n = psi0 + free[:, 2] * delta0 + g[:, 1]  # small: PDM's wrap would not change it
     b0, b1 = free[:, 3], free[:, 4]
@@ -485,10 +516,11 @@ def lqr_commands(
         den = den + s.q_steer * b2 * b2
     steer_rate = -num / den
 
-    # Near standstill: a proportional speed controller, steering held.
+    # Near standstill: the reference's speed within one step (the lag smooths it),
+    # steering held.
     stopping = p.stopping_ref[k] & (speed <= s.stop_speed_mps)
     if stopping.any():
-        accel = np.where(stopping, -s.stop_gain * (speed - p.v_ref_ahead[k]), accel)
+        accel = np.where(stopping, (p.v_ref_ahead[k] - speed) / s.dt_s, accel)
         steer_rate = np.where(stopping, 0.0, steer_rate)
     return accel, steer_rate
 
@@ -518,7 +550,7 @@ def simulate(
     wheelbase_b = p.wheelbase
     wheelbase_col = np.reshape(wheelbase_b, (-1, 1))
     moments = p.moments[:, :, _MOMENT_ORDER]
-    speed_gain, position_gain = p.speed_gain, p.position_gain
+    rest_within = p.rest_within
     accel_share = dt / (dt + s.accel_lag_s)
     steer_share = dt * dt / (dt + s.steer_lag_s)
     last = p.heading.shape[0] - 1
@@ -528,10 +560,11 @@ def simulate(
         x, y, heading, speed, accel, steer = out[k, _STATE_ROWS]
         # -- lqr_commands
         local = (x + 1j * y - p.rear[r]) * p.unrotate[r]
-        accel_cmd = p.base_accel[r] - speed_gain * speed - position_gain * local.real
+        accel_cmd = p.base_accel[r] - p.speed_gain[r] * speed - p.position_gain[r] * local.real
         psi0 = wrap_angle(heading - p.heading[r])
         alpha = basis[:, 4]
-        np.multiply(accel_cmd, dt, out=alpha)
+        np.maximum(accel_cmd, speed * rest_within, out=alpha)
+        alpha *= dt
         basis[:, 3] = speed
         np.multiply(speed, speed, out=basis[:, 0])
         np.multiply(speed, alpha, out=basis[:, 1])
@@ -552,7 +585,7 @@ def simulate(
         steer_rate = -num / den
         stopping = p.stopping_ref[r] & (speed <= s.stop_speed_mps)
         if stopping.any():
-            accel_cmd = np.where(stopping, -s.stop_gain * (speed - p.v_ref_ahead[r]), accel_cmd)
+            accel_cmd = np.where(stopping, (p.v_ref_ahead[r] - speed) / dt, accel_cmd)
             steer_rate = np.where(stopping, 0.0, steer_rate)
         # -- bicycle_step
         new = out[k + 1]

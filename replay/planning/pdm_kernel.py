@@ -178,6 +178,8 @@ def _tracking_loop(
     unrotate: np.ndarray,
     heading_ref: np.ndarray,
     base_accel: np.ndarray,
+    speed_gain: np.ndarray,
+    position_gain: np.ndarray,
     moments: np.ndarray,
     stopping_ref: np.ndarray,
     v_ref_ahead: np.ndarray,
@@ -189,9 +191,9 @@ def _tracking_loop(
     """``out`` ``(n + 1, N_STATE, B)``, row 0 the initial states, filled in place; the
     problem's rows time-major ``(R, B, ...)``; ``gains``: the scalars in the order
     :func:`simulate` packs them."""
-    speed_gain, position_gain, dt = gains[0], gains[1], gains[2]
+    rest_within, dt = gains[0], gains[2]
     q_lat, q_head, r_steer, q_steer, b2 = gains[3], gains[4], gains[5], gains[6], gains[7]
-    stop_speed, stop_gain = gains[8], gains[9]
+    stop_speed = gains[8]
     accel_share, steer_share = gains[10], gains[11]
     max_decel, max_accel, max_steer = gains[12], gains[13], gains[14]
     n_steps = out.shape[0] - 1
@@ -207,9 +209,11 @@ def _tracking_loop(
             accel, steer = out[k, 4, b], out[k, 5, b]
             # -- the commands (lqr_commands)
             local = (complex(x, y) - rear[r, b]) * unrotate[r, b]
-            accel_cmd = base_accel[r, b] - speed_gain * speed - position_gain * local.real
+            accel_cmd = (
+                base_accel[r, b] - speed_gain[r, b] * speed - position_gain[r, b] * local.real
+            )
             psi0 = _wrap(heading - heading_ref[r, b])
-            alpha = accel_cmd * dt
+            alpha = max(accel_cmd, speed * rest_within) * dt
             basis[0] = speed * speed
             basis[1] = speed * alpha
             basis[2] = alpha * alpha
@@ -237,7 +241,7 @@ def _tracking_loop(
                 den = den + q_steer * b2 * b2
             steer_rate = -num / den
             if stopping_ref[r, b] and speed <= stop_speed:
-                accel_cmd = -stop_gain * (speed - v_ref_ahead[r, b])
+                accel_cmd = (v_ref_ahead[r, b] - speed) / dt
                 steer_rate = 0.0
             # -- the bicycle (bicycle_step)
             new_accel = (accel_cmd - accel) * accel_share
@@ -277,9 +281,9 @@ def simulate(
     out[0] = initial.T
     gains = np.array(
         [
-            p.speed_gain, p.position_gain, dt,
+            p.rest_within, 0.0, dt,
             s.q_lateral_error, s.q_heading_error, s.r_steer_rate, s.q_steer, n * dt,
-            s.stop_speed_mps, s.stop_gain,
+            s.stop_speed_mps, 0.0,
             dt / (dt + s.accel_lag_s), dt * dt / (dt + s.steer_lag_s),
             s.max_decel_mps2, s.max_accel_mps2, s.max_steer_rad,
         ],
@@ -291,6 +295,8 @@ def simulate(
         p.unrotate,
         p.heading,
         p.base_accel,
+        p.speed_gain,
+        p.position_gain,
         np.ascontiguousarray(p.moments[:, :, lqr._MOMENT_ORDER]),
         p.stopping_ref,
         p.v_ref_ahead,
