@@ -142,7 +142,13 @@ def main() -> None:
     ap.add_argument("--dense", type=int, default=50)
     ap.add_argument("--learned", action=argparse.BooleanOptionalAction, default=True)
     args = ap.parse_args()
-    held_sites = json.loads(args.report.read_text())["held_out_sites"]
+    try:
+        held_sites = json.loads(args.report.read_text())["held_out_sites"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SystemExit(
+            f"Error: {args.report}: not a calibration report with held-out sites ({exc!r}); "
+            "pass the --report of a `replay calibrate --holdout auto` run"
+        ) from None
     df = read_cache(args.cache)
     held = df["site"].is_in(held_sites).to_numpy()
     path = df["risk_path_distance"].to_numpy()
