@@ -13,12 +13,15 @@ from hypothesis import strategies as st
 from risk import CascadeConfig, Frame, filter_frame, parse_filter
 from risk.cascade import run_cascade
 from risk.filtering import (
+    CORRIDOR,
     REACHABILITY,
+    CascadeFilter,
     FilterSpecError,
     KeepAll,
     ModelFilter,
     NearestFilter,
     RadiusFilter,
+    cascade_answer,
 )
 
 
@@ -108,6 +111,71 @@ def test_cascade_answer_matches_run_cascade() -> None:
     assert np.array_equal(answer.cascade.kept, result.kept) and answer.time_ms >= 0
     text = repr(answer)
     assert "cascade" in text and len(text.splitlines()) == 1
+
+
+def _dropped_oracle(frame: Frame, result) -> dict[int, str]:
+    """The drop reasons one agent at a time: the bound first, then the corridor, else the
+    stage that dropped it (the slow, obvious form of cascade_answer's)."""
+    out = {}
+    for i in np.flatnonzero(result.dropped_at >= 0):
+        if result.unreachable is not None and result.unreachable[i]:
+            out[int(frame.ids[i])] = REACHABILITY
+        elif result.behind is not None and result.behind[i]:
+            out[int(frame.ids[i])] = CORRIDOR
+        else:
+            out[int(frame.ids[i])] = result.stage_names[int(result.dropped_at[i])]
+    return out
+
+
+def _highway(rng: np.random.Generator, n: int) -> Frame:
+    """Vehicles on three lanes along +x, ahead and behind the ego, some far and fast:
+    the bound, the corridor (followers behind) and the stage each drop some."""
+    x = np.concatenate([[0.0], rng.uniform(-400.0, 1500.0, n - 1)])
+    y = np.concatenate([[0.0], rng.choice([-3.5, 0.0, 3.5, 40.0], n - 1)])
+    xy = np.stack([x, y], axis=1)
+    return Frame.from_arrays(
+        xy=xy, heading=np.zeros(n), speed=rng.uniform(5.0, 35.0, n), length=np.full(n, 4.5),
+        width=np.full(n, 1.8), paths=[np.array([p, p + np.array([400.0, 0.0])]) for p in xy],
+        ego=0, ids=np.arange(500, 500 + n),
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_cascade_filter_without_the_baseline_answers_as_with_it(seed: int) -> None:
+    """CascadeFilter skips survival on all agents (not part of the answer): the same
+    kept ids in the same order, tiers and drop reasons as run_cascade with the baseline,
+    and drop reasons equal to the one-at-a-time oracle."""
+    frame = _highway(np.random.default_rng(seed), 60)
+    config = CascadeConfig.default()
+    answer = CascadeFilter(config).apply(frame)
+    full = run_cascade(frame, config)  # with the baseline
+    reference = cascade_answer(frame, full, config)
+    assert answer.kept_ids.tolist() == reference.kept_ids.tolist()
+    assert answer.tiers == reference.tiers
+    assert answer.dropped == reference.dropped == _dropped_oracle(frame, full)
+    reasons = set(answer.dropped.values())
+    assert reasons <= {REACHABILITY, CORRIDOR, *config.stage_names}
+    assert {REACHABILITY, CORRIDOR} <= reasons and reasons & set(config.stage_names)
+    result = answer.cascade
+    assert result is not None and full.baseline_computed and not result.baseline_computed
+    assert np.isnan(result.survival_all).all() and not result.baseline.any()
+    assert not result.false_negatives.any()
+    with_baseline = CascadeFilter(config, baseline=True).apply(frame).cascade
+    assert with_baseline is not None and with_baseline.baseline_computed
+    np.testing.assert_array_equal(with_baseline.survival_all, full.survival_all)
+
+
+def test_an_applied_cascade_filter_pickles_without_its_parsed_settings() -> None:
+    """Filters go to worker processes: the parsed settings are not carried along."""
+    import pickle
+
+    config = CascadeConfig.default()
+    applied = CascadeFilter(config)
+    first = applied.apply(_highway(np.random.default_rng(1), 20))
+    copy = pickle.loads(pickle.dumps(applied))
+    assert "_settings" not in vars(copy) and copy.config == config
+    again = copy.apply(_highway(np.random.default_rng(1), 20))
+    assert again.kept_ids.tolist() == first.kept_ids.tolist()
 
 
 @pytest.mark.parametrize(
