@@ -10,11 +10,13 @@ with up to 73 agents), converted with ``python -m replay convert commonroad FILE
 x.mcap`` into a temporary folder; every moving vehicle as the ego, one frame per second.
 
 Each frame is filtered in turns by the shipped cascade as ``filter_frame`` runs it
-(``CascadeFilter``: no survival on all agents) and with that comparison
+(``CascadeFilter``: no survival on all agents), as ``replay plan``'s planners get it
+(``tiers=False``: no survival of the survivors either) and with the comparison
 (``CascadeFilter(baseline=True)``, what ``filter_frame`` did before), round after round,
 so that the shared machine's slow spells fall on both alike. The table gives medians of
 the call's wall time, of the filter's own time (``FilterResult.time_ms``: the corridor,
-the bound, the stages and the tier sort) and of the agents kept, by agent count. Results
+the bound, the stages and the tier sort) of each, and of the agents kept, by agent
+count. Results
 are appended, dated, to ``benchmarks/results/filter_frame.md``.
 """
 
@@ -80,6 +82,7 @@ def main() -> int:
     config = CascadeConfig.default()
     filters = {
         "filter_frame": CascadeFilter(config),
+        "without tiers": CascadeFilter(config, tiers=False),
         "with baseline": CascadeFilter(config, baseline=True),
     }
     for f in filters.values():  # warm-up: compiled kernels, parsed settings
@@ -110,8 +113,9 @@ def main() -> int:
         f"{platform.python_version()}); {len(found)} ego-frames of {len(SCENES)} NGSIM "
         "Lankershim scenes. Medians per frame over the rounds, then over the frames, ms.",
         "",
-        "| others | ego-frames | kept | filter_frame wall | with baseline wall | own time |",
-        "|---|---:|---:|---:|---:|---:|",
+        "| others | ego-frames | kept | filter_frame wall | own time | without tiers wall | "
+        "own time | with baseline wall | own time |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for lo, hi in (*BINS, (0, 1000)):
         rows = [i for i, n in enumerate(n_others) if lo <= n <= hi]
@@ -120,9 +124,10 @@ def main() -> int:
         label = "all" if (lo, hi) == (0, 1000) else f"{lo}-{hi}" if hi < 1000 else f"{lo}+"
         lines.append(
             f"| {label} | {len(rows)} | {statistics.median(kept[i] for i in rows):.0f} | "
-            f"{median_of(wall['filter_frame'], rows):.3f} | "
-            f"{median_of(wall['with baseline'], rows):.3f} | "
-            f"{median_of(own['filter_frame'], rows):.3f} |"
+            + " | ".join(
+                f"{median_of(times[name], rows):.3f}" for name in filters for times in (wall, own)
+            )
+            + " |"
         )
     text = "\n".join(lines) + "\n"
     print(text)

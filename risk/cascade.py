@@ -119,7 +119,9 @@ class CascadeResult:
     kept: np.ndarray  # (S, N) bool, kept after stage s (False for ego/invalid)
     dropped_at: np.ndarray  # (N,) int8, stage that dropped the agent; -1 survived or not judged
     tier: np.ndarray  # (N,) int8, deepest tier reached (0 = first), -1 if none
-    survival: np.ndarray  # (N,) float64, survival risk of the survivors, NaN otherwise
+    # (N,) float64, survival risk of the survivors, NaN otherwise (and for every agent
+    # when the cascade has no tiers: then survival of the survivors is skipped)
+    survival: np.ndarray
     baseline: np.ndarray  # (N,) bool, survival baseline on all agents (R_S >= threshold)
     false_negatives: np.ndarray  # (S,) int64, baseline agents dropped up to and incl. stage s
     stage_time_s: np.ndarray  # (S,) float64, s, each stage's compute time on its input set
@@ -576,7 +578,7 @@ def _pass_per_stage(
     survival = np.full(n, np.nan)
     tier = np.full(n, -1, dtype=np.int8)
     sort_time_s = 0.0
-    if current.size:
+    if current.size and config.tiers:  # no tiers: no survival of the survivors (the kernel's)
         start = time.perf_counter()
         if survival_known is None:
             out = kernel.run(frame, _WANT[(surv_slot,)], fp, ip, steps, unc, _ro(current))
@@ -709,7 +711,7 @@ def _run_staged(
     survival = np.full(n, np.nan)
     tier = np.full(n, -1, dtype=np.int8)
     sort_time_s = 0.0
-    if survivors.size:
+    if survivors.size and config.tiers:  # as the fused cascade: no tiers, no survival
         start = time.perf_counter()
         risk_surv, _ = _timed_on_subset(frame, survivors, SURVIVAL_MODEL, params, evaluate)
         survival[survivors] = risk_surv

@@ -21,6 +21,7 @@ one small interface (:class:`Filter`: a ``name`` and ``apply(frame) -> FilterRes
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -228,29 +229,37 @@ class CascadeFilter:
 
     ``baseline``: also run survival analysis on every agent (the result's ``baseline``
     and ``false_negatives``, which the answer does not use). Off by default: it is not
-    part of the filter, and it cost as much again as the filter itself."""
+    part of the filter, and it cost as much again as the filter itself.
+
+    ``tiers``: sort the survivors into the config's planner tiers, which takes survival
+    analysis of every survivor. False for a planner that reads only the kept agents
+    (``replay plan``'s planners): the same kept agents, no tiers, in the order of the
+    frame, for about half the time."""
 
     config: CascadeConfig = field(default_factory=CascadeConfig.default)
     name: str = "cascade"
     baseline: bool = False
+    tiers: bool = True
 
     @functools.cached_property
-    def _settings(self) -> tuple[Mapping[str, Any] | None, Any]:
-        """The parameters and prediction the config names, parsed once per filter."""
+    def _prepared(self) -> tuple[CascadeConfig, Mapping[str, Any] | None, Any]:
+        """The config to run (without tiers when not wanted), and the parameters and
+        prediction it names, parsed once per filter."""
         named = self.config.model_settings()
-        return named.params_or_none(), named.prediction_or_none()
+        config = self.config if self.tiers else dataclasses.replace(self.config, tiers=())
+        return config, named.params_or_none(), named.prediction_or_none()
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
-        state.pop("_settings", None)  # parsed again where it is unpickled
+        state.pop("_prepared", None)  # prepared again where it is unpickled
         return state
 
     def apply(self, frame: Frame) -> FilterResult:
-        params, prediction = self._settings
+        config, params, prediction = self._prepared
         result = run_cascade(
-            frame, self.config, params=params, prediction=prediction, baseline=self.baseline
+            frame, config, params=params, prediction=prediction, baseline=self.baseline
         )
-        return cascade_answer(frame, result, self.config, self.name)
+        return cascade_answer(frame, result, config, self.name)
 
 
 def cascade_answer(
@@ -306,11 +315,12 @@ def filter_frame(frame: Frame, cascade: CascadeConfig | None = None) -> FilterRe
     return CascadeFilter(CascadeConfig.default() if cascade is None else cascade).apply(frame)
 
 
-def parse_filter(spec: str, cascade: CascadeConfig | None = None) -> Filter:
+def parse_filter(spec: str, cascade: CascadeConfig | None = None, *, tiers: bool = True) -> Filter:
     """A filter from its text form (:data:`FILTER_FORMS`).
 
     ``cascade`` is the cascade of ``cascade`` and where ``model:NAME`` finds its
-    calibrated threshold (the threshold of NAME's stage).
+    calibrated threshold (the threshold of NAME's stage). ``tiers``: whether a cascade
+    filter sorts its survivors into tiers (see :class:`CascadeFilter`).
     """
     config = CascadeConfig.default() if cascade is None else cascade
     text = spec.strip()
@@ -318,13 +328,13 @@ def parse_filter(spec: str, cascade: CascadeConfig | None = None) -> Filter:
     if kind == "none" and not arg:
         return KeepAll()
     if kind == "cascade" and not arg:
-        return CascadeFilter(config)
+        return CascadeFilter(config, tiers=tiers)
     if kind == "cascade":
         if arg not in NAMED_CASCADES:
             raise FilterSpecError(
                 spec, f"no shipped cascade {arg!r}; named: {', '.join(NAMED_CASCADES)}"
             )
-        return CascadeFilter(CascadeConfig.named(arg), name=text)
+        return CascadeFilter(CascadeConfig.named(arg), name=text, tiers=tiers)
     if kind == "nearest":
         try:
             k = int(arg)

@@ -220,7 +220,10 @@ def cascade_agents(
 
     ``protected`` (N,) bool, or empty for none: agents the corridor stage kept
     (:func:`risk.kernel_corridor.corridor_keep`); they skip the bound and the stages, are
-    kept after every stage and get their survival risk and tier as survivors."""
+    kept after every stage and get their survival risk and tier as survivors.
+
+    With no tiers (``tier_min`` empty) survival analysis of the survivors is skipped:
+    their survival risk stays NaN."""
     n = xy.shape[0]
     has_protected = protected.shape[0] == n
     n_st = stage_models.shape[0]
@@ -525,6 +528,8 @@ def cascade_agents(
                 break
         if code[i] != n_st:
             continue
+        if tier_min.shape[0] == 0:
+            continue  # no tiers to sort: the survivors' survival risk is not needed
         best = -INF
         for r in range(r0, r1):
             m = r - r0

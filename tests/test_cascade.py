@@ -611,3 +611,25 @@ def test_the_default_is_the_planner_calibrated_cascade_with_its_guarantee():
     g = config.guarantee
     assert {"miss_rate", "confidence", "unit", "units", "statement"} <= set(g)
     assert "--reference planner" in config.provenance
+
+
+def test_without_tiers_no_path_computes_survival_and_all_keep_the_same(monkeypatch):
+    """A cascade without tiers skips survival of the survivors in the one-pass kernel and
+    in the pass per stage (CPUs without a cycle counter) alike: the same decisions as
+    with tiers, survival NaN, no tier."""
+    import dataclasses
+
+    from risk import kernel
+
+    frame = spread_frame(np.random.default_rng(9), 50, 10.0)
+    config = dataclasses.replace(CONFIG, stages=CONFIG.stages[:2])  # (some survive both)
+    tiered = run_cascade(frame, config)
+    assert tiered.kept[-1].sum() > 5 and (tiered.tier >= 0).any()
+    one_pass = run_cascade(frame, dataclasses.replace(config, tiers=()))
+    monkeypatch.setattr(kernel, "HAVE_CYCLE_COUNTER", False)
+    per_stage = run_cascade(frame, dataclasses.replace(config, tiers=()))
+    for result in (one_pass, per_stage):
+        for name in ("kept", "dropped_at", "unreachable", "false_negatives"):
+            np.testing.assert_array_equal(getattr(result, name), getattr(tiered, name), name)
+        assert np.isnan(result.survival).all() and (result.tier == -1).all()
+    assert not np.isnan(tiered.survival[tiered.kept[-1]]).any()

@@ -165,7 +165,34 @@ def test_cascade_filter_without_the_baseline_answers_as_with_it(seed: int) -> No
     np.testing.assert_array_equal(with_baseline.survival_all, full.survival_all)
 
 
-def test_an_applied_cascade_filter_pickles_without_its_parsed_settings() -> None:
+@pytest.mark.parametrize("seed", range(4))
+def test_a_cascade_without_tiers_keeps_the_same_agents_without_survival(seed: int) -> None:
+    """tiers=False (replay plan's planners read only the kept agents): the same kept and
+    dropped agents, no tiers, no survival risk; the fused kernel, the pass per stage and
+    the staged cascade agree on it."""
+    import dataclasses
+
+    from risk.registry import evaluate as risk_evaluate
+
+    frame = _highway(np.random.default_rng(10 + seed), 50)
+    config = CascadeConfig.default()
+    tiered = CascadeFilter(config).apply(frame)
+    plain = CascadeFilter(config, tiers=False).apply(frame)
+    assert sorted(plain.kept_ids.tolist()) == sorted(tiered.kept_ids.tolist())
+    assert plain.kept_ids.tolist() == sorted(plain.kept_ids.tolist())  # the frame's order
+    assert plain.dropped == tiered.dropped and plain.tiers == {}
+    assert plain.cascade is not None and np.isnan(plain.cascade.survival).all()
+    assert (
+        tiered.cascade is not None
+        and not np.isnan(tiered.cascade.survival[tiered.cascade.kept[-1]]).any()
+    )
+    untiered = dataclasses.replace(config, tiers=())
+    staged = run_cascade(frame, untiered, evaluate=lambda *a, **k: risk_evaluate(*a, **k))
+    np.testing.assert_array_equal(staged.kept, plain.cascade.kept)
+    assert np.isnan(staged.survival).all() and (staged.tier == -1).all()
+
+
+def test_an_applied_cascade_filter_pickles_without_its_prepared_config() -> None:
     """Filters go to worker processes: the parsed settings are not carried along."""
     import pickle
 
@@ -173,7 +200,7 @@ def test_an_applied_cascade_filter_pickles_without_its_parsed_settings() -> None
     applied = CascadeFilter(config)
     first = applied.apply(_highway(np.random.default_rng(1), 20))
     copy = pickle.loads(pickle.dumps(applied))
-    assert "_settings" not in vars(copy) and copy.config == config
+    assert "_prepared" not in vars(copy) and copy.config == config
     again = copy.apply(_highway(np.random.default_rng(1), 20))
     assert again.kept_ids.tolist() == first.kept_ids.tolist()
 

@@ -79,7 +79,7 @@ def kept_and_distances(
     """Per ego-frame of one scene that the open loop plans: the cascade's kept count, and
     every other agent's centre distance to the ego (``(n, 2)``: ego-frame number, metres)."""
     scene = load_scene(source)
-    cascade = CascadeFilter(settings.cascade)
+    cascade = CascadeFilter(settings.cascade, tiers=False)  # the kept count only
     kept: list[int] = []
     distances: list[np.ndarray] = []
     seen = ego_frames(scene, _egos(scene, ego), every)

@@ -77,7 +77,8 @@ class PlanSettings:
     def make_filters(self) -> list[Filter]:
         """The filters, parsed once (an unknown spec raises FilterSpecError)."""
         specs = [s for s in self.filters if s.strip() != ALL_AGENTS]
-        filters = [parse_filter(spec, self.cascade) for spec in specs]
+        # The planners read the kept agents only: cascades run without their tiers.
+        filters = [parse_filter(spec, self.cascade, tiers=False) for spec in specs]
         names = [f.name for f in filters]
         if len(set(names)) != len(names):
             raise ReplayError(f"--filter: a filter is given twice ({', '.join(names)})")
@@ -204,7 +205,7 @@ def plan_scene(
     truth = _Columns(TRUTH_COLUMNS) if settings.truth else None
     cascade = next((f for f in filters if isinstance(f, CascadeFilter)), None)
     if truth is not None and cascade is None:
-        cascade = CascadeFilter(settings.cascade)
+        cascade = CascadeFilter(settings.cascade, tiers=False)
     n_frames = no_path = 0
     skipped: dict[str, int] = {}
     skipped_ids: dict[str, set[int]] = {}
