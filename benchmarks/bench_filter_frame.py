@@ -28,21 +28,21 @@ import os
 import pathlib
 import platform
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from recorded_scenes import RECORDED, converted, moving_vehicles  # noqa: E402
 
 from replay.analysis.planner_eval.open_loop import ego_frames  # noqa: E402
-from replay.core.egos import load_scene  # noqa: E402
 from replay.core.engine import Stride  # noqa: E402
-from risk import CascadeConfig, Frame, Kind  # noqa: E402
+from risk import CascadeConfig, Frame  # noqa: E402
 from risk.filtering import CascadeFilter  # noqa: E402
 
-RECORDED = ROOT.parent / "shared" / "data" / "recorded"
 SCENES = (
     RECORDED / "ngsim" / "USA_Lanker-1_1_T-1.xml",
     RECORDED / "ngsim" / "USA_Lanker-2_13_T-1.xml",
@@ -53,19 +53,8 @@ BINS = ((0, 9), (10, 24), (25, 49), (50, 1000))
 
 def frames(folder: pathlib.Path) -> list[Frame]:
     found: list[Frame] = []
-    for source in SCENES:
-        if not source.is_file():
-            print(f"skipped (not found): {source}", file=sys.stderr)
-            continue
-        target = folder / f"{source.stem}.mcap"
-        subprocess.run(
-            [sys.executable, "-m", "replay", "convert", "commonroad", str(source), "-o", str(target)],
-            check=True, capture_output=True,
-        )  # fmt: skip
-        scene = load_scene(target)
-        first = scene.indexed[0][1]
-        egos = [int(i) for i, k, v in zip(first.ids, first.kinds, first.speed, strict=True)
-                if k == Kind.VEHICLE and v > 1.0]  # fmt: skip
+    for _, scene in converted(SCENES, folder):
+        egos = moving_vehicles(scene)
         found += [frame for _, _, frame in ego_frames(scene, egos, Stride(seconds=1.0))]
     return found
 

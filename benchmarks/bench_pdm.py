@@ -46,8 +46,9 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
+from recorded_scenes import RECORDED, converted, moving_vehicles
+
 from replay.analysis.planner_eval.open_loop import ego_frames
-from replay.core.egos import load_scene
 from replay.core.engine import Stride
 from replay.planning import lqr
 from replay.planning.errors import NoReferencePath
@@ -56,10 +57,8 @@ from replay.planning.inputs import plan_request
 from replay.planning.pdm import PdmPlanner, _centres
 from replay.planning.truth import target_speed
 from replay.planning.types import PlanRequest
-from risk import Kind
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-RECORDED = ROOT.parent / "shared" / "data" / "recorded"
 SCENES = (
     RECORDED / "mona" / "C-DEU_MONAEast-2_1040_T-1119.xml",
     RECORDED / "mona" / "C-DEU_MONAEast-2_400_T-479.xml",
@@ -70,21 +69,10 @@ AGENTS = (25, 40)
 
 def requests(folder: pathlib.Path, limit: int) -> list[tuple[str, PlanRequest]]:
     found: list[tuple[str, PlanRequest]] = []
-    for source in SCENES:
-        if not source.is_file():
-            print(f"skipped (not found): {source}", file=sys.stderr)
-            continue
-        target = folder / f"{source.stem}.mcap"
-        subprocess.run(
-            [sys.executable, "-m", "replay", "convert", "commonroad", str(source), "-o", str(target)],
-            check=True, capture_output=True,
-        )  # fmt: skip
-        scene = load_scene(target)
+    for source, scene in converted(SCENES, folder):
         tracks = scene.tracks()
         column_of = {int(i): c for c, i in enumerate(tracks.ids)}
-        first = scene.indexed[0][1]
-        egos = [int(i) for i, k, v in zip(first.ids, first.kinds, first.speed, strict=True)
-                if k == Kind.VEHICLE and v > 1.0]  # fmt: skip
+        egos = moving_vehicles(scene)
         for ego_id, _, frame in ego_frames(scene, egos, Stride(seconds=1.0)):
             n = int(frame.others.sum())
             if not AGENTS[0] <= n <= AGENTS[1]:
