@@ -5,7 +5,7 @@ The verdict on the paper's claim ("fewer agents, less planning, no safety issue"
 computed from the same numbers, with the rule stated in the text: a filter *keeps the plan*
 when the upper end of the 95 % scene-bootstrap interval of its changed share is below
 the threshold given (default 1 %), and *saves planning* when its median filter-plus-plan
-time is below the all-agents plan's.
+time is at most 0.95x the all-agents plan's (:data:`SAVES_PLANNING_RATIO`).
 """
 
 from __future__ import annotations
@@ -22,6 +22,10 @@ from replay.analysis.planner_eval.streaming import PlotPoints
 
 #: The changed share (upper 95 % bound) below which a filter "keeps the plan".
 KEEPS_PLAN_SHARE = 0.01
+#: A filter saves planning when its median filter-plus-plan time is at most this share of
+#: the all-agents plan's: re-runs of one study on the shared machine moved the ratio by up
+#: to 0.04 (1.02x-1.06x), so a ratio of 0.99x says nothing.
+SAVES_PLANNING_RATIO = 0.95
 
 
 def _pct(value: float | None, digits: int = 1) -> str:
@@ -261,7 +265,7 @@ def verdict(summary: dict[str, Any], *, keeps_plan_share: float = KEEPS_PLAN_SHA
             hi = (ch["ci95"] or [None, None])[1]
             ratio = f["median_time_ratio"]
             fewer = f["mean_kept"] < all_kept
-            faster = ratio is not None and ratio < 1.0
+            faster = ratio is not None and ratio <= SAVES_PLANNING_RATIO
             same = hi is not None and hi < keeps_plan_share
             closed = entry.get("closed_loop", {}).get("filters", {}).get(filt, {})
             more = closed.get("paired", {}).get(
@@ -363,7 +367,9 @@ def write_report(
     lines += [
         f"A filter keeps the plan here when the upper end of the 95 % interval of its "
         f"changed share is below {_pct(KEEPS_PLAN_SHARE, 0)}; it saves planning when the "
-        "median of its time plus the filtered plan is below the all-agents plan's.",
+        "median of its time plus the filtered plan is at most "
+        f"{SAVES_PLANNING_RATIO:.2f}x the all-agents plan's (re-runs on the shared machine "
+        "move the ratio by a few hundredths).",
         "",
     ]
     if "plan_changed" in relative or "plan_changed.png" in relative:
