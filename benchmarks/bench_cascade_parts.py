@@ -49,18 +49,25 @@ def main() -> None:
     want_survival = cascade_module._WANT[(cascade_module._SURV_SLOT,)]
     names = ["set-up", "bound", *plan.stage_names, "survival + tiers"]
     print(f"kernel cycles (thousands) per part: {', '.join(names)}")
+    no_tiers = np.zeros(0), np.zeros(0, np.int64)  # replay plan's filters: no tiers
     for f in frames:
         survival = kernel.run(f, want_survival, fp, ip, steps, unc)[cascade_module._SURV_SLOT]
+        protected, _, _ = cascade_module.corridor_masks(f, config.corridor)
+        shielded = kernel.NOT_PROTECTED if protected is None else protected
         call = (
             *kernel.frame_arrays(f), int(f.ego), kernel.ALL_AGENTS, steps, unc, fp, ip,
             plan.slots, plan.thr, plan.stop2, plan.cut2, True, cascade_module._MAX_SPEEDS,
-            plan.baseline_threshold, survival, plan.tier_min, plan.tier_cap,
+            plan.baseline_threshold, survival, plan.tier_min, plan.tier_cap, shielded,
         )  # fmt: skip
+        tierless = (*call[:-3], *no_tiers, shielded)
         kept = kernel.cascade_agents(*call)[0]
-        cycles, t_cascade, t_survival, t_run, t_evaluate = [], [], [], [], []
+        cycles, t_cascade, t_survival, t_run, t_evaluate, t_tierless = [], [], [], [], [], []
         for _ in range(args.calls):
             t0 = time.perf_counter()
             out = kernel.cascade_agents(*call)
+            t1 = time.perf_counter()
+            kernel.cascade_agents(*tierless)
+            t_tierless.append(time.perf_counter() - t1)
             t1 = time.perf_counter()
             kernel.run(f, want_survival, fp, ip, steps, unc)
             t2 = time.perf_counter()
@@ -80,7 +87,8 @@ def main() -> None:
         print(
             f"kept {int(f.others.sum())} -> {' -> '.join(str(int(k.sum())) for k in kept)}; "
             f"cycles {np.round(parts).astype(int).tolist()}; cascade kernel {1e6 * c:.0f} µs, "
-            f"survival kernel {1e6 * s:.0f} µs, ratio {c / s:.3f}; Python around "
+            f"survival kernel {1e6 * s:.0f} µs, ratio {c / s:.3f}; without tiers "
+            f"{1e6 * statistics.median(t_tierless):.0f} µs; Python around "
             f"run_cascade {1e6 * glue_cascade:.0f} µs, around evaluate {1e6 * glue_evaluate:.0f} µs"
         )
 
