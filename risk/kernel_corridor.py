@@ -81,6 +81,47 @@ def _corridor_project(xs, ys, cum, qx, qy):
 
 
 @_inner
+def _line_bounds(xs, ys):
+    """What :func:`_line_gap` needs of a polyline, once per frame: the bounding box of its
+    points, and its two end rays (start point, unit direction, 1 if it exists: the first
+    segment runs on backwards and the last forwards, when not of zero length)."""
+    n = xs.shape[0]
+    out = np.zeros(14)
+    out[0], out[1], out[2], out[3] = xs.min(), ys.min(), xs.max(), ys.max()
+    for r, (k, sign) in enumerate(((0, -1.0), (n - 2, 1.0))):
+        dx, dy = xs[k + 1] - xs[k], ys[k + 1] - ys[k]
+        seg = math.hypot(dx, dy)
+        if seg > 0.0:
+            base = 4 + 5 * r
+            out[base] = xs[k] if sign < 0 else xs[k + 1]
+            out[base + 1] = ys[k] if sign < 0 else ys[k + 1]
+            out[base + 2], out[base + 3] = sign * dx / seg, sign * dy / seg
+            out[base + 4] = 1.0
+    return out
+
+
+@_inner
+def _line_gap(bounds, qx, qy):
+    """A lower bound of ``|lat|`` of :func:`_corridor_project` (the distance from
+    ``(qx, qy)`` to the polyline with its end rays) in O(1): the least of the distances to
+    the points' bounding box, which holds every segment, and to the two rays. Like the
+    distance itself it is 1-Lipschitz in the point."""
+    gx = max(bounds[0] - qx, 0.0, qx - bounds[2])
+    gy = max(bounds[1] - qy, 0.0, qy - bounds[3])
+    gap = math.hypot(gx, gy)
+    for base in (4, 9):
+        if bounds[base + 4] > 0.5:
+            rx, ry = qx - bounds[base], qy - bounds[base + 1]
+            along = rx * bounds[base + 2] + ry * bounds[base + 3]
+            if along <= 0.0:
+                d = math.hypot(rx, ry)
+            else:
+                d = abs(rx * bounds[base + 3] - ry * bounds[base + 2])
+            gap = min(gap, d)
+    return gap
+
+
+@_inner
 def _at_arc(xs, ys, cum, arc):
     """The point at arc length ``arc`` along the polyline, straight on beyond either end."""
     n = xs.shape[0]
@@ -139,7 +180,10 @@ def corridor_keep(
     One pass over the agents; each costs O(path points) for a leader and O(steps x path
     points) for a crossing check, which a bounding-box test skips (exactly: no decision
     changes) for agents whose motion within the horizon never comes near the part of the
-    corridor a crossing may count."""
+    corridor a crossing may count. A point's projection onto the corridor is skipped
+    where an O(1) lower bound of its distance (:func:`_line_gap`) already puts it
+    outside, and a crossing check skips the steps that bound shows cannot reach the
+    corridor (exact too: the oracle test compares every decision)."""
     n = xy.shape[0]
     out = np.zeros(n, np.int8)
     if n == 0 or ego < 0 or not valid[ego]:
@@ -160,13 +204,18 @@ def corridor_keep(
         reach_max = max(reach_max, 0.5 * (length[ego] + length[agents[a]]))
         half_max = max(half_max, 0.5 * (width[ego] + width[agents[a]]) + params[C_LAT])
     box = _line_box(ex, ey, ecum, s_ego, s_ego + range_stop + reach_max, half_max)
+    bounds = _line_bounds(ex, ey)
     lead_arc = np.full(m, math.inf)
     for a in range(m):
         i = agents[a]
         half = 0.5 * (width[ego] + width[i]) + params[C_LAT]
         reach = 0.5 * (length[ego] + length[i])
-        s, lat, ux, uy = _corridor_project(ex, ey, ecum, xy[i, 0], xy[i, 1])
-        if abs(lat) <= half:
+        # (the 1e-6 m keeps rounding from deciding: a gap above it is certainly outside)
+        inside = _line_gap(bounds, xy[i, 0], xy[i, 1]) <= half + 1e-6
+        if inside:
+            s, lat, ux, uy = _corridor_project(ex, ey, ecum, xy[i, 0], xy[i, 1])
+            inside = abs(lat) <= half
+        if inside:
             along = speed[i] * (math.cos(heading[i]) * ux + math.sin(heading[i]) * uy)
             if s > s_ego:
                 if s - s_ego - reach <= _corridor_range(params, v, v - along):
@@ -185,17 +234,27 @@ def corridor_keep(
             continue
         seg = 0
         steps = int(horizon / CROSS_STEP_S + 1e-9)
+        outside_until = -math.inf  # points at an arc below this are outside the corridor
         for k in range(1, steps + 1):
             t = k * CROSS_STEP_S
             arc = speed[i] * t
+            if arc < outside_until:
+                continue
             while seg < na - 2 and acum[seg + 1] < arc:
                 seg += 1
             span = acum[seg + 1] - acum[seg]
             f = (arc - acum[seg]) / span if span > 0 else 0.0
             qx = ax[seg] + f * (ax[seg + 1] - ax[seg])
             qy = ay[seg] + f * (ay[seg + 1] - ay[seg])
-            s, lat, _, _ = _corridor_project(ex, ey, ecum, qx, qy)
-            if abs(lat) > half:
+            gap = _line_gap(bounds, qx, qy)
+            if gap <= half + 1e-6:
+                s, lat, _, _ = _corridor_project(ex, ey, ecum, qx, qy)
+                gap = abs(lat)
+            if gap > half:
+                # The gap (the distance to the extended line, or its lower bound) falls by
+                # at most the arc the agent travels: no point before this arc can be
+                # inside (1e-6 m for rounding). Exact; far agents skip steps.
+                outside_until = arc + (gap - half) - 1e-6
                 continue
             # the first point in the corridor decides
             ahead = s - s_ego

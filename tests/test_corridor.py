@@ -3,6 +3,7 @@ the issue's highway frame through the default filter."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -259,3 +260,42 @@ def test_a_follower_that_cannot_close_the_gap_is_dropped():
     # within the 8 s horizon, so the other stages judge it; 20 m behind: too close
     codes = _kernel_codes(highway([(-80, 0, 0, 30), (-80, 0.2, 0, 45), (-20, 0, 0, 30)]), c)
     assert codes.tolist() == [0, BEHIND, 0, 0]
+
+
+@functools.cache
+def _gaps_and_offsets():
+    """A compiled caller of the corridor's inner functions (which Python cannot call):
+    ``(gap, |lat|)`` for each query point."""
+    import numba
+
+    from risk.kernel_corridor import _corridor_project, _line_bounds, _line_gap
+
+    @numba.njit
+    def run(xs, ys, cum, q):
+        bounds = _line_bounds(xs, ys)
+        out = np.empty((q.shape[0], 2))
+        for j in range(q.shape[0]):
+            out[j, 0] = _line_gap(bounds, q[j, 0], q[j, 1])
+            out[j, 1] = abs(_corridor_project(xs, ys, cum, q[j, 0], q[j, 1])[1])
+        return out
+
+    return run
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 8))
+def test_line_gap_is_a_lower_bound_of_the_lateral_offset(seed, n):
+    """The corridor's O(1) skip test never exceeds the distance it stands in for (so an
+    agent it calls outside is outside), and is 1-Lipschitz like it."""
+    rng = np.random.default_rng(seed)
+    xs, ys = rng.uniform(-50, 50, n), rng.uniform(-50, 50, n)
+    if rng.random() < 0.3:  # a zero-length first or last segment: no ray at that end
+        k = 0 if rng.random() < 0.5 else n - 2
+        xs[k + 1], ys[k + 1] = xs[k], ys[k]
+    cum = np.r_[0.0, np.cumsum(np.hypot(np.diff(xs), np.diff(ys)))]
+    q = rng.uniform(-200, 200, (50, 2))
+    gaps, lats = _gaps_and_offsets()(xs, ys, cum, q).T
+    assert (gaps <= lats + 1e-9).all()
+    assert (gaps > 0).any()  # the bound is not trivially zero
+    step = np.hypot(*(q[1:] - q[:-1]).T)
+    assert (np.abs(np.diff(gaps)) <= step + 1e-9).all()
